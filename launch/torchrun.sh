@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# OMG pretraining with torchrun, on one machine or on each of N machines.
+#
+#   NODES=2 GPUS=8 NODE_RANK=0 MASTER_ADDR=10.0.0.1 launch/torchrun.sh configs/pretrain_giant.yaml
+#   (run the same line on every node with its own NODE_RANK; one node: launch/torchrun.sh CONFIG)
+#
+# torchrun sets RANK, LOCAL_RANK, WORLD_SIZE, MASTER_ADDR and MASTER_PORT, from which
+# Lightning's TorchElasticEnvironment takes the process layout. The accumulation is set so the
+# global batch stays 256 (GLOBAL_BATCH) whatever NODES x GPUS is.
+set -euo pipefail
+
+CONFIG=${1:?usage: launch/torchrun.sh CONFIG [overrides...]}
+shift
+NODES=${NODES:-1}
+GPUS=${GPUS:-$(nvidia-smi -L | wc -l)}
+NODE_RANK=${NODE_RANK:-0}
+MASTER_ADDR=${MASTER_ADDR:-127.0.0.1}
+MASTER_PORT=${MASTER_PORT:-29500}
+GLOBAL_BATCH=${GLOBAL_BATCH:-256}
+BATCH=${BATCH:-$(python -c "import yaml,sys; print(yaml.safe_load(open(sys.argv[1]))['data']['batch_size'])" "$CONFIG")}
+ACCUM=$(( GLOBAL_BATCH / (BATCH * NODES * GPUS) ))
+if (( ACCUM < 1 || ACCUM * BATCH * NODES * GPUS != GLOBAL_BATCH )); then
+  echo "global batch $GLOBAL_BATCH is not a multiple of $BATCH x $NODES nodes x $GPUS GPUs; set BATCH" >&2
+  exit 2
+fi
+
+exec torchrun --nnodes "$NODES" --nproc-per-node "$GPUS" --node-rank "$NODE_RANK" \
+  --master-addr "$MASTER_ADDR" --master-port "$MASTER_PORT" \
+  -m omg.cli fit --config "$CONFIG" \
+  --trainer.num_nodes "$NODES" --trainer.devices "$GPUS" \
+  --data.batch_size "$BATCH" --trainer.accumulate_grad_batches "$ACCUM" "$@"

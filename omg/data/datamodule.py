@@ -1,0 +1,320 @@
+"""``MotionDataModule``: streaming WebDataset motion shards into training batches.
+
+Training streams shards with resampling (each worker draws shards at random from its rank's
+list, reads them through a shuffle buffer and cuts one sliding random window per clip).
+The recipe that is safe under DDP:
+
+- each rank's shard list is resolved here, in the main process, from the rank and world
+  size Lightning gives us, and travels to the workers inside the dataset; no worker ever
+  looks at environment variables, so no rank can read another's shards whatever the
+  multiprocessing start method;
+- an epoch is a fixed number of batches per rank, split exactly among the workers, so every
+  rank yields the same number of batches;
+- validation is a small map-style set that Lightning splits with a DistributedSampler.
+
+The stream is a pure function of (seed, rank, worker, epoch), and the loader is stateful:
+Lightning saves its (epoch, batches) position in checkpoints, and a resumed run replays the
+epoch up to that point and goes on with the same batches it would have seen.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
+
+from omg.data.shards import Manifest, decode_sample, iter_tar
+from omg.data.windows import Collate, WindowSampler, make_item, pick_text
+from omg.errors import UsageError
+
+log = logging.getLogger(__name__)
+
+
+class TooManyBadSamples(RuntimeError):
+    pass
+
+
+def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest]:
+    """Shard directories or URL patterns -> (sorted shard urls, the manifest of the set).
+
+    A directory lists its shards in its manifest; a pattern such as
+    ``/data/h3d/shard-{000000..000127}.tar`` is brace-expanded and its manifest is read from
+    the directory of the first shard.
+    """
+    import braceexpand
+
+    specs = [spec] if isinstance(spec, str) else list(spec)
+    if not specs:
+        raise UsageError("no shards given: set data.train to a shard directory or URL pattern")
+    urls, manifests = [], []
+    for s in specs:
+        if Path(s).is_dir():
+            m = Manifest.load(s)
+            urls += [str(p) for p in m.shard_paths]
+        else:
+            expanded = list(braceexpand.braceexpand(s))
+            first = expanded[0]
+            if "://" not in first and not first.startswith("pipe:") and not Path(first).exists():
+                raise UsageError(f"shards {s!r}: no such directory or file; build them with `omg shards build` or `omg shards synth`")
+            m = Manifest.load(Path(first.split("://")[-1]).parent)
+            urls += expanded
+        manifests.append(m)
+    first = manifests[0]
+    for m in manifests[1:]:
+        for key in ("representation", "skeleton", "fps", "feature_dim"):
+            if m[key] != first[key]:
+                raise UsageError(f"shard sets disagree on {key}: {first.dir} has {first[key]}, {m.dir} has {m[key]}")
+    return sorted(urls), first
+
+
+def rank_shards(urls: list[str], rank: int, world_size: int) -> list[str]:
+    """Rank r's disjoint share of the shards (every world_size-th, starting at r)."""
+    if len(urls) < world_size:
+        raise UsageError(
+            f"{len(urls)} shards cannot be split disjointly across {world_size} ranks; "
+            "rebuild with a smaller shard size (--max-clips) so there are at least as many shards as ranks"
+        )
+    return urls[rank::world_size]
+
+
+def worker_share(total: int, worker: int, num_workers: int) -> int:
+    """How many of ``total`` round-robin items fall to ``worker``."""
+    return total // num_workers + (worker < total % num_workers)
+
+
+class MotionStream(IterableDataset):
+    """Endless resampled shards -> shuffle buffer -> one random window per clip.
+
+    One epoch yields exactly ``batches`` batches of ``batch_size`` windows (the DataLoader
+    batches inside each worker, so each worker yields whole batches).
+    """
+
+    def __init__(
+        self,
+        urls: list[str],
+        rank: int,
+        batches: int,
+        batch_size: int,
+        windows: WindowSampler,
+        feature_dim: int,
+        seed: int = 0,
+        shuffle_buffer: int = 1000,
+        max_bad_fraction: float = 0.01,
+    ):
+        self.urls, self.rank = urls, rank
+        self.batches, self.batch_size = batches, batch_size
+        self.windows, self.feature_dim = windows, feature_dim
+        self.seed, self.shuffle_buffer = seed, shuffle_buffer
+        self.max_bad_fraction = max_bad_fraction
+        self.epoch, self.skip_batches = 0, 0  # set by StreamLoader before workers start
+
+    def __len__(self) -> int:
+        return self.batches * self.batch_size
+
+    def _samples(self, rng: np.random.Generator) -> Iterator[dict]:
+        """Decoded samples from shards drawn at random, forever; bad ones are counted and skipped."""
+        seen = bad = 0
+        while True:
+            url = self.urls[int(rng.integers(len(self.urls)))]
+            try:
+                for raw in iter_tar(url):
+                    seen += 1
+                    try:
+                        yield decode_sample(raw, self.feature_dim)
+                        continue
+                    except (ValueError, KeyError) as e:
+                        where, reason = f"{url} key {raw.get('__key__')}", e
+                    bad += 1
+                    self._bad(where, reason, bad, seen)
+            except Exception as e:  # noqa: BLE001 - an unreadable shard counts as one bad sample
+                seen, bad = seen + 1, bad + 1
+                self._bad(url, f"unreadable ({type(e).__name__}: {e})", bad, seen)
+
+    def _bad(self, where: str, reason, bad: int, seen: int) -> None:
+        log.warning("skipping bad sample %s: %s (%d bad of %d read by this worker)", where, reason, bad, seen)
+        if seen >= 20 and bad > self.max_bad_fraction * seen:
+            raise TooManyBadSamples(
+                f"{bad} of {seen} samples were bad (last: {where}: {reason}), over data.max_bad_fraction="
+                f"{self.max_bad_fraction}; check the shards with `omg shards inspect`"
+            )
+
+    def __iter__(self) -> Iterator[dict]:
+        info = get_worker_info()
+        worker, num_workers = (info.id, info.num_workers) if info else (0, 1)
+        rng = np.random.default_rng([self.seed, self.rank, worker, self.epoch])
+        to_yield = worker_share(self.batches, worker, num_workers) * self.batch_size
+        to_skip = worker_share(self.skip_batches, worker, num_workers) * self.batch_size
+        buffer: list[dict] = []
+        samples = self._samples(rng)
+        produced = 0
+        while produced < to_yield:
+            while len(buffer) < self.shuffle_buffer:
+                buffer.append(next(samples))
+            i = int(rng.integers(len(buffer)))
+            sample = buffer[i]
+            buffer[i] = buffer[-1]
+            buffer.pop()
+            start, length = self.windows.random(len(sample["motion"]), rng)
+            text = pick_text(sample["texts"], rng)
+            produced += 1
+            if produced > to_skip:
+                yield make_item(sample, start, length, text)
+
+
+class StreamLoader(DataLoader):
+    """A DataLoader over a ``MotionStream`` that knows its position in the stream.
+
+    Lightning saves ``state_dict()`` in checkpoints and calls ``load_state_dict()`` on resume.
+    """
+
+    def __init__(self, dataset: MotionStream, **kwargs):
+        super().__init__(dataset, batch_size=dataset.batch_size, **kwargs)
+        self.epoch, self.batches_done, self._resume_at = 0, 0, 0
+
+    def __len__(self) -> int:
+        return self.dataset.batches
+
+    def __iter__(self):
+        self.dataset.epoch, self.dataset.skip_batches = self.epoch, self._resume_at
+        self.batches_done, self._resume_at = self.dataset.skip_batches, 0
+        for batch in super().__iter__():
+            self.batches_done += 1
+            yield batch
+        self.epoch, self.batches_done = self.epoch + 1, 0
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "batches_done": self.batches_done}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.epoch, self._resume_at = state["epoch"], state["batches_done"]
+
+
+class ClipDataset(Dataset):
+    """All clips in RAM (map-style): center windows for validation, or random windows, as
+    the MDM / HumanML3D loaders do for training."""
+
+    def __init__(self, samples: list[dict], windows: WindowSampler, random_windows: bool = False, seed: int = 0):
+        self.samples, self.windows = samples, windows
+        self.random_windows, self.seed = random_windows, seed
+
+    @classmethod
+    def from_shards(cls, urls: list[str], feature_dim: int, windows: WindowSampler, **kwargs) -> ClipDataset:
+        samples = [decode_sample(raw, feature_dim) for url in urls for raw in iter_tar(url)]
+        return cls(samples, windows, **kwargs)
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> dict:
+        sample = self.samples[index]
+        if self.random_windows:
+            rng = np.random.default_rng()
+            start, length = self.windows.random(len(sample["motion"]), rng)
+            return make_item(sample, start, length, pick_text(sample["texts"], rng))
+        start, length = self.windows.center(len(sample["motion"]))
+        return make_item(sample, start, length, sample["texts"][0] if sample["texts"] else "")
+
+
+class MotionDataModule(L.LightningDataModule):
+    """Motion shards -> batches of ``motion`` (B, T, D) normalised, ``mask`` (B, T), ``text``.
+
+    Args:
+        train: shard directory, URL pattern (``/data/shard-{000000..000099}.tar``) or a list.
+        val: the same for validation (a small set: it is loaded into memory), or None.
+        batch_size: windows per batch on each rank.
+        max_len / min_len: window length bounds in frames (OMG: 300 at 30 fps).
+        batches_per_epoch: batches each rank yields per training epoch.
+        shuffle_buffer: samples held by each worker to shuffle within.
+        normalize: standardise features with the manifest's mean/std.
+        max_bad_fraction: stop when more than this fraction of the samples a worker read were bad.
+    """
+
+    def __init__(
+        self,
+        train: str | list[str],
+        val: str | list[str] | None = None,
+        batch_size: int = 32,
+        max_len: int = 300,
+        min_len: int = 40,
+        batches_per_epoch: int = 1000,
+        num_workers: int = 2,
+        shuffle_buffer: int = 1000,
+        seed: int = 0,
+        normalize: bool = True,
+        max_bad_fraction: float = 0.01,
+    ):
+        super().__init__()
+        if batch_size < 1 or batches_per_epoch < 1 or num_workers < 0 or shuffle_buffer < 1:
+            raise UsageError(
+                "data.batch_size, data.batches_per_epoch and data.shuffle_buffer must be positive and "
+                f"data.num_workers >= 0, got {batch_size}, {batches_per_epoch}, {shuffle_buffer}, {num_workers}"
+            )
+        self.save_hyperparameters()
+        self.windows = WindowSampler(max_len, min_len)
+        self.train_urls, self.manifest = resolve_shards(train)
+        self.val_urls = resolve_shards(val)[0] if val else []
+        mean, std = (self.manifest.mean, self.manifest.std) if normalize else (None, None)
+        self.collate = Collate(mean, std)
+
+    # what models need to know about the data
+    @property
+    def feature_dim(self) -> int:
+        return self.manifest["feature_dim"]
+
+    @property
+    def representation(self) -> str:
+        return self.manifest["representation"]
+
+    @property
+    def skeleton(self) -> str:
+        return self.manifest["skeleton"]
+
+    @property
+    def fps(self) -> float:
+        return self.manifest["fps"]
+
+    @property
+    def spec(self) -> dict:
+        return self.manifest.spec()
+
+    def _rank_world(self) -> tuple[int, int]:
+        trainer = self.trainer
+        return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
+
+    def train_dataloader(self) -> StreamLoader:
+        h = self.hparams
+        rank, world = self._rank_world()
+        stream = MotionStream(
+            rank_shards(self.train_urls, rank, world),
+            rank=rank,
+            batches=h.batches_per_epoch,
+            batch_size=h.batch_size,
+            windows=self.windows,
+            feature_dim=self.feature_dim,
+            seed=h.seed,
+            shuffle_buffer=h.shuffle_buffer,
+            max_bad_fraction=h.max_bad_fraction,
+        )
+        return StreamLoader(stream, num_workers=h.num_workers, collate_fn=self.collate, persistent_workers=False)
+
+    def val_dataloader(self) -> DataLoader | list:
+        if not self.val_urls:
+            return []
+        dataset = ClipDataset.from_shards(self.val_urls, self.feature_dim, self.windows)
+        return DataLoader(dataset, batch_size=self.hparams.batch_size, collate_fn=self.collate, num_workers=0)
+
+    def test_dataloader(self) -> DataLoader | list:
+        return self.val_dataloader()
+
+
+def in_memory_loader(urls: list[str], feature_dim: int, windows: WindowSampler, batch_size: int, num_workers: int,
+                     collate: Collate) -> DataLoader:
+    """The MDM-style baseline: every clip in RAM, random windows, shuffled each epoch."""
+    dataset = ClipDataset.from_shards(urls, feature_dim, windows, random_windows=True)
+    return DataLoader(dataset, batch_size=batch_size, shuffle=True, num_workers=num_workers, collate_fn=collate,
+                      drop_last=True)

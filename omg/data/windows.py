@@ -1,0 +1,91 @@
+"""Sliding random windows over clips, and the pad + mask collate.
+
+Every clip of T frames yields one window per visit: a length l ~ U[min_len, min(L, T)] and a
+start i ~ U[0, T - l] (OMG: L = 300 frames at 30 fps). Clips shorter than ``min_len`` are
+used whole, so no data is dropped for being short.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from omg.errors import UsageError
+
+
+@dataclass(frozen=True)
+class WindowSampler:
+    max_len: int = 300
+    min_len: int = 40
+
+    def __post_init__(self):
+        if not 1 <= self.min_len <= self.max_len:
+            raise UsageError(f"windows need 1 <= min_len <= max_len, got min_len={self.min_len}, max_len={self.max_len}")
+
+    def random(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
+        """(start, length) of a random window."""
+        high = min(self.max_len, num_frames)
+        low = min(self.min_len, high)
+        length = int(rng.integers(low, high + 1))
+        start = int(rng.integers(0, num_frames - length + 1))
+        return start, length
+
+    def center(self, num_frames: int) -> tuple[int, int]:
+        """The deterministic window used for validation: the middle ``max_len`` frames."""
+        length = min(self.max_len, num_frames)
+        return (num_frames - length) // 2, length
+
+
+def make_item(sample: dict, start: int, length: int, text: str) -> dict:
+    """Cut a decoded sample to a window; ``text`` is the caption chosen for this visit."""
+    meta = sample["meta"]
+    item = {
+        "motion": sample["motion"][start : start + length],  # (l, D)
+        "text": text,
+        "id": meta["id"],
+        "category": meta.get("category") or "",
+        "start": start,
+    }
+    if "offsets" in meta:
+        item["offsets"] = np.asarray(meta["offsets"], dtype=np.float32)  # (J, 3)
+    return item
+
+
+def pick_text(texts: list[str], rng: np.random.Generator) -> str:
+    return texts[int(rng.integers(len(texts)))] if texts else ""
+
+
+class Collate:
+    """Pads windows to the longest in the batch and normalises with the shard set's stats.
+
+    Returns ``motion`` (B, T, D) normalised and zero at padding, ``mask`` (B, T) True on real
+    frames, ``lengths`` (B,), ``text`` (list of B captions, "" when unlabeled), ``id``,
+    ``category``, and ``offsets`` (B, J, 3) when every clip carries them.
+    """
+
+    def __init__(self, mean: np.ndarray | None = None, std: np.ndarray | None = None):
+        self.mean = None if mean is None else torch.as_tensor(mean, dtype=torch.float32)
+        self.std = None if std is None else torch.as_tensor(std, dtype=torch.float32)
+
+    def __call__(self, items: list[dict]) -> dict:
+        lengths = torch.tensor([len(it["motion"]) for it in items])
+        B, T, D = len(items), int(lengths.max()), items[0]["motion"].shape[1]
+        motion = torch.zeros(B, T, D)
+        for b, it in enumerate(items):
+            x = torch.from_numpy(np.ascontiguousarray(it["motion"]))
+            if self.mean is not None:
+                x = (x - self.mean) / self.std
+            motion[b, : len(x)] = x
+        batch = {
+            "motion": motion,
+            "mask": torch.arange(T)[None, :] < lengths[:, None],
+            "lengths": lengths,
+            "text": [it["text"] for it in items],
+            "id": [it["id"] for it in items],
+            "category": [it["category"] for it in items],
+        }
+        if all("offsets" in it for it in items):
+            batch["offsets"] = torch.from_numpy(np.stack([it["offsets"] for it in items]))
+        return batch

@@ -1,0 +1,1 @@
+"""Reading motion files (BVH) into clips."""

@@ -1,0 +1,5 @@
+"""LightningModules, one per task."""
+
+from omg.lit.pretrain import PretrainModule
+
+__all__ = ["PretrainModule"]

@@ -1,0 +1,1 @@
+"""Model code: plain torch modules, free of Lightning and distributed logic."""

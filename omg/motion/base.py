@@ -1,0 +1,90 @@
+"""A clip of motion, and the interface every feature representation implements."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from omg.skeleton import Skeleton, get_skeleton
+
+
+@dataclass
+class Clip:
+    """One motion on one skeleton, as importers and the synthetic generator produce it.
+
+    ``positions`` are always present. ``rotations`` and ``offsets`` are present when the
+    source has them (BVH, synthetic data); representations that need rotations solve them
+    by inverse kinematics otherwise.
+    """
+
+    id: str
+    skeleton: Skeleton
+    fps: float
+    positions: np.ndarray  # (T, J, 3) metres, +Y up
+    rotations: np.ndarray | None = None  # (T, J, 4) local quaternions (w, x, y, z)
+    offsets: np.ndarray | None = None  # (J, 3) this individual's bone offsets
+    texts: list[str] = field(default_factory=list)
+    labels: dict = field(default_factory=dict)
+    category: str | None = None  # e.g. "human", "dog", "horse"
+    source: str = ""
+
+    def __post_init__(self):
+        J = self.skeleton.num_joints
+        if self.positions.ndim != 3 or self.positions.shape[1:] != (J, 3):
+            raise ValueError(
+                f"clip {self.id!r}: positions must be (T, {J}, 3) for skeleton "
+                f"{self.skeleton.name!r}, got {tuple(self.positions.shape)}"
+            )
+        if self.rotations is not None and self.rotations.shape != (len(self), J, 4):
+            raise ValueError(f"clip {self.id!r}: rotations must be ({len(self)}, {J}, 4), got {self.rotations.shape}")
+
+    def __len__(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def seconds(self) -> float:
+        return len(self) / self.fps
+
+
+class Representation(ABC):
+    """Maps clips to per-frame feature vectors (T', D) and features back to joint positions.
+
+    ``encode`` runs on numpy in data pipelines; ``decode`` is batched, differentiable torch,
+    because training losses (velocity, foot contact) are computed on decoded positions.
+    Per-clip quantities that do not change over time (bone offsets) travel beside the
+    features in the sample's metadata and come back to ``decode`` as ``offsets``.
+    """
+
+    name: ClassVar[str]
+    frames_dropped: ClassVar[int] = 0  # T' = T - frames_dropped (velocities need a next frame)
+
+    def __init__(self, skeleton: Skeleton | str):
+        self.skeleton = get_skeleton(skeleton)
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """Features per frame."""
+
+    @abstractmethod
+    def encode(self, clip: Clip) -> tuple[np.ndarray, dict]:
+        """(T', D) float32 features and metadata to store beside them (JSON-serialisable)."""
+
+    @abstractmethod
+    def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., T', D) features -> (..., T', J, 3) joint positions."""
+
+    def foot_contacts(self, features: torch.Tensor) -> torch.Tensor | None:
+        """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
+        return None
+
+    def finalize_stats(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Turn per-feature mean/std over a dataset into the normalisation to store.
+
+        The default floors the std so that constant features do not blow up.
+        """
+        return mean.astype(np.float32), np.maximum(std, 1e-4).astype(np.float32)

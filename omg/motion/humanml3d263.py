@@ -1,0 +1,248 @@
+"""HumanML3D's 263-dim motion features on SMPL-22, a faithful port of its processing.
+
+Port of EricGuo5513/HumanML3D (motion_representation.ipynb ``process_file``,
+``recover_from_ric`` / ``recover_from_rot``, common/skeleton.py ``inverse_kinematics_np``,
+cal_mean_variance.ipynb), kept file-compatible with its ``new_joint_vecs``:
+
+1. uniform skeleton: every bone keeps its direction and gets the target length (the
+   skeleton's rest bone lengths); the root trajectory is scaled by the ratio of leg lengths;
+2. put on the floor, root XZ of frame 0 at the origin, frame 0 turned to face +Z;
+3. IK to per-bone quaternions, with the heading smoothed over time (gaussian, sigma 20 frames);
+4. per frame t (velocities t -> t+1, so T - 1 rows):
+   [0] root yaw velocity, [1:3] root XZ velocity, [3] root height, [4:67] joints 1..21
+   relative to the root in its heading frame (ric), [67:193] IK rotations of joints 1..21
+   in 6D, [193:259] joint velocities in the heading frame, [259:263] foot contacts
+   (left 7, 10; right 8, 11).
+
+Two HumanML3D details are kept on purpose because its files contain them:
+- its IK unpacks the face joints (r_hip, l_hip, r_shoulder, l_shoulder) as
+  (l_hip, r_hip, ...), so the hip term of the heading has the opposite sign to the one of
+  step 2; together with the smoothing, the IK heading of frame 0 is a few degrees off +Z;
+- ``recover_from_ric`` starts the heading at zero, so decoded positions are the canonical
+  ones turned about +Y by that frame-0 IK heading. ``canonicalize`` returns exactly these
+  positions (HumanML3D's ``new_joints``), so ``decode(encode(x)) == canonicalize(x)[:-1]``.
+
+Quaternions here follow HumanML3D's skeleton: the rotation stored at joint j turns the
+bone parent(j) -> j from its rest direction (``T2M_RAW_OFFSETS``), relative to the previous
+bone of its kinematic chain (the root for the first bone of each chain).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from omg.errors import UsageError
+from omg.motion.base import Clip, Representation
+from omg.registry import REPRESENTATIONS
+from omg.rotations import (
+    quat_apply,
+    quat_between,
+    quat_conjugate,
+    quat_mul,
+    quat_to_6d,
+    quat_to_matrix,
+    sixd_to_matrix,
+    yaw_quat,
+)
+from omg.skeleton import SMPL22_PARENTS, Skeleton
+
+# HumanML3D paramUtil: each bone's direction in the rest pose, and the kinematic chains
+T2M_RAW_OFFSETS = np.array(
+    [[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, -1, 0], [0, 1, 0], [0, -1, 0],
+     [0, -1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1],
+     [0, -1, 0], [0, -1, 0], [0, -1, 0], [0, -1, 0], [0, -1, 0], [0, -1, 0]],
+    dtype=np.float64,
+)  # fmt: skip
+T2M_CHAINS = ((0, 2, 5, 8, 11), (0, 1, 4, 7, 10), (0, 3, 6, 9, 12, 15), (9, 14, 17, 19, 21), (9, 13, 16, 18, 20))
+FACE_JOINTS = (2, 1, 17, 16)  # right hip, left hip, right shoulder, left shoulder
+FEET_LEFT, FEET_RIGHT = (7, 10), (8, 11)
+LEG_JOINTS = (5, 8)  # right knee, right ankle: their bones set the scale of the root trajectory
+FOOT_THRESHOLD = 0.002  # squared displacement per frame (m^2) under which a foot is in contact
+HEADING_SIGMA = 20.0  # frames
+# feature groups whose std is averaged (cal_mean_variance); the root and contact groups
+# are the ones T2M's loaders divide by feat_bias
+GROUPS = ((0, 1), (1, 3), (3, 4), (4, 67), (67, 193), (193, 259), (259, 263))
+BIASED_GROUPS = ((0, 1), (1, 3), (3, 4), (259, 263))
+
+_UP = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+_FORWARD = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+_XZ = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def gaussian_filter1d(x: np.ndarray, sigma: float) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter1d(x, sigma, axis=0, mode="nearest")`` in numpy."""
+    radius = int(4.0 * sigma + 0.5)
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    padded = np.pad(x, [(radius, radius)] + [(0, 0)] * (x.ndim - 1), mode="edge")
+    return sum(w * padded[i : i + len(x)] for i, w in enumerate(kernel / kernel.sum()))
+
+
+def _heading(across: torch.Tensor) -> torch.Tensor:
+    """(..., 3) vector from the left to the right side -> (..., 4) yaw turning the facing to +Z."""
+    forward = F.normalize(torch.cross(_UP.expand_as(across), across, dim=-1), dim=-1)
+    return quat_between(forward, _FORWARD.expand_as(forward))
+
+
+def inverse_kinematics(joints: torch.Tensor) -> torch.Tensor:
+    """(T, 22, 3) -> (T, 22, 4): HumanML3D's ``inverse_kinematics_np(smooth_forward=True)``."""
+    r_hip, l_hip, r_shoulder, l_shoulder = FACE_JOINTS
+    # their hip term is left - right (see the module docstring), the shoulder term right - left
+    across = (joints[:, l_hip] - joints[:, r_hip]) + (joints[:, r_shoulder] - joints[:, l_shoulder])
+    forward = torch.cross(_UP.expand_as(across), F.normalize(across, dim=-1), dim=-1)
+    forward = F.normalize(torch.from_numpy(gaussian_filter1d(forward.numpy(), HEADING_SIGMA)), dim=-1)
+    root = quat_between(forward, _FORWARD.expand_as(forward))  # (T, 4)
+    quats = [root] * 22
+    raw = torch.from_numpy(T2M_RAW_OFFSETS)
+    for chain in T2M_CHAINS:
+        R = root
+        for a, b in zip(chain[:-1], chain[1:]):
+            bone = quat_between(raw[b].expand_as(joints[:, b]), joints[:, b] - joints[:, a])
+            quats[b] = quat_mul(quat_conjugate(R), bone)
+            R = quat_mul(R, quats[b])
+    return torch.stack(quats, dim=1)
+
+
+@REPRESENTATIONS.register("humanml3d263")
+class HumanML3D263(Representation):
+    """HumanML3D's 263 features per frame on SMPL-22 (T' = T - 1); see the module docstring.
+
+    ``feat_bias`` divides the std of the root and foot-contact groups in ``finalize_stats``
+    (T2M's training loaders use 5); 1.0 reproduces HumanML3D's ``Std.npy``.
+    """
+
+    name = "humanml3d263"
+    frames_dropped = 1
+
+    def __init__(self, skeleton: Skeleton | str = "smpl22", feat_bias: float = 1.0):
+        super().__init__(skeleton)
+        if list(self.skeleton.parents) != SMPL22_PARENTS:
+            raise UsageError(
+                f"representation 'humanml3d263' needs the SMPL-22 hierarchy (skeleton smpl22), "
+                f"got skeleton {self.skeleton.name!r} with {self.skeleton.num_joints} joints"
+            )
+        self.feat_bias = feat_bias
+        lengths = self.skeleton.bone_lengths().astype(np.float64)  # (22,)
+        self.target_offsets = T2M_RAW_OFFSETS * lengths[:, None]  # (22, 3) the uniform skeleton
+
+    @property
+    def dim(self) -> int:
+        return 263
+
+    def _global_positions(self, positions: np.ndarray) -> torch.Tensor:
+        """(T, 22, 3) -> uniform skeleton, on the floor, root XZ at the origin, frame 0 facing +Z."""
+        p = torch.as_tensor(np.asarray(positions, dtype=np.float64))
+        if p.ndim != 3 or p.shape[1:] != (22, 3) or len(p) < 2 or not torch.isfinite(p).all():
+            raise UsageError(f"humanml3d263 needs finite positions of shape (T >= 2, 22, 3), got {tuple(p.shape)}")
+        parents = SMPL22_PARENTS[1:]
+        bones = p[:, 1:] - p[:, parents]  # (T, 21, 3)
+        target = torch.from_numpy(self.target_offsets).norm(dim=-1)  # (22,)
+        source = bones[0].norm(dim=-1)
+        scale = sum(target[j] for j in LEG_JOINTS) / sum(source[j - 1] for j in LEG_JOINTS)
+        # HumanML3D solves IK and runs FK with the target offsets; as its IK maps each
+        # bone's rest direction exactly onto the bone, that is: keep directions, set lengths
+        directions = F.normalize(bones, dim=-1)
+        joints = [p[:, 0] * scale]
+        for j, parent in enumerate(parents, start=1):
+            joints.append(joints[parent] + directions[:, j - 1] * target[j])
+        p = torch.stack(joints, dim=1)
+        p[..., 1] -= p[..., 1].min()
+        p = p - p[0, 0] * _XZ
+        r_hip, l_hip, r_shoulder, l_shoulder = FACE_JOINTS
+        across = (p[0, r_hip] - p[0, l_hip]) + (p[0, r_shoulder] - p[0, l_shoulder])
+        return quat_apply(_heading(across), p)
+
+    def canonicalize(self, positions: np.ndarray) -> np.ndarray:
+        """(T, 22, 3) -> the (T, 22, 3) positions the features describe (HumanML3D's ``new_joints``)."""
+        joints = self._global_positions(positions)
+        heading0 = inverse_kinematics(joints)[0, 0]  # (4,) frame 0's IK heading, a yaw
+        return quat_apply(heading0, joints).numpy()
+
+    def encode(self, clip: Clip) -> tuple[np.ndarray, dict]:
+        joints = self._global_positions(clip.positions)  # (T, 22, 3)
+        quats = inverse_kinematics(joints)  # (T, 22, 4)
+        heading = quats[:, 0]  # (T, 4) turns each frame's facing to +Z
+        root_velocity = quat_apply(heading[1:], joints[1:, 0] - joints[:-1, 0])  # (T-1, 3)
+        yaw_velocity = quat_mul(heading[1:], quat_conjugate(heading[:-1]))[:, 2].clamp(-1, 1).asin()
+        ric = quat_apply(heading[:, None], joints - joints[:, :1] * _XZ)  # (T, 22, 3)
+        local_velocity = quat_apply(heading[:-1, None], joints[1:] - joints[:-1])  # (T-1, 22, 3)
+        feet = list(FEET_LEFT + FEET_RIGHT)
+        contacts = ((joints[1:, feet] - joints[:-1, feet]) ** 2).sum(-1) < FOOT_THRESHOLD  # (T-1, 4)
+        features = torch.cat(
+            [
+                yaw_velocity[:, None],
+                root_velocity[:, [0, 2]],
+                ric[:-1, 0, 1:2],
+                ric[:-1, 1:].flatten(1),
+                quat_to_6d(quats[:-1, 1:]).flatten(1),
+                local_velocity.flatten(1),
+                contacts.double(),
+            ],
+            dim=1,
+        )
+        # frame 0's IK heading: what HumanML3D's features drop; ``positions_from_rotations`` can use it
+        heading0 = 2.0 * torch.atan2(heading[0, 2], heading[0, 0]).item()
+        return features.numpy().astype(np.float32), {"heading0": heading0}
+
+    def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., T, 263) -> (..., T, 22, 3): ``recover_from_ric`` (``offsets`` are not needed)."""
+        heading, root = _root_heading_position(features)
+        ric = features[..., 4:67].unflatten(-1, (21, 3))  # (..., T, 21, 3)
+        joints = quat_apply(quat_conjugate(heading)[..., None, :], ric) + (root * _XZ.to(root))[..., None, :]
+        return torch.cat([root[..., None, :], joints], dim=-2)
+
+    def positions_from_rotations(
+        self,
+        features: torch.Tensor,  # (..., T, 263)
+        offsets: torch.Tensor | None = None,  # (22, 3); the uniform skeleton (target_offsets) if None
+        heading0: float | torch.Tensor | None = None,  # (...,) radians, meta["heading0"]
+    ) -> torch.Tensor:  # (..., T, 22, 3)
+        """FK of the 6D rotations: HumanML3D's ``recover_from_rot`` when ``heading0`` is None.
+
+        The features keep each frame's heading relative to frame 0 only. ``recover_from_rot``
+        uses it as the root rotation, which turns the pose about +Y by -2 * heading0 against
+        ``decode``; passing the encoder's ``meta["heading0"]`` gives ``decode``'s positions.
+        """
+        heading, root = _root_heading_position(features)
+        if heading0 is not None:
+            turn = torch.as_tensor(heading0, dtype=features.dtype, device=features.device)
+            heading = quat_mul(heading, yaw_quat(2.0 * turn)[..., None, :])
+        offsets = features.new_tensor(self.target_offsets) if offsets is None else offsets
+        rotations = sixd_to_matrix(features[..., 67:193].unflatten(-1, (21, 6)))  # (..., T, 21, 3, 3)
+        root_matrix = quat_to_matrix(heading)  # (..., T, 3, 3)
+        joints: list[torch.Tensor | None] = [root] + [None] * 21
+        for chain in T2M_CHAINS:
+            R = root_matrix
+            for a, b in zip(chain[:-1], chain[1:]):
+                R = R @ rotations[..., b - 1, :, :]
+                joints[b] = joints[a] + (R @ offsets[..., b, :, None]).squeeze(-1)
+        return torch.stack(joints, dim=-2)
+
+    def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
+        return features[..., 259:263]
+
+    def finalize_stats(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """HumanML3D's cal_mean_variance: one std per feature group (its mean over the group)."""
+        std = np.asarray(std, dtype=np.float64).copy()
+        for a, b in GROUPS:
+            std[a:b] = std[a:b].mean() / (self.feat_bias if (a, b) in BIASED_GROUPS else 1.0)
+        # a group that never varies (no foot contact in a small set) would divide by zero
+        return mean.astype(np.float32), np.maximum(std, 1e-4).astype(np.float32)
+
+
+def _root_heading_position(features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., T, 263) -> heading (..., T, 4) and root position (..., T, 3): ``recover_root_rot_pos``.
+
+    Feature 0 is half the per-frame yaw change (the arcsin of the yaw quaternion's y); its
+    running sum is half the heading angle, which starts at zero.
+    """
+    half = torch.cumsum(F.pad(features[..., :-1, 0], (1, 0)), dim=-1)  # (..., T)
+    zero = torch.zeros_like(half)
+    heading = torch.stack((half.cos(), zero, half.sin(), zero), dim=-1)  # (..., T, 4)
+    step = features[..., :-1, 1:3]  # (..., T-1, 2) root XZ velocity in the heading frame
+    step = torch.stack((step[..., 0], torch.zeros_like(step[..., 0]), step[..., 1]), dim=-1)
+    step = quat_apply(quat_conjugate(heading[..., 1:, :]), step)
+    xz = torch.cumsum(F.pad(step, (0, 0, 1, 0)), dim=-2)  # (..., T, 3)
+    root = torch.stack((xz[..., 0], features[..., 3], xz[..., 2]), dim=-1)
+    return heading, root

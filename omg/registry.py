@@ -1,0 +1,153 @@
+"""Named registries of components, filled by decorators and by third-party plugins.
+
+A component is registered under a short name (``smpl22``, ``humanml3d263``, ``minilm``) so
+that configs can say ``skeleton: smpl22`` instead of a class path. Plugins are packages that
+declare an entry point in the ``omg.plugins`` group; loading the entry point imports their
+module, whose decorators register the components.
+"""
+
+from __future__ import annotations
+
+import inspect
+from importlib.metadata import entry_points
+from typing import Any, Iterator, TypeVar
+
+from omg.errors import UsageError
+
+T = TypeVar("T")
+
+PLUGIN_GROUP = "omg.plugins"
+
+
+class RegistryError(UsageError, KeyError):
+    """An unknown or duplicate name; the message says which names exist or where the twin lives."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; we want it plain
+        return str(self.args[0])
+
+
+def _where(obj: Any) -> str:
+    try:
+        return f"{obj.__module__}.{obj.__qualname__}"
+    except AttributeError:
+        return f"{type(obj).__module__}.{type(obj).__qualname__} instance"
+
+
+class Registry:
+    """Maps short names to components (classes, factories or instances) of one kind."""
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self._entries: dict[str, Any] = {}
+
+    def register(self, name: str | None = None, obj: Any = None) -> Any:
+        """Register ``obj`` as ``name``; without ``obj``, return a decorator."""
+        if obj is None:
+            return lambda o: self.register(name, o)
+        key = name or getattr(obj, "name", None) or obj.__name__
+        if key in self._entries and self._entries[key] is not obj:
+            raise RegistryError(
+                f"duplicate {self.kind} name {key!r}: registered by {_where(self._entries[key])} "
+                f"and again by {_where(obj)}; rename one of them"
+            )
+        self._entries[key] = obj
+        return obj
+
+    def get(self, name: str) -> Any:
+        _load_builtins()
+        try:
+            return self._entries[name]
+        except KeyError:
+            known = ", ".join(sorted(self._entries)) or "none"
+            raise RegistryError(f"unknown {self.kind} {name!r}; known {self.kind}s: {known}") from None
+
+    def build(self, name: str, *args: Any, **kwargs: Any) -> Any:
+        """Instantiate (or call) the component registered as ``name``."""
+        return self.get(name)(*args, **kwargs)
+
+    def names(self) -> list[str]:
+        _load_builtins()
+        return sorted(self._entries)
+
+    def __contains__(self, name: str) -> bool:
+        _load_builtins()
+        return name in self._entries
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def describe(self, name: str) -> str:
+        obj = self.get(name)
+        doc = inspect.getdoc(obj) or ""
+        return doc.splitlines()[0] if doc else _where(obj)
+
+
+SKELETONS = Registry("skeleton")
+REPRESENTATIONS = Registry("representation")
+TEXT_ENCODERS = Registry("text encoder")
+DATA_SOURCES = Registry("data source")
+MODELS = Registry("model")
+METRICS = Registry("metric")
+CALLBACKS = Registry("callback")
+
+ALL: dict[str, Registry] = {
+    "skeletons": SKELETONS,
+    "representations": REPRESENTATIONS,
+    "text_encoders": TEXT_ENCODERS,
+    "data_sources": DATA_SOURCES,
+    "models": MODELS,
+    "metrics": METRICS,
+    "callbacks": CALLBACKS,
+}
+
+# Modules whose import registers omg's own components. Imported lazily so that
+# `import omg.registry` stays cheap and free of cycles.
+_BUILTIN_MODULES = ("omg.skeleton", "omg.motion", "omg.data.sources")
+_builtins_loaded = False
+_plugins_loaded: list[str] | None = None
+
+
+def _load_builtins() -> None:
+    global _builtins_loaded
+    if _builtins_loaded:
+        return
+    _builtins_loaded = True
+    import importlib
+
+    for module in _BUILTIN_MODULES:
+        importlib.import_module(module)
+
+
+def load_plugins() -> list[str]:
+    """Import every ``omg.plugins`` entry point once; return their names.
+
+    An entry point may name a module (importing it registers its components) or a
+    callable taking no arguments (called once). A plugin that fails to import is an error
+    naming the plugin, not a silent omission.
+    """
+    global _plugins_loaded
+    if _plugins_loaded is not None:
+        return _plugins_loaded
+    _load_builtins()
+    loaded = []
+    for ep in entry_points(group=PLUGIN_GROUP):
+        try:
+            target = ep.load()
+        except Exception as e:  # noqa: BLE001 - re-raised with the plugin's name
+            raise UsageError(f"omg plugin {ep.name!r} ({ep.value}) failed to load: {e}") from e
+        if callable(target) and not inspect.isclass(target) and not inspect.ismodule(target):
+            target()
+        loaded.append(ep.name)
+    _plugins_loaded = loaded
+    return loaded
+
+
+def resolve(registry: Registry, spec: str | T) -> T | Any:
+    """A registered name becomes its component; anything else is returned as is."""
+    return registry.get(spec) if isinstance(spec, str) else spec
+
+
+__all__ = ["Registry", "RegistryError", "ALL", "load_plugins", "resolve", "PLUGIN_GROUP"] + [
+    name.upper() for name in ALL
+]
+

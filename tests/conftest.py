@@ -1,0 +1,88 @@
+"""Shared fixtures: the real-data folder, a toy representation and small shard sets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from omg.data.shards import ShardWriter
+from omg.motion import Clip, Representation
+from omg.skeleton import SMPL22
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MOTION = REPO.parent / "shared" / "data" / "motion"
+
+
+@pytest.fixture
+def shared_motion() -> Path:
+    if not (SHARED_MOTION / "manifest.json").exists():
+        pytest.skip(f"real motion data not found at {SHARED_MOTION} (the shared/ folder beside the checkout)")
+    return SHARED_MOTION
+
+
+class JointPositions(Representation):
+    """Flattened joint positions: the simplest representation, for data-layer tests."""
+
+    name = "test-positions"
+
+    @property
+    def dim(self) -> int:
+        return self.skeleton.num_joints * 3
+
+    def encode(self, clip: Clip):
+        return clip.positions.reshape(len(clip), -1).astype(np.float32), {}
+
+    def decode(self, features, offsets=None):
+        return features.reshape(*features.shape[:-1], -1, 3)
+
+
+def toy_clip(index: int, frames: int | None = None, texts=None) -> Clip:
+    rng = np.random.default_rng(index)
+    T = frames or int(rng.integers(20, 80))
+    positions = SMPL22.rest_positions()[None] + 0.01 * rng.standard_normal((T, 22, 3)).astype(np.float32)
+    positions[:, :, 0] += index  # clip identity is readable from the data
+    return Clip(id=f"clip.{index:04d}", skeleton=SMPL22, fps=20.0, positions=positions.astype(np.float32),
+                texts=[f"caption {index}"] if texts is None else texts, category="human", source="test")
+
+
+def write_toy_shards(out: Path, num_clips: int = 40, max_clips: int = 5) -> Path:
+    ShardWriter(out, JointPositions(SMPL22), fps=20.0, max_clips=max_clips, log=lambda m: None).write(
+        toy_clip(i) for i in range(num_clips)
+    )
+    return out
+
+
+@pytest.fixture
+def toy_shards(tmp_path) -> Path:
+    return write_toy_shards(tmp_path / "toy")
+
+
+@pytest.fixture(autouse=True)
+def _quiet_threads():
+    torch.set_num_threads(2)
+
+
+def walking_clip(index: int, fps: float = 20.0) -> Clip:
+    """The rest pose gliding forward with jitter: enough structure for humanml3d263 and losses."""
+    rng = np.random.default_rng(index)
+    T = int(rng.integers(40, 100))
+    positions = np.repeat(SMPL22.rest_positions()[None], T, axis=0)
+    positions[:, :, 2] += np.linspace(0, rng.uniform(0, 3), T)[:, None]
+    positions += 0.01 * rng.standard_normal(positions.shape)
+    return Clip(id=f"walk{index}", skeleton=SMPL22, fps=fps, positions=positions.astype(np.float32),
+                texts=["a person walks forward"], category="human", source="test")
+
+
+@pytest.fixture(scope="session")
+def h263_shards(tmp_path_factory) -> Path:
+    """Small humanml3d263 train/val shard sets."""
+    from omg.motion import get_representation
+
+    out = tmp_path_factory.mktemp("h263")
+    rep = get_representation("humanml3d263", SMPL22)
+    ShardWriter(out / "train", rep, 20.0, max_clips=8, log=lambda m: None).write(walking_clip(i) for i in range(32))
+    ShardWriter(out / "val", rep, 20.0, max_clips=8, log=lambda m: None).write(walking_clip(100 + i) for i in range(8))
+    return out

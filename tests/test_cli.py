@@ -1,0 +1,123 @@
+"""The `omg` front: help, plugins (entry points), usage errors as one line with exit code 2."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+from omg.cli import COMMANDS, LIGHTNING, main
+
+
+def run_omg(*args, env_extra=None, cwd=REPO):
+    env = {**os.environ, **(env_extra or {})}
+    return subprocess.run([sys.executable, "-m", "omg.cli", *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+
+
+def test_help_lists_every_command(capsys):
+    main(["--help"])
+    out = capsys.readouterr().out
+    for name in [*LIGHTNING, *COMMANDS]:
+        assert f"  {name} " in out
+
+
+def _assert_usage_error(capsys, argv, *fragments):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("omg: error:")
+    for fragment in fragments:
+        assert fragment in err, err
+
+
+def test_unknown_command_is_one_line(capsys):
+    _assert_usage_error(capsys, ["fitt"], "unknown command 'fitt'", "fit")
+
+
+def test_tool_command_errors_are_one_line(capsys, tmp_path):
+    _assert_usage_error(capsys, ["shards", "frobnicate"], "unknown shards command")
+    _assert_usage_error(capsys, ["shards", "build", "--max-clips", "many"], "--max-clips", "invalid int value")
+    _assert_usage_error(capsys, ["shards", "build", "--source", "nope", "--out", str(tmp_path)], "unknown data source 'nope'", "synth")
+    _assert_usage_error(capsys, ["shards", "inspect", str(tmp_path)], "no manifest.json")
+
+
+PLUGIN = '''
+"""A third-party plugin: a 3-joint skeleton and a data source that swings it."""
+import numpy as np
+from omg.motion import Clip
+from omg.registry import DATA_SOURCES, SKELETONS
+from omg.skeleton import Skeleton
+
+TOY3 = SKELETONS.register("toy3", Skeleton.from_parents(
+    "toy3", [-1, 0, 1], np.array([[0, 1, 0], [0, 0.5, 0], [0, 0.5, 0]]), names=["base", "mid", "tip"]))
+
+@DATA_SOURCES.register("toy-swing")
+def toy_swing(input, skeleton, fps, num_clips=4):
+    """Pendulum swings of the toy3 arm."""
+    for i in range(num_clips):
+        T = 30 + i
+        angle = 0.3 * np.sin(np.arange(T) / fps * (1 + i))
+        rot = np.zeros((T, 3, 4), np.float32)
+        rot[..., 0] = 1.0
+        rot[:, 1, 0], rot[:, 1, 3] = np.cos(angle / 2), np.sin(angle / 2)
+        pos = np.zeros((T, 3, 3), np.float32)
+        pos[:, 0, 1] = 1.0
+        pos[:, 1] = pos[:, 0] + [0, 0.5, 0]
+        pos[:, 2, 0], pos[:, 2, 1] = -0.5 * np.sin(angle), 1.5 + 0.5 * (np.cos(angle) - 1)
+        yield Clip(id=f"swing{i}", skeleton=TOY3, fps=fps, positions=pos, rotations=rot,
+                   offsets=TOY3.rest_offsets, texts=["an arm swings"], category="toy", source="toy")
+'''
+
+
+@pytest.fixture
+def plugin_path(tmp_path) -> Path:
+    """An installed plugin distribution (package + dist-info with an omg.plugins entry point)."""
+    site = tmp_path / "site"
+    (site / "omg_toy_plugin").mkdir(parents=True)
+    (site / "omg_toy_plugin" / "__init__.py").write_text(PLUGIN)
+    dist = site / "omg_toy_plugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: omg-toy-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[omg.plugins]\ntoy = omg_toy_plugin\n")
+    return site
+
+
+def test_plugin_components_are_listed_and_selected_by_name_from_yaml(plugin_path, tmp_path):
+    env = {"PYTHONPATH": os.pathsep.join([str(plugin_path), str(REPO)])}
+    listed = run_omg("plugins", env_extra=env)
+    assert listed.returncode == 0, listed.stderr
+    assert "plugins (entry-point group omg.plugins): toy" in listed.stdout
+    assert "toy3" in listed.stdout and "toy-swing" in listed.stdout and "Pendulum swings" in listed.stdout
+
+    config = tmp_path / "build.yaml"
+    config.write_text(textwrap.dedent(f"""
+        source: toy-swing
+        skeleton: toy3
+        representation: maa
+        fps: 30
+        out: {tmp_path / 'toy_shards'}
+        option: {{num_clips: 3}}
+    """))
+    built = run_omg("shards", "build", "--config", str(config), env_extra=env)
+    assert built.returncode == 0, built.stderr
+    assert "3 clips" in built.stdout
+    inspected = run_omg("shards", "inspect", str(tmp_path / "toy_shards"), env_extra=env)
+    assert "representation maa (24-d) on toy3" in inspected.stdout and "3 valid samples" in inspected.stdout
+
+    config.write_text(config.read_text() + "colour: blue\n")
+    bad = run_omg("shards", "build", "--config", str(config), env_extra=env)
+    assert bad.returncode == 2 and "unknown key 'colour'" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_a_broken_plugin_is_named(tmp_path, plugin_path):
+    (plugin_path / "omg_toy_plugin" / "__init__.py").write_text("raise ImportError('needs numpy 9')\n")
+    out = run_omg("plugins", env_extra={"PYTHONPATH": os.pathsep.join([str(plugin_path), str(REPO)])})
+    assert out.returncode == 2
+    assert "omg plugin 'toy' (omg_toy_plugin) failed to load: needs numpy 9" in out.stderr

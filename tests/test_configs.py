@@ -1,0 +1,96 @@
+"""Every YAML under configs/ parses against the real classes and builds its model on meta."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+import yaml
+from jsonargparse import ActionConfigFile
+from lightning.pytorch.cli import LightningArgumentParser
+
+from conftest import REPO
+import omg.lit  # noqa: F401  (short class names in configs resolve among imported modules)
+from omg.data.datamodule import MotionDataModule
+
+CONFIGS = sorted(p for p in (REPO / "configs").rglob("*.yaml"))
+FAKE_SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 30.0, "feature_dim": 263,
+             "mean": [0.0] * 263, "std": [1.0] * 263}
+
+
+def parse(path: Path):
+    parser = LightningArgumentParser(exit_on_error=False)
+    parser.add_argument("--config", action=ActionConfigFile)
+    parser.add_argument("--seed_everything", type=int | bool, default=True)
+    parser.add_lightning_class_args(L.Trainer, "trainer")
+    parser.add_lightning_class_args(L.LightningModule, "model", subclass_mode=True)
+    parser.add_lightning_class_args(MotionDataModule, "data")
+    return parser.parse_args(["--config", str(path)])
+
+
+def build_model_on_meta(cfg):
+    module_path, _, cls_name = cfg.model.class_path.rpartition(".")
+    cls = getattr(__import__(module_path, fromlist=[cls_name]), cls_name)
+    init = {**cfg.model.init_args.as_dict(), "spec": FAKE_SPEC}
+    with torch.device("meta"):
+        return cls(**init)
+
+
+def test_configs_exist():
+    names = {p.relative_to(REPO / "configs").as_posix() for p in CONFIGS}
+    assert {"pretrain_base.yaml", "pretrain_large.yaml", "pretrain_huge.yaml", "pretrain_giant.yaml", "mini/pretrain.yaml"} <= names
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.relative_to(REPO / "configs").as_posix())
+def test_config_parses_and_builds_on_meta(path):
+    cfg = parse(path)
+    model = build_model_on_meta(cfg)
+    n = sum(p.numel() for p in model.parameters())
+    assert n > 0 and all(p.is_meta for p in model.parameters())
+
+
+PAPER_PARAMS = {"base": 88e6, "large": 201e6, "giant": 1.0e9}
+
+
+@pytest.mark.parametrize("flavor", ["base", "large", "huge", "giant"])
+def test_size_configs_differ_only_where_they_must(flavor):
+    def flat(d, prefix=""):
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    base = flat(yaml.safe_load((REPO / "configs/pretrain_base.yaml").read_text()))
+    this = flat(yaml.safe_load((REPO / f"configs/pretrain_{flavor}.yaml").read_text()))
+    differing = {k for k in base.keys() | this.keys() if base.get(k) != this.get(k)}
+    allowed = {"model.init_args.flavor", "trainer.strategy", "trainer.strategy.class_path", "trainer.strategy.init_args.config",
+               "data.batch_size", "trainer.accumulate_grad_batches", "trainer.default_root_dir", "trainer.callbacks"}
+    assert differing <= allowed, differing - allowed
+    cfg = parse(REPO / f"configs/pretrain_{flavor}.yaml")
+    assert cfg.data.batch_size * 8 * cfg.trainer.accumulate_grad_batches == 256  # global batch on one 8-GPU node
+    assert cfg.data.max_len <= 300
+    n = sum(p.numel() for p in build_model_on_meta(cfg).parameters())
+    print(f"{flavor}: {n / 1e6:.1f}M parameters")
+    if flavor in PAPER_PARAMS:
+        assert abs(n / PAPER_PARAMS[flavor] - 1) <= 0.10, f"{flavor}: {n / 1e6:.1f}M"
+    strategy = cfg.trainer.strategy
+    if flavor == "base":
+        assert strategy == "ddp"
+    else:
+        assert strategy.class_path.endswith("DeepSpeedStrategy") and cfg.trainer.precision == "bf16-mixed"
+
+
+def test_deepspeed_config_is_valid_for_deepspeed():
+    from deepspeed.runtime.config import DeepSpeedConfig
+
+    config = json.loads((REPO / "configs/deepspeed/zero2.json").read_text())
+    # the fields Lightning fills in from the trainer before it hands the config to DeepSpeed
+    parsed = DeepSpeedConfig({**config, "train_micro_batch_size_per_gpu": 8, "gradient_accumulation_steps": 4,
+                              "gradient_clipping": 1.0})
+    assert parsed.zero_optimization_stage == 2 and parsed.train_batch_size == 32
+    assert parsed.zero_config.overlap_comm
+    with pytest.raises(Exception, match="overlap_comms"):
+        DeepSpeedConfig({**config, "train_micro_batch_size_per_gpu": 8, "zero_optimization": {"stage": 2, "overlap_comms": True}})

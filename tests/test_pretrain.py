@@ -1,0 +1,122 @@
+"""OMG stage 1: the PretrainModule's loss, sampling, bad configs, and kill-and-resume."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from conftest import REPO
+from omg.data.datamodule import MotionDataModule
+from omg.lit.pretrain import PretrainModule, warmup_cosine
+
+TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
+
+
+def test_loss_falls_on_a_fixed_batch_and_samples_are_finite(h263_shards):
+    torch.manual_seed(0)
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=8, max_len=40, min_len=40, num_workers=0, shuffle_buffer=8)
+    batch = next(iter(dm.train_dataloader()))
+    module = PretrainModule(flavor="mini", spec=dm.spec, ema_decay=0)
+    optimizer = torch.optim.AdamW(module.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    module._noise_gen = gen
+
+    def eval_loss():  # the same timesteps and noise every time, so the losses are comparable
+        gen.manual_seed(1)
+        with torch.no_grad():
+            return module.diffusion_losses(batch)
+
+    before = eval_loss()
+    for _ in range(200):
+        losses = module.diffusion_losses(batch)
+        optimizer.zero_grad()
+        losses["loss"].backward()
+        optimizer.step()
+    after = eval_loss()
+    assert after["loss"] < 0.3 * before["loss"], (before, after)
+    assert after["simple"] < before["simple"]
+
+    motion = module.sample(num=2, frames=37, steps=10)
+    assert motion.shape == (2, 37, 263) and torch.isfinite(motion).all()
+    positions = module.representation.decode(motion)
+    assert positions.shape == (2, 37, 22, 3) and torch.isfinite(positions).all()
+
+
+def test_warmup_then_cosine():
+    f = warmup_cosine(10, 110)
+    assert f(0) == pytest.approx(0.1) and f(9) == pytest.approx(1.0)
+    assert f(60) == pytest.approx(0.5) and f(110) == pytest.approx(0.0) and f(500) == pytest.approx(0.0)
+
+
+def omg_fit(*args, root, timeout=300):
+    cmd = [sys.executable, "-m", "omg.cli", "fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *args]
+    return subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _fit_args(shards, root, steps):
+    return [f"--data.train={shards}/train", f"--data.val={shards}/val", "--data.batch_size=4", "--data.max_len=40",
+            "--data.num_workers=1", f"--trainer.max_steps={steps}", "--trainer.val_check_interval=1000",
+            f"--trainer.default_root_dir={root}", f"--trainer.callbacks.dirpath={root}/checkpoints",
+            "--trainer.callbacks.every_n_train_steps=4", "--trainer.enable_progress_bar=false",
+            "--model.init_args.dit=" + str(TINY).replace("'", '"'), "--model.init_args.warmup_steps=5"]
+
+
+def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path):
+    cases = {
+        "--model.init_args.flavor=colossal": "unknown DiT flavor 'colossal'",
+        "--model.init_args.lr=-1": "model.lr must be > 0",
+        f"--data.train={tmp_path}/missing": "no such directory",
+        "--data.batch_sise=4": "batch_sise",
+        "--trainer.max_steps=many": "max_steps",
+    }
+    for flag, message in cases.items():
+        args = _fit_args(h263_shards, tmp_path, 1) + [flag]
+        proc = omg_fit(*args, root=tmp_path)
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 2, (flag, err[-2000:])
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and message in lines[0], (flag, err[-2000:])
+
+
+def _final_state(path):
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    return ckpt
+
+
+def test_killed_run_resumes_to_the_same_state(h263_shards, tmp_path):
+    steps = 16
+    whole = omg_fit(*_fit_args(h263_shards, tmp_path / "whole", steps), root=tmp_path)
+    assert whole.wait(timeout=300) == 0, whole.stderr.read()[-3000:]
+
+    killed_root = tmp_path / "killed"
+    run = omg_fit(*_fit_args(h263_shards, killed_root, steps), root=tmp_path)
+    deadline = time.time() + 300
+    while not list((killed_root / "checkpoints").glob("*step=8*.ckpt")):
+        assert run.poll() is None and time.time() < deadline, "the run ended before its second checkpoint"
+        time.sleep(0.05)
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    assert not list((killed_root / "checkpoints").glob("*step=16*"))
+
+    resumed = omg_fit(*_fit_args(h263_shards, killed_root, steps), "--ckpt_path=last", root=tmp_path)
+    assert resumed.wait(timeout=300) == 0, resumed.stderr.read()[-3000:]
+
+    a = _final_state(tmp_path / "whole/checkpoints/last.ckpt")
+    b = _final_state(killed_root / "checkpoints/last.ckpt")
+    assert a["global_step"] == b["global_step"] == steps
+    assert a["lr_schedulers"][0]["last_epoch"] == b["lr_schedulers"][0]["last_epoch"]
+    assert a["optimizer_states"][0]["param_groups"][0]["lr"] == b["optimizer_states"][0]["param_groups"][0]["lr"]
+    assert a["ema"]["updates"] == b["ema"]["updates"] == steps
+    for name, value in a["ema"]["shadow"].items():
+        torch.testing.assert_close(b["ema"]["shadow"][name], value, rtol=0, atol=1e-6)
+    loops = lambda c: c["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    assert loops(a) == loops(b)  # the same data stream position
+    for name, value in a["state_dict"].items():
+        torch.testing.assert_close(b["state_dict"][name], value, rtol=0, atol=1e-6)
