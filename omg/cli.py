@@ -28,6 +28,7 @@ COMMANDS = {  # name -> (module:function, one-line description)
     "plugins": ("omg.cli:plugins_main", "list every registry and the components registered in it"),
     "generate": ("omg.generate:main", "sample motions from a checkpoint (unconditional, or from text prompts)"),
     "bench": ("omg.bench:main", "measure data loading, training and sampling speed and memory"),
+    "convert-ckpt": ("omg.lit.checkpoint:main", "turn a DeepSpeed/Lightning checkpoint into one fp32 (or EMA) safetensors file"),
 }
 
 
@@ -64,6 +65,7 @@ def lightning_main(argv: list[str]) -> None:
     import logging
 
     from jsonargparse import ArgumentError
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     from omg.lit.cli import OmgLightningCLI
 
@@ -73,6 +75,9 @@ def lightning_main(argv: list[str]) -> None:
         OmgLightningCLI()
     except ArgumentError as e:
         raise UsageError(jsonargparse_reason(str(e))) from None
+    except MisconfigurationException as e:  # e.g. a GPU config on a machine without one
+        raise UsageError(f"{str(e).strip().splitlines()[0]} (override trainer settings with --trainer.KEY VALUE, "
+                         "e.g. --trainer.accelerator cpu)") from None
     except ValueError as e:  # a component's own UsageError, wrapped by jsonargparse's union check
         if "Does not validate against any of the Union subtypes" not in str(e):
             raise

@@ -133,10 +133,10 @@ def load_plugins() -> list[str]:
     for ep in entry_points(group=PLUGIN_GROUP):
         try:
             target = ep.load()
+            if callable(target) and not inspect.isclass(target) and not inspect.ismodule(target):
+                target()
         except Exception as e:  # noqa: BLE001 - re-raised with the plugin's name
             raise UsageError(f"omg plugin {ep.name!r} ({ep.value}) failed to load: {e}") from e
-        if callable(target) and not inspect.isclass(target) and not inspect.ismodule(target):
-            target()
         loaded.append(ep.name)
     _plugins_loaded = loaded
     return loaded

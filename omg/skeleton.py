@@ -49,8 +49,10 @@ class Skeleton:
                 f"skeleton {self.name!r}: parents must list the root first with -1 and every "
                 f"other joint after its parent, got {list(self.parents)}"
             )
-        for field_name in ("face_joints", "feet_left", "feet_right", "primal_joints", "end_effectors"):
-            bad = [j for j in getattr(self, field_name) if not 0 <= j < J]
+        for field_name in ("chains", "face_joints", "feet_left", "feet_right", "primal_joints", "end_effectors"):
+            group = getattr(self, field_name)
+            joints = [j for chain in group for j in chain] if field_name == "chains" else group
+            bad = [j for j in joints if not 0 <= j < J]
             if bad:
                 raise ValueError(f"skeleton {self.name!r}: {field_name} has joints {bad} outside 0..{J - 1}")
         if self.symmetry and sorted(self.symmetry) != list(range(J)):

@@ -121,3 +121,11 @@ def test_a_broken_plugin_is_named(tmp_path, plugin_path):
     out = run_omg("plugins", env_extra={"PYTHONPATH": os.pathsep.join([str(plugin_path), str(REPO)])})
     assert out.returncode == 2
     assert "omg plugin 'toy' (omg_toy_plugin) failed to load: needs numpy 9" in out.stderr
+
+
+def test_print_config_resolves_the_mini_config(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--print_config"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "class_path: omg.lit.PretrainModule" in out and "flavor: mini" in out and "train: shards/mini/human263/train" in out

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -85,15 +87,24 @@ def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path):
         assert len(lines) == 1 and message in lines[0], (flag, err[-2000:])
 
 
+STEPS = 16
+
+
+@pytest.fixture(scope="module")
+def whole_run(h263_shards, tmp_path_factory):
+    """An uninterrupted tiny run of `omg fit`; its root directory."""
+    root = tmp_path_factory.mktemp("whole")
+    run = omg_fit(*_fit_args(h263_shards, root, STEPS), root=root)
+    assert run.wait(timeout=300) == 0, run.stderr.read()[-3000:]
+    return root
+
+
 def _final_state(path):
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    return ckpt
+    return torch.load(path, map_location="cpu", weights_only=False)
 
 
-def test_killed_run_resumes_to_the_same_state(h263_shards, tmp_path):
-    steps = 16
-    whole = omg_fit(*_fit_args(h263_shards, tmp_path / "whole", steps), root=tmp_path)
-    assert whole.wait(timeout=300) == 0, whole.stderr.read()[-3000:]
+def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
+    steps = STEPS
 
     killed_root = tmp_path / "killed"
     run = omg_fit(*_fit_args(h263_shards, killed_root, steps), root=tmp_path)
@@ -108,7 +119,7 @@ def test_killed_run_resumes_to_the_same_state(h263_shards, tmp_path):
     resumed = omg_fit(*_fit_args(h263_shards, killed_root, steps), "--ckpt_path=last", root=tmp_path)
     assert resumed.wait(timeout=300) == 0, resumed.stderr.read()[-3000:]
 
-    a = _final_state(tmp_path / "whole/checkpoints/last.ckpt")
+    a = _final_state(whole_run / "checkpoints/last.ckpt")
     b = _final_state(killed_root / "checkpoints/last.ckpt")
     assert a["global_step"] == b["global_step"] == steps
     assert a["lr_schedulers"][0]["last_epoch"] == b["lr_schedulers"][0]["last_epoch"]
@@ -120,3 +131,40 @@ def test_killed_run_resumes_to_the_same_state(h263_shards, tmp_path):
     assert loops(a) == loops(b)  # the same data stream position
     for name, value in a["state_dict"].items():
         torch.testing.assert_close(b["state_dict"][name], value, rtol=0, atol=1e-6)
+
+
+def test_generate_unconditional_writes_reproducible_motions(whole_run, tmp_path, capsys):
+    from omg.cli import main
+
+    args = ["generate", "--unconditional", "--ckpt", str(whole_run / "checkpoints/last.ckpt"), "--num-samples", "3",
+            "--length", "1.5", "--steps", "5", "--batch-size", "2"]
+    main([*args, "--out", str(tmp_path / "a")])
+    main([*args, "--out", str(tmp_path / "b")])
+    settings = json.loads((tmp_path / "a/generation.json").read_text())
+    assert settings["frames"] == 30 and settings["seed"] == 0 and settings["steps"] == 5 and settings["ema"]
+    for i in range(3):
+        features = np.load(tmp_path / f"a/sample_{i:03d}.features.npy")
+        joints = np.load(tmp_path / f"a/sample_{i:03d}.joints.npy")
+        assert features.shape == (30, 263) and joints.shape == (30, 22, 3) and np.isfinite(joints).all()
+        np.testing.assert_array_equal(features, np.load(tmp_path / f"b/sample_{i:03d}.features.npy"))
+    bad = {"--length": "0", "--steps": "-1"}
+    for flag, value in bad.items():
+        with pytest.raises(SystemExit) as e:
+            main([*args, flag, value, "--out", str(tmp_path / "c")])
+        assert e.value.code == 2
+    with pytest.raises(SystemExit):
+        main(["generate", "a person jumps", "--ckpt", str(whole_run / "checkpoints/last.ckpt")])
+    assert "unconditional pretraining checkpoint" in capsys.readouterr().err
+
+
+def test_trains_with_weights_cast_to_bf16(h263_shards):
+    """DeepSpeed's bf16 mode casts the module and the batch to bf16 and runs without autocast."""
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=4, max_len=30, min_len=30, num_workers=0, shuffle_buffer=4)
+    batch = next(iter(dm.train_dataloader()))
+    batch["motion"] = batch["motion"].to(torch.bfloat16)
+    module = PretrainModule(flavor="mini", dit=TINY, spec=dm.spec).to(torch.bfloat16)
+    losses = module.diffusion_losses(batch)
+    assert all(torch.isfinite(v) for v in losses.values())
+    losses["loss"].backward()
+    assert module.model.input_proj.weight.grad.dtype == torch.bfloat16
+    assert module.sample(num=1, frames=12, steps=3).dtype == torch.bfloat16

@@ -33,10 +33,10 @@ def in_val_split(clip_id: str, val_fraction: float) -> bool:
 
 def _split(items: Iterable[Clip | Exception], val_fraction: float, want_val: bool) -> Iterator[Clip | Exception | None]:
     for item in items:
-        keep = isinstance(item, Exception) and not want_val or (
-            isinstance(item, Clip) and in_val_split(item.id, val_fraction) == want_val
-        )
-        yield item if keep else None
+        if isinstance(item, Clip):
+            yield item if in_val_split(item.id, val_fraction) == want_val else None
+        else:  # a failed item is counted once, in the training split
+            yield None if want_val else item
 
 
 def build(

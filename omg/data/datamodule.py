@@ -20,6 +20,7 @@ epoch up to that point and goes on with the same batches it would have seen.
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -33,6 +34,9 @@ from omg.data.windows import Collate, WindowSampler, make_item, pick_text
 from omg.errors import UsageError
 
 log = logging.getLogger(__name__)
+# Lightning warns that an IterableDataset's length may be wrong with several workers; ours
+# splits every epoch exactly among the workers, so the length is exact.
+warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined.*")
 
 
 class TooManyBadSamples(RuntimeError):

@@ -236,7 +236,8 @@ class PretrainModule(L.LightningModule):
         run = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext(self.model)
         with run as model:
             model.eval()
+            dtype = next(model.parameters()).dtype
             x = self.diffusion.ddim_sample(lambda x, t: model(x, t), (num, frames, self.config.input_dim), steps=steps,
-                                           generator=gen, device=self.device)
+                                           generator=gen, device=self.device, dtype=dtype)
         return self.denormalize(x)
 

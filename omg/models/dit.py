@@ -143,7 +143,9 @@ class TimestepEmbedder(nn.Module):
         return F.pad(emb, (0, dim % 2))
 
     def forward(self, t: Tensor) -> Tensor:
-        return self.mlp(self.sinusoidal(t, self.freq_embed_dim))  # (B, d)
+        # DeepSpeed bf16 casts the weights without autocast: features follow the weights' dtype
+        features = self.sinusoidal(t, self.freq_embed_dim).to(self.mlp[0].weight.dtype)
+        return self.mlp(features)  # (B, d)
 
 
 class Attention(nn.Module):

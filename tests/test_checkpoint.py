@@ -1,0 +1,204 @@
+"""Checkpoints to fp32/EMA safetensors: Lightning files, DeepSpeed ZeRO-2 directories, bad inputs."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from omg.cli import main as omg
+from omg.errors import UsageError
+from omg.lit.checkpoint import class_path, convert, load_checkpoint, load_module
+from omg.lit.ema import EMA
+from omg.lit.pretrain import PretrainModule
+
+SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
+        "mean": [0.0] * 263, "std": [1.0] * 263}
+TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
+
+
+def model_output(module: PretrainModule) -> torch.Tensor:
+    x, t = torch.randn(2, 12, 263, generator=torch.Generator().manual_seed(1)), torch.tensor([3, 700])
+    with torch.no_grad():
+        return module.model.eval()(x, t)
+
+
+def assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k].dtype == b[k].dtype == torch.float32 and torch.equal(a[k], b[k]), k
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[PretrainModule, Path]:
+    """A mini PretrainModule after one real Lightning step, and the .ckpt Lightning wrote for it.
+
+    Its weights are perturbed first: the zero-initialised output layer would make every model
+    predict 0 and hide wrong weights; and its EMA lags them, so EMA and trained weights differ.
+    """
+    torch.manual_seed(0)
+    module = PretrainModule(flavor="mini", dit=TINY, spec=SPEC, warmup_steps=1)
+    module.ema = EMA(module.model, decay=0.9)
+    with torch.no_grad():
+        for p in module.model.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    batch = {"motion": 0.1 * torch.randn(16, 263), "mask": torch.ones(16, dtype=torch.bool)}
+    root = tmp_path_factory.mktemp("lightning")
+    trainer = L.Trainer(max_steps=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root)
+    trainer.fit(module, torch.utils.data.DataLoader([batch] * 2, batch_size=2))
+    trainer.save_checkpoint(root / "last.ckpt")
+    ema = module.ema.state_dict()["shadow"]
+    assert not torch.equal(ema["final_layer.linear.weight"], module.model.final_layer.linear.weight)
+    return module, root / "last.ckpt"
+
+
+def ema_state(module: PretrainModule) -> dict[str, torch.Tensor]:
+    """The module's state_dict with the EMA in place of the trained ``model.`` weights."""
+    return {**module.state_dict(), **{f"model.{n}": t for n, t in module.ema.state_dict()["shadow"].items()}}
+
+
+def test_lightning_ckpt_loads_and_converts(trained, tmp_path):
+    module, ckpt = trained
+    loaded = load_module(ckpt, use_ema=False)
+    assert_same(loaded.state_dict(), module.state_dict())
+    assert torch.equal(model_output(loaded), model_output(module))
+    assert_same(loaded.ema.state_dict()["shadow"], module.ema.state_dict()["shadow"])
+    assert_same(load_module(ckpt).state_dict(), ema_state(module))  # use_ema: the EMA for inference
+
+    summary = convert(ckpt, tmp_path / "model.safetensors")
+    assert summary["parameters"] == sum(p.numel() for p in module.parameters()) and not summary["ema_weights"]
+    assert summary["module_class"] == class_path(PretrainModule)  # a plain Trainer.fit does not record it
+    assert_same(load_checkpoint(tmp_path / "model.safetensors")["state_dict"], module.state_dict())
+    assert torch.equal(model_output(load_module(tmp_path / "model.safetensors")), model_output(module))
+
+    assert convert(ckpt, tmp_path / "ema.safetensors", ema=True)["ema_weights"]
+    converted = load_checkpoint(tmp_path / "ema.safetensors")
+    assert converted["ema_weights"] and converted["hyper_parameters"]["spec"] == SPEC
+    assert_same(converted["state_dict"], ema_state(module))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ema.safetensors", "model.safetensors"]  # no temp files
+
+    # fine-tuning needs neither omg nor DeepSpeed: a plain strict load_state_dict
+    fresh = PretrainModule(**converted["hyper_parameters"])
+    fresh.load_state_dict(load_file(tmp_path / "ema.safetensors"))
+    assert_same(fresh.state_dict(), ema_state(module))
+
+
+def test_the_class_lightning_cli_records_is_used(trained, tmp_path):
+    module, ckpt = trained
+    checkpoint = torch.load(ckpt, weights_only=False)  # as `omg fit` (LightningCLI) writes it:
+    checkpoint["hyper_parameters"].update(_class_path="omg.lit.PretrainModule",
+                                          _instantiator="lightning.pytorch.cli.instantiate_module")
+    torch.save(checkpoint, tmp_path / "cli.ckpt")
+    assert isinstance(load_module(tmp_path / "cli.ckpt", default_class=None, expect=PretrainModule), PretrainModule)
+    assert convert(tmp_path / "cli.ckpt", tmp_path / "cli.safetensors", default_class=None)["module_class"] == \
+        "omg.lit.PretrainModule"
+    assert torch.equal(model_output(load_module(tmp_path / "cli.safetensors", default_class=None)),
+                       model_output(module))
+
+
+def write_zero2_checkpoint(module: PretrainModule, client_state: dict, root: Path, prefix: str = "",
+                           split_groups: bool = False) -> None:
+    """The directory DeepSpeed 0.19 writes for ZeRO-2 bf16 on one rank, as Lightning calls it
+    (``engine.save_checkpoint(root, client_state=checkpoint minus state_dict and optimizer_states,
+    tag="checkpoint")``); field for field as a real Lightning + DeepSpeed run wrote it.
+
+    The model-states file holds bf16 copies of the weights; the fp32 master weights lie in the
+    optimizer-states file as one flat vector per optimizer parameter group, in ``param_shapes``
+    order (the optimizer's, not the module's: ``split_groups`` puts 1-d parameters in a first
+    group, as a weight-decay split does). Each group is padded to 2 × world size in memory but
+    saved without that padding (``group_paddings`` records it); ``param_alignment_paddings`` are
+    0 unless ``zero_optimization.parameter_alignment`` is on.
+    """
+    import deepspeed
+    from deepspeed.runtime.zero.config import ZeroStageEnum
+
+    params = [(prefix + n, p.detach().float()) for n, p in module.named_parameters()]
+    groups = [[(n, p) for n, p in params if p.ndim == 1], [(n, p) for n, p in params if p.ndim > 1]] \
+        if split_groups else [params]
+    flat = [torch.cat([p.flatten() for _, p in group]) for group in groups]
+    tag = root / "checkpoint"
+    tag.mkdir(parents=True)
+    config = {"train_micro_batch_size_per_gpu": 2, "bf16": {"enabled": True}, "zero_optimization": {"stage": 2}}
+    torch.save({
+        "module": OrderedDict((prefix + k, v.to(torch.bfloat16)) for k, v in module.state_dict().items()),
+        "buffer_names": [], "optimizer": None,
+        "param_shapes": [OrderedDict((n, p.shape) for n, p in group) for group in groups],
+        "frozen_param_shapes": OrderedDict(), "shared_params": {}, "frozen_param_fragments": OrderedDict(),
+        "lr_scheduler": None, "data_sampler": None, "random_ltd": None, "skipped_steps": 0, "global_steps": 1,
+        "global_samples": 2, "dp_world_size": 1, "mp_world_size": 1,
+        "checkpoint_parallel_dimensions": {"dp_world_size": 1, "mp_world_size": 1}, "ds_config": config,
+        "ds_version": deepspeed.__version__, **client_state,
+    }, tag / "mp_rank_00_model_states.pt")
+    torch.save({"optimizer_state_dict": {
+        "loss_scaler": None, "dynamic_loss_scale": False, "overflow": False, "clip_grad": 0.0,
+        "base_optimizer_state": {"state": {}, "param_groups": []},
+        "single_partition_of_fp32_groups": flat, "zero_stage": ZeroStageEnum.gradients,
+        "group_paddings": [f.numel() % 2 for f in flat], "param_alignment_paddings": [[0] * len(g) for g in groups],
+        "partition_count": [1] * len(groups), "ds_version": deepspeed.__version__,
+    }, "ds_config": config, "ds_version": deepspeed.__version__},
+        tag / "bf16_zero_pp_rank_0_mp_rank_00_optim_states.pt")  # "bf16_" because the run is bf16
+    (root / "latest").write_text("checkpoint")
+
+
+@pytest.mark.parametrize("prefix, split_groups, open_tag_dir", [("", False, False), ("_forward_module.", True, True)])
+def test_deepspeed_dir_gives_the_fp32_master_weights(trained, tmp_path, capsys, prefix, split_groups, open_tag_dir):
+    module, ckpt = trained
+    lightning = torch.load(ckpt, map_location="cpu", weights_only=False)
+    client_state = {k: v for k, v in lightning.items() if k not in ("state_dict", "optimizer_states")}
+    write_zero2_checkpoint(module, client_state, tmp_path / "last.ckpt", prefix, split_groups)
+    src = tmp_path / "last.ckpt" / ("checkpoint" if open_tag_dir else "")
+
+    omg(["convert-ckpt", str(src), str(tmp_path / "out.safetensors")])
+    line = capsys.readouterr().out.strip().splitlines()[-1]  # after DeepSpeed's import warnings on CPU machines
+    assert line.startswith("wrote ") and "M parameters, trained fp32 weights" in line and "MiB" in line
+    out = load_checkpoint(tmp_path / "out.safetensors")["state_dict"]
+    assert_same(out, module.state_dict())  # the fp32 masters, not the bf16 copies
+    assert not torch.equal(out["model.input_proj.weight"], module.model.input_proj.weight.bfloat16().float())
+    assert torch.equal(model_output(load_module(tmp_path / "out.safetensors")), model_output(module))
+
+    omg(["convert-ckpt", str(src), str(tmp_path / "ema.safetensors"), "--ema"])
+    assert "EMA fp32 weights" in capsys.readouterr().out
+    assert_same(load_checkpoint(tmp_path / "ema.safetensors")["state_dict"], ema_state(module))
+    restored = load_module(src, use_ema=False)  # the directory itself, EMA restored from the client state
+    assert_same(restored.ema.state_dict()["shadow"], module.ema.state_dict()["shadow"])
+
+
+class OtherModule(L.LightningModule):
+    pass
+
+
+def test_bad_inputs_fail_with_one_line(trained, tmp_path, capsys):
+    module, ckpt = trained
+    (tmp_path / "random.bin").write_bytes(torch.randn(100).numpy().tobytes())
+    (tmp_path / "random.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00not json")
+    (tmp_path / "empty").mkdir()
+    torch.save({"weights": torch.ones(3)}, tmp_path / "weights.pt")
+    convert(ckpt, tmp_path / "plain.safetensors")
+    lightning = torch.load(ckpt, weights_only=False)
+    no_ema = {k: v for k, v in lightning.items() if k not in ("state_dict", "optimizer_states", "ema")}
+    write_zero2_checkpoint(module, no_ema, tmp_path / "no_ema")
+    cases = {
+        (str(tmp_path / "missing.ckpt"), "x.safetensors"): "missing.ckpt: no such file or directory",
+        (str(tmp_path / "random.bin"), "x.safetensors"): "random.bin is not a checkpoint",
+        (str(tmp_path / "random.safetensors"), "x.safetensors"): "random.safetensors is not a readable safetensors",
+        (str(tmp_path / "empty"), "x.safetensors"): "empty is a directory without a `latest` file",
+        (str(tmp_path / "weights.pt"), "x.safetensors"): "weights.pt is a torch file but not a Lightning checkpoint",
+        (str(ckpt), str(tmp_path / "x.pt")): "must end in .safetensors",
+        (str(tmp_path / "plain.safetensors"), str(tmp_path / "x.safetensors"), "--ema"): "has no EMA weights",
+        (str(tmp_path / "no_ema"), str(tmp_path / "x.safetensors"), "--ema"): "has no EMA weights",
+        (str(ckpt),): "the following arguments are required: dst",
+    }
+    for args, message in cases.items():
+        with pytest.raises(SystemExit) as exit:
+            omg(["convert-ckpt", *args])
+        err = capsys.readouterr().err.strip()
+        assert exit.value.code == 2 and message in err and "\n" not in err, (args, err)
+    assert not (tmp_path / "x.safetensors").exists()
+
+    with pytest.raises(UsageError, match=r"holds a omg\.lit\.pretrain\.PretrainModule checkpoint, not a .*OtherModule"):
+        load_module(ckpt, expect=OtherModule)
