@@ -231,14 +231,59 @@ def bench_train(argv: list[str]) -> None:
           f"| `omg bench train {shlex.join(argv)}` |")
 
 
-BENCHMARKS = {"data": bench_data, "train": bench_train}
+# -- sample ----------------------------------------------------------------------------------
+def bench_sample(argv: list[str]) -> None:
+    import torch
+
+    from omg.lit.controlnet import ControlNetModule
+
+    p = ToolParser(prog="omg bench sample", description="Seconds per motion of guided DDIM sampling (frozen DiT + ControlNet).")
+    p.add_argument("--flavor", default="mini")
+    p.add_argument("--frames", type=int, default=196)
+    p.add_argument("--steps", type=int, default=200)
+    p.add_argument("--batch-sizes", default="1,8,32", help="comma-separated batch sizes to try")
+    p.add_argument("--text-encoder", default="hash", help="the encoder runs once per batch; hash keeps it out of the timing")
+    p.add_argument("--precision", default="bf16" if torch.cuda.is_available() else "fp32", choices=("fp32", "bf16"))
+    args = p.parse_args(argv)
+
+    D = 263
+    spec = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": D,
+            "mean": [0.0] * D, "std": [1.0] * D}
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    module = ControlNetModule(base={"flavor": args.flavor, "dit": None, "spec": spec}, text_encoder=args.text_encoder)
+    module = module.to(device, torch.bfloat16 if args.precision == "bf16" else torch.float32).eval()
+    print("| flavor | device | precision | batch | s per batch | s per motion | peak memory | command |\n|---|---|---|---|---|---|---|---|")
+    for batch in map(int, args.batch_sizes.split(",")):
+        prompts = ["a person walks forward and waves"] * batch
+        module.generate(prompts, args.frames, steps=2)  # warm-up
+        if device == "cuda":
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        start = time.perf_counter()
+        module.generate(prompts, args.frames, steps=args.steps)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        seconds = time.perf_counter() - start
+        if device == "cuda":
+            memory = f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB (GPU)"
+        else:
+            import resource
+
+            memory = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.1f} GiB (RSS)"
+        name = torch.cuda.get_device_name() if device == "cuda" else "cpu"
+        print(f"| {args.flavor} | {name} | {args.precision} | {batch} | {seconds:.2f} | {seconds / batch:.3f} | {memory} "
+              f"| `omg bench sample {shlex.join(argv)}` |", flush=True)
+
+
+BENCHMARKS = {"data": bench_data, "train": bench_train, "sample": bench_sample}
 
 
 def main(argv: list[str]) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: omg bench {" + ",".join(BENCHMARKS) + "} [options]\n\n"
               "  data   streaming vs in-memory loader: windows/s and peak memory\n"
-              "  train  DiT training step time, frames/s, MFU and peak memory")
+              "  train  DiT training step time, frames/s, MFU and peak memory\n"
+              "  sample seconds per motion of guided DDIM sampling")
         return
     if argv[0] == "_loader":
         return loader_worker(argv[1:])

@@ -29,6 +29,7 @@ COMMANDS = {  # name -> (module:function, one-line description)
     "generate": ("omg.generate:main", "sample motions from a checkpoint (unconditional, or from text prompts)"),
     "bench": ("omg.bench:main", "measure data loading, training and sampling speed and memory"),
     "convert-ckpt": ("omg.lit.checkpoint:main", "turn a DeepSpeed/Lightning checkpoint into one fp32 (or EMA) safetensors file"),
+    "export": ("omg.io.export:main", "write BVH files and rendered previews of motions (npy joint positions or features)"),
 }
 
 

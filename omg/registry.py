@@ -8,6 +8,7 @@ module, whose decorators register the components.
 
 from __future__ import annotations
 
+import importlib
 import inspect
 from importlib.metadata import entry_points
 from typing import Any, Iterator, TypeVar
@@ -36,9 +37,17 @@ def _where(obj: Any) -> str:
 class Registry:
     """Maps short names to components (classes, factories or instances) of one kind."""
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str, builtins: tuple[str, ...] = ()):
         self.kind = kind
+        self.builtins = builtins  # modules whose import registers omg's own entries, imported on first lookup
+        self._builtins_loaded = False
         self._entries: dict[str, Any] = {}
+
+    def _load_builtins(self) -> None:
+        if not self._builtins_loaded:
+            self._builtins_loaded = True
+            for module in self.builtins:
+                importlib.import_module(module)
 
     def register(self, name: str | None = None, obj: Any = None) -> Any:
         """Register ``obj`` as ``name``; without ``obj``, return a decorator."""
@@ -54,7 +63,7 @@ class Registry:
         return obj
 
     def get(self, name: str) -> Any:
-        _load_builtins()
+        self._load_builtins()
         try:
             return self._entries[name]
         except KeyError:
@@ -66,11 +75,11 @@ class Registry:
         return self.get(name)(*args, **kwargs)
 
     def names(self) -> list[str]:
-        _load_builtins()
+        self._load_builtins()
         return sorted(self._entries)
 
     def __contains__(self, name: str) -> bool:
-        _load_builtins()
+        self._load_builtins()
         return name in self._entries
 
     def __iter__(self) -> Iterator[str]:
@@ -82,12 +91,15 @@ class Registry:
         return doc.splitlines()[0] if doc else _where(obj)
 
 
-SKELETONS = Registry("skeleton")
-REPRESENTATIONS = Registry("representation")
-TEXT_ENCODERS = Registry("text encoder")
-DATA_SOURCES = Registry("data source")
+# Each registry imports its built-in modules lazily, on its first lookup, so that
+# `import omg.registry` stays cheap and free of cycles and a skeleton lookup does not
+# import torchmetrics.
+SKELETONS = Registry("skeleton", ("omg.skeleton",))
+REPRESENTATIONS = Registry("representation", ("omg.motion",))
+TEXT_ENCODERS = Registry("text encoder", ("omg.text",))
+DATA_SOURCES = Registry("data source", ("omg.data.sources",))
 MODELS = Registry("model")
-METRICS = Registry("metric")
+METRICS = Registry("metric", ("omg.metrics",))
 CALLBACKS = Registry("callback")
 
 ALL: dict[str, Registry] = {
@@ -100,22 +112,7 @@ ALL: dict[str, Registry] = {
     "callbacks": CALLBACKS,
 }
 
-# Modules whose import registers omg's own components. Imported lazily so that
-# `import omg.registry` stays cheap and free of cycles.
-_BUILTIN_MODULES = ("omg.skeleton", "omg.motion", "omg.data.sources")
-_builtins_loaded = False
 _plugins_loaded: list[str] | None = None
-
-
-def _load_builtins() -> None:
-    global _builtins_loaded
-    if _builtins_loaded:
-        return
-    _builtins_loaded = True
-    import importlib
-
-    for module in _BUILTIN_MODULES:
-        importlib.import_module(module)
 
 
 def load_plugins() -> list[str]:
@@ -128,7 +125,6 @@ def load_plugins() -> list[str]:
     global _plugins_loaded
     if _plugins_loaded is not None:
         return _plugins_loaded
-    _load_builtins()
     loaded = []
     for ep in entry_points(group=PLUGIN_GROUP):
         try:

@@ -189,6 +189,10 @@ def matrix_to_euler(m: Tensor, order: str) -> Tensor:
     a_j = torch.asin((sign * m[..., i, k]).clamp(-1.0, 1.0))
     a_i = torch.atan2(-sign * m[..., j, k], m[..., k, k])
     a_k = torch.atan2(-sign * m[..., i, j], m[..., i, i])
+    # gimbal lock (middle angle ±90°): only a_i ± a_k is defined; put it all in a_i
+    locked = m[..., i, k].abs() > 1.0 - 1e-6
+    a_i = torch.where(locked, torch.atan2(sign * m[..., k, j], m[..., j, j]), a_i)
+    a_k = torch.where(locked, torch.zeros_like(a_k), a_k)
     return torch.stack((a_i, a_j, a_k), dim=-1)
 
 

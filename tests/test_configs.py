@@ -31,23 +31,40 @@ def parse(path: Path):
     return parser.parse_args(["--config", str(path)])
 
 
-def build_model_on_meta(cfg):
+def build_model_on_meta(cfg, flavor: str = "mini"):
     module_path, _, cls_name = cfg.model.class_path.rpartition(".")
     cls = getattr(__import__(module_path, fromlist=[cls_name]), cls_name)
     init = {**cfg.model.init_args.as_dict(), "spec": FAKE_SPEC}
+    if cls_name == "ControlNetModule":  # no pretrained checkpoint or CLIP weights here: describe the base, hash text
+        init.update(base={"flavor": flavor, "dit": None, "spec": FAKE_SPEC}, text_encoder="hash", text_encoder_args={})
     with torch.device("meta"):
         return cls(**init)
 
 
 def test_configs_exist():
     names = {p.relative_to(REPO / "configs").as_posix() for p in CONFIGS}
-    assert {"pretrain_base.yaml", "pretrain_large.yaml", "pretrain_huge.yaml", "pretrain_giant.yaml", "mini/pretrain.yaml"} <= names
+    for stage in ("pretrain", "controlnet"):
+        assert {f"{stage}_{f}.yaml" for f in ("base", "large", "huge", "giant")} | {f"mini/{stage}.yaml"} <= names
+
+
+def test_controlnet_configs_use_clip_and_name_its_missing_weights(tmp_path):
+    from omg.errors import UsageError
+    from omg.text import build_text_encoder
+
+    for flavor in ("base", "large", "huge", "giant"):
+        cfg = parse(REPO / f"configs/controlnet_{flavor}.yaml")
+        args = cfg.model.init_args
+        assert args.text_encoder == "clip-vit-l-14" and args.guidance_scale == 4.5 and args.eot_drop == 0.5
+        assert args.lr == 3e-5 and args.weight_decay == 1e-5 and args.warmup_steps == 1000
+    with pytest.raises(UsageError, match="pretrained"):
+        build_text_encoder("clip-vit-l-14", pretrained=str(tmp_path / "missing.pt"))
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.relative_to(REPO / "configs").as_posix())
 def test_config_parses_and_builds_on_meta(path):
     cfg = parse(path)
-    model = build_model_on_meta(cfg)
+    flavor = next((f for f in ("base", "large", "huge", "giant") if f in path.name), "mini")
+    model = build_model_on_meta(cfg, flavor)
     n = sum(p.numel() for p in model.parameters())
     assert n > 0 and all(p.is_meta for p in model.parameters())
 

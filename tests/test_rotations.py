@@ -391,3 +391,11 @@ def test_yaw_quat_turns_forward_towards_left():
     angles = torch.linspace(-3, 3, 13, dtype=F64)
     expected = torch.stack([torch.from_numpy(rot_y(a)) for a in angles.tolist()])
     torch.testing.assert_close(R.quat_to_matrix(R.yaw_quat(angles)), expected)
+
+
+@pytest.mark.parametrize("order", ["XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX"])
+@pytest.mark.parametrize("middle", [math.pi / 2, -math.pi / 2])
+def test_euler_at_gimbal_lock_reproduces_the_rotation(order, middle):
+    m = R.quat_to_matrix(R.euler_to_quat(torch.tensor([0.5, middle, 0.3], dtype=torch.float64), order))
+    back = R.quat_to_matrix(R.euler_to_quat(R.matrix_to_euler(m, order), order))
+    torch.testing.assert_close(back, m, rtol=0, atol=1e-6)

@@ -1,4 +1,4 @@
-"""BVH reader for any hierarchy, channel order and unit.
+"""BVH reader for any hierarchy, channel order and unit, and a writer for omg's skeletons.
 
 A BVH joint's rotation channels compose intrinsically in the order they are listed
 ("Zrotation Xrotation Yrotation" gives R = Rz Rx Ry) and turn the offsets of its children.
@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omg.data.shards import atomic_write
 from omg.errors import UsageError
 from omg.motion.base import Clip
-from omg.rotations import euler_to_quat, quat_apply, quat_mul
+from omg.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
 from omg.skeleton import Skeleton, get_skeleton
 
 CM_ABOVE = 10.0  # a rest pose larger than this many units is taken to be in centimetres
@@ -286,3 +287,67 @@ def _parse_motion(lines: list[str], motion_line: int, num_channels: int, src: st
     fps = 1.0 / frame_time
     # "Frame Time: .0083333" means 120 fps; 29.97 fps stays 29.97
     return (float(round(fps)) if abs(frame_time * round(fps) - 1.0) < 1e-4 else fps), values
+
+
+def write_bvh(
+    path: str | Path,
+    skeleton: Skeleton | str,
+    rotations: np.ndarray | torch.Tensor,  # (T, J, 4) local quaternions (w, x, y, z)
+    root_positions: np.ndarray | torch.Tensor,  # (T, 3) metres
+    fps: float,
+    offsets: np.ndarray | None = None,  # (J, 3) metres; the skeleton's rest offsets if None
+    order: str = "ZXY",
+    scale: float = 1.0,  # file units per metre (100 for centimetres)
+) -> Path:
+    """Write a motion as a standard BVH file, atomically; ``read_bvh`` gives back its positions.
+
+    The root has position channels then rotation channels, every other joint rotation
+    channels only, all in the Euler ``order``; leaf joints end in an End Site half as long
+    as their own bone. Joints appear depth first, so the file's joint order can differ from
+    the skeleton's (SMPL-22's is breadth first): match joints by name when reading back.
+    """
+    skel = get_skeleton(skeleton)
+    order = order.upper()
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise ValueError(f"Euler order {order!r} must use each of X, Y, Z once (e.g. 'ZXY')")
+    J = skel.num_joints
+    rot = torch.as_tensor(rotations, dtype=torch.float64)
+    root = np.asarray(root_positions, dtype=np.float64)
+    if rot.ndim != 3 or rot.shape[1:] != (J, 4) or root.shape != (rot.shape[0], 3) or rot.shape[0] == 0:
+        raise ValueError(
+            f"write_bvh: rotations must be (T, {J}, 4) and root_positions (T, 3) with T > 0 for skeleton "
+            f"{skel.name!r}, got {tuple(rot.shape)} and {root.shape}"
+        )
+    off = np.asarray(skel.rest_offsets if offsets is None else offsets, dtype=np.float64) * scale  # (J, 3)
+    rotation_channels = " ".join(f"{axis}rotation" for axis in order)
+    lines, joints = ["HIERARCHY"], []  # joints: depth-first order of the file
+
+    def emit(j: int, depth: int) -> None:
+        pad = "  " * depth
+        # the root's OFFSET is zero so that both readings of its position channels (absolute,
+        # or added to the offset) place it alike
+        offset = np.zeros(3) if j == 0 else off[j]
+        channels = f"6 Xposition Yposition Zposition {rotation_channels}" if j == 0 else f"3 {rotation_channels}"
+        name = "_".join(skel.names[j].split())  # a BVH name ends at whitespace
+        lines.extend([f"{pad}{'ROOT' if j == 0 else 'JOINT'} {name}", f"{pad}{{",
+                      f"{pad}  OFFSET {_fmt(offset)}", f"{pad}  CHANNELS {channels}"])  # fmt: skip
+        joints.append(j)
+        children = skel.children(j)
+        for c in children:
+            emit(c, depth + 1)
+        if not children:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {_fmt(0.5 * off[j])}", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    emit(0, 0)
+    angles = np.rad2deg(quat_to_euler(rot[:, joints], order).numpy())  # (T, J, 3) in the file's joint order
+    values = np.concatenate([root * scale, angles.reshape(len(root), -1)], axis=1)  # (T, 3 + 3J)
+    lines += ["MOTION", f"Frames: {len(values)}", f"Frame Time: {1.0 / fps:.8f}"]
+    lines += [_fmt(row) for row in values]
+    path = Path(path)
+    atomic_write(path, ("\n".join(lines) + "\n").encode())
+    return path
+
+
+def _fmt(vector: np.ndarray) -> str:
+    return " ".join(f"{v:.6f}" for v in vector)

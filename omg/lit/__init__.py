@@ -1,5 +1,6 @@
 """LightningModules, one per task."""
 
+from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
 
-__all__ = ["PretrainModule"]
+__all__ = ["ControlNetModule", "PretrainModule"]

@@ -84,38 +84,15 @@ def warmup_cosine(warmup_steps: int, total_steps: int):
     return factor
 
 
-class PretrainModule(L.LightningModule):
-    """Unconditional x̂0-predicting MotionDiT.
+class MotionDiffusionModule(L.LightningModule):
+    """What the diffusion stages share: the x̂0-predicting MotionDiT, its losses, optimizer and
+    schedule, the weight EMA and sampling. Subclasses save their own hyper-parameters."""
 
-    Args:
-        flavor: DiT size preset: mini, base, large, huge or giant.
-        dit: DiTConfig fields to override, e.g. ``{n_layers: 4, activation_checkpointing: true}``.
-        lr, weight_decay, betas: AdamW settings (OMG: 1e-4, 0).
-        warmup_steps: linear LR warm-up, then cosine decay over the run's optimizer steps.
-        vel_weight, foot_weight: weights of L_vel and L_foot (OMG/MDM: 30 each).
-        ema_decay: decay of the fp32 weight EMA kept in checkpoints (0 disables it).
-        loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
-        spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
-    """
-
-    def __init__(
-        self,
-        flavor: str = "base",
-        dit: dict[str, Any] | None = None,
-        lr: float = 1e-4,
-        weight_decay: float = 0.0,
-        betas: tuple[float, float] = (0.9, 0.999),
-        warmup_steps: int = 10_000,
-        vel_weight: float = 30.0,
-        foot_weight: float = 30.0,
-        ema_decay: float = 0.9999,
-        loss_weighting: str = "uniform",
-        spec: dict | None = None,
-    ):
+    def __init__(self, flavor: str, dit: dict[str, Any] | None, lr: float, weight_decay: float, warmup_steps: int,
+                 loss_weighting: str, spec: dict | None):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
             raise UsageError(f"model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; got {lr}, {weight_decay}, {warmup_steps}")
-        self.save_hyperparameters()
         self.spec = check_spec(spec)
         fields = set(DiTConfig.__dataclass_fields__) - {"name", "input_dim"}
         if unknown := set(dit or {}) - fields:
@@ -151,11 +128,16 @@ class PretrainModule(L.LightningModule):
                 self._noise_gen.manual_seed(torch.initial_seed() + self.global_rank)
         return self._noise_gen
 
+    def prepare(self, batch: dict) -> dict:
+        """The batch as ``denoise`` needs it; the ControlNet stage adds its text condition here."""
+        return batch
+
     def denoise(self, x_t: Tensor, t: Tensor, mask: Tensor | None, batch: dict) -> Tensor:
-        """x̂0 for a noisy batch; the ControlNet stage overrides this to add its condition."""
+        """x̂0 for a noisy batch."""
         return self.model(x_t, t, mask)
 
     def diffusion_losses(self, batch: dict) -> dict[str, Tensor]:
+        batch = self.prepare(batch)
         x0, mask = batch["motion"], batch["mask"]  # (B, T, D), (B, T)
         gen = self.noise_generator()
         t = self.diffusion.sample_timesteps(x0.shape[0], generator=gen, device=x0.device)
@@ -188,6 +170,7 @@ class PretrainModule(L.LightningModule):
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         gen = torch.Generator(device=self.device).manual_seed(batch_idx)  # the same noise every validation
+        batch = self.prepare(batch)
         x0, mask = batch["motion"], batch["mask"]
         t = self.diffusion.sample_timesteps(x0.shape[0], generator=gen, device=self.device)
         noise = torch.randn(x0.shape, generator=gen, device=self.device, dtype=x0.dtype) * mask[..., None]
@@ -217,6 +200,8 @@ class PretrainModule(L.LightningModule):
             self.ema.update(self.trainable_module())
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # which class to rebuild, also for checkpoints written outside LightningCLI
+        checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
         if self.ema is not None:
             checkpoint["ema"] = self.ema.state_dict()
         checkpoint["noise_rng"] = self.noise_generator().get_state().cpu()
@@ -241,3 +226,34 @@ class PretrainModule(L.LightningModule):
                                            generator=gen, device=self.device, dtype=dtype)
         return self.denormalize(x)
 
+
+class PretrainModule(MotionDiffusionModule):
+    """Unconditional x̂0-predicting MotionDiT.
+
+    Args:
+        flavor: DiT size preset: mini, base, large, huge or giant.
+        dit: DiTConfig fields to override, e.g. ``{n_layers: 4, activation_checkpointing: true}``.
+        lr, weight_decay, betas: AdamW settings (OMG: 1e-4, 0).
+        warmup_steps: linear LR warm-up, then cosine decay over the run's optimizer steps.
+        vel_weight, foot_weight: weights of L_vel and L_foot (OMG/MDM: 30 each).
+        ema_decay: decay of the fp32 weight EMA kept in checkpoints (0 disables it).
+        loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
+        spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
+    """
+
+    def __init__(
+        self,
+        flavor: str = "base",
+        dit: dict[str, Any] | None = None,
+        lr: float = 1e-4,
+        weight_decay: float = 0.0,
+        betas: tuple[float, float] = (0.9, 0.999),
+        warmup_steps: int = 10_000,
+        vel_weight: float = 30.0,
+        foot_weight: float = 30.0,
+        ema_decay: float = 0.9999,
+        loss_weighting: str = "uniform",
+        spec: dict | None = None,
+    ):
+        super().__init__(flavor, dit, lr, weight_decay, warmup_steps, loss_weighting, spec)
+        self.save_hyperparameters()

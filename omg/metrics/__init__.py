@@ -1,0 +1,25 @@
+"""Evaluation metrics as torchmetrics ``Metric`` classes, registered in ``omg.registry.METRICS``.
+
+Every state is declared with a DDP reduction (``sum`` for running sums, ``cat`` for feature
+lists), so ``compute()`` gives the same result on every rank as one process seeing all data.
+"""
+
+from omg.metrics.distribution import FID, FIDOOD, IntraFID, OneNNA, frechet_distance
+from omg.metrics.diversity import Diversity, MultiModality
+from omg.metrics.joints import MPJPE, FootSkating
+from omg.metrics.text_motion import CLIPScore, MMDist, RPrecision
+
+__all__ = [
+    "CLIPScore",
+    "Diversity",
+    "FID",
+    "FIDOOD",
+    "FootSkating",
+    "IntraFID",
+    "MMDist",
+    "MPJPE",
+    "MultiModality",
+    "OneNNA",
+    "RPrecision",
+    "frechet_distance",
+]

@@ -1,0 +1,120 @@
+"""Agreement between matched text and motion features: R-precision, MM-Dist, CLIP score.
+
+Inputs are evaluator embeddings of the texts and of the motions generated from them, (N, F)
+each, row i of one matching row i of the other.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torchmetrics import Metric
+from torchmetrics.utilities import dim_zero_cat
+
+from omg.errors import UsageError
+from omg.registry import METRICS
+
+
+def _check_pairs(text: Tensor, motion: Tensor) -> None:
+    if text.ndim != 2 or text.shape != motion.shape:
+        raise ValueError(
+            f"expected text and motion features of the same shape (N, F), got {tuple(text.shape)} "
+            f"and {tuple(motion.shape)}"
+        )
+
+
+@METRICS.register("r_precision")
+class RPrecision(Metric):
+    """Text→motion retrieval top-k accuracy in pools of 32 (the HumanML3D protocol).
+
+    The samples are shuffled with a seeded permutation and cut into pools of ``pool_size``
+    (the incomplete last pool is dropped, as HumanML3D's ``drop_last`` loader does). Within a pool
+    each text ranks its own motion among the pool's motions by Euclidean distance; a hit at k
+    means fewer than k mismatched motions lie strictly closer than the matched one.
+    ``compute()`` returns ``{"r_precision/top1": ..., "r_precision/top2": ..., ...}``.
+
+    Under DDP the gathered samples are in rank order, so pools match a single process whenever
+    each rank holds a contiguous part of the data; otherwise they differ only in which samples
+    share a pool, as between two shuffles.
+    """
+
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+
+    def __init__(self, pool_size: int = 32, top_k: int = 3, seed: int = 0, **kwargs):
+        super().__init__(**kwargs)
+        if not 1 <= top_k <= pool_size:
+            raise UsageError(f"need 1 <= top_k <= pool_size, got top_k={top_k}, pool_size={pool_size}")
+        self.pool_size, self.top_k, self.seed = pool_size, top_k, seed
+        self.add_state("text", default=[], dist_reduce_fx="cat")
+        self.add_state("motion", default=[], dist_reduce_fx="cat")
+
+    def update(self, text_features: Tensor, motion_features: Tensor) -> None:
+        _check_pairs(text_features, motion_features)
+        self.text.append(text_features.detach().double())
+        self.motion.append(motion_features.detach().double())
+
+    def compute(self) -> dict[str, Tensor]:
+        text, motion = dim_zero_cat(self.text), dim_zero_cat(self.motion)
+        pools = len(text) // self.pool_size
+        if pools == 0:
+            raise ValueError(f"RPrecision needs at least pool_size={self.pool_size} samples, got {len(text)}")
+        order = torch.randperm(len(text), generator=torch.Generator().manual_seed(self.seed))
+        order = order[: pools * self.pool_size].to(text.device)
+        text = text[order].view(pools, self.pool_size, -1)
+        motion = motion[order].view(pools, self.pool_size, -1)
+        dist = torch.cdist(text, motion)  # (pools, P, P): text i against every motion in its pool
+        matched = dist.diagonal(dim1=1, dim2=2)  # (pools, P)
+        rank = (dist < matched[..., None]).sum(-1)  # mismatched motions strictly closer
+        return {f"r_precision/top{k}": (rank < k).double().mean() for k in range(1, self.top_k + 1)}
+
+
+@METRICS.register("mm_dist")
+class MMDist(Metric):
+    """Multimodal distance: mean Euclidean distance between matched text and motion features."""
+
+    is_differentiable = False
+    higher_is_better = False
+    full_state_update = False
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.add_state("total", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("count", torch.tensor(0), dist_reduce_fx="sum")
+
+    def update(self, text_features: Tensor, motion_features: Tensor) -> None:
+        _check_pairs(text_features, motion_features)
+        text, motion = text_features.detach().double(), motion_features.detach().double()
+        self.total += (text - motion).norm(dim=1).sum()
+        self.count += len(text_features)
+
+    def compute(self) -> Tensor:
+        return self.total / self.count
+
+
+@METRICS.register("clip_score")
+class CLIPScore(Metric):
+    """Mean cosine similarity between text and motion features in the text-aligned space.
+
+    Plain cosine in [-1, 1]: no ×100 scaling and no clamping at 0.
+    """
+
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.add_state("total", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("count", torch.tensor(0), dist_reduce_fx="sum")
+
+    def update(self, text_features: Tensor, motion_features: Tensor) -> None:
+        _check_pairs(text_features, motion_features)
+        text, motion = text_features.detach().double(), motion_features.detach().double()
+        self.total += F.cosine_similarity(text, motion, dim=1).sum()
+        self.count += len(text_features)
+
+    def compute(self) -> Tensor:
+        return self.total / self.count

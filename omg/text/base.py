@@ -1,0 +1,129 @@
+"""The text-encoder interface: per-token features, a real-token mask and the end-of-text index.
+
+Every encoder returns, per text, the features of its real tokens (start, words, end), the
+last of which is the end-of-text (EOT) token that summarises the sentence. The base class
+owns what they share: an LRU cache of those features keyed by text (on CPU, so a batch
+encodes only its unseen captions), padding into a batch, the mask and the EOT index, and
+staying frozen.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass
+from itertools import chain
+from typing import Any, ClassVar, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from omg.errors import UsageError
+from omg.registry import TEXT_ENCODERS
+
+
+@dataclass
+class TextFeatures:
+    """A batch of encoded texts; padding positions of ``tokens`` are zero."""
+
+    tokens: Tensor  # (B, L, D) float32 per-token embeddings
+    mask: Tensor  # (B, L) bool, True = a real token (start and end tokens included)
+    eot: Tensor  # (B,) long, index of the end-of-text token: always the last real one
+
+    def to(self, device: torch.device | str) -> TextFeatures:
+        return TextFeatures(self.tokens.to(device), self.mask.to(device), self.eot.to(device))
+
+    def eot_embedding(self) -> Tensor:
+        """(B, D): the sentence summary, ``tokens[b, eot[b]]``."""
+        return self.tokens[torch.arange(len(self.eot), device=self.eot.device), self.eot]
+
+
+class TextEncoder(nn.Module):
+    """A frozen text encoder: ``encoder(texts) -> TextFeatures`` on the encoder's device.
+
+    Subclasses set ``name``, ``dim`` and ``max_tokens``, implement ``_encode`` and call
+    ``_freeze()`` once their weights are in place. ``pad_to_max`` pads every batch to
+    ``max_tokens`` (fixed-context models) instead of to its longest text. A cached entry
+    costs n_tokens x dim x 4 bytes (CLIP, 15 tokens: 46 KB). Built under a meta device
+    context, an encoder is structure only and reads no weights.
+    """
+
+    name: ClassVar[str]
+    dim: int
+    max_tokens: int
+    pad_to_max: ClassVar[bool] = False
+
+    def __init__(self, cache_size: int = 100_000):
+        super().__init__()
+        if cache_size < 0:
+            raise UsageError(f"{self.name}: cache_size must be >= 0 (0 disables the cache), got {cache_size}")
+        self.cache_size = cache_size
+        self._cache: OrderedDict[str, Tensor] = OrderedDict()  # text -> (n, D) float32 on CPU
+
+    def _encode(self, texts: list[str]) -> list[Tensor]:
+        """Distinct texts -> per text the (n_i, D) features of its real tokens, EOT last."""
+        raise NotImplementedError
+
+    def _freeze(self) -> None:
+        self.requires_grad_(False)
+        self.eval()
+
+    def train(self, mode: bool = True) -> TextEncoder:
+        return super().train(False)  # always eval: a parent's .train() must not enable dropout
+
+    @property
+    def device(self) -> torch.device:
+        return next(chain(self.parameters(), self.buffers())).device
+
+    def _warn_truncated(self, text: str) -> None:
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        warnings.warn(f"{self.name}: prompt {shown!r} is longer than its {self.max_tokens}-token context; "
+                      f"truncated to the first {self.max_tokens} tokens (the end-of-text token kept last)")
+
+    # no_grad, not inference_mode: the features feed trainable layers that save them for backward
+    @torch.no_grad()
+    def forward(self, texts: Sequence[str]) -> TextFeatures:
+        if isinstance(texts, str):
+            raise TypeError(f"{self.name} encodes a list of texts, got the single string {texts!r}")
+        rows: dict[str, Tensor] = {}
+        for text in texts:
+            if text in self._cache:
+                self._cache.move_to_end(text)
+                rows[text] = self._cache[text]
+        missing = [t for t in dict.fromkeys(texts) if t not in rows]
+        if missing:
+            for text, x in zip(missing, self._encode(missing), strict=True):
+                # a copy with its own storage: a view would keep the whole batch alive in the cache
+                rows[text] = x.to("cpu", torch.float32, copy=True)
+                self._remember(text, rows[text])
+        return self._collate([rows[t] for t in texts]).to(self.device)
+
+    def _remember(self, text: str, x: Tensor) -> None:
+        if self.cache_size == 0:
+            return
+        self._cache[text] = x
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+
+    def _collate(self, rows: list[Tensor]) -> TextFeatures:
+        lengths = torch.tensor([len(x) for x in rows], dtype=torch.long)
+        length = self.max_tokens if self.pad_to_max else max(map(len, rows), default=0)
+        tokens = torch.zeros(len(rows), length, self.dim)
+        for b, x in enumerate(rows):
+            tokens[b, : len(x)] = x
+        mask = torch.arange(length) < lengths[:, None]
+        return TextFeatures(tokens, mask, lengths - 1)
+
+
+def building_on_meta() -> bool:
+    """Inside ``with torch.device("meta")`` (config tests): build the structure, read no weights."""
+    return torch.get_default_device().type == "meta"
+
+
+def build_text_encoder(spec: str | TextEncoder, **kwargs: Any) -> TextEncoder:
+    """A text encoder by registered name (``clip-vit-l-14``, ``minilm``, ``hash``), or the instance itself."""
+    if isinstance(spec, TextEncoder):
+        if kwargs:
+            raise UsageError(f"text encoder given as a built {spec.name!r} instance; cannot apply {sorted(kwargs)}")
+        return spec
+    return TEXT_ENCODERS.build(spec, **kwargs)

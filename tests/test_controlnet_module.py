@@ -1,0 +1,145 @@
+"""OMG stage 2 as a user runs it: fine-tune the ControlNet on the mini data, guided sampling,
+`omg generate` from text."""
+
+from __future__ import annotations
+
+import json
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO
+from omg.data.datamodule import MotionDataModule
+from omg.io.bvh import read_bvh
+from omg.lit.controlnet import ControlNetModule
+from omg.lit.pretrain import PretrainModule
+
+MINI = REPO / "shards/mini/human263"
+TINY = {"n_layers": 3, "d_model": 64, "n_heads": 2}
+MOC = {"d_c": 32, "num_experts": 4}
+
+
+def _data(**kw):
+    args = dict(batch_size=16, max_len=60, min_len=40, batches_per_epoch=1000, num_workers=0, shuffle_buffer=64)
+    return MotionDataModule(str(MINI / "train"), **{**args, **kw})
+
+
+def _fit(module, data, steps, root):
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root, gradient_clip_val=1.0)
+    trainer.fit(module, data)
+    return trainer
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory):
+    """A tiny DiT pretrained for a few hundred steps on the mini humans; its checkpoint path."""
+    root = tmp_path_factory.mktemp("pretrain")
+    torch.manual_seed(0)
+    data = _data()
+    module = PretrainModule(flavor="mini", dit=TINY, spec=data.spec, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+    trainer = _fit(module, data, 250, root)
+    trainer.save_checkpoint(root / "pretrain.ckpt")
+    return root / "pretrain.ckpt"
+
+
+def _controlnet(pretrained, **kw):
+    return ControlNetModule(pretrained=str(pretrained), text_encoder="hash", moc=MOC, spec=_data().spec,
+                            **{"lr": 1e-3, "warmup_steps": 20, "ema_decay": 0.99, **kw})
+
+
+def test_starts_as_the_frozen_model_and_trains_only_the_controlnet(pretrained, tmp_path):
+    module = _controlnet(pretrained)
+    frozen = {k: v.clone() for k, v in module.model.state_dict().items()}
+    ema_weights = torch.load(pretrained, weights_only=False)["ema"]["shadow"]
+    assert all(torch.equal(frozen[k], v) for k, v in ema_weights.items())  # fine-tuning starts from the EMA
+
+    x, t = torch.randn(2, 30, 263), torch.tensor([10, 900])
+    text = module.encode_text(["a person walks forward", "a person jumps in place"])
+    assert torch.equal(module.controlnet(x, t, text.tokens, text.mask, text.eot), module.model(x, t))
+
+    controlnet_before = {k: v.clone() for k, v in module.controlnet.state_dict().items() if not k.startswith("base.")}
+    _fit(module, _data(), 4, tmp_path)
+    assert all(torch.equal(module.model.state_dict()[k], v) for k, v in frozen.items())
+    changed = [k for k, v in module.controlnet.state_dict().items() if k in controlnet_before and not torch.equal(controlnet_before[k], v)]
+    assert any(k.startswith("zero_projs") for k in changed) and any("moc" in k or "blocks" in k for k in changed)
+
+
+def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
+    module = _controlnet(pretrained).eval()
+    torch.manual_seed(1)
+    for p in module.controlnet.trainable_parameters():  # as if trained: the residuals are not zero
+        p.data.normal_(0, 0.05)
+    texts, frames = ["a person walks forward"] * 2, 24
+    text = module.encode_text(texts)
+
+    def ddim(denoise):
+        gen = torch.Generator().manual_seed(7)
+        return module.diffusion.ddim_sample(denoise, (2, frames, 263), steps=8, generator=gen)
+
+    only_u = ddim(lambda x, t: module.controlnet.forward_uncond(x, t))
+    only_c = ddim(lambda x, t: module.controlnet(x, t, text.tokens, text.mask, text.eot))
+    s0 = module.generate(texts, frames, steps=8, seed=7, scale=0.0, use_ema=False)
+    s1 = module.generate(texts, frames, steps=8, seed=7, scale=1.0, use_ema=False)
+    torch.testing.assert_close(s0, module.denormalize(only_u), rtol=0, atol=1e-5)
+    torch.testing.assert_close(s1, module.denormalize(only_c), rtol=0, atol=1e-5)
+    assert not torch.allclose(only_u, only_c, atol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def finetuned(pretrained, tmp_path_factory):
+    root = tmp_path_factory.mktemp("controlnet")
+    torch.manual_seed(0)
+    module = _controlnet(pretrained)
+    trainer = _fit(module, _data(), 300, root)
+    trainer.save_checkpoint(root / "controlnet.ckpt")
+    return root / "controlnet.ckpt"
+
+
+def test_finetuned_controlnet_follows_walk_and_jump_prompts(finetuned):
+    """A sanity check, not a quality claim: walking travels, jumping in place goes up and down."""
+    from omg.lit.checkpoint import load_module
+
+    module = load_module(finetuned, expect=ControlNetModule)
+    stats = {}
+    for prompt in ("a person walks forward", "a person jumps in place"):
+        features = module.generate([prompt] * 6, 60, steps=20, seed=0)
+        root = module.representation.decode(features)[:, :, 0]  # (6, T, 3)
+        travel = (root[:, -1, [0, 2]] - root[:, 0, [0, 2]]).norm(dim=-1).mean().item()
+        bounce = root[:, :, 1].std(dim=1).mean().item()
+        stats[prompt] = (travel, bounce)
+    (walk_travel, walk_bounce), (jump_travel, jump_bounce) = stats.values()
+    assert walk_travel > 1.5 * jump_travel, stats
+    assert jump_bounce > 1.5 * walk_bounce, stats
+
+
+def test_generate_from_text(finetuned, tmp_path, capsys):
+    from omg.cli import main
+
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text("a person jumps in place\n\n")
+    main(["generate", "a person walks forward", "--prompts-file", str(prompts), "--ckpt", str(finetuned),
+          "--length", "2", "--num-samples", "2", "--steps", "5", "--seed", "3", "--out", str(tmp_path / "out")])
+    settings = json.loads((tmp_path / "out/generation.json").read_text())
+    assert settings["prompts"] == ["a person walks forward", "a person jumps in place"]
+    assert settings["guidance_scale"] == 4.5 and settings["seed"] == 3 and settings["frames"] == 40
+    assert [s["prompt"] for s in settings["samples"]] == ["a person walks forward"] * 2 + ["a person jumps in place"] * 2
+    for i in range(4):
+        joints = np.load(tmp_path / f"out/sample_{i:03d}.joints.npy")
+        assert joints.shape == (40, 22, 3)
+    bvh = read_bvh(tmp_path / "out/sample_000.bvh")
+    assert bvh.positions().shape[:2] == (40, 22) and bvh.fps == 20.0
+    from PIL import Image
+
+    assert Image.open(tmp_path / "out/preview.gif").n_frames > 1
+
+    for argv, message in (
+        (["generate", "  ", "--ckpt", str(finetuned)], "prompt 1 is empty"),
+        (["generate", "a person waves", "--ckpt", str(finetuned), "--length", "99"], "--length must be in"),
+        (["generate", "--ckpt", str(finetuned)], "give prompts"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2 and message in capsys.readouterr().err
