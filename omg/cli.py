@@ -19,7 +19,7 @@ from omg.errors import UsageError
 LIGHTNING = {
     "fit": "train a model (a LightningModule and data from a YAML config)",
     "validate": "run the validation loop of a config on a checkpoint",
-    "test": "run the test loop (evaluation protocol) of a config on a checkpoint",
+    "test": "run the test loop of a config on a checkpoint",
     "predict": "run the prediction loop of a config on a checkpoint",
 }
 

@@ -26,7 +26,6 @@ from typing import Iterator
 
 import lightning as L
 import numpy as np
-import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
 from omg.data.shards import Manifest, decode_sample, iter_tar

@@ -10,6 +10,7 @@ from torch import Tensor
 from torchmetrics import Metric
 
 from omg.errors import UsageError
+from omg.metrics.base import RunningMean
 from omg.registry import METRICS
 from omg.skeleton import Skeleton, get_skeleton
 
@@ -25,17 +26,10 @@ def _frame_mask(joints: Tensor, mask: Tensor | None) -> Tensor:
 
 
 @METRICS.register("mpjpe")
-class MPJPE(Metric):
+class MPJPE(RunningMean):
     """Mean per-joint position error: Euclidean distance averaged over joints and valid frames."""
 
-    is_differentiable = False
     higher_is_better = False
-    full_state_update = False
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self.add_state("total", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("count", torch.tensor(0), dist_reduce_fx="sum")
 
     def update(self, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> None:
         """pred, target: (B, T, J, 3); mask: (B, T), True on real (unpadded) frames."""
@@ -43,11 +37,7 @@ class MPJPE(Metric):
             raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ in shape")
         mask = _frame_mask(pred, mask)
         error = (pred.detach().double() - target.detach().double()).norm(dim=-1)  # (B, T, J)
-        self.total += (error * mask[..., None]).sum()
-        self.count += mask.sum() * pred.shape[2]
-
-    def compute(self) -> Tensor:
-        return self.total / self.count
+        self.accumulate((error * mask[..., None]).sum(), mask.sum() * pred.shape[2])
 
 
 @METRICS.register("foot_skating")

@@ -13,6 +13,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from omg.errors import UsageError
+from omg.metrics.base import RunningMean
 from omg.registry import METRICS
 
 
@@ -72,49 +73,27 @@ class RPrecision(Metric):
 
 
 @METRICS.register("mm_dist")
-class MMDist(Metric):
+class MMDist(RunningMean):
     """Multimodal distance: mean Euclidean distance between matched text and motion features."""
 
-    is_differentiable = False
     higher_is_better = False
-    full_state_update = False
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self.add_state("total", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("count", torch.tensor(0), dist_reduce_fx="sum")
 
     def update(self, text_features: Tensor, motion_features: Tensor) -> None:
         _check_pairs(text_features, motion_features)
         text, motion = text_features.detach().double(), motion_features.detach().double()
-        self.total += (text - motion).norm(dim=1).sum()
-        self.count += len(text_features)
-
-    def compute(self) -> Tensor:
-        return self.total / self.count
+        self.accumulate((text - motion).norm(dim=1).sum(), len(text_features))
 
 
 @METRICS.register("clip_score")
-class CLIPScore(Metric):
+class CLIPScore(RunningMean):
     """Mean cosine similarity between text and motion features in the text-aligned space.
 
     Plain cosine in [-1, 1]: no ×100 scaling and no clamping at 0.
     """
 
-    is_differentiable = False
     higher_is_better = True
-    full_state_update = False
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        self.add_state("total", torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("count", torch.tensor(0), dist_reduce_fx="sum")
 
     def update(self, text_features: Tensor, motion_features: Tensor) -> None:
         _check_pairs(text_features, motion_features)
         text, motion = text_features.detach().double(), motion_features.detach().double()
-        self.total += F.cosine_similarity(text, motion, dim=1).sum()
-        self.count += len(text_features)
-
-    def compute(self) -> Tensor:
-        return self.total / self.count
+        self.accumulate(F.cosine_similarity(text, motion, dim=1).sum(), len(text_features))
