@@ -8,6 +8,7 @@ frozen model D_u and the ControlNet D_c: x̂0 = (1 − s)·D_u + s·D_c.
 
 from __future__ import annotations
 
+import warnings
 from contextlib import nullcontext
 from typing import Any
 
@@ -20,6 +21,8 @@ from omg.models.controlnet import MoCConfig, MotionControlNet
 from omg.text import TextFeatures, build_text_encoder
 
 MATCHING = ("representation", "skeleton", "feature_dim")
+# the frozen DiT and the text encoder stay in eval mode on purpose
+warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode at the start of training.*")
 
 
 class ControlNetModule(MotionDiffusionModule):

