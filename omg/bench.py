@@ -153,6 +153,22 @@ def bench_data(argv: list[str]) -> None:
 PEAK_TFLOPS = {"H100": 989.0, "H200": 989.0, "A100": 312.0, "L40S": 362.0, "A10G": 125.0}  # dense bf16
 
 
+def unnormalised_spec(dim: int, fps: float) -> dict:
+    """A humanml3d263 data spec with identity normalisation: the models need no dataset to time."""
+    return {"representation": "humanml3d263", "skeleton": "smpl22", "fps": fps, "feature_dim": dim,
+            "mean": [0.0] * dim, "std": [1.0] * dim}
+
+
+def peak_memory() -> str:
+    import torch
+
+    if torch.cuda.is_available():
+        return f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB (GPU)"
+    import resource
+
+    return f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.1f} GiB (RSS)"
+
+
 def device_peak_tflops() -> tuple[str, float | None]:
     import torch
 
@@ -181,8 +197,7 @@ def bench_train(argv: list[str]) -> None:
     args = p.parse_args(argv)
 
     D = 263
-    spec = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 30.0, "feature_dim": D,
-            "mean": [0.0] * D, "std": [1.0] * D}
+    spec = unnormalised_spec(D, fps=30.0)
     module = PretrainModule(flavor=args.flavor, dit={"activation_checkpointing": args.activation_checkpointing},
                             spec=spec, warmup_steps=10, ema_decay=0.9999)
 
@@ -216,12 +231,7 @@ def bench_train(argv: list[str]) -> None:
     peak = args.peak_tflops or peak
     train_flops = 3 * module.config.flops(args.batch_size, args.frames)  # backward ~ 2x forward
     mfu = f"{100 * train_flops / step / (peak * 1e12):.1f}%" if peak else "n/a"
-    if torch.cuda.is_available():
-        memory = f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB (GPU)"
-    else:
-        import resource
-
-        memory = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.1f} GiB (RSS)"
+    memory = peak_memory()
     params = sum(p.numel() for p in module.model.parameters())
     print("| flavor | params | device | precision / strategy | batch x frames | step | frames/s | model TFLOP/s | MFU "
           "| peak memory | command |")
@@ -246,9 +256,7 @@ def bench_sample(argv: list[str]) -> None:
     p.add_argument("--precision", default="bf16" if torch.cuda.is_available() else "fp32", choices=("fp32", "bf16"))
     args = p.parse_args(argv)
 
-    D = 263
-    spec = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": D,
-            "mean": [0.0] * D, "std": [1.0] * D}
+    spec = unnormalised_spec(263, fps=20.0)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     module = ControlNetModule(base={"flavor": args.flavor, "dit": None, "spec": spec}, text_encoder=args.text_encoder)
     module = module.to(device, torch.bfloat16 if args.precision == "bf16" else torch.float32).eval()
@@ -264,12 +272,7 @@ def bench_sample(argv: list[str]) -> None:
         if device == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start
-        if device == "cuda":
-            memory = f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB (GPU)"
-        else:
-            import resource
-
-            memory = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.1f} GiB (RSS)"
+        memory = peak_memory()
         name = torch.cuda.get_device_name() if device == "cuda" else "cpu"
         print(f"| {args.flavor} | {name} | {args.precision} | {batch} | {seconds:.2f} | {seconds / batch:.3f} | {memory} "
               f"| `omg bench sample {shlex.join(argv)}` |", flush=True)

@@ -201,9 +201,9 @@ class ClipDataset(Dataset):
     """All clips in RAM (map-style): center windows for validation, or random windows, as
     the MDM / HumanML3D loaders do for training."""
 
-    def __init__(self, samples: list[dict], windows: WindowSampler, random_windows: bool = False, seed: int = 0):
+    def __init__(self, samples: list[dict], windows: WindowSampler, random_windows: bool = False):
         self.samples, self.windows = samples, windows
-        self.random_windows, self.seed = random_windows, seed
+        self.random_windows = random_windows
 
     @classmethod
     def from_shards(cls, urls: list[str], feature_dim: int, windows: WindowSampler, **kwargs) -> ClipDataset:

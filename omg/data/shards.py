@@ -22,6 +22,7 @@ import json
 import os
 import re
 import tarfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -38,14 +39,27 @@ SHARD_PATTERN = "shard-{:06d}.tar"
 META_KEYS = ("id", "representation", "skeleton", "fps", "source", "labels", "category")
 
 
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write to; renamed over ``path`` when the block ends
+    without error, so readers see the old file or the whole new one, never a part.
+
+    The temporary name keeps the suffix (writers such as Pillow choose the format by it).
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the whole new one."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def write_json(path: Path, obj) -> None:
@@ -207,7 +221,7 @@ class ShardWriter:
         """Consume the source: clips, exceptions for items that failed to load, and None for
         items that belong to another split."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        for stale in self.out_dir.glob(".*.tmp"):
+        for stale in self.out_dir.glob(".*.tmp*"):
             stale.unlink()
         state = self._load_state()
         state.update(representation=self.representation.name, fps=self.fps)

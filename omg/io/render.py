@@ -9,7 +9,6 @@ left (a motion faces +Z in its rest pose).
 from __future__ import annotations
 
 import math
-import os
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 from matplotlib.animation import PillowWriter
 from matplotlib.figure import Figure
 
+from omg.data.shards import atomic_path
 from omg.skeleton import Skeleton, get_skeleton
 
 PANEL_INCHES = (3.0, 3.3)  # width, height of one motion's panel
@@ -101,18 +101,13 @@ def render_gif(
         panels.append((motion, lines))
 
     path = Path(path)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.gif")  # Pillow picks the format by suffix
     writer = PillowWriter(fps=fps / step)
-    try:
-        with writer.saving(fig, str(tmp), dpi):
-            for t in frames:
-                for motion, lines in panels:
-                    pose = motion[min(t, len(motion) - 1)]  # (J, 3)
-                    for line, chain in zip(lines, segments):
-                        xyz = pose[list(chain)]  # (len(chain), 3)
-                        line.set_data_3d(xyz[:, 0], xyz[:, 2], xyz[:, 1])
-                writer.grab_frame()
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, writer.saving(fig, str(tmp), dpi):
+        for t in frames:
+            for motion, lines in panels:
+                pose = motion[min(t, len(motion) - 1)]  # (J, 3)
+                for line, chain in zip(lines, segments):
+                    xyz = pose[list(chain)]  # (len(chain), 3)
+                    line.set_data_3d(xyz[:, 0], xyz[:, 2], xyz[:, 1])
+            writer.grab_frame()
     return path

@@ -27,6 +27,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from omg.cli import COMMANDS, ToolParser
+from omg.data.shards import atomic_path
 from omg.errors import UsageError
 from omg.lit.pretrain import PretrainModule
 
@@ -173,12 +174,8 @@ def convert(src: PathLike, dst: PathLike, ema: bool = False,
     metadata = {"format": "pt", "module_class": json.dumps(ckpt["module_class"]),
                 "hyper_parameters": json.dumps(ckpt["hyper_parameters"]), "ema_weights": json.dumps(ema_weights)}
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(dst) as tmp:
         save_file({k: v.contiguous() for k, v in state.items()}, tmp, metadata)
-        os.replace(tmp, dst)  # readers never see a half-written file
-    finally:
-        tmp.unlink(missing_ok=True)
     return {"path": str(dst), "parameters": sum(t.numel() for t in state.values()), "ema_weights": ema_weights,
             "bytes": dst.stat().st_size, "module_class": ckpt["module_class"]}
 

@@ -9,7 +9,6 @@ frozen model D_u and the ControlNet D_c: x̂0 = (1 − s)·D_u + s·D_c.
 from __future__ import annotations
 
 import warnings
-from contextlib import nullcontext
 from typing import Any
 
 import torch
@@ -131,17 +130,13 @@ class ControlNetModule(MotionDiffusionModule):
                  scale: float | None = None, use_ema: bool = True) -> Tensor:
         """Guided DDIM samples for ``texts``, un-normalised features (len(texts), frames, D)."""
         scale = self.hparams.guidance_scale if scale is None else scale
-        gen = torch.Generator(device=self.device).manual_seed(seed)
         text = self.encode_text(texts)
-        net = self.controlnet
-        with self.ema.swapped_in(net) if (use_ema and self.ema is not None) else nullcontext():
-            net.eval()
-            dtype = next(self.model.parameters()).dtype
+
+        def denoise(dtype: torch.dtype):
             tokens = text.tokens.to(dtype)
-            x = self.diffusion.ddim_sample(
-                lambda x, t: net.forward_guided(x, t, tokens, text.mask, text.eot, scale),
-                (len(texts), frames, self.config.input_dim), steps=steps, generator=gen, device=self.device, dtype=dtype)
-        return self.denormalize(x)
+            return lambda x, t: self.controlnet.forward_guided(x, t, tokens, text.mask, text.eot, scale)
+
+        return self.ddim(denoise, len(texts), frames, steps, seed, use_ema)
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import nullcontext
-from typing import Any
+from typing import Any, Callable
 
 import lightning as L
 import torch
@@ -136,13 +136,17 @@ class MotionDiffusionModule(L.LightningModule):
         """x̂0 for a noisy batch."""
         return self.model(x_t, t, mask)
 
-    def diffusion_losses(self, batch: dict) -> dict[str, Tensor]:
+    def denoise_noised(self, batch: dict, gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor, dict]:
+        """Noise the prepared batch at random steps and denoise it: (x̂0, x0, t, prepared batch)."""
         batch = self.prepare(batch)
         x0, mask = batch["motion"], batch["mask"]  # (B, T, D), (B, T)
-        gen = self.noise_generator()
         t = self.diffusion.sample_timesteps(x0.shape[0], generator=gen, device=x0.device)
         noise = torch.randn(x0.shape, generator=gen, device=x0.device, dtype=x0.dtype) * mask[..., None]
-        x0_hat = self.denoise(self.diffusion.q_sample(x0, t, noise), t, mask, batch)
+        return self.denoise(self.diffusion.q_sample(x0, t, noise), t, mask, batch), x0, t, batch
+
+    def diffusion_losses(self, batch: dict) -> dict[str, Tensor]:
+        x0_hat, x0, t, batch = self.denoise_noised(batch, self.noise_generator())
+        mask = batch["mask"]
         simple = self.diffusion.loss(x0_hat, x0, t, mask)
         vel, foot = self.geometric_loss(self.denormalize(x0_hat), self.denormalize(x0), mask, batch.get("offsets"))
         h = self.hparams
@@ -170,12 +174,9 @@ class MotionDiffusionModule(L.LightningModule):
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         gen = torch.Generator(device=self.device).manual_seed(batch_idx)  # the same noise every validation
-        batch = self.prepare(batch)
-        x0, mask = batch["motion"], batch["mask"]
-        t = self.diffusion.sample_timesteps(x0.shape[0], generator=gen, device=self.device)
-        noise = torch.randn(x0.shape, generator=gen, device=self.device, dtype=x0.dtype) * mask[..., None]
-        x0_hat = self.denoise(self.diffusion.q_sample(x0, t, noise), t, mask, batch)
-        self.log("val/simple", self.diffusion.loss(x0_hat, x0, t, mask), batch_size=x0.shape[0], sync_dist=True)
+        x0_hat, x0, t, batch = self.denoise_noised(batch, gen)
+        loss = self.diffusion.loss(x0_hat, x0, t, batch["mask"])
+        self.log("val/simple", loss, batch_size=x0.shape[0], sync_dist=True)
 
     def trainable_module(self) -> torch.nn.Module:
         return self.model
@@ -215,16 +216,23 @@ class MotionDiffusionModule(L.LightningModule):
 
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
-    def sample(self, num: int, frames: int, steps: int = 200, seed: int = 0, use_ema: bool = True) -> Tensor:
-        """Unconditional DDIM samples, un-normalised features (num, frames, D)."""
+    def ddim(self, denoise: Callable[[torch.dtype], Callable], num: int, frames: int, steps: int, seed: int,
+             use_ema: bool) -> Tensor:
+        """DDIM samples, un-normalised features (num, frames, D), with the EMA weights swapped in
+        when asked; ``denoise(dtype)`` makes the (x_t, t) -> x̂0 callable for the weights' dtype."""
         gen = torch.Generator(device=self.device).manual_seed(seed)
-        run = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext(self.model)
-        with run as model:
-            model.eval()
-            dtype = next(model.parameters()).dtype
-            x = self.diffusion.ddim_sample(lambda x, t: model(x, t), (num, frames, self.config.input_dim), steps=steps,
+        trained = self.trainable_module()
+        with self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext():
+            trained.eval()
+            dtype = next(self.model.parameters()).dtype
+            x = self.diffusion.ddim_sample(denoise(dtype), (num, frames, self.config.input_dim), steps=steps,
                                            generator=gen, device=self.device, dtype=dtype)
         return self.denormalize(x)
+
+    def sample(self, num: int, frames: int, steps: int = 200, seed: int = 0, use_ema: bool = True) -> Tensor:
+        """Unconditional DDIM samples of the DiT, un-normalised features (num, frames, D)."""
+        self.model.eval()
+        return self.ddim(lambda dtype: self.model, num, frames, steps, seed, use_ema)
 
 
 class PretrainModule(MotionDiffusionModule):
