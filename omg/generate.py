@@ -37,6 +37,7 @@ def parse_args(argv: list[str]):
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--no-ema", action="store_true", help="use the trained weights instead of their EMA")
     p.add_argument("--no-preview", action="store_true", help="skip the GIF preview")
+    p.add_argument("--clean-contacts", action="store_true", help="pin planted feet in the BVH files (removes foot skating)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--out", default="out/generate")
     return p.parse_args(argv)
@@ -96,7 +97,8 @@ def main(argv: list[str]) -> None:
             atomic_write(out / f"{name}.features.npy", npy_bytes(features[i].float().cpu().numpy()))
             positions = joints[i].cpu().numpy().astype(np.float32)
             atomic_write(out / f"{name}.joints.npy", npy_bytes(positions))
-            export_motion(out / name, positions, module.representation.skeleton, fps, preview=False)  # BVH
+            export_motion(out / name, positions, module.representation.skeleton, fps, preview=False,  # BVH
+                          clean_contacts=args.clean_contacts)
             records.append({"file": name, "prompt": prompt, "repeat": k, "batch_seed": seed})
             previews.append((positions, prompt or "unconditional"))
     settings = {
@@ -115,6 +117,7 @@ def main(argv: list[str]) -> None:
         "seed": args.seed,
         "batch_size": args.batch_size,
         "ema": not args.no_ema,
+        "clean_contacts": args.clean_contacts,
         "representation": module.spec["representation"],
         "skeleton": module.spec["skeleton"],
         "samples": records,

@@ -98,9 +98,9 @@ SKELETONS = Registry("skeleton", ("omg.skeleton",))
 REPRESENTATIONS = Registry("representation", ("omg.motion",))
 TEXT_ENCODERS = Registry("text encoder", ("omg.text",))
 DATA_SOURCES = Registry("data source", ("omg.data.sources",))
-MODELS = Registry("model")
+MODELS = Registry("model", ("omg.models.evaluator",))
 METRICS = Registry("metric", ("omg.metrics",))
-CALLBACKS = Registry("callback")
+CALLBACKS = Registry("callback", ("omg.callbacks",))
 
 ALL: dict[str, Registry] = {
     "skeletons": SKELETONS,

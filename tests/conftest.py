@@ -16,6 +16,31 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_MOTION = REPO.parent / "shared" / "data" / "motion"
 
 
+# a two-joint BVH in centimetres: hips with position channels, a spine, one end site
+TINY_BVH = """\
+HIERARCHY
+ROOT hips
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT spine
+  {
+    OFFSET 0 20 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 10 0
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.05
+0 90 0 0 0 0 0 0 0
+0 90 0 0 0 0 0 0 0
+"""
+
+
 @pytest.fixture
 def shared_motion() -> Path:
     if not (SHARED_MOTION / "manifest.json").exists():
@@ -60,9 +85,14 @@ def toy_shards(tmp_path) -> Path:
     return write_toy_shards(tmp_path / "toy")
 
 
+# Tiny models: thread hand-offs cost more than they gain on a small shared CPU, and one thread
+# keeps trained test models bit-reproducible. Set at import too, for module-scoped fixtures.
+torch.set_num_threads(1)
+
+
 @pytest.fixture(autouse=True)
 def _quiet_threads():
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)
 
 
 def walking_clip(index: int, fps: float = 20.0) -> Clip:

@@ -35,19 +35,19 @@ def _fit(module, data, steps, root):
 
 @pytest.fixture(scope="module")
 def pretrained(tmp_path_factory):
-    """A tiny DiT pretrained for a few hundred steps on the mini humans; its checkpoint path."""
+    """A tiny DiT pretrained for 300 steps on the mini humans; its checkpoint path."""
     root = tmp_path_factory.mktemp("pretrain")
     torch.manual_seed(0)
     data = _data()
     module = PretrainModule(flavor="mini", dit=TINY, spec=data.spec, lr=1e-3, warmup_steps=20, ema_decay=0.99)
-    trainer = _fit(module, data, 150, root)
+    trainer = _fit(module, data, 300, root)
     trainer.save_checkpoint(root / "pretrain.ckpt")
     return root / "pretrain.ckpt"
 
 
 def _controlnet(pretrained, **kw):
-    return ControlNetModule(pretrained=str(pretrained), text_encoder="hash", moc=MOC, spec=_data().spec,
-                            **{"lr": 1e-3, "warmup_steps": 20, "ema_decay": 0.99, **kw})
+    args = dict(text_encoder="hash", moc=MOC, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+    return ControlNetModule(pretrained=str(pretrained), spec=_data().spec, **{**args, **kw})
 
 
 def test_starts_as_the_frozen_model_and_trains_only_the_controlnet(pretrained, tmp_path):
@@ -126,3 +126,26 @@ def test_generate_from_text(finetuned, tmp_path, capsys):
         with pytest.raises(SystemExit) as e:
             main(argv)
         assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
+    """A few minutes of fine-tuning on the mini data: "walks forward" travels, "jumps in place"
+    stays put and bobs up and down (a sanity check of the whole stage, not a quality claim)."""
+    from omg.motion import get_representation
+
+    torch.manual_seed(0)
+    module = _controlnet(pretrained, text_encoder="minilm")
+    _fit(module, _data(), 600, tmp_path)
+    decode = get_representation("humanml3d263", "smpl22").decode
+    travel, bob = {}, {}
+    for prompt in ("a person walks forward", "a person jumps in place"):
+        pelvis = torch.cat([decode(module.generate([prompt] * 6, frames=60, steps=20, seed=seed))[:, :, 0]
+                            for seed in range(3)])  # (18, T, 3)
+        travel[prompt] = (pelvis[:, -1, [0, 2]] - pelvis[:, 0, [0, 2]]).norm(dim=-1)  # (18,) metres
+        bob[prompt] = pelvis[..., 1].std(dim=1)  # (18,) root height std, metres
+    walk, jump = "a person walks forward", "a person jumps in place"
+    for seed in range(3):  # every seed's walkers travel further than its jumpers
+        rows = slice(6 * seed, 6 * seed + 6)
+        assert travel[walk][rows].mean() > 2 * travel[jump][rows].mean(), (travel, seed)
+    assert travel[walk].mean() > 3 * travel[jump].mean() and travel[walk].mean() > 1.5, travel
+    assert bob[jump].mean() > 1.3 * bob[walk].mean(), bob

@@ -327,7 +327,7 @@ def test_round_trip_bvh(name):
     dogs = sorted((DATA / "quadruped/mann_dog").glob("*.bvh"))
     if not dogs:
         pytest.skip(f"real motion data not found: {DATA / 'quadruped/mann_dog'}")
-    # Bandai's static joint_Root is folded into the moving hips (BvhMotion.merge_root)
+    # Bandai's static joint_Root is folded into the moving hips (RigMotion.merge_root)
     for clip in (read_bvh(bandai).merge_root().to_clip(), read_bvh(dogs[0]).to_clip()):
         assert _round_trip_error(name, clip) < MM, clip.id  # measured <= 2e-6 m
 

@@ -51,6 +51,7 @@ def build(
     max_mb: float = 256.0,
     options: dict | None = None,
     command: str = "",
+    log=lambda message: None,
 ) -> list:
     """Build a shard set (``out``, or ``out/train`` and ``out/val`` with a validation split)."""
     if not 0.0 <= val_fraction < 1.0:
@@ -61,9 +62,11 @@ def build(
     summaries = []
     for name, want_val in splits.items():
         items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **(options or {}))
+        stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
         if val_fraction > 0:
             items = _split(items, val_fraction, want_val)
-        writer = ShardWriter(Path(out) / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=lambda m: None)
+        writer = ShardWriter(Path(out) / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
+                             stats=stats)
         summaries.append(writer.write(items))
     return summaries
 
@@ -109,7 +112,7 @@ def _build_main(argv: list[str]) -> None:
     options = args.option if isinstance(args.option, dict) else _parse_options(args.option)
     command = "omg shards build " + shlex.join(argv)
     for summary in build(args.source, args.out, args.representation, args.skeleton, args.fps, args.input,
-                         args.val_fraction, args.max_clips, args.max_mb, options, command):
+                         args.val_fraction, args.max_clips, args.max_mb, options, command, log=print):
         print(summary)
 
 

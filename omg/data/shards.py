@@ -78,8 +78,15 @@ def npy_bytes(array: np.ndarray) -> bytes:
 
 
 def encode_sample(clip: Clip, representation: Representation) -> tuple[str, dict[str, bytes], np.ndarray]:
-    """One clip -> (key, {extension: bytes}, features)."""
-    features, extra = representation.encode(clip)
+    """One clip -> (key, {extension: bytes}, features).
+
+    A clip's precomputed features are stored verbatim when they belong to ``representation``
+    (so shards stay file-compatible with published feature files); otherwise it is encoded.
+    """
+    if clip.features is not None and clip.features_representation == representation.name:
+        features, extra = clip.features, {}
+    else:
+        features, extra = representation.encode(clip)
     features = np.ascontiguousarray(features, dtype=np.float32)
     if features.ndim != 2 or features.shape[1] != representation.dim or len(features) == 0:
         raise ValueError(f"clip {clip.id!r}: encoded to shape {features.shape}, expected (T>0, {representation.dim})")
@@ -155,6 +162,22 @@ class FeatureStats:
 
 
 @dataclass
+class SourceItems:
+    """What a source may return instead of a bare iterator, to pass set-level facts along.
+
+    ``stats`` maps a representation name to a published (mean, std) pair, each (D,); a shard
+    set of that representation stores them in its manifest instead of the measured ones, so
+    models normalise exactly as the published ones do (HumanML3D's ``Mean.npy``/``Std.npy``).
+    """
+
+    items: Iterable[Clip | Exception]
+    stats: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def __iter__(self) -> Iterator[Clip | Exception]:
+        return iter(self.items)
+
+
+@dataclass
 class BuildSummary:
     out_dir: Path
     clips: int = 0
@@ -179,6 +202,7 @@ class ShardWriter:
     Clips come from a source iterator whose order is deterministic; the build state records
     how many source items each finished shard consumed, so a resumed build skips exactly
     those. Bad clips (the encoder raises ``ValueError``) are skipped and counted by reason.
+    ``stats``: a fixed (mean, std) for the manifest instead of the one measured on the clips.
     """
 
     def __init__(
@@ -190,9 +214,18 @@ class ShardWriter:
         max_bytes: int = 256 << 20,
         command: str = "",
         log=print,
+        stats: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         if max_clips < 1 or max_bytes < 1:
             raise UsageError(f"shard size must be positive, got max_clips={max_clips}, max_bytes={max_bytes}")
+        if stats is not None:
+            stats = tuple(np.asarray(a, dtype=np.float32).reshape(-1) for a in stats)
+            if any(len(a) != representation.dim for a in stats) or not (stats[1] > 0).all():
+                raise UsageError(
+                    f"fixed stats for {representation.name!r} must be a mean and a positive std of "
+                    f"{representation.dim} features each, got shapes {[a.shape for a in stats]}"
+                )
+        self.stats = stats
         self.out_dir = Path(out_dir)
         self.representation = representation
         self.fps = fps
@@ -295,7 +328,7 @@ class ShardWriter:
         stats = FeatureStats()
         for shard in state["shards"]:
             stats.merge(FeatureStats.from_json(shard["stats"]))
-        mean, std = self.representation.finalize_stats(*stats.mean_std())
+        mean, std = self.stats or self.representation.finalize_stats(*stats.mean_std())
         skeleton = self.representation.skeleton
         manifest = {
             "schema_version": SCHEMA_VERSION,
@@ -311,6 +344,7 @@ class ShardWriter:
             "shards": [{k: s[k] for k in ("name", "clips", "frames", "bytes", "sha256")} for s in state["shards"]],
             "mean": mean.tolist(),
             "std": std.tolist(),
+            "stats_origin": "source" if self.stats else "measured",
             "command": self.command,
         }
         write_json(self.out_dir / MANIFEST, manifest)

@@ -9,8 +9,6 @@ rest-pose size used to guess the unit.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +16,8 @@ import torch
 
 from omg.data.shards import atomic_write
 from omg.errors import UsageError
-from omg.motion.base import Clip
-from omg.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
+from omg.io.rig import RigMotion
+from omg.rotations import euler_to_quat, quat_to_euler
 from omg.skeleton import Skeleton, get_skeleton
 
 CM_ABOVE = 10.0  # a rest pose larger than this many units is taken to be in centimetres
@@ -35,94 +33,11 @@ def _error(src: str, line: int | None, reason: str) -> BvhError:
     return BvhError(f"{src}:{line}: {reason}" if line else f"{src}: {reason}")
 
 
-@dataclass
-class BvhMotion:
-    """The hierarchy and animation of one BVH file, in metres and quaternions."""
-
-    name: str  # file stem
-    names: list[str]
-    parents: list[int]  # -1 for the root; parents[j] < j
-    offsets: np.ndarray  # (J, 3) rest offsets in metres; row 0 is the root's
-    channels: list[tuple[str, ...]]  # per joint, as listed in the file
-    fps: float
-    rotations: np.ndarray  # (T, J, 4) local quaternions (w, x, y, z)
-    translations: np.ndarray  # (T, J, 3) metres: position channels where a joint has them, its offset elsewhere
-    end_sites: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (parent joint, (3,) offset in metres)
-    source: str = ""  # the file it was read from
-
-    def __len__(self) -> int:
-        return self.rotations.shape[0]
-
-    @property
-    def num_joints(self) -> int:
-        return len(self.names)
-
-    def skeleton(self, name: str | None = None) -> Skeleton:
-        return Skeleton.from_parents(name or self.name, self.parents, self.offsets, names=self.names)
-
-    def positions(self) -> np.ndarray:
-        """(T, J, 3) global joint positions by forward kinematics with the per-frame translations."""
-        rot, trans = torch.from_numpy(self.rotations), torch.from_numpy(self.translations)
-        return self.skeleton().forward_kinematics(rot, trans[:, 0], offsets=trans).numpy()
-
-    def merge_root(self) -> BvhMotion:
-        """Fold the root into its only child joint, which becomes the new root.
-
-        For rigs whose root is a static parent of the moving hips (Bandai-Namco's
-        ``joint_Root``): afterwards the root carries the whole global motion, so that the
-        motion is described by local rotations, static bone offsets and a root trajectory.
-        """
-        children = [j for j, p in enumerate(self.parents) if p == 0]
-        if children != [1] or any(p == 0 for p, _ in self.end_sites):
-            raise _error(self.source, None, f"cannot merge root {self.names[0]!r}: it must have one child joint only")
-        rot, trans = torch.from_numpy(self.rotations).clone(), torch.from_numpy(self.translations).clone()
-        rot[:, 1] = quat_mul(rot[:, 0], rot[:, 1])
-        trans[:, 1] = trans[:, 0] + quat_apply(rot[:, 0], trans[:, 1])
-        offsets = self.offsets[1:].copy()
-        offsets[0] += self.offsets[0]  # rest rotations are the identity
-        return replace(
-            self,
-            names=self.names[1:],
-            parents=[-1] + [p - 1 for p in self.parents[2:]],
-            offsets=offsets,
-            channels=self.channels[1:],
-            rotations=rot[:, 1:].numpy(),
-            translations=trans[:, 1:].numpy(),
-            end_sites=[(p - 1, off) for p, off in self.end_sites],
-        )
-
-    def to_clip(
-        self, id: str | None = None, skeleton: Skeleton | str | None = None, texts: Sequence[str] = (), **fields
-    ) -> Clip:
-        """A clip with positions by FK, and rotations + offsets where these describe the motion.
-
-        Position channels that move a non-root joint more than 1 mm away from its rest
-        offset cannot be expressed by (rotations, static offsets); such clips carry
-        positions only (see ``merge_root`` for rigs whose hips move below a static root).
-        """
-        skel = self.skeleton() if skeleton is None else get_skeleton(skeleton)
-        if skel.num_joints != self.num_joints:
-            raise UsageError(
-                f"{self.source}: skeleton {skel.name!r} has {skel.num_joints} joints, the BVH file {self.num_joints}"
-            )
-        rigid = np.abs(self.translations[:, 1:] - self.offsets[1:]).max(initial=0.0) <= 1e-3
-        return Clip(
-            id=id or self.name,
-            skeleton=skel,
-            fps=self.fps,
-            positions=self.positions().astype(np.float32),
-            rotations=self.rotations.astype(np.float32) if rigid else None,
-            offsets=self.offsets.astype(np.float32) if rigid else None,
-            texts=list(texts),
-            source=self.source,
-            **fields,
-        )
-
-
-def read_bvh(path: str | Path, scale: float | None = None) -> BvhMotion:
-    """Read a BVH file. ``scale`` multiplies lengths into metres; ``None`` takes the file to be
-    in centimetres (0.01) when its rest pose (end sites included) is taller or wider than
-    ``CM_ABOVE`` units, in metres otherwise. CMU's BVH conversions need ``scale=CMU_SCALE``."""
+def read_bvh(path: str | Path, scale: float | None = None) -> RigMotion:
+    """Read a BVH file. ``scale`` multiplies lengths into metres; ``None`` takes CMU's BVH
+    conversions (cgspeed rigs, with ``LHipJoint`` and ``RHipJoint`` joints) to be in CMU
+    units (``CMU_SCALE``), other files to be in centimetres (0.01) when their rest pose (end
+    sites included) is taller or wider than ``CM_ABOVE`` units, in metres otherwise."""
     path = Path(path)
     src = str(path)
     try:
@@ -136,7 +51,9 @@ def read_bvh(path: str | Path, scale: float | None = None) -> BvhMotion:
     for j, p in enumerate(parents):
         rest[j] = offsets[j] + (rest[p] if p >= 0 else 0.0)
     points = np.concatenate([rest] + [rest[p : p + 1] + off for p, off in end_sites])
-    if scale is None:
+    if scale is None and {"LHipJoint", "RHipJoint"} <= set(names):
+        scale = CMU_SCALE
+    elif scale is None:
         scale = 0.01 if (points.max(0) - points.min(0)).max() > CM_ABOVE else 1.0
 
     T, J = len(values), len(names)
@@ -157,7 +74,7 @@ def read_bvh(path: str | Path, scale: float | None = None) -> BvhMotion:
     rotations = torch.zeros(T, J, 4, dtype=torch.float64)
     for order, joints in orders.items():
         rotations[:, joints] = euler_to_quat(torch.from_numpy(angles[:, joints]), order)
-    return BvhMotion(
+    return RigMotion(
         name=path.stem,
         names=names,
         parents=parents,

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 from omg.cli import ToolParser
 from omg.errors import UsageError
 from omg.io.bvh import write_bvh
+from omg.io.contacts import clean_foot_contacts
 from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_identity, quat_mul
 from omg.skeleton import Skeleton, get_skeleton
 
@@ -105,11 +106,15 @@ def export_motion(
     preview: bool = True,
     order: str = "ZXY",
     scale: float = 1.0,
+    clean_contacts: bool = False,
 ) -> dict:
-    """Write ``<stem>.bvh`` and, with ``preview``, ``<stem>.gif``; returns what was written."""
+    """Write ``<stem>.bvh`` and, with ``preview``, ``<stem>.gif``; returns what was written.
+    ``clean_contacts`` pins planted feet first (``omg.io.contacts``)."""
     from omg.io.render import render_gif
 
     skel = get_skeleton(skeleton)
+    if clean_contacts:
+        positions = clean_foot_contacts(positions, skel, fps)
     rotations, root, offsets = positions_to_rotations(skel, positions)
     fk = skel.forward_kinematics(torch.from_numpy(rotations), torch.from_numpy(root), torch.from_numpy(offsets))
     stem = Path(out_stem)
@@ -133,6 +138,7 @@ def parse_args(argv: list[str]):
     p.add_argument("--order", default="ZXY", choices=EULER_ORDERS, help="Euler order of the BVH rotation channels")
     p.add_argument("--scale", type=float, default=1.0, help="BVH units per metre (100 for centimetres)")
     p.add_argument("--no-preview", action="store_true", help="skip the GIF previews")
+    p.add_argument("--clean-contacts", action="store_true", help="pin planted feet (removes foot skating) before IK")
     return p.parse_args(argv)
 
 
@@ -211,7 +217,8 @@ def main(argv: list[str]) -> None:
         jobs.append((path, stem, positions, skel, fps, _prompt(settings, stem.name)))
     for path, stem, positions, skel, fps, texts in jobs:
         start = time.perf_counter()
-        report = export_motion(stem, positions, skel, fps, texts, not args.no_preview, args.order, args.scale)
+        report = export_motion(stem, positions, skel, fps, texts, not args.no_preview, args.order, args.scale,
+                               args.clean_contacts)
         written = ", ".join(Path(report[k]).name for k in ("bvh", "gif") if k in report)
         print(f"{path}: {written} ({report['frames']} frames at {fps:g} fps, IK error "
               f"{report['ik_error_m'] * 1000:.3f} mm, {time.perf_counter() - start:.1f} s)")  # fmt: skip

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.pretrain import MotionDiffusionModule, PretrainModule, check_spec
+from omg.lit.pretrain import MotionDiffusionModule, PretrainModule, check_spec, length_mask
 from omg.models.controlnet import MoCConfig, MotionControlNet
 from omg.text import TextFeatures, build_text_encoder
 
@@ -40,6 +40,8 @@ class ControlNetModule(MotionDiffusionModule):
             and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
     """
+
+    text_conditional = True
 
     def __init__(
         self,
@@ -129,14 +131,26 @@ class ControlNetModule(MotionDiffusionModule):
     def generate(self, texts: list[str], frames: int, steps: int = 200, seed: int = 0,
                  scale: float | None = None, use_ema: bool = True) -> Tensor:
         """Guided DDIM samples for ``texts``, un-normalised features (len(texts), frames, D)."""
+        return self.ddim(self._guided(texts, scale, None), len(texts), frames, steps, seed, use_ema)
+
+    @torch.no_grad()
+    def sample_for_eval(self, texts: list[str], lengths: Tensor, seed: int, steps: int = 200,
+                        guidance: float | None = None, use_ema: bool = True) -> Tensor:
+        """The evaluation hook (omg.callbacks.EvalCallback): guided samples, one per text at its own
+        length (masked), (B, max(lengths), D) un-normalised; ``guidance`` defaults to guidance_scale."""
+        mask = length_mask(lengths, self.device)
+        return self.ddim(self._guided(texts, guidance, mask), len(texts), mask.shape[1], steps, seed, use_ema, mask)
+
+    def _guided(self, texts: list[str], scale: float | None, mask: Tensor | None):
+        """The ``denoise(dtype)`` factory of ``ddim`` for classifier-free-style guided sampling."""
         scale = self.hparams.guidance_scale if scale is None else scale
         text = self.encode_text(texts)
 
         def denoise(dtype: torch.dtype):
             tokens = text.tokens.to(dtype)
-            return lambda x, t: self.controlnet.forward_guided(x, t, tokens, text.mask, text.eot, scale)
+            return lambda x, t: self.controlnet.forward_guided(x, t, tokens, text.mask, text.eot, scale, mask)
 
-        return self.ddim(denoise, len(texts), frames, steps, seed, use_ema)
+        return denoise
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:

@@ -88,6 +88,8 @@ class MotionDiffusionModule(L.LightningModule):
     """What the diffusion stages share: the x̂0-predicting MotionDiT, its losses, optimizer and
     schedule, the weight EMA and sampling. Subclasses save their own hyper-parameters."""
 
+    text_conditional = False  # whether sample_for_eval follows its texts
+
     def __init__(self, flavor: str, dit: dict[str, Any] | None, lr: float, weight_decay: float, warmup_steps: int,
                  loss_weighting: str, spec: dict | None):
         super().__init__()
@@ -172,11 +174,16 @@ class MotionDiffusionModule(L.LightningModule):
             self.log("train/frames_per_s", world * batch["mask"].sum().item() / dt)
         self._last_batch_time = now
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
+    def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
         gen = torch.Generator(device=self.device).manual_seed(batch_idx)  # the same noise every validation
         x0_hat, x0, t, batch = self.denoise_noised(batch, gen)
         loss = self.diffusion.loss(x0_hat, x0, t, batch["mask"])
-        self.log("val/simple", loss, batch_size=x0.shape[0], sync_dist=True)
+        self.log(f"{stage}/simple", loss, batch_size=x0.shape[0], sync_dist=True)
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        """``omg test``: the denoising loss on the test set; the generation metrics come from
+        omg.callbacks.EvalCallback."""
+        self.validation_step(batch, batch_idx, stage="test")
 
     def trainable_module(self) -> torch.nn.Module:
         return self.model
@@ -217,22 +224,39 @@ class MotionDiffusionModule(L.LightningModule):
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
     def ddim(self, denoise: Callable[[torch.dtype], Callable], num: int, frames: int, steps: int, seed: int,
-             use_ema: bool) -> Tensor:
+             use_ema: bool, mask: Tensor | None = None) -> Tensor:
         """DDIM samples, un-normalised features (num, frames, D), with the EMA weights swapped in
-        when asked; ``denoise(dtype)`` makes the (x_t, t) -> x̂0 callable for the weights' dtype."""
+        when asked; ``denoise(dtype)`` makes the (x_t, t) -> x̂0 callable for the weights' dtype
+        (closing over ``mask`` (num, frames), which keeps padded frames at zero, when given)."""
         gen = torch.Generator(device=self.device).manual_seed(seed)
         trained = self.trainable_module()
         with self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext():
             trained.eval()
             dtype = next(self.model.parameters()).dtype
             x = self.diffusion.ddim_sample(denoise(dtype), (num, frames, self.config.input_dim), steps=steps,
-                                           generator=gen, device=self.device, dtype=dtype)
+                                           generator=gen, device=self.device, dtype=dtype, mask=mask)
         return self.denormalize(x)
 
     def sample(self, num: int, frames: int, steps: int = 200, seed: int = 0, use_ema: bool = True) -> Tensor:
         """Unconditional DDIM samples of the DiT, un-normalised features (num, frames, D)."""
         self.model.eval()
         return self.ddim(lambda dtype: self.model, num, frames, steps, seed, use_ema)
+
+    def sample_for_eval(self, texts: list[str], lengths: Tensor, seed: int, steps: int = 200,
+                        guidance: float | None = None, use_ema: bool = True) -> Tensor:
+        """The evaluation hook (omg.callbacks.EvalCallback): one motion per text with its own length,
+        (B, max(lengths), D) un-normalised, padding ignored. Stage 1 is unconditional, so the texts
+        and ``guidance`` are ignored; each sample is generated at its length (masked), not cropped."""
+        self.model.eval()
+        mask = length_mask(lengths, self.device)
+        return self.ddim(lambda dtype: lambda x, t: self.model(x, t, mask), len(texts), mask.shape[1], steps, seed,
+                         use_ema, mask)
+
+
+def length_mask(lengths: Tensor, device: torch.device | str | None = None) -> Tensor:
+    """(B,) frame counts -> (B, max) bool, True on real frames."""
+    lengths = torch.as_tensor(lengths, device=device)
+    return torch.arange(int(lengths.max()), device=lengths.device)[None, :] < lengths[:, None]
 
 
 class PretrainModule(MotionDiffusionModule):

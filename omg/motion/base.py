@@ -18,7 +18,9 @@ class Clip:
 
     ``positions`` are always present. ``rotations`` and ``offsets`` are present when the
     source has them (BVH, synthetic data); representations that need rotations solve them
-    by inverse kinematics otherwise.
+    by inverse kinematics otherwise. ``features`` are precomputed features of the
+    representation named ``features_representation`` (a dataset's published files, e.g.
+    HumanML3D's ``new_joint_vecs``); shards of that representation store them verbatim.
     """
 
     id: str
@@ -31,6 +33,8 @@ class Clip:
     labels: dict = field(default_factory=dict)
     category: str | None = None  # e.g. "human", "dog", "horse"
     source: str = ""
+    features: np.ndarray | None = None  # (T', D) precomputed features, stored verbatim
+    features_representation: str | None = None  # the representation ``features`` belong to
 
     def __post_init__(self):
         J = self.skeleton.num_joints
@@ -41,6 +45,10 @@ class Clip:
             )
         if self.rotations is not None and self.rotations.shape != (len(self), J, 4):
             raise ValueError(f"clip {self.id!r}: rotations must be ({len(self)}, {J}, 4), got {self.rotations.shape}")
+        if (self.features is None) != (self.features_representation is None):
+            raise ValueError(f"clip {self.id!r}: features and features_representation go together")
+        if self.features is not None and self.features.ndim != 2:
+            raise ValueError(f"clip {self.id!r}: features must be (T', D), got {self.features.shape}")
 
     def __len__(self) -> int:
         return self.positions.shape[0]

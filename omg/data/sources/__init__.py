@@ -2,6 +2,12 @@
 
 A source is called as ``source(input=..., skeleton=..., fps=..., **options)``; ``input`` is a
 path for importers and None for generators. Importing this package registers the built-ins.
+A source may return ``omg.data.shards.SourceItems`` instead of a bare iterator, to pass
+set-level facts along (a dataset's published mean/std).
 """
 
 from omg.data.sources import synth  # noqa: F401
+from omg.data.sources import humanml3d  # noqa: F401
+from omg.data.sources import animalml3d  # noqa: F401
+from omg.data.sources import amass  # noqa: F401
+from omg.data.sources import bvh_dir  # noqa: F401

@@ -1,0 +1,161 @@
+"""``EvalCallback``: text-to-motion metrics while training, and the published protocol at test."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.utilities import rank_zero_only
+from torch import Tensor, nn
+
+from omg.callbacks.run import log_scalars, run_dir, sampling
+from omg.errors import UsageError
+from omg.evaluation import (EvalSettings, PromptSet, build_evaluator, check_evaluator_spec, evaluate, markdown_table,
+                            parse_metrics, prompt_set, protocol, write_report)
+from omg.registry import CALLBACKS
+
+
+def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
+    """The decoded clips of the data module's validation/test set and its window sampler."""
+    from omg.data.datamodule import ClipDataset
+
+    data = trainer.datamodule
+    if data is None or not getattr(data, "val_urls", None):
+        raise UsageError(f"{key} draws its prompts from the validation/test set: set data.val to a shard directory")
+    return ClipDataset.from_shards(data.val_urls, data.feature_dim, data.windows).samples, data
+
+
+def check_sampler(module: L.LightningModule, key: str) -> None:
+    if not callable(getattr(module, "sample_for_eval", None)):
+        raise UsageError(f"{key} needs a generative model with sample_for_eval(texts, lengths, seed); "
+                         f"{type(module).__name__} has none")
+
+
+@CALLBACKS.register("eval")
+class EvalCallback(Callback):
+    """Generation metrics from a frozen text–motion evaluator.
+
+    Every ``every_n_steps`` optimizer steps one pass over a fixed seeded prompt set is logged as
+    ``eval/<metric>``; at ``omg test`` the protocol runs ``replications`` passes with different
+    prompt sets and sampling seeds and logs, prints and writes (``eval.json``, ``eval.md`` in the
+    run directory) each metric's mean ± 95% confidence interval.
+
+    Args:
+        evaluator: an evaluator checkpoint path, or ``{t2m: {checkpoint, glove_dir, mean_std_dir}}``
+            for the T2M (HumanML3D) evaluator port.
+        metrics: registered metric names, each optionally with options: ``[fid, {r_precision:
+            {pool_size: 32}}, ...]``; default fid, r_precision, mm_dist, diversity, multimodality.
+        num_prompts: prompts per pass (drawn from data.val, repeating clips with new captions
+            and windows when the set is smaller).
+        every_n_steps: evaluate during fit every this many steps (0: only at test).
+        replications: passes of the test protocol (T2M/MDM: 20).
+        mm_prompts, mm_repeats: MultiModality generates each of the first mm_prompts prompts
+            mm_repeats times (T2M: 100 × 30).
+        steps, guidance, use_ema: sampling settings passed to the model's ``sample_for_eval``
+            (guidance None: the model's own guidance_scale).
+        batch_size: prompts generated at once on each rank.
+        seed: seeds the prompt sets and the sampling; a run is deterministic for a seed.
+        reference: also report the set-wise metrics of the real motions as ``real/<metric>``.
+    """
+
+    def __init__(
+        self,
+        evaluator: str | dict[str, Any] | nn.Module,
+        metrics: list[str | dict[str, Any]] | None = None,
+        num_prompts: int = 1000,
+        every_n_steps: int = 0,
+        replications: int = 20,
+        mm_prompts: int = 100,
+        mm_repeats: int = 30,
+        steps: int = 200,
+        guidance: float | None = None,
+        use_ema: bool = True,
+        batch_size: int = 64,
+        seed: int = 0,
+        reference: bool = True,
+    ):
+        key = "EvalCallback"
+        for name, value, low in (("num_prompts", num_prompts, 1), ("every_n_steps", every_n_steps, 0),
+                                 ("replications", replications, 1), ("mm_prompts", mm_prompts, 1),
+                                 ("mm_repeats", mm_repeats, 2), ("steps", steps, 1), ("batch_size", batch_size, 1)):
+            if not isinstance(value, int) or value < low:
+                raise UsageError(f"{key}.{name} must be an integer >= {low}, got {value!r}")
+        if isinstance(evaluator, str) and not Path(evaluator).exists():
+            raise UsageError(f"{key}.evaluator: no evaluator checkpoint at {evaluator}")
+        self.evaluator_spec = evaluator
+        self.metrics = parse_metrics(metrics, key=f"{key}.metrics")
+        self.num_prompts, self.every_n_steps, self.replications = num_prompts, every_n_steps, replications
+        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema}
+        self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
+                                     reference=reference)
+        self.seed = seed
+        self.evaluator: nn.Module | None = None
+        self._samples: list[dict] | None = None
+        self._fixed: PromptSet | None = None
+        self._last_step = -1
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        check_sampler(pl_module, "EvalCallback")
+        if self.evaluator is None:
+            self.evaluator = build_evaluator(self.evaluator_spec, key="EvalCallback.evaluator")
+        self._samples, data = eval_samples(trainer, "EvalCallback")
+        self.spec, self._windows = data.spec, data.windows
+        check_evaluator_spec(self.evaluator, self.spec, key="EvalCallback.evaluator")
+        for name, options in self.metrics.items():  # pool sizes and pair counts the prompt set can fill
+            for option, default in (("pool_size", 32 if name == "r_precision" else None),
+                                    ("num_pairs", 300 if name == "diversity" else None)):
+                need = options.get(option, default)
+                if need is not None and self.num_prompts < need:
+                    raise UsageError(f"EvalCallback.num_prompts={self.num_prompts} is below {name}'s {option}={need}: "
+                                     f"raise num_prompts or set metrics: [{{{name}: {{{option}: N}}}}]")
+
+    def prompts(self, replication: int) -> PromptSet:
+        """The prompt set of a replication (replication 0 is the fixed set used during fit)."""
+        return prompt_set(self._samples, self.num_prompts, self.seed + replication, self._windows)
+
+    def run_once(self, trainer: L.Trainer, module: L.LightningModule, replication: int) -> dict[str, float]:
+        """One pass: {metric key: value}, identical on every rank."""
+        prompts = self._fixed if replication == 0 and self._fixed is not None else self.prompts(replication)
+        if replication == 0:
+            self._fixed = prompts
+
+        def generate(texts: list[str], lengths: Tensor, seed: int) -> Tensor:
+            return module.sample_for_eval(texts, lengths, seed, **self.sampling)
+
+        with sampling(module), trainer.precision_plugin.forward_context():
+            return evaluate(generate, self.evaluator, prompts, self.metrics, seed=self.seed, replication=replication,
+                            settings=self.settings, spec=self.spec, device=module.device,
+                            rank=trainer.global_rank, world_size=trainer.world_size)
+
+    # -- fit -------------------------------------------------------------------------------
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
+        step = trainer.global_step
+        if self.every_n_steps and step % self.every_n_steps == 0 and step != self._last_step:
+            self._last_step = step  # several batches share a step under gradient accumulation
+            values = self.run_once(trainer, pl_module, 0)
+            log_scalars(trainer, {f"eval/{k}": v for k, v in values.items()})
+
+    # -- test: the protocol -----------------------------------------------------------------
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        summary = protocol(lambda r: self.run_once(trainer, pl_module, r), self.replications)
+        for key, s in summary.items():
+            pl_module.log(f"eval/{key}", s["mean"])
+            pl_module.log(f"eval/{key}_ci95", s["ci95"])
+        directory = run_dir(trainer)
+        settings = {"checkpoint": str(trainer.ckpt_path) if trainer.ckpt_path else None,
+                    "model": type(pl_module).__name__, "evaluator": self._describe_evaluator(),
+                    "replications": self.replications, "num_prompts": self.num_prompts, "seed": self.seed,
+                    "mm_prompts": self.settings.mm_prompts, "mm_repeats": self.settings.mm_repeats,
+                    **{f"sampling_{k}": v for k, v in self.sampling.items()}, "metrics": self.metrics}
+        self._report(directory, summary, settings)
+
+    @rank_zero_only
+    def _report(self, directory: Path, summary: dict, settings: dict) -> None:
+        json_path, md_path = write_report(directory, summary, settings)
+        print(f"\n{markdown_table(summary, self.replications)}\n\nwritten to {json_path} and {md_path}")
+
+    def _describe_evaluator(self) -> str:
+        spec = self.evaluator_spec
+        return spec if isinstance(spec, str) else type(self.evaluator).__name__

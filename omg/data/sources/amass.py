@@ -1,0 +1,184 @@
+"""The ``amass`` source: AMASS SMPL / SMPL-H parameter files -> smpl22 joint positions.
+
+Input (``--input``): a folder searched recursively for AMASS ``.npz`` files, each with
+``poses`` (T, 156) for SMPL-H or (T, 72) for SMPL (axis-angle, joint 0 = global orientation),
+``trans`` (T, 3), ``betas`` (10 or 16), ``mocap_framerate`` (or ``mocap_frame_rate``) and
+``gender``. Per-subject ``shape.npz`` files (betas only) are ignored.
+
+Option ``body_model`` (required): the SMPL / SMPL-H body model as ``.npz`` with
+``v_template`` (V, 3), ``shapedirs`` (V, 3, B), ``J_regressor`` (J, V) and ``kintree_table``
+(2, J), as shipped in AMASS's ``body_models/smplh/<gender>/model.npz``; or a folder with
+``male/model.npz``, ``female/model.npz`` and ``neutral/model.npz``, picked by each file's
+gender (neutral when the gender's model is absent). The ``.pkl`` models need chumpy:
+convert them to ``.npz`` first.
+
+Joints: ``J = J_regressor @ (v_template + shapedirs @ betas)``, forward kinematics with the
+first 22 joints' rotations (SMPL's joint order and parents are smpl22's), plus ``trans``;
+then AMASS's Z-up turns Y-up as HumanML3D's ``raw_pose_processing`` does ((x, y, z) ->
+(-x, z, y)), and the sequence is resampled to ``--fps`` by linear interpolation (which picks
+every n-th frame when the rates divide, e.g. 120 -> 20 fps). Clips are unlabeled
+(``texts`` empty, ``category`` human); ``labels`` hold the dataset folder and the gender.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+
+from omg.errors import UsageError
+from omg.motion import Clip
+from omg.registry import DATA_SOURCES
+from omg.rotations import axis_angle_to_quat, quat_to_matrix
+from omg.skeleton import SMPL22_PARENTS, Skeleton
+
+NUM_JOINTS = 22
+Z_UP_TO_Y_UP = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # new = M @ old: (-x, z, y)
+GENDERS = ("male", "female", "neutral")
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """The parts of an SMPL-family model that joint positions need."""
+
+    v_template: np.ndarray  # (V, 3)
+    shapedirs: np.ndarray  # (V, 3, B)
+    J_regressor: np.ndarray  # (J, V)
+    parents: tuple[int, ...]  # (J,) from kintree_table[0]
+
+    @classmethod
+    @lru_cache(maxsize=8)
+    def load(cls, path: Path) -> BodyModel:
+        if path.suffix == ".pkl":
+            raise UsageError(
+                f"body model {path} is a .pkl, which needs chumpy to read; convert it to .npz "
+                "(np.savez with v_template, shapedirs, J_regressor, kintree_table) and pass "
+                "--option body_model=PATH.npz"
+            )
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                parts = {k: np.asarray(f[k], dtype=np.float64) for k in ("v_template", "shapedirs", "J_regressor")}
+                kintree = np.asarray(f["kintree_table"])
+        except KeyError as e:
+            raise UsageError(
+                f"body model {path} lacks {e}; it needs v_template, shapedirs, J_regressor, kintree_table"
+            ) from None
+        except (OSError, ValueError) as e:
+            raise UsageError(f"body model {path} is not a readable .npz of plain arrays ({e})") from None
+        parents = tuple(int(p) if i else -1 for i, p in enumerate(kintree[0]))
+        if parents[:NUM_JOINTS] != tuple(SMPL22_PARENTS):
+            raise UsageError(
+                f"body model {path}: its first 22 parents {list(parents[:NUM_JOINTS])} are not SMPL's {SMPL22_PARENTS}"
+            )
+        V = len(parts["v_template"])
+        if parts["shapedirs"].shape[:2] != (V, 3) or parts["J_regressor"].shape[1] != V:
+            raise UsageError(f"body model {path}: shapedirs {parts['shapedirs'].shape} or J_regressor "
+                             f"{parts['J_regressor'].shape} do not fit v_template {parts['v_template'].shape}")
+        return cls(parts["v_template"], parts["shapedirs"], parts["J_regressor"], parents)
+
+    def rest_joints(self, betas: np.ndarray) -> np.ndarray:
+        """(B',) shape coefficients -> (22, 3) rest joint locations (extra betas are ignored)."""
+        n = min(len(betas), self.shapedirs.shape[-1])
+        vertices = self.v_template + self.shapedirs[..., :n] @ betas[:n]  # (V, 3)
+        return (self.J_regressor @ vertices)[:NUM_JOINTS]
+
+
+def smpl_joints(model: BodyModel, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """(T, >=66) axis-angle poses, (T, 3) trans, betas -> (T, 22, 3) joints in the model's frame."""
+    rest = model.rest_joints(betas)  # (22, 3)
+    aa = torch.from_numpy(poses[:, : NUM_JOINTS * 3].reshape(len(poses), NUM_JOINTS, 3))
+    R = quat_to_matrix(axis_angle_to_quat(aa)).numpy()  # (T, 22, 3, 3) local rotations
+    G = [R[:, 0]]
+    joints = [np.broadcast_to(rest[0], (len(poses), 3)) + trans]
+    for j in range(1, NUM_JOINTS):
+        p = SMPL22_PARENTS[j]
+        joints.append(joints[p] + G[p] @ (rest[j] - rest[p]))
+        G.append(G[p] @ R[:, j])
+    return np.stack(joints, axis=1)
+
+
+def resample(x: np.ndarray, src_fps: float, dst_fps: float) -> np.ndarray:
+    """(T, ...) at src_fps -> (T', ...) at dst_fps over the same duration, linear in time."""
+    t = np.arange(0.0, (len(x) - 1) / src_fps + 1e-9, 1.0 / dst_fps) * src_fps  # source frame indices
+    i = np.minimum(np.floor(t + 1e-6).astype(int), len(x) - 1)
+    w = np.clip(t - i, 0.0, 1.0).reshape(-1, *[1] * (x.ndim - 1))
+    return (1 - w) * x[i] + w * x[np.minimum(i + 1, len(x) - 1)]
+
+
+def _model_for(body_model: Path, gender: str) -> BodyModel:
+    if body_model.is_file():
+        return BodyModel.load(body_model)
+    for name in (gender, "neutral"):
+        if (body_model / name / "model.npz").exists():
+            return BodyModel.load(body_model / name / "model.npz")
+    raise ValueError(f"amass no body model for gender {gender!r}: {body_model}/{{{gender},neutral}}/model.npz")
+
+
+def _read_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps: float) -> Clip | None:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except Exception as e:  # noqa: BLE001 - any unreadable file is one counted skip
+        raise ValueError(f"amass unreadable file: {path} ({type(e).__name__}: {e})") from None
+    if "poses" not in data and path.name == "shape.npz":
+        return None
+    rate_key = next((k for k in ("mocap_framerate", "mocap_frame_rate") if k in data), None)
+    if missing := [k for k in ("poses", "trans", "betas") if k not in data] + ([] if rate_key else ["mocap_framerate"]):
+        raise ValueError(f"amass missing keys: {path} lacks {', '.join(missing)}")
+    poses, trans = data["poses"].astype(np.float64), data["trans"].astype(np.float64)
+    if poses.ndim != 2 or poses.shape[1] < NUM_JOINTS * 3 or trans.shape != (len(poses), 3) or len(poses) < 2:
+        raise ValueError(f"amass wrong array shape: {path} has poses {poses.shape}, trans {trans.shape}")
+    if not (np.isfinite(poses).all() and np.isfinite(trans).all()):
+        raise ValueError(f"amass NaN or inf in motion: {path}")
+    gender = np.asarray(data.get("gender", "neutral")).reshape(-1)[0]
+    gender = gender.decode() if isinstance(gender, bytes) else str(gender)
+    model = _model_for(body_model, gender if gender in GENDERS else "neutral")
+    joints = smpl_joints(model, poses, trans, data["betas"].astype(np.float64).reshape(-1))
+    joints = resample(joints @ Z_UP_TO_Y_UP.T, float(data[rate_key]), fps)
+    rel = path.relative_to(root).with_suffix("")
+    return Clip(
+        id=rel.as_posix(),
+        skeleton=skeleton,
+        fps=fps,
+        positions=joints.astype(np.float32),
+        labels={"dataset": rel.parts[0] if len(rel.parts) > 1 else "", "gender": gender},
+        category="human",
+        source="amass",
+    )
+
+
+@DATA_SOURCES.register("amass")
+def amass_source(input: str | None, skeleton: Skeleton, fps: float, body_model: str | None = None) -> Iterator[Clip | Exception]:
+    """Unlabeled smpl22 clips from AMASS .npz files; see the module docstring."""
+    if not input or not Path(input).is_dir():
+        raise UsageError(f"amass: --input must be a folder of AMASS .npz files, got {input!r}")
+    if not body_model:
+        raise UsageError("amass needs an SMPL/SMPL-H body model: --option body_model=PATH "
+                         "(a model.npz, or a folder with male/ female/ neutral/model.npz)")
+    model_path = Path(body_model)
+    if not model_path.exists():
+        raise UsageError(f"amass: --option body_model={body_model}: no such file or folder")
+    if model_path.is_file():
+        BodyModel.load(model_path)  # fail now, not on the first clip
+    if list(skeleton.parents) != SMPL22_PARENTS:
+        raise UsageError(f"amass gives smpl22 joints, not {skeleton.name!r}; use --skeleton smpl22")
+    root = Path(input)
+    paths = sorted(root.rglob("*.npz"))
+
+    def items() -> Iterator[Clip | Exception]:
+        for path in paths:
+            try:
+                clip = _read_clip(root, path, model_path, skeleton, fps)
+            except UsageError:  # a bad body model is the user's to fix, not a bad clip
+                raise
+            except ValueError as e:
+                yield e
+                continue
+            if clip is not None:
+                yield clip
+
+    return items()

@@ -1,0 +1,365 @@
+"""Text-to-motion evaluation: prompt sets, one evaluation pass, and the published protocol.
+
+One pass (``evaluate``) generates a motion for every prompt of a seeded prompt set through a
+sampling function, embeds texts, real and generated motions with a frozen text–motion evaluator
+and feeds the configured torchmetrics metrics. The protocol (``protocol``) repeats passes with R
+seeds and reports per metric the mean and the 95% confidence interval 1.96·σ/√R with σ the
+population std over replications, as the T2M / MDM evaluation scripts do.
+
+Under DDP each rank generates a contiguous run of the global batches; batches and their seeds
+depend only on the global batch index, so (with at least batch_size prompts per rank) the samples
+do not depend on the world size, and the metric states (``sum`` / ``cat``) sync so every rank
+computes the same values.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torchmetrics import Metric
+
+from omg.data.shards import atomic_write, write_json
+from omg.data.windows import WindowSampler
+from omg.errors import UsageError
+from omg.metrics import (CLIPScore, Diversity, FID, FIDOOD, FootSkating, IntraFID, MMDist, MultiModality, OneNNA,
+                         RPrecision)
+from omg.motion import get_representation
+from omg.registry import METRICS
+from omg.skeleton import get_skeleton
+
+DEFAULT_METRICS = ("fid", "r_precision", "mm_dist", "diversity", "multimodality")
+SPEC_MATCH = ("representation", "skeleton", "feature_dim", "fps")
+
+# how each built-in metric is fed (a third-party metric defines ``eval_update(outputs, real)`` instead)
+PAIRED = (RPrecision, MMDist, CLIPScore)  # update(text, motion)
+# metrics that describe one set of motions: also reported for the real motions as ``real/<name>``
+REFERENCE = (*PAIRED, Diversity, FootSkating)
+
+
+# -- the evaluator ------------------------------------------------------------------------
+
+def build_evaluator(spec: str | dict[str, Any] | nn.Module, key: str = "evaluator") -> nn.Module:
+    """The frozen evaluator from a checkpoint path, ``{t2m: {checkpoint, glove_dir, mean_std_dir}}``
+    (the T2M port), ``{class_path, init_args}`` or a module; errors name ``key``."""
+    if isinstance(spec, nn.Module):
+        model = spec
+    elif isinstance(spec, (str, Path)):
+        if not Path(spec).exists():
+            raise UsageError(f"{key}: no evaluator checkpoint at {spec}; train one (configs/evaluator_*.yaml) "
+                             f"or use the T2M port with {key}: {{t2m: {{checkpoint, glove_dir, mean_std_dir}}}}")
+        from omg.models.evaluator import load_evaluator
+
+        model = load_evaluator(str(spec), map_location="cpu")
+    elif isinstance(spec, dict) and set(spec) == {"t2m"}:
+        from omg.models.t2m import load_t2m_evaluator
+
+        try:
+            model = load_t2m_evaluator(**spec["t2m"])
+        except TypeError as e:
+            raise UsageError(f"{key}.t2m: {e}; give checkpoint, glove_dir and mean_std_dir") from None
+    elif isinstance(spec, dict) and "class_path" in spec:
+        module, _, name = spec["class_path"].rpartition(".")
+        model = getattr(importlib.import_module(module), name)(**spec.get("init_args", {}))
+    else:
+        raise UsageError(f"{key}: expected a checkpoint path, {{t2m: {{...}}}} or {{class_path: ...}}, got {spec!r}")
+    for method in ("encode_text", "encode_motion"):
+        if not callable(getattr(model, method, None)):
+            raise UsageError(f"{key}: {type(model).__name__} has no {method}(); it is not a text-motion evaluator")
+    return model.eval().requires_grad_(False)
+
+
+def check_evaluator_spec(evaluator: nn.Module, data_spec: dict, key: str = "evaluator") -> None:
+    """The evaluator must read the same features as the data (where it says what it reads)."""
+    spec = getattr(evaluator, "spec", None) or {}
+    if bad := [k for k in SPEC_MATCH if k in spec and k in data_spec and spec[k] != data_spec[k]]:
+        raise UsageError(f"{key} was trained on {', '.join(f'{k}={spec[k]}' for k in bad)} but the data has "
+                         f"{', '.join(f'{k}={data_spec[k]}' for k in bad)}")
+
+
+# -- prompts ------------------------------------------------------------------------------
+
+@dataclass
+class PromptSet:
+    """Captions with the real motions they describe: texts (N), lengths (N,), motions (N, T, D)
+    un-normalised and zero beyond each length, categories (N), offsets (N, J, 3) or None."""
+
+    texts: list[str]
+    lengths: Tensor
+    motions: Tensor
+    categories: list[str]
+    offsets: Tensor | None = None
+
+    def __len__(self) -> int:
+        return len(self.texts)
+
+    def slice(self, start: int, stop: int) -> PromptSet:
+        T = int(self.lengths[start:stop].max())
+        return PromptSet(self.texts[start:stop], self.lengths[start:stop], self.motions[start:stop, :T],
+                         self.categories[start:stop], None if self.offsets is None else self.offsets[start:stop])
+
+    def repeat(self, count: int, repeats: int) -> PromptSet:
+        """The first ``count`` prompts, each ``repeats`` times in a row (MultiModality's generations)."""
+        index = torch.arange(min(count, len(self))).repeat_interleave(repeats)
+        return PromptSet([self.texts[i] for i in index], self.lengths[index], self.motions[index],
+                         [self.categories[i] for i in index], None if self.offsets is None else self.offsets[index])
+
+
+def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSampler) -> PromptSet:
+    """``num`` seeded prompts from decoded clips (``{"motion", "meta", "texts"}``): clips in a random
+    order (repeating the set when it is smaller than ``num``), one random caption and one random
+    window each. Clips without captions are used only when no clip has one (unlabeled data)."""
+    pool = [s for s in samples if s["texts"]] or list(samples)
+    if not pool:
+        raise UsageError("the evaluation set holds no clips; set data.val to a shard directory")
+    rng = np.random.default_rng(seed)
+    order = np.concatenate([rng.permutation(len(pool)) for _ in range(math.ceil(num / len(pool)))])[:num]
+    texts, windows_, categories, offsets = [], [], [], []
+    for i in order:
+        s = pool[int(i)]
+        start, length = windows.random(len(s["motion"]), rng)
+        texts.append(s["texts"][int(rng.integers(len(s["texts"])))] if s["texts"] else "")
+        windows_.append(s["motion"][start:start + length])
+        categories.append(s["meta"].get("category") or "")
+        offsets.append(s["meta"].get("offsets"))
+    lengths = torch.tensor([len(w) for w in windows_])
+    motions = torch.zeros(num, int(lengths.max()), windows_[0].shape[1])
+    for b, w in enumerate(windows_):
+        motions[b, : len(w)] = torch.from_numpy(np.ascontiguousarray(w))
+    has_offsets = all(o is not None for o in offsets)
+    return PromptSet(texts, lengths, motions, categories,
+                     torch.tensor(np.array(offsets), dtype=torch.float32) if has_offsets else None)
+
+
+# -- metrics ------------------------------------------------------------------------------
+
+def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None, key: str = "metrics") -> dict[str, dict]:
+    """``[fid, {diversity: {num_pairs: 100}}]`` or ``{fid: {}, ...}`` -> {name: options}."""
+    spec = DEFAULT_METRICS if spec is None else spec
+    items = list(spec.items()) if isinstance(spec, dict) else []
+    if not isinstance(spec, dict):
+        for entry in spec:
+            if isinstance(entry, str):
+                items.append((entry, {}))
+            elif isinstance(entry, dict) and len(entry) == 1:
+                items.append(next(iter(entry.items())))
+            else:
+                raise UsageError(f"{key}: each entry is a metric name or {{name: {{options}}}}, got {entry!r}")
+    out = {}
+    for name, options in items:
+        if name not in METRICS:
+            raise UsageError(f"{key}: unknown metric {name!r}; known metrics: {', '.join(METRICS.names())}")
+        if not isinstance(options, dict | None):
+            raise UsageError(f"{key}.{name}: options must be a mapping, got {options!r}")
+        cls = METRICS.get(name)
+        if cls is FIDOOD or (not hasattr(cls, "eval_update") and not issubclass(
+                cls, (FID, IntraFID, OneNNA, MultiModality, *REFERENCE))):
+            raise UsageError(f"{key}: {name} cannot be computed from generated prompts (it needs other inputs); "
+                             f"use {', '.join(DEFAULT_METRICS)}, clip_score, intra_fid, one_nna or foot_skating")
+        out[name] = dict(options or {})
+    return out
+
+
+def build_metric(name: str, options: dict, context: dict, key: str = "metrics") -> Metric:
+    """Instantiate a registered metric; arguments it takes from ``context`` (num_features, categories,
+    skeleton, fps, seed) are filled in unless the options set them."""
+    cls = METRICS.get(name)
+    params = inspect.signature(cls).parameters
+    kwargs = {k: v for k, v in context.items() if k in params} | options
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise UsageError(f"{key}.{name}: {e}") from None
+
+
+@dataclass
+class Outputs:
+    """What one pass feeds the metrics: embeddings (N, E) of texts, real and generated motions,
+    category indices (N,), decoded joints (N, T, J, 3) with mask (N, T), and MultiModality's
+    repeated generations (M, E) with their prompt ids (M,)."""
+
+    text: Tensor | None = None
+    real: Tensor | None = None
+    gen: Tensor | None = None
+    category: Tensor | None = None
+    mask: Tensor | None = None
+    real_joints: Tensor | None = None
+    gen_joints: Tensor | None = None
+    mm: Tensor | None = None
+    mm_ids: Tensor | None = None
+
+
+def update_metric(metric: Metric, out: Outputs, real: bool = False) -> None:
+    """Feed one pass to a metric; ``real`` feeds the real motions in place of the generated ones
+    (the reference row of the published tables)."""
+    if hasattr(metric, "eval_update"):
+        metric.eval_update(out, real)
+        return
+    motion, joints = (out.real, out.real_joints) if real else (out.gen, out.gen_joints)
+    if isinstance(metric, IntraFID):
+        metric.update(out.real, out.category, real=True)
+        metric.update(out.gen, out.category, real=False)
+    elif isinstance(metric, (FID, OneNNA)):
+        metric.update(out.real, real=True)
+        metric.update(out.gen, real=False)
+    elif isinstance(metric, PAIRED):
+        metric.update(out.text, motion)
+    elif isinstance(metric, Diversity):
+        metric.update(motion)
+    elif isinstance(metric, FootSkating):
+        metric.update(joints, out.mask)
+    elif isinstance(metric, MultiModality):
+        if out.mm is not None and len(out.mm):
+            metric.update(out.mm, out.mm_ids)
+    else:
+        raise TypeError(f"no rule to feed {type(metric).__name__}")
+
+
+def metric_values(name: str, value: Tensor | dict[str, Tensor]) -> dict[str, float]:
+    if isinstance(value, dict):
+        return {k: float(v) for k, v in value.items()}
+    return {name: float(value)}
+
+
+# -- one pass and the protocol ------------------------------------------------------------
+
+Generate = Callable[[list[str], Tensor, int], Tensor]  # (texts, lengths, seed) -> (B, T, D) un-normalised
+
+
+@dataclass
+class EvalSettings:
+    batch_size: int = 64
+    mm_prompts: int = 100  # MultiModality: the first mm_prompts prompts ...
+    mm_repeats: int = 30  # ... generated mm_repeats times each (T2M: 100 × 30)
+    reference: bool = True  # also report the set-wise metrics of the real motions as real/<name>
+
+
+def batch_seed(seed: int, replication: int, stream: int, index: int) -> int:
+    """An independent generation seed per (seed, replication, stream, global batch)."""
+    return int(np.random.SeedSequence([seed, replication, stream, index]).generate_state(1)[0])
+
+
+def _my_batches(n: int, batch_size: int, rank: int, world: int) -> list[tuple[int, int, int]]:
+    """(global batch index, start, stop) of this rank's contiguous share of the batches. Batches
+    shrink where there would be fewer than ranks: every rank needs samples to sync its metrics."""
+    batch_size = max(1, min(batch_size, n // world))
+    batches = math.ceil(n / batch_size)
+    lo, hi = batches * rank // world, batches * (rank + 1) // world
+    return [(b, b * batch_size, min(n, (b + 1) * batch_size)) for b in range(lo, hi)]
+
+
+@torch.no_grad()
+def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metrics: dict[str, dict], *,
+             seed: int, replication: int = 0, settings: EvalSettings | None = None, spec: dict | None = None,
+             device: torch.device | str = "cpu", rank: int = 0, world_size: int = 1) -> dict[str, float]:
+    """One evaluation pass over ``prompts``: {metric key: value}, the same on every rank.
+
+    ``spec`` (the data's representation, skeleton, fps) decodes joint positions for the metrics
+    that need them (FootSkating)."""
+    device, settings = torch.device(device), settings or EvalSettings()
+    evaluator.to(device)
+    categories = sorted(set(prompts.categories))
+    probe = evaluator.encode_text([prompts.texts[0]])
+    context = {"num_features": probe.shape[-1], "categories": categories, "seed": seed + replication}
+    representation = None
+    if spec is not None:
+        context |= {"skeleton": spec["skeleton"], "fps": spec["fps"]}
+        representation = get_representation(spec["representation"], get_skeleton(spec["skeleton"]))
+    built = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()}
+    reference = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()
+                 if settings.reference and isinstance(built[name], REFERENCE)}
+    needs_joints = any(isinstance(m, FootSkating) for m in built.values())
+    if needs_joints and representation is None:
+        raise UsageError("foot_skating needs the data spec (representation, skeleton, fps) to decode joint positions")
+    category_index = {c: i for i, c in enumerate(categories)}
+
+    def embed(motion: Tensor, lengths: Tensor) -> Tensor:
+        mask = torch.arange(motion.shape[1], device=device)[None] < lengths.to(device)[:, None]
+        return evaluator.encode_motion(motion.to(device), mask).float()
+
+    def decode(motion: Tensor, part: PromptSet) -> Tensor:
+        offsets = None if part.offsets is None else part.offsets.to(device)
+        return representation.decode(motion.float(), offsets)
+
+    for b, start, stop in _my_batches(len(prompts), settings.batch_size, rank, world_size):
+        part = prompts.slice(start, stop)
+        lengths = part.lengths.to(device)
+        gen = generate(part.texts, lengths, batch_seed(seed, replication, 0, b))[:, : part.motions.shape[1]]
+        real = part.motions.to(device)
+        mask = torch.arange(real.shape[1], device=device)[None] < lengths[:, None]
+        out = Outputs(
+            text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, lengths), gen=embed(gen, lengths),
+            category=torch.tensor([category_index[c] for c in part.categories], device=device), mask=mask,
+            real_joints=decode(real, part) if needs_joints else None,
+            gen_joints=decode(gen, part) if needs_joints else None)
+        for name, metric in built.items():
+            if not isinstance(metric, MultiModality):
+                update_metric(metric, out)
+        for metric in reference.values():
+            update_metric(metric, out, real=True)
+
+    mm_metrics = [m for m in built.values() if isinstance(m, MultiModality)]
+    if mm_metrics:
+        repeated = prompts.repeat(settings.mm_prompts, settings.mm_repeats)
+        ids = torch.arange(min(settings.mm_prompts, len(prompts))).repeat_interleave(settings.mm_repeats)
+        for b, start, stop in _my_batches(len(repeated), settings.batch_size, rank, world_size):
+            part = repeated.slice(start, stop)
+            gen = generate(part.texts, part.lengths.to(device), batch_seed(seed, replication, 1, b))
+            out = Outputs(mm=embed(gen[:, : part.motions.shape[1]], part.lengths), mm_ids=ids[start:stop].to(device))
+            for metric in mm_metrics:
+                update_metric(metric, out)
+
+    values: dict[str, float] = {}
+    for name, metric in built.items():
+        values |= metric_values(name, metric.compute())
+    for name, metric in reference.items():
+        values |= {f"real/{k}": v for k, v in metric_values(name, metric.compute()).items()}
+    return values
+
+
+def summarize(runs: Sequence[dict[str, float]]) -> dict[str, dict[str, Any]]:
+    """Per key over replications: mean, std (population, np.std), ci95 = 1.96·std/√R, values."""
+    R = len(runs)
+    out = {}
+    for key in runs[0]:
+        values = np.array([run[key] for run in runs], dtype=np.float64)
+        std = float(values.std())
+        out[key] = {"mean": float(values.mean()), "std": std, "ci95": 1.96 * std / math.sqrt(R),
+                    "values": values.tolist()}
+    return out
+
+
+def protocol(run: Callable[[int], dict[str, float]], replications: int) -> dict[str, dict[str, Any]]:
+    """``run(replication)`` for replication 0..R-1, summarised."""
+    if replications < 1:
+        raise UsageError(f"replications must be >= 1, got {replications}")
+    return summarize([run(r) for r in range(replications)])
+
+
+# -- reports ------------------------------------------------------------------------------
+
+def markdown_table(summary: dict[str, dict[str, Any]], replications: int) -> str:
+    lines = [f"| metric | mean | ±95% CI ({replications} replications) |", "|---|---:|---:|"]
+    for key, s in summary.items():
+        lines.append(f"| {key} | {s['mean']:.4f} | ±{s['ci95']:.4f} |")
+    return "\n".join(lines)
+
+
+def write_report(directory: str | Path, summary: dict[str, dict[str, Any]], settings: dict[str, Any],
+                 name: str = "eval") -> tuple[Path, Path]:
+    """``<name>.json`` (settings + summary) and ``<name>.md`` (the table), each written atomically."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    replications = settings.get("replications", len(next(iter(summary.values()))["values"]))
+    json_path, md_path = directory / f"{name}.json", directory / f"{name}.md"
+    write_json(json_path, {"settings": settings, "metrics": summary})
+    header = "\n".join(f"- {k}: {v}" for k, v in settings.items() if not isinstance(v, dict | list))
+    atomic_write(md_path, f"# Evaluation\n\n{header}\n\n{markdown_table(summary, replications)}\n".encode())
+    return json_path, md_path

@@ -1,0 +1,150 @@
+"""Training the contrastive text–motion evaluator (``omg fit --config configs/evaluator_*.yaml``).
+
+Each batch of captioned windows gives B text and B motion embeddings; the loss is the symmetric
+InfoNCE over their B×B similarities. Rows that share a caption or a clip are not negatives of
+each other (template-captioned data repeats captions within a batch, and a pushed-apart twin
+makes the loss fight itself), and uncaptioned rows are dropped. Validation logs the InfoNCE,
+R-precision top-1/2/3 in pools of ``r_precision_pool`` and MM-Dist with ``omg.metrics``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.utilities import rank_zero_warn
+from torch import Tensor
+
+from omg.errors import UsageError
+from omg.lit.pretrain import check_spec, warmup_cosine
+from omg.metrics import MMDist, RPrecision
+from omg.models.evaluator import EvaluatorConfig, TextMotionEvaluator, info_nce, load_evaluator, same_pairs
+
+# the frozen text backbone stays in eval mode on purpose
+warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode at the start of training.*")
+
+
+class EvaluatorModule(L.LightningModule):
+    """Contrastive text–motion evaluator on any shard set with captions.
+
+    Args:
+        text_encoder: the frozen text backbone, a registered name (``minilm``, ``clip-vit-l-14``, ``hash``).
+        text_encoder_args: its keyword arguments (e.g. ``pretrained: /path/ViT-L-14.pt``).
+        flavor: evaluator size preset: mini, base or large.
+        evaluator: EvaluatorConfig fields to override, e.g. ``{n_layers: 6, embed_dim: 512}``.
+        lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
+        r_precision_pool: pool size of the validation R-precision (HumanML3D: 32); a validation
+            set with fewer samples logs loss and MM-Dist only.
+        spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
+    """
+
+    def __init__(
+        self,
+        text_encoder: str = "minilm",
+        text_encoder_args: dict[str, Any] | None = None,
+        flavor: str = "base",
+        evaluator: dict[str, Any] | None = None,
+        lr: float = 1e-4,
+        weight_decay: float = 1e-2,
+        betas: tuple[float, float] = (0.9, 0.999),
+        warmup_steps: int = 500,
+        r_precision_pool: int = 32,
+        spec: dict | None = None,
+    ):
+        super().__init__()
+        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or r_precision_pool < 3:
+            raise UsageError("model.lr must be > 0, model.weight_decay and model.warmup_steps >= 0 and "
+                             f"model.r_precision_pool >= 3; got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
+        self.save_hyperparameters()
+        config = EvaluatorConfig.from_name(flavor, **(evaluator or {}))
+        self.evaluator = TextMotionEvaluator(check_spec(spec), text_encoder, text_encoder_args, config)
+        self.val_r_precision = RPrecision(pool_size=r_precision_pool, top_k=3)
+        self.val_mm_dist = MMDist()
+        self._warned_small_val = False
+
+    # the backbone is rebuilt from its own weights, never saved with ours
+    def state_dict(self, *args, **kwargs):
+        state = super().state_dict(*args, **kwargs)
+        return {k: v for k, v in state.items() if not k.startswith("evaluator.text_encoder.")}
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        missing, unexpected = super().load_state_dict(state_dict, strict=False, assign=assign)
+        missing = [k for k in missing if not k.startswith("evaluator.text_encoder.")]
+        if strict and (missing or unexpected):
+            raise RuntimeError(f"checkpoint does not fit EvaluatorModule: missing {missing[:5]}, unexpected {unexpected[:5]}")
+        return missing, unexpected
+
+    # -- steps ---------------------------------------------------------------------------
+    def embed(self, batch: dict) -> tuple[Tensor, Tensor, Tensor] | None:
+        """(text (N, E), motion (N, E), same (N, N)) for the batch's captioned rows; None if fewer than 2."""
+        keep = [i for i, t in enumerate(batch["text"]) if t.strip()]
+        if len(keep) < 2:
+            return None
+        rows = torch.tensor(keep, device=batch["motion"].device)
+        texts = [batch["text"][i] for i in keep]
+        ids = [batch["id"][i] for i in keep] if "id" in batch else None
+        text = self.evaluator.encode_text(texts)
+        motion = self.evaluator.encode_normalized_motion(batch["motion"][rows], batch["mask"][rows])
+        return text, motion, same_pairs(texts, ids).to(self.device)
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor | None:
+        out = self.embed(batch)
+        if out is None:
+            rank_zero_warn("a training batch has fewer than 2 captioned clips; skipped (the evaluator needs captions)")
+            return None
+        text, motion, same = out
+        logits = self.evaluator.logits(text, motion)
+        loss = info_nce(logits, same)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite InfoNCE at step {self.global_step}; lower model.lr or check the data")
+        n = len(text)
+        # in-batch top-1 accuracy, a duplicate caption's motion counting as a hit
+        hit = same[torch.arange(n, device=self.device), logits.argmax(1)].float().mean()
+        self.log_dict({"train/loss": loss, "train/acc": hit}, prog_bar=True, batch_size=n)
+        self.log("train/temperature", 1.0 / self.evaluator.logit_scale.exp().clamp(
+            max=self.evaluator.config.max_logit_scale), batch_size=n)
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        out = self.embed(batch)
+        if out is None:
+            return
+        text, motion, same = out
+        self.log("val/loss", info_nce(self.evaluator.logits(text, motion), same), batch_size=len(text), sync_dist=True)
+        self.val_r_precision.update(text, motion)
+        self.val_mm_dist.update(text, motion)
+
+    def on_validation_epoch_end(self) -> None:
+        mm_dist = self.val_mm_dist.compute()  # every rank computes: the states sync inside
+        if torch.isfinite(mm_dist):
+            self.log("val/mm_dist", mm_dist.float())
+        try:
+            for name, value in self.val_r_precision.compute().items():
+                self.log(f"val/{name.replace('/', '_')}", value.float())  # val/r_precision_top1 ...
+        except ValueError as e:  # fewer samples than one pool
+            if not self._warned_small_val:
+                rank_zero_warn(f"validation R-precision not logged: {e}")
+                self._warned_small_val = True
+        self.val_r_precision.reset()
+        self.val_mm_dist.reset()
+
+    # -- optimisation --------------------------------------------------------------------
+    def configure_optimizers(self):
+        h = self.hparams
+        decay, no_decay = [], []
+        for name, p in self.evaluator.named_parameters():
+            if p.requires_grad:  # the frozen backbone is left out
+                (decay if p.ndim >= 2 and not name.endswith("cls") else no_decay).append(p)
+        optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": h.weight_decay},
+                                       {"params": no_decay, "weight_decay": 0.0}], lr=h.lr, betas=tuple(h.betas))
+        total = int(self.trainer.estimated_stepping_batches)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(h.warmup_steps, total))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
+
+
+__all__ = ["EvaluatorModule", "load_evaluator"]

@@ -1,0 +1,396 @@
+"""Retargeting any rig's motion (``RigMotion``) onto a model skeleton (smpl22, smal35) by joint names.
+
+A joint map says which source joint each target joint sits on. Built-in maps cover the
+Bandai-Namco BVH rig, CMU's rigs (cgspeed BVH in both namings, ASF/AMC), the DeepMimic
+humanoid (-> smpl22), the MANN dog BVH and the DeepMimic dog (-> smal35); without a map the
+one whose source joints are all present is picked. A user map is a YAML file::
+
+    target: smpl22            # the skeleton it maps onto
+    category: human           # optional: the clips' category (default: human for smpl22, else animal)
+    joints:                   # target joint: source joint
+      pelvis: Hips
+      left_hip: LeftUpLeg
+      ...
+
+Source names are joint names, or ``<joint>_end`` for a joint's end site (BVH End Site,
+DeepMimic body tip). Target joints left out are filled in:
+
+- between two mapped joints of one of the target's kinematic chains, on the straight line
+  between them at the template's length ratios (spine, neck, tail segments);
+- past the last mapped joint of a chain (SMAL ears, tail tip; SMPL head on rigs without
+  one) rigidly with their parent, at the template's rest offset scaled to the individual.
+
+The root and the parent of every end effector must be mapped or filled in between mapped
+joints. The output clip has constant bone lengths by construction: each target joint's
+global rotation turns the template's rest bone directions onto the mapped directions
+(parent -> child; the best fit where a joint has several children), and bone lengths are
+measured on the source's rest pose (so individual proportions stay; ``height`` rescales).
+The source's up axis is detected (pelvis above the feet) and turned to +Y, the floor y = 0
+is put under the feet of contact frames (low foot speed), and the motion is resampled to
+the requested fps before anything else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import yaml
+
+from omg.errors import UsageError
+from omg.io.rig import RigMotion
+from omg.motion.base import Clip
+from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_mul
+from omg.skeleton import Skeleton, get_skeleton
+
+CONTACT_SPEED = 0.3  # m/s: a foot joint slower than this, and low, is taken to be on the ground
+CONTACT_BAND = 0.10  # m: "low" = within this of the clip's lowest foot joints
+
+
+@dataclass(frozen=True)
+class JointMap:
+    name: str
+    target: str  # a registered skeleton name
+    joints: dict  # target joint -> source joint (or "<joint>_end")
+    category: str = "human"
+
+    def missing(self, source_names: Sequence[str]) -> list[str]:
+        present = set(source_names)
+        return [s for s in self.joints.values() if s not in present]
+
+
+def _mirror(left: dict, target_swap: tuple[str, str], source_swap: tuple[str, str], centre: dict) -> dict:
+    """``centre`` plus the left-side entries and their right-side twins (first occurrence swapped)."""
+    out = dict(centre)
+    for t, s in left.items():
+        out[t] = s
+        out[t.replace(*target_swap, 1)] = s.replace(*source_swap, 1)
+    return out
+
+
+_SMPL_LR, _SMAL_LR = ("left_", "right_"), ("L", "R")
+
+BUILTIN_MAPS: dict[str, JointMap] = {
+    m.name: m
+    for m in (
+        JointMap("bandai", "smpl22", _mirror(
+            {"left_hip": "UpperLeg_L", "left_knee": "LowerLeg_L", "left_ankle": "Foot_L", "left_foot": "Toes_L",
+             "left_collar": "Shoulder_L", "left_shoulder": "UpperArm_L", "left_elbow": "LowerArm_L",
+             "left_wrist": "Hand_L"}, _SMPL_LR, ("_L", "_R"),
+            {"pelvis": "Hips", "spine1": "Spine", "spine3": "Chest", "neck": "Neck", "head": "Head"})),
+        # CMU cgspeed BVH ("MotionBuilder" naming); collars are filled in: CMU's clavicles
+        # start at the neck base, SMPL's collars halfway to the shoulders
+        JointMap("cmu", "smpl22", _mirror(
+            {"left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot", "left_foot": "LeftToeBase",
+             "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm", "left_wrist": "LeftHand"},
+            _SMPL_LR, ("Left", "Right"),
+            {"pelvis": "Hips", "spine1": "Spine", "spine3": "Spine1", "neck": "Neck1", "head": "Head"})),
+        # the same rig in cgspeed's "3dsMax" naming (131_*.bvh): note LeftShoulder = upper arm here
+        JointMap("cmu_3dsmax", "smpl22", _mirror(
+            {"left_hip": "LeftHip", "left_knee": "LeftKnee", "left_ankle": "LeftAnkle", "left_foot": "LeftToe",
+             "left_shoulder": "LeftShoulder", "left_elbow": "LeftElbow", "left_wrist": "LeftWrist"},
+            _SMPL_LR, ("Left", "Right"),
+            {"pelvis": "Hips", "spine1": "Chest", "spine3": "Chest2", "neck": "Neck", "head": "Head"})),
+        JointMap("cmu_asf", "smpl22", _mirror(
+            {"left_hip": "lfemur", "left_knee": "ltibia", "left_ankle": "lfoot", "left_foot": "ltoes",
+             "left_shoulder": "lhumerus", "left_elbow": "lradius", "left_wrist": "lwrist"},
+            _SMPL_LR, ("l", "r"),
+            {"pelvis": "root", "spine1": "upperback", "spine3": "thorax", "neck": "upperneck", "head": "head"})),
+        JointMap("deepmimic_humanoid", "smpl22", _mirror(
+            {"left_hip": "left_hip", "left_knee": "left_knee", "left_ankle": "left_ankle",
+             "left_foot": "left_ankle_end", "left_shoulder": "left_shoulder", "left_elbow": "left_elbow",
+             "left_wrist": "left_wrist"}, _SMPL_LR, ("left_", "right_"),
+            {"pelvis": "root", "spine3": "chest", "neck": "neck", "head": "neck_end"})),
+        # dogs: SMAL's spine3 (where the front legs and the neck branch) sits at the withers
+        JointMap("mann_dog", "smal35", _mirror(
+            {"LLeg1": "LeftArm", "LLeg2": "LeftForeArm", "LLeg3": "LeftHand", "LFoot": "LeftHand_end",
+             "LLegBack1": "LeftUpLeg", "LLegBack2": "LeftLeg", "LLegBack3": "LeftFoot",
+             "LFootBack": "LeftFoot_end"}, _SMAL_LR, ("Left", "Right"),
+            {"pelvis": "Hips", "spine1": "Spine1", "spine3": "Neck", "Head": "Head", "Mouth": "Head_end",
+             "Tail1": "Tail", "Tail4": "Tail1", "Tail7": "Tail1_end"}), "dog"),
+        JointMap("deepmimic_dog", "smal35", _mirror(
+            {"LLeg1": "left_shoulder", "LLeg2": "left_forearm", "LLeg3": "left_hand", "LFoot": "left_finger_end",
+             "LLegBack1": "left_upper_leg", "LLegBack2": "left_leg", "LLegBack3": "left_foot",
+             "LFootBack": "left_toe_end"}, _SMAL_LR, ("left_", "right_"),
+            {"pelvis": "root", "spine1": "spine1", "spine3": "neck", "Head": "head", "Mouth": "head_end",
+             "Tail1": "tail0", "Tail4": "tail1", "Tail7": "tail1_end"}), "dog"),
+    )
+}  # fmt: skip
+
+
+def load_joint_map(path: str | Path) -> JointMap:
+    """A user joint map from YAML (format in the module docstring)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise UsageError(f"joint map {path}: cannot read the file ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise UsageError(f"joint map {path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("joints"), dict) or not data.get("target"):
+        raise UsageError(f"joint map {path}: expected a mapping with 'target: SKELETON' and 'joints: {{target: source}}'")
+    joints = {str(k): str(v) for k, v in data["joints"].items()}
+    target = str(data["target"])
+    category = str(data.get("category") or ("human" if target == "smpl22" else "animal"))
+    return JointMap(str(data.get("name") or path.stem), target, joints, category)
+
+
+def get_joint_map(spec: str | Path | JointMap) -> JointMap:
+    """A built-in map by name, a YAML file, or the map itself."""
+    if isinstance(spec, JointMap):
+        return spec
+    if str(spec) in BUILTIN_MAPS:
+        return BUILTIN_MAPS[str(spec)]
+    if Path(spec).suffix.lower() in (".yaml", ".yml") or Path(spec).exists():
+        return load_joint_map(spec)
+    raise UsageError(f"unknown joint map {str(spec)!r}: give a YAML file or one of {', '.join(BUILTIN_MAPS)}")
+
+
+def source_names(motion: RigMotion) -> list[str]:
+    """Joint names, then end-site names: what joint maps can refer to."""
+    return list(motion.names) + motion.end_site_names()
+
+
+def detect_joint_map(motion: RigMotion, target: str | None = None) -> JointMap | None:
+    """The built-in map (for ``target``, or any) whose source joints are all in ``motion``; the one
+    with most joints where several fit; None where none does."""
+    names = source_names(motion)
+    fits = [m for m in BUILTIN_MAPS.values() if (target is None or m.target == target) and not m.missing(names)]
+    return max(fits, key=lambda m: len(m.joints), default=None)
+
+
+def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path | JointMap | None = None) -> JointMap:
+    """The map to use for ``motion`` -> ``target``; one UsageError naming missing joints otherwise."""
+    names = source_names(motion)
+    where = motion.source or motion.name
+    if joint_map is None:
+        found = detect_joint_map(motion, target.name)
+        if found is not None:
+            return found
+        candidates = [m for m in BUILTIN_MAPS.values() if m.target == target.name]
+        if not candidates:
+            raise UsageError(f"{where}: no built-in joint map targets {target.name!r}; pass joint_map=YAML")
+        closest = min(candidates, key=lambda m: len(m.missing(names)))
+        raise UsageError(
+            f"{where}: cannot map the rig onto {target.name} (no built-in map fits); closest {closest.name!r} "
+            f"lacks joints {', '.join(closest.missing(names))}; pass joint_map=YAML"
+        )
+    jmap = get_joint_map(joint_map)
+    if jmap.target != target.name:
+        raise UsageError(f"joint map {jmap.name!r} maps onto {jmap.target!r}, not {target.name!r}")
+    missing = jmap.missing(names)
+    if missing:
+        raise UsageError(f"{where}: joint map {jmap.name!r} needs joints the file lacks: {', '.join(missing)}")
+    return jmap
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """How each target joint gets its place: source column, interpolation, or rigid follow."""
+
+    source: dict  # target joint -> column in the source positions (mapped joints)
+    between: dict  # target joint -> (joint a, joint b, fraction from a to b)
+    proxied: tuple  # (J,) bool: mapped or interpolated
+
+
+def _plan(target: Skeleton, jmap: JointMap, names: list[str]) -> _Plan:
+    unknown = [t for t in jmap.joints if t not in target.names]
+    if unknown:
+        raise UsageError(f"joint map {jmap.name!r}: {', '.join(unknown)} are not joints of {target.name}")
+    column = {n: i for i, n in enumerate(names)}
+    source = {target.index(t): column[s] for t, s in jmap.joints.items()}
+    lengths = target.bone_lengths()
+    between = {}
+    for chain in target.chains:
+        cum = np.cumsum([0.0] + [lengths[j] for j in chain[1:]])  # template length along the chain
+        mapped = [i for i, j in enumerate(chain) if j in source]
+        for i, j in enumerate(chain[1:], start=1):
+            if j in source:
+                continue
+            before = [k for k in mapped if k < i]
+            after = [k for k in mapped if k > i]
+            if before and after:
+                a, b = before[-1], after[0]
+                between[j] = (chain[a], chain[b], (cum[i] - cum[a]) / max(cum[b] - cum[a], 1e-9))
+    proxied = tuple(j in source or j in between for j in range(target.num_joints))
+    needed = {0} | {target.parents[e] for e in target.end_effectors}
+    loose = [target.names[j] for j in sorted(needed) if not proxied[j]]
+    if loose:
+        raise UsageError(
+            f"joint map {jmap.name!r} leaves {', '.join(loose)} of {target.name} unmapped; map them, or joints "
+            "on both sides of them along their chain"
+        )
+    return _Plan(source, between, proxied)
+
+
+def _proxy(plan: _Plan, target: Skeleton, src: torch.Tensor) -> torch.Tensor:
+    """(T, S, 3) source positions -> (T, J, 3) target joint places (NaN where not proxied)."""
+    out = torch.full((src.shape[0], target.num_joints, 3), float("nan"), dtype=src.dtype)
+    for j, s in plan.source.items():
+        out[:, j] = src[:, s]
+    for j, (a, b, w) in plan.between.items():
+        out[:, j] = out[:, a] + w * (out[:, b] - out[:, a])
+    return out
+
+
+def _up_rotation(q: torch.Tensor, target: Skeleton, up: str | None) -> torch.Tensor:
+    """(4,) rotation turning the source's up axis to +Y.
+
+    ``up`` ("y", "z", "-z", ...) names it. Detection: along the up axis the body's lowest
+    joint stays on the floor, so its coordinate barely changes over the clip, while along a
+    horizontal axis it follows the travel. +Y (the BVH and DeepMimic convention) is kept
+    unless the lowest joint varies by over 5 cm along Y and another axis is twice as steady;
+    the sign puts the body above its feet. Clips that neither travel nor stand (lying still)
+    give no evidence and stay Y-up: pass ``up`` for Z-up files of that kind.
+    """
+    axes = {"x": 0, "y": 1, "z": 2}
+    if up is not None:
+        key = up.lower().lstrip("+-")
+        if key not in axes:
+            raise UsageError(f"up must be one of x, y, z (optionally signed), got {up!r}")
+        k, sign = axes[key], -1.0 if up.startswith("-") else 1.0
+    else:
+        placed = [j for j in range(target.num_joints) if not torch.isnan(q[0, j, 0])]
+        lowest = q[:, placed].min(1).values  # (T, 3)
+        spread = torch.quantile(lowest, 0.75, dim=0) - torch.quantile(lowest, 0.25, dim=0)  # (3,)
+        k = 1
+        if spread[1] > 0.05:
+            other = min((0, 2), key=lambda a: float(spread[a]))
+            if spread[other] < 0.5 * spread[1]:
+                k = other
+        feet = [f for f in target.feet if f in placed]
+        body = [j for j in placed if j not in feet]
+        sign = 1.0
+        if feet and body:
+            sign = 1.0 if float((q[:, body, k].mean(1) - q[:, feet, k].mean(1)).median()) >= 0 else -1.0
+    axis = torch.zeros(3, dtype=q.dtype)
+    axis[k] = sign
+    return quat_between(axis, torch.tensor([0.0, 1.0, 0.0], dtype=q.dtype))
+
+
+def _best_rotation(rest: torch.Tensor, cur: torch.Tensor) -> torch.Tensor:
+    """(C, 3) rest directions, (T, C, 3) current ones -> (T, 4) rotation best taking rest to current (Kabsch)."""
+    h = torch.einsum("ci,tcj->tij", rest, cur)  # (T, 3, 3)
+    u, _, vh = torch.linalg.svd(h)
+    v = vh.transpose(-1, -2)
+    d = torch.sign(torch.det(v @ u.transpose(-1, -2)))
+    fix = torch.ones_like(h[..., 0])  # (T, 3)
+    fix[:, 2] = torch.where(d == 0, torch.ones_like(d), d)
+    return matrix_to_quat(v @ torch.diag_embed(fix) @ u.transpose(-1, -2))
+
+
+def foot_contacts(positions: np.ndarray | torch.Tensor, skeleton: Skeleton | str, fps: float) -> np.ndarray:
+    """(T, F) bool: each of ``skeleton.feet`` slower than CONTACT_SPEED and within CONTACT_BAND of
+    the clip's lowest foot heights (their 2nd percentile over the clip: robust to a stray frame)."""
+    skel = get_skeleton(skeleton)
+    p = torch.as_tensor(np.asarray(positions), dtype=torch.float64)[:, list(skel.feet)]  # (T, F, 3)
+    h = p[..., 1]
+    base = float(torch.quantile(h.min(1).values, 0.02))
+    speed = (p[1:] - p[:-1]).norm(dim=-1) * fps  # (T-1, F)
+    speed = torch.cat([speed, speed[-1:]])
+    return ((speed < CONTACT_SPEED) & (h < base + CONTACT_BAND)).numpy()
+
+
+def _floor(positions: torch.Tensor, skeleton: Skeleton, fps: float) -> float:
+    """Height of the ground: the median height of the lowest foot joint in contact over the
+    contact frames; the feet's 2nd percentile where no foot is ever in contact."""
+    h = positions[:, list(skeleton.feet), 1]  # (T, F)
+    contact = torch.from_numpy(foot_contacts(positions.numpy(), skeleton, fps))
+    lowest = torch.where(contact, h, torch.full_like(h, float("inf"))).min(1).values  # (T,)
+    lowest = lowest[torch.isfinite(lowest)]
+    return float(lowest.median()) if len(lowest) else float(torch.quantile(h.min(1).values, 0.02))
+
+
+def retarget(
+    motion: RigMotion,
+    target: str | Skeleton = "smpl22",
+    joint_map: str | Path | JointMap | None = None,
+    fps: float | None = None,
+    height: float | None = None,
+    up: str | None = None,
+    id: str | None = None,
+    texts: Sequence[str] = (),
+    **fields,
+) -> Clip:
+    """``motion`` on ``target`` as a clip with positions, local rotations and this individual's offsets.
+
+    ``fps``: resample first (default: keep the source rate). ``height``: scale so that the
+    rest pose's joints span this many metres vertically (SMPL template: 1.54). ``up``: the
+    source's up axis ("y", "z", "-z", ...) where detection would fail. ``fields`` go to ``Clip``
+    (labels, category, source).
+    """
+    skel = get_skeleton(target)
+    jmap = resolve_joint_map(motion, skel, joint_map)
+    names = source_names(motion)
+    plan = _plan(skel, jmap, names)
+    if fps is not None:
+        motion = motion.resample(fps)
+    if len(motion) < 2:
+        raise UsageError(f"{motion.source or motion.name}: {len(motion)} frame(s) at {motion.fps:g} fps, need 2 or more")
+    J, parents = skel.num_joints, skel.parents
+    tmpl = torch.from_numpy(skel.rest_offsets.astype(np.float64))  # (J, 3) template offsets
+    tmpl_len = tmpl.norm(dim=-1)
+    tmpl_dir = tmpl / tmpl_len.clamp_min(1e-9)[:, None]
+
+    # bone lengths on the source's rest pose; joints without a place get the template's, scaled
+    rest = _proxy(plan, skel, torch.from_numpy(motion.rest_positions(end_sites=True))[None])[0]  # (J, 3)
+    measured = [j for j in range(1, J) if plan.proxied[j] and plan.proxied[parents[j]]]
+    lengths = torch.zeros(J, dtype=torch.float64)
+    for j in measured:
+        lengths[j] = (rest[j] - rest[parents[j]]).norm()
+    ratios = [float(lengths[j] / tmpl_len[j]) for j in measured if tmpl_len[j] > 1e-6]
+    scale = float(np.median(ratios)) if ratios else 1.0
+    for j in range(1, J):
+        if j not in measured:
+            lengths[j] = tmpl_len[j] * scale
+    offsets = tmpl_dir * lengths[:, None]  # (J, 3) the individual's bones along the template's directions
+    offsets[0] = tmpl[0] * scale
+
+    q = _proxy(plan, skel, torch.from_numpy(motion.positions_with_end_sites()))  # (T, J, 3)
+    T = q.shape[0]
+    if not torch.isfinite(q[:, [j for j in range(J) if plan.proxied[j]]]).all():
+        raise UsageError(f"{motion.source or motion.name}: non-finite joint positions")
+    turn = _up_rotation(q, skel, up)
+    q = quat_apply(turn.expand(T, J, 4), q)
+
+    # global rotations: template directions onto the mapped ones, parents first
+    glob = torch.zeros(T, J, 4, dtype=torch.float64)
+    identity = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(T, 4)
+    for j in range(J):
+        kids = [c for c in skel.children(j) if plan.proxied[c] and plan.proxied[j] and lengths[c] > 1e-9]
+        parent_rot = glob[:, parents[j]] if j else identity
+        if len(kids) >= 2:
+            cur = q[:, kids] - q[:, j : j + 1]  # (T, C, 3)
+            cur = cur / cur.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+            glob[:, j] = _best_rotation(tmpl_dir[kids], cur)
+        elif len(kids) == 1:
+            c = kids[0]
+            swing = quat_between(quat_apply(parent_rot, tmpl_dir[c].expand(T, 3)), q[:, c] - q[:, j])
+            glob[:, j] = quat_mul(swing, parent_rot)
+        else:  # nothing to follow: rigid with the parent
+            glob[:, j] = parent_rot
+    local = glob.clone()
+    for j in range(1, J):
+        local[:, j] = quat_mul(quat_conjugate(glob[:, parents[j]]), glob[:, j])
+    positions = skel.forward_kinematics(local, q[:, 0], offsets=offsets)  # (T, J, 3)
+
+    if height is not None:
+        rest_pose = skel.forward_kinematics(identity[:1].expand(1, J, 4).clone(), offsets[0][None], offsets=offsets)
+        factor = height / float(rest_pose[0, :, 1].max() - rest_pose[0, :, 1].min())
+        positions, offsets = positions * factor, offsets * factor
+    positions[..., 1] -= _floor(positions, skel, motion.fps)
+    fields.setdefault("category", jmap.category)
+    fields.setdefault("source", motion.source)
+    return Clip(
+        id=id or motion.name,
+        skeleton=skel,
+        fps=motion.fps,
+        positions=positions.numpy().astype(np.float32),
+        rotations=local.numpy().astype(np.float32),
+        offsets=offsets.numpy().astype(np.float32),
+        texts=list(texts),
+        **fields,
+    )
