@@ -7,7 +7,6 @@ import json
 from pathlib import Path
 
 import pytest
-import torch
 
 from conftest import TINY_BVH
 from omg.cli import main
@@ -36,7 +35,6 @@ def _build_cli(shared: Path, out: Path, skeleton: str, representation: str) -> d
 
 
 def test_real_manifest_builds(shared_motion, tmp_path, capsys):
-    torch.set_num_threads(1)
     humans = _build_cli(shared_motion, tmp_path / "human", "smpl22", "humanml3d263")
     assert humans["num_clips"] == 75 and humans["skipped"] == {} and humans["fps"] == 20.0
     dogs = _build_cli(shared_motion, tmp_path / "dog", "smal35", "maa")
@@ -81,7 +79,6 @@ def _run(folder: Path, skeleton=SMPL22, **options) -> tuple[dict[str, Clip], lis
 
 
 def test_folder_without_manifest(folder):
-    torch.set_num_threads(1)
     clips, errors = _run(folder)
     assert sorted(clips) == ["11_01", "sub/humanoid3d_jog", "walk"]  # the dog is not a human: passed over
     assert clips["walk"].texts == ["a person walks forward.", "a person strolls."] and clips["walk"].fps == 20.0
@@ -102,7 +99,6 @@ def test_folder_without_manifest(folder):
 
 
 def test_build_counts_skips(folder, tmp_path):
-    torch.set_num_threads(1)
     [summary] = build("bvh-dir", tmp_path / "out", "humanml3d263", "smpl22", 20.0, input=str(folder))
     assert summary.clips == 3
     assert summary.skipped == {"bad motion file": 6, "duplicate clip id": 1, "unmappable rig": 1}

@@ -24,11 +24,6 @@ METRICS = ["fid", {"r_precision": {"pool_size": 8}}, "mm_dist", {"diversity": {"
            {"multimodality": {"num_pairs": 2}}, "foot_skating"]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    torch.set_num_threads(1)  # tiny ops: thread hand-offs cost more than they gain on a shared CPU
-
-
 def _data():
     return MotionDataModule(str(MINI / "train"), val=str(MINI / "val"), batch_size=4, max_len=30, min_len=20,
                             batches_per_epoch=100, num_workers=0, shuffle_buffer=8)

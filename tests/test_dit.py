@@ -154,16 +154,7 @@ def test_flops_match_flop_counter():
     assert counter.get_total_flops() == cfg.flops(batch=3, seq_len=20)
 
 
-@pytest.fixture
-def one_thread():
-    """Tiny matmuls gain nothing from a second thread and slow down badly on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def test_mini_overfits_one_batch(one_thread):
+def test_mini_overfits_one_batch():
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(0)
     model, diffusion = MotionDiT(DiTConfig.from_name("mini")), Diffusion()

@@ -29,22 +29,13 @@ STEPS = 120
 POOL = 32
 
 
-@pytest.fixture(scope="module")
-def one_thread():
-    # tiny matmuls: on a shared 2-core machine a second thread only adds spin-waiting (10x slower steps)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _data(root=MINI, **kw):
     args = dict(batch_size=32, max_len=196, min_len=60, batches_per_epoch=1000, num_workers=0, shuffle_buffer=90)
     return MotionDataModule(str(root / "train"), str(root / "val"), **{**args, **kw})
 
 
 @pytest.fixture(scope="module")
-def trained(one_thread, tmp_path_factory):
+def trained(tmp_path_factory):
     """The mini evaluator trained for STEPS steps on the mini humans' train split (validated once, at the end)."""
     root = tmp_path_factory.mktemp("evaluator")
     torch.manual_seed(0)
@@ -201,7 +192,7 @@ def test_duplicate_captions_are_not_negatives():
     assert info_nce(twins, same_pairs(["a", "a"])) == pytest.approx(0.0, abs=1e-6)
 
 
-def test_any_skeleton_animals_train_and_registry(one_thread, tmp_path):
+def test_any_skeleton_animals_train_and_registry(tmp_path):
     assert MODELS.get("contrastive") is TextMotionEvaluator
     data = _data(ANIMAL, batch_size=8, max_len=60, min_len=40)
     assert data.spec["skeleton"] == "smal35" and data.spec["representation"] == "maa"
@@ -221,7 +212,7 @@ def test_any_skeleton_animals_train_and_registry(one_thread, tmp_path):
         EvaluatorModule(text_encoder="hash", flavor="mini")
 
 
-def test_mini_config_runs_through_the_cli(one_thread, tmp_path, monkeypatch):
+def test_mini_config_runs_through_the_cli(tmp_path, monkeypatch):
     from omg.cli import main
 
     monkeypatch.chdir(REPO)
@@ -284,7 +275,7 @@ def t2m_files(tmp_path_factory):
     return {"ckpt": root / "finest.tar", "glove": glove, "meta": meta, "state": ckpt}
 
 
-def test_t2m_loads_official_keys_strictly_and_encodes(one_thread, t2m_files):
+def test_t2m_loads_official_keys_strictly_and_encodes(t2m_files):
     from omg.models.t2m import load_t2m_evaluator
 
     ev = load_t2m_evaluator(t2m_files["ckpt"], t2m_files["glove"], t2m_files["meta"])
@@ -311,7 +302,7 @@ def test_t2m_loads_official_keys_strictly_and_encodes(one_thread, t2m_files):
                                text[:1])
 
 
-def test_t2m_matches_a_direct_recomputation(one_thread, t2m_files):
+def test_t2m_matches_a_direct_recomputation(t2m_files):
     import torch.nn.functional as F
 
     from omg.models.t2m import load_t2m_evaluator

@@ -18,11 +18,6 @@ from omg.models.evaluator import TextMotionEvaluator
 MINI = REPO / "shards/mini/human263"
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    torch.set_num_threads(1)  # tiny ops: thread hand-offs cost more than they gain on a shared CPU
-
-
 @pytest.fixture(scope="module")
 def setup():
     data = MotionDataModule(str(MINI / "train"), val=str(MINI / "val"), max_len=40, min_len=30, num_workers=0)

@@ -34,7 +34,6 @@ def retargeted() -> list:
 
     if not (SHARED_MOTION / "manifest.json").exists():
         pytest.skip(f"real motion data not found at {SHARED_MOTION}")
-    torch.set_num_threads(1)  # tiny tensors: threads only add overhead on a busy machine
     out = []
     for entry in json.loads((SHARED_MOTION / "manifest.json").read_text())["clips"]:
         motion = _read(SHARED_MOTION, entry)
