@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from torchmetrics import Metric
 
 from omg.data.shards import atomic_write, write_json
-from omg.data.windows import WindowSampler
+from omg.data.windows import WindowSampler, length_mask
 from omg.errors import UsageError
 from omg.metrics import (CLIPScore, Diversity, FID, FIDOOD, FootSkating, IntraFID, MMDist, MultiModality, OneNNA,
                          RPrecision)
@@ -280,8 +280,7 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
         raise UsageError("foot_skating needs the data spec (representation, skeleton, fps) to decode joint positions")
     category_index = {c: i for i, c in enumerate(categories)}
 
-    def embed(motion: Tensor, lengths: Tensor) -> Tensor:
-        mask = torch.arange(motion.shape[1], device=device)[None] < lengths.to(device)[:, None]
+    def embed(motion: Tensor, mask: Tensor) -> Tensor:
         return evaluator.encode_motion(motion.to(device), mask).float()
 
     def decode(motion: Tensor, part: PromptSet) -> Tensor:
@@ -293,9 +292,9 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
         lengths = part.lengths.to(device)
         gen = generate(part.texts, lengths, batch_seed(seed, replication, 0, b))[:, : part.motions.shape[1]]
         real = part.motions.to(device)
-        mask = torch.arange(real.shape[1], device=device)[None] < lengths[:, None]
+        mask = length_mask(lengths, real.shape[1])  # (B, T) real frames, shared by both sets
         out = Outputs(
-            text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, lengths), gen=embed(gen, lengths),
+            text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, mask), gen=embed(gen, mask),
             category=torch.tensor([category_index[c] for c in part.categories], device=device), mask=mask,
             real_joints=decode(real, part) if needs_joints else None,
             gen_joints=decode(gen, part) if needs_joints else None)
@@ -312,7 +311,9 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
         for b, start, stop in _my_batches(len(repeated), settings.batch_size, rank, world_size):
             part = repeated.slice(start, stop)
             gen = generate(part.texts, part.lengths.to(device), batch_seed(seed, replication, 1, b))
-            out = Outputs(mm=embed(gen[:, : part.motions.shape[1]], part.lengths), mm_ids=ids[start:stop].to(device))
+            frames = part.motions.shape[1]
+            out = Outputs(mm=embed(gen[:, :frames], length_mask(part.lengths, frames, device)),
+                          mm_ids=ids[start:stop].to(device))
             for metric in mm_metrics:
                 update_metric(metric, out)
 

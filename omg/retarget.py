@@ -282,8 +282,9 @@ def _best_rotation(rest: torch.Tensor, cur: torch.Tensor) -> torch.Tensor:
     return matrix_to_quat(v @ torch.diag_embed(fix) @ u.transpose(-1, -2))
 
 
-def foot_contacts(positions: np.ndarray | torch.Tensor, skeleton: Skeleton | str, fps: float) -> np.ndarray:
-    """(T, F) bool: each of ``skeleton.feet`` slower than CONTACT_SPEED and within CONTACT_BAND of
+def foot_contacts(positions: np.ndarray | torch.Tensor, skeleton: Skeleton | str, fps: float,
+                  max_speed: float = CONTACT_SPEED) -> np.ndarray:
+    """(T, F) bool: each of ``skeleton.feet`` slower than ``max_speed`` and within CONTACT_BAND of
     the clip's lowest foot heights (their 2nd percentile over the clip: robust to a stray frame)."""
     skel = get_skeleton(skeleton)
     p = torch.as_tensor(np.asarray(positions), dtype=torch.float64)[:, list(skel.feet)]  # (T, F, 3)
@@ -291,7 +292,7 @@ def foot_contacts(positions: np.ndarray | torch.Tensor, skeleton: Skeleton | str
     base = float(torch.quantile(h.min(1).values, 0.02))
     speed = (p[1:] - p[:-1]).norm(dim=-1) * fps  # (T-1, F)
     speed = torch.cat([speed, speed[-1:]])
-    return ((speed < CONTACT_SPEED) & (h < base + CONTACT_BAND)).numpy()
+    return ((speed < max_speed) & (h < base + CONTACT_BAND)).numpy()
 
 
 def _floor(positions: torch.Tensor, skeleton: Skeleton, fps: float) -> float:

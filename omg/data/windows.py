@@ -15,6 +15,14 @@ import torch
 from omg.errors import UsageError
 
 
+def length_mask(lengths, frames: int | None = None, device: torch.device | str | None = None) -> torch.Tensor:
+    """(B,) frame counts -> (B, frames) bool, True on each row's first lengths[b] frames;
+    ``frames`` defaults to the longest."""
+    lengths = torch.as_tensor(lengths, device=device)
+    frames = int(lengths.max()) if frames is None else frames
+    return torch.arange(frames, device=lengths.device)[None, :] < lengths[:, None]
+
+
 @dataclass(frozen=True)
 class WindowSampler:
     max_len: int = 300
@@ -80,7 +88,7 @@ class Collate:
             motion[b, : len(x)] = x
         batch = {
             "motion": motion,
-            "mask": torch.arange(T)[None, :] < lengths[:, None],
+            "mask": length_mask(lengths, T),
             "lengths": lengths,
             "text": [it["text"] for it in items],
             "id": [it["id"] for it in items],

@@ -12,9 +12,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from omg.retarget import foot_contacts
 from omg.skeleton import Skeleton, get_skeleton
 
-CLEANUP_SPEED = 1.0  # m/s: a low foot slower than this counts as planted (generated feet slide fast)
+CLEANUP_SPEED = 1.0  # m/s: retargeting's contact rule, but a low foot this slow counts as planted (generated feet slide fast)
 
 
 def _segments(flags: torch.Tensor) -> list[tuple[int, int]]:
@@ -62,8 +63,6 @@ def clean_foot_contacts(
     blend: int = 2,
 ) -> np.ndarray:
     """Positions with each planted foot pinned over its contact frames (see the module docstring)."""
-    from omg.retarget import CONTACT_BAND
-
     skel = get_skeleton(skeleton)
     pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64).clone()  # (T, J, 3)
     T = len(pos)
@@ -71,10 +70,7 @@ def clean_foot_contacts(
         return pos.numpy().astype(np.float32)
     feet = list(skel.feet)
     height = pos[:, feet, 1]  # (T, F)
-    speed = (pos[1:, feet] - pos[:-1, feet]).norm(dim=-1) * fps  # (T-1, F)
-    speed = torch.cat([speed, speed[-1:]])
-    low = height < float(torch.quantile(height.min(1).values, 0.02)) + CONTACT_BAND
-    contact = low & (speed < max_speed)  # (T, F)
+    contact = torch.from_numpy(foot_contacts(pos, skel, fps, max_speed))  # (T, F)
     for group in _foot_groups(skel):
         cols = [feet.index(j) for j in group]
         lowest = group[int(height[:, cols].mean(0).argmin())]

@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.pretrain import MotionDiffusionModule, PretrainModule, check_spec, length_mask
+from omg.data.windows import length_mask
+from omg.lit.pretrain import MotionDiffusionModule, PretrainModule, check_spec
 from omg.models.controlnet import MoCConfig, MotionControlNet
 from omg.text import TextFeatures, build_text_encoder
 
@@ -138,7 +139,7 @@ class ControlNetModule(MotionDiffusionModule):
                         guidance: float | None = None, use_ema: bool = True) -> Tensor:
         """The evaluation hook (omg.callbacks.EvalCallback): guided samples, one per text at its own
         length (masked), (B, max(lengths), D) un-normalised; ``guidance`` defaults to guidance_scale."""
-        mask = length_mask(lengths, self.device)
+        mask = length_mask(lengths, device=self.device)
         return self.ddim(self._guided(texts, guidance, mask), len(texts), mask.shape[1], steps, seed, use_ema, mask)
 
     def _guided(self, texts: list[str], scale: float | None, mask: Tensor | None):

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from omg.diffusion import Diffusion
+from omg.data.windows import length_mask
 from omg.errors import UsageError
 from omg.lit.ema import EMA
 from omg.models.dit import DiTConfig, MotionDiT
@@ -248,15 +249,9 @@ class MotionDiffusionModule(L.LightningModule):
         (B, max(lengths), D) un-normalised, padding ignored. Stage 1 is unconditional, so the texts
         and ``guidance`` are ignored; each sample is generated at its length (masked), not cropped."""
         self.model.eval()
-        mask = length_mask(lengths, self.device)
+        mask = length_mask(lengths, device=self.device)
         return self.ddim(lambda dtype: lambda x, t: self.model(x, t, mask), len(texts), mask.shape[1], steps, seed,
                          use_ema, mask)
-
-
-def length_mask(lengths: Tensor, device: torch.device | str | None = None) -> Tensor:
-    """(B,) frame counts -> (B, max) bool, True on real frames."""
-    lengths = torch.as_tensor(lengths, device=device)
-    return torch.arange(int(lengths.max()), device=lengths.device)[None, :] < lengths[:, None]
 
 
 class PretrainModule(MotionDiffusionModule):

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
+from omg.data.windows import length_mask
 from omg.errors import UsageError
 
 # -- utils/word_vectorizer.py (official values) ----------------------------------------------
@@ -341,7 +342,7 @@ class T2MEvaluator(nn.Module):
             raise ValueError(f"T2M needs at least {c.unit_length} frames per motion, got lengths {lengths.tolist()}")
         x = (motion - self.mean) / self.std
         x = torch.nn.functional.pad(x, (0, 0, 0, c.max_motion_length - T))  # (B, 196, 263)
-        x = x * (torch.arange(c.max_motion_length, device=self.device) < lengths[:, None])[..., None]
+        x = x * length_mask(lengths, c.max_motion_length)[..., None]
         order = torch.argsort(lengths, descending=True, stable=True)  # pack_padded_sequence wants longest first
         movements = self.movement_encoder(x[order][..., :-4])  # (B, T'/4, 512)
         emb = self.motion_encoder(movements, (lengths[order] // c.unit_length).cpu())
