@@ -66,8 +66,20 @@ def build_evaluator(spec: str | dict[str, Any] | nn.Module, key: str = "evaluato
         except TypeError as e:
             raise UsageError(f"{key}.t2m: {e}; give checkpoint, glove_dir and mean_std_dir") from None
     elif isinstance(spec, dict) and "class_path" in spec:
-        module, _, name = spec["class_path"].rpartition(".")
-        model = getattr(importlib.import_module(module), name)(**spec.get("init_args", {}))
+        module, _, name = str(spec["class_path"]).rpartition(".")
+        try:
+            cls = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError):
+            raise UsageError(f"{key}.class_path: {spec['class_path']!r} cannot be imported") from None
+        # checked before it is called: a class_path must name an evaluator class, not any callable
+        if not (isinstance(cls, type) and issubclass(cls, nn.Module)
+                and all(callable(getattr(cls, m, None)) for m in ("encode_text", "encode_motion"))):
+            raise UsageError(f"{key}.class_path: {spec['class_path']} is not a text-motion evaluator (an nn.Module "
+                             "class with encode_text and encode_motion methods)")
+        init_args = spec.get("init_args") or {}
+        if not isinstance(init_args, dict):
+            raise UsageError(f"{key}.init_args: expected a mapping of keyword arguments, got {init_args!r}")
+        model = cls(**init_args)
     else:
         raise UsageError(f"{key}: expected a checkpoint path, {{t2m: {{...}}}} or {{class_path: ...}}, got {spec!r}")
     for method in ("encode_text", "encode_motion"):
@@ -124,7 +136,7 @@ def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSamp
     texts, windows_, categories, offsets = [], [], [], []
     for i in order:
         s = pool[int(i)]
-        start, length = windows.random(len(s["motion"]), rng)
+        start, length = (windows.whole if s["texts"] else windows.random)(len(s["motion"]), rng)
         texts.append(s["texts"][int(rng.integers(len(s["texts"])))] if s["texts"] else "")
         windows_.append(s["motion"][start:start + length])
         categories.append(s["meta"].get("category") or "")

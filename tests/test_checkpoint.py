@@ -14,6 +14,7 @@ from omg.cli import main as omg
 from omg.errors import UsageError
 from omg.lit.checkpoint import class_path, convert, load_checkpoint, load_module
 from omg.lit.ema import EMA
+from omg.lit.evaluator import EvaluatorModule
 from omg.lit.pretrain import PretrainModule
 
 SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
@@ -112,10 +113,14 @@ def write_zero2_checkpoint(module: PretrainModule, client_state: dict, root: Pat
     order (the optimizer's, not the module's: ``split_groups`` puts 1-d parameters in a first
     group, as a weight-decay split does). Each group is padded to 2 × world size in memory but
     saved without that padding (``group_paddings`` records it); ``param_alignment_paddings`` are
-    0 unless ``zero_optimization.parameter_alignment`` is on.
+    0 unless ``zero_optimization.parameter_alignment`` is on. The optimizer states hold three
+    DeepSpeed classes (a LossScaler, the ZeroStageEnum, fragment_address records), the classes
+    omg.lit.checkpoint allow-lists for its weights-only loads.
     """
     import deepspeed
+    from deepspeed.runtime.fp16.loss_scaler import LossScaler
     from deepspeed.runtime.zero.config import ZeroStageEnum
+    from deepspeed.utils.tensor_fragment import fragment_address
 
     params = [(prefix + n, p.detach().float()) for n, p in module.named_parameters()]
     groups = [[(n, p) for n, p in params if p.ndim == 1], [(n, p) for n, p in params if p.ndim > 1]] \
@@ -135,14 +140,24 @@ def write_zero2_checkpoint(module: PretrainModule, client_state: dict, root: Pat
         "ds_version": deepspeed.__version__, **client_state,
     }, tag / "mp_rank_00_model_states.pt")
     torch.save({"optimizer_state_dict": {
-        "loss_scaler": None, "dynamic_loss_scale": False, "overflow": False, "clip_grad": 0.0,
+        "loss_scaler": LossScaler(scale=1.0), "dynamic_loss_scale": False, "overflow": False, "clip_grad": 0.0,
         "base_optimizer_state": {"state": {}, "param_groups": []},
         "single_partition_of_fp32_groups": flat, "zero_stage": ZeroStageEnum.gradients,
         "group_paddings": [f.numel() % 2 for f in flat], "param_alignment_paddings": [[0] * len(g) for g in groups],
         "partition_count": [1] * len(groups), "ds_version": deepspeed.__version__,
+        "param_slice_mappings": [OrderedDict((n, fragment_address(numel=p.numel(), start=start))
+                                             for (n, p), start in zip(group, _starts(group))) for group in groups],
     }, "ds_config": config, "ds_version": deepspeed.__version__},
         tag / "bf16_zero_pp_rank_0_mp_rank_00_optim_states.pt")  # "bf16_" because the run is bf16
     (root / "latest").write_text("checkpoint")
+
+
+def _starts(group):
+    starts, offset = [], 0
+    for _, p in group:
+        starts.append(offset)
+        offset += p.numel()
+    return starts
 
 
 @pytest.mark.parametrize("prefix, split_groups, open_tag_dir", [("", False, False), ("_forward_module.", True, True)])
@@ -168,6 +183,19 @@ def test_deepspeed_dir_gives_the_fp32_master_weights(trained, tmp_path, capsys, 
     assert_same(restored.ema.state_dict()["shadow"], module.ema.state_dict()["shadow"])
 
 
+def zero_tensor_bytes(src: Path, dst: Path, count: int = 4096) -> None:
+    """``src`` with ``count`` bytes zeroed inside the data of its largest tensor: still a valid zip
+    that torch.load reads without complaint, with wrong weights."""
+    import zipfile
+
+    with zipfile.ZipFile(src) as z:
+        info = max(z.infolist(), key=lambda i: i.file_size)
+    data = bytearray(src.read_bytes())
+    start = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.file_size // 2
+    data[start : start + count] = bytes(count)
+    dst.write_bytes(bytes(data))
+
+
 class OtherModule(L.LightningModule):
     pass
 
@@ -182,6 +210,13 @@ def test_bad_inputs_fail_with_one_line(trained, tmp_path, capsys):
     lightning = torch.load(ckpt, weights_only=False)
     no_ema = {k: v for k, v in lightning.items() if k not in ("state_dict", "optimizer_states", "ema")}
     write_zero2_checkpoint(module, no_ema, tmp_path / "no_ema")
+    zero_tensor_bytes(ckpt, tmp_path / "zeroed.ckpt")
+    (tmp_path / "truncated.ckpt").write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+    torch.save({**no_ema, "state_dict": {}}, tmp_path / "no_weights.ckpt")
+    torch.save({**no_ema, "state_dict": {k: v for k, v in lightning["state_dict"].items() if "blocks.1." not in k}},
+               tmp_path / "some_weights.ckpt")
+    (tmp_path / "a_file").write_text("not a folder")
+    n, dropped = len(module.state_dict()), sum("blocks.1." in k for k in module.state_dict())
     cases = {
         (str(tmp_path / "missing.ckpt"), "x.safetensors"): "missing.ckpt: no such file or directory",
         (str(tmp_path / "random.bin"), "x.safetensors"): "random.bin is not a checkpoint",
@@ -192,6 +227,11 @@ def test_bad_inputs_fail_with_one_line(trained, tmp_path, capsys):
         (str(tmp_path / "plain.safetensors"), str(tmp_path / "x.safetensors"), "--ema"): "has no EMA weights",
         (str(tmp_path / "no_ema"), str(tmp_path / "x.safetensors"), "--ema"): "has no EMA weights",
         (str(ckpt),): "the following arguments are required: dst",
+        (str(tmp_path / "zeroed.ckpt"), str(tmp_path / "x.safetensors")): "zeroed.ckpt is corrupt",
+        (str(tmp_path / "truncated.ckpt"), str(tmp_path / "x.safetensors")): "truncated.ckpt is corrupt",
+        (str(tmp_path / "no_weights.ckpt"), str(tmp_path / "x.safetensors")): f"lacks {n} of the {n} weights of a",
+        (str(tmp_path / "some_weights.ckpt"), str(tmp_path / "x.safetensors")): f"lacks {dropped} of the {n} weights",
+        (str(ckpt), str(tmp_path / "a_file" / "x.safetensors")): "cannot write the converted checkpoint there",
     }
     for args, message in cases.items():
         with pytest.raises(SystemExit) as exit:
@@ -202,3 +242,103 @@ def test_bad_inputs_fail_with_one_line(trained, tmp_path, capsys):
 
     with pytest.raises(UsageError, match=r"holds a omg\.lit\.pretrain\.PretrainModule checkpoint, not a .*OtherModule"):
         load_module(ckpt, expect=OtherModule)
+
+
+# -- convert-ckpt --ema for every LightningModule ------------------------------------------------
+# The EMA tracks module.trainable_module(): `model` for PretrainModule, `controlnet` for
+# ControlNetModule. Its names are relative to that submodule; the converted file must put the EMA
+# exactly in place of those weights and leave every other weight as trained.
+
+def _fit_steps(module: L.LightningModule, batches: list[dict], root: Path, steps: int = 2) -> Path:
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root)
+    trainer.fit(module, torch.utils.data.DataLoader(batches, batch_size=2))
+    trainer.save_checkpoint(root / "module.ckpt")
+    return root / "module.ckpt"
+
+
+def _motion_batch(i: int, text: str) -> dict:
+    g = torch.Generator().manual_seed(i)
+    return {"motion": 0.1 * torch.randn(16, 263, generator=g), "mask": torch.ones(16, dtype=torch.bool), "text": text}
+
+
+def assert_converted_ema(ckpt: Path, dst: Path, prefix: str) -> dict[str, torch.Tensor]:
+    """convert --ema wrote the checkpoint's EMA shadow under ``prefix`` and every other weight as trained."""
+    saved = torch.load(ckpt, weights_only=True)
+    trained_state, shadow = load_checkpoint(ckpt)["state_dict"], saved["ema"]["shadow"]
+    assert any(not torch.equal(t, trained_state[prefix + n]) for n, t in shadow.items())  # a real test
+    omg(["convert-ckpt", str(ckpt), str(dst), "--ema"])
+    out = load_checkpoint(dst)
+    assert out["ema_weights"] and out["state_dict"].keys() == trained_state.keys()
+    for k, v in out["state_dict"].items():
+        name = k.removeprefix(prefix)
+        want = shadow[name] if k.startswith(prefix) and name in shadow else trained_state[k]
+        assert v.dtype == torch.float32 and torch.equal(v, want), k
+    return out["state_dict"]
+
+
+def test_convert_ema_pretrain(trained, tmp_path, capsys):
+    module, ckpt = trained
+    assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "model.")
+    assert "EMA fp32 weights" in capsys.readouterr().out
+
+
+def test_convert_ema_controlnet_writes_the_controlnet_ema(trained, tmp_path):
+    from omg.lit.controlnet import ControlNetModule
+
+    torch.manual_seed(0)
+    module = ControlNetModule(pretrained=str(trained[1]), text_encoder="hash", moc={"d_c": 32, "num_experts": 2},
+                              spec=SPEC, lr=1e-2, warmup_steps=1, ema_decay=0.9)
+    ckpt = _fit_steps(module, [_motion_batch(0, "a person walks"), _motion_batch(1, "a person jumps")], tmp_path)
+    state = assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "controlnet.")
+    # the converted file rebuilds the module with the ControlNet's EMA weights and the frozen model
+    loaded = load_module(tmp_path / "ema.safetensors", expect=ControlNetModule)
+    shadow = module.ema.state_dict()["shadow"]
+    for name, p in loaded.controlnet.named_parameters():
+        if name in shadow:
+            assert torch.equal(p, shadow[name]), name
+    assert_same({k: v for k, v in loaded.state_dict().items()}, state)
+    assert_same(load_module(ckpt).state_dict(), state)  # the same as using the .ckpt's EMA directly
+
+
+class EMAEvaluator(EvaluatorModule):
+    """EvaluatorModule with a weight EMA of its trainable ``evaluator``, kept as the diffusion modules keep theirs."""
+
+    def trainable_module(self) -> torch.nn.Module:
+        return self.evaluator
+
+    def on_fit_start(self) -> None:
+        self.ema = EMA(self.trainable_module(), decay=0.9)
+
+    def optimizer_step(self, *args, **kwargs) -> None:
+        super().optimizer_step(*args, **kwargs)
+        self.ema.update(self.trainable_module())
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        super().on_save_checkpoint(checkpoint)
+        checkpoint["ema"] = self.ema.state_dict()
+
+
+def _evaluator_batches():
+    return [{**_motion_batch(i, text), "id": f"clip{i}"} for i, text in enumerate(["a person walks", "a person jumps"])]
+
+
+def test_convert_evaluator_and_its_ema(tmp_path, capsys):
+    from omg.models.evaluator import load_evaluator
+
+    torch.manual_seed(0)
+    module = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC, lr=1e-3, warmup_steps=1)
+    ckpt = _fit_steps(module, _evaluator_batches(), tmp_path)
+    with pytest.raises(SystemExit):  # EvaluatorModule keeps no EMA: --ema is refused, plainly
+        omg(["convert-ckpt", str(ckpt), str(tmp_path / "ema.safetensors"), "--ema"])
+    assert "has no EMA weights" in capsys.readouterr().err
+    omg(["convert-ckpt", str(ckpt), str(tmp_path / "plain.safetensors")])
+    assert_same(load_checkpoint(tmp_path / "plain.safetensors")["state_dict"], module.state_dict())
+    assert_same(load_evaluator(tmp_path / "plain.safetensors").state_dict(), module.evaluator.state_dict())
+
+    # an evaluator that keeps an EMA of its trainable `evaluator`: the prefix comes from the module
+    torch.manual_seed(0)
+    module = EMAEvaluator(text_encoder="hash", flavor="mini", spec=SPEC, lr=1e-2, warmup_steps=1)
+    ckpt = _fit_steps(module, _evaluator_batches(), tmp_path / "ema")
+    assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "evaluator.")
+

@@ -8,9 +8,11 @@ from torch import nn
 from omg.errors import UsageError
 from omg.models.controlnet import MoCBlock, MoCConfig, MotionControlNet
 from omg.models.dit import DiTConfig, MotionDiT
+from omg.text import HashTextEncoder, TextFeatures
 
 D_TEXT = 24
 SMALL_MOC = dict(d_c=32, num_experts=4, text_dim=D_TEXT)
+WIRINGS = ["per_layer", "parallel_stream"]
 
 
 def randomize_zeros(module: nn.Module, std: float = 0.05) -> nn.Module:
@@ -56,11 +58,13 @@ def test_config_defaults_and_bad_values():
     cfg = MoCConfig()
     assert (cfg.d_c, cfg.num_experts, cfg.expert_hidden, cfg.gate_hidden) == (256, 12, 512, 256)
     assert (cfg.gamma, cfg.beta, cfg.layers) == (24.0, 0.25, None)
+    assert (cfg.token_masks, cfg.zero_init, cfg.experts, cfg.wiring) == (True, True, "moc", "per_layer")
     assert MoCConfig(layers=[3, 1]).layers == [1, 3]
     for field, value in [
         ("d_c", 0), ("num_experts", -1), ("expert_hidden", 2.5), ("gate_hidden", 0),
         ("text_dim", True), ("gamma", 0.0), ("gamma", float("inf")), ("beta", 1.5),
-        ("layers", []), ("layers", [1, 1]), ("layers", [-1]),
+        ("layers", []), ("layers", [1, 1]), ("layers", [-1]), ("token_masks", 1),
+        ("zero_init", "no"), ("experts", "ffn"), ("wiring", "parallel"),
     ]:
         with pytest.raises(UsageError, match=f"MoCConfig.{field}"):
             MoCConfig(**{field: value})
@@ -79,10 +83,11 @@ def test_text_width_mismatch_names_text_dim():
 # -- initialisation and training --------------------------------------------------------------
 
 
-def test_init_equals_frozen_model_exactly():
+@pytest.mark.parametrize("wiring", WIRINGS)
+def test_init_equals_frozen_model_exactly(wiring):
     torch.manual_seed(0)
     base = frozen_base()
-    net = MotionControlNet(base, MoCConfig(**SMALL_MOC))
+    net = MotionControlNet(base, MoCConfig(**SMALL_MOC, wiring=wiring))
     x, t = motion_batch(3, 12)
     mask = frame_mask([12, 7, 1], 12)
     tokens, text_mask, eot = text_batch([5, 2, 4])
@@ -90,20 +95,17 @@ def test_init_equals_frozen_model_exactly():
         expected = base(x, t, mask)
         assert torch.equal(net(x, t, tokens, text_mask, eot, mask), expected)
         assert torch.equal(net.forward_uncond(x, t, mask), expected)
-        # Stronger than the output: every residual is exactly 0, and since every MoC block
-        # outputs exactly 0 the copy stream reproduces the frozen stream block by block.
-        h0, c, mod, rope = base.embed(x, t)
-        residuals = net.controls(h0, mod, rope, mask, tokens, text_mask, eot)
-        assert all(torch.equal(r, torch.zeros_like(r)) for r in residuals)
-        h_frozen, h_copy = h0, h0
-        text = net._prepare_text(tokens, text_mask, eot)
+        # Stronger than the output: every residual is exactly 0.
+        h, c, mod, rope = base.embed(x, t)
+        control = net.controller(h, mod, rope, mask, tokens, text_mask, eot)
         for i in range(len(base.blocks)):
-            h_frozen = base.blocks[i](h_frozen, mod, rope, mask)
-            h_copy = net._control_layer(i, h_copy, mod, rope, mask, text)
-            assert torch.equal(h_copy, h_frozen)
+            r = control(i, h)
+            assert torch.equal(r, torch.zeros_like(r))
+            h = base.blocks[i](h, mod, rope, mask)
     # Same weights in the copies, but separate tensors.
-    for copy_block, block in zip(net.copy_blocks, base.blocks):
-        for a, b in zip(copy_block.parameters(), block.parameters()):
+    assert sorted(net.copy_blocks, key=int) == [str(i) for i in range(len(base.blocks))]
+    for i, copy_block in net.copy_blocks.items():
+        for a, b in zip(copy_block.parameters(), base.blocks[int(i)].parameters()):
             assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()
 
 
@@ -124,12 +126,11 @@ def test_training_updates_only_the_controller():
     """Adam (no weight decay, so a zero gradient means no move) on an x̂0 loss over real frames.
 
     The zero-initialised layers form a chain, and what we check follows it exactly:
-    step 1: only the zero projections get a gradient (everything behind them sees Z = 0);
-    step 2: Z ≠ 0, so the copy blocks and each MoC's W_up learn; the rest of the MoC is still
-            behind W_up = 0 and does not move;
-    steps 3-4: W_down, W_k, W_v, the gate MLP, the AdaIN Linear and the experts get gradients
-            at step 3, W_q's weight at step 4 (its input f = W_down h is 0 until W_down moved).
-    After 4 steps every trainable tensor has changed; the frozen model stays bit-identical.
+    step 1: only each MoC's W_up gets a gradient (every residual is W_up(...) = 0 at init);
+    step 2: W_up ≠ 0, so the rest of the MoC learns, except W_q's weight (its input
+            f = W_down g is 0 until W_down moved) and the block copies (behind W_down = 0);
+    step 3: W_q's weight and the copies get gradients.
+    After 3 steps every trainable tensor has changed; the frozen model stays bit-identical.
     """
     torch.manual_seed(0)
     base = frozen_base()
@@ -149,32 +150,33 @@ def test_training_updates_only_the_controller():
         loss.backward()
         opt.step()
 
-    def changed(name):
-        return not torch.equal(dict(net.named_parameters())[name], init[name])
+    def moved():
+        params = dict(net.named_parameters())
+        return {name for name in init if not torch.equal(params[name], init[name])}
 
     step()
-    moved = {name for name in init if changed(name)}
-    assert moved == {name for name in init if name.startswith("zero_projs.")}
+    assert moved() == {name for name in init if ".up." in name}
+    assert all(torch.equal(v, frozen_before[k]) for k, v in base.state_dict().items())
     step()
-    moved = {name for name in init if changed(name)}
-    for name in init:
-        behind_up = name.startswith("mocs.") and ".up." not in name
-        assert (name in moved) != behind_up, name
+    behind_down = {n for n in init if n.startswith("copy_blocks.") or n.endswith(".q.weight")}
+    assert moved() == set(init) - behind_down
     step()
-    step()
-    assert [name for name in init if not changed(name)] == []
+    assert moved() == set(init)
     assert all(torch.equal(v, frozen_before[k]) for k, v in base.state_dict().items())
     assert all(p.grad is None for p in base.parameters())
 
 
-def test_activation_checkpointing_gives_same_gradients():
+@pytest.mark.parametrize("wiring", WIRINGS)
+def test_activation_checkpointing_gives_same_gradients(wiring):
     x, t = motion_batch(2, 8)
     tokens, text_mask, eot = text_batch([3, 2])
     mask = frame_mask([8, 5], 8)
     grads = []
     for ckpt in (False, True):
         torch.manual_seed(0)
-        net = MotionControlNet(frozen_base(activation_checkpointing=ckpt), MoCConfig(**SMALL_MOC))
+        net = MotionControlNet(
+            frozen_base(activation_checkpointing=ckpt), MoCConfig(**SMALL_MOC, wiring=wiring)
+        )
         randomize_zeros(net).train()
         net(x, t, tokens, text_mask, eot, mask).square().mean().backward()
         grads.append(torch.cat([p.grad.flatten() for p in net.trainable_parameters()]))
@@ -184,9 +186,10 @@ def test_activation_checkpointing_gives_same_gradients():
 # -- the MoC block against a loop-based reference ----------------------------------------------
 
 
-def reference_moc(moc: MoCBlock, h, tokens, text_mask, eot, mask):
+def reference_moc(moc: MoCBlock, h, tokens, text_mask, eot, mask, token_masks=True):
     """The paper's formulas, one sample, one token and one expert at a time, with the blended
-    expert weights W_i = Σ_k ω_ik W_k built explicitly. Returns out, A, M, ω per sample."""
+    expert weights W_i = Σ_k ω_ik W_k built explicitly (M_i = 1 with ``token_masks=False``).
+    Returns out, A, M, ω per sample."""
     cfg = moc.config
     outs, attns, masks, omegas = [], [], [], []
     for b in range(h.shape[0]):
@@ -215,6 +218,8 @@ def reference_moc(moc: MoCBlock, h, tokens, text_mask, eot, mask):
             F_i = F.gelu(f @ W1 + B1) @ W2 + B2  # (T, c)
             A_i = A[:, j]
             M_i = torch.sigmoid(cfg.gamma * (A_i - cfg.beta * A_i[real_frames].max()))
+            if not token_masks:
+                M_i = torch.ones_like(M_i)
             r = r + M_i[:, None] * F_i
             A_full[:, i], M_full[:, i], omega_full[i] = A_i, M_i, omega
         outs.append(moc.up(r))
@@ -224,19 +229,30 @@ def reference_moc(moc: MoCBlock, h, tokens, text_mask, eot, mask):
     return torch.stack(outs), torch.stack(attns), torch.stack(masks), torch.stack(omegas)
 
 
-def test_moc_matches_loop_reference():
+TINY_MOC = dict(d_c=8, num_experts=3, expert_hidden=10, gate_hidden=6, text_dim=12)
+
+
+def random_moc(**overrides) -> MoCBlock:
     torch.manual_seed(0)
-    cfg = MoCConfig(d_c=8, num_experts=3, expert_hidden=10, gate_hidden=6, text_dim=12)
-    moc = randomize_zeros(MoCBlock(16, cfg), std=0.3).double()
+    moc = randomize_zeros(MoCBlock(16, MoCConfig(**{**TINY_MOC, **overrides})), std=0.3).double()
     with torch.no_grad():  # sharper attention than the default init gives, so masks vary
         moc.q.weight.mul_(4)
     assert all(p.any() for p in moc.parameters())
+    return moc
+
+
+def moc_inputs():
     B, T = 3, 9
-    h = torch.randn(B, T, 16, dtype=torch.double)
+    h = torch.randn(B, T, 16, dtype=torch.double, generator=torch.Generator().manual_seed(1))
     tokens, text_mask, eot = text_batch([5, 3, 1], D=12)
     tokens = tokens.double()  # padded positions hold random values: they must not matter
-    mask = frame_mask([9, 4, 6], T)
+    return h, tokens, text_mask, eot, frame_mask([9, 4, 6], T)
 
+
+def test_moc_matches_loop_reference():
+    moc = random_moc()
+    h, tokens, text_mask, eot, mask = moc_inputs()
+    B = h.shape[0]
     out = moc(h, tokens, text_mask, tokens[torch.arange(B), eot], mask)
     ref_out, ref_attn, ref_masks, ref_omega = reference_moc(moc, h, tokens, text_mask, eot, mask)
     torch.testing.assert_close(out, ref_out, rtol=1e-10, atol=1e-10)  # every frame, padded too
@@ -249,6 +265,44 @@ def test_moc_matches_loop_reference():
     torch.testing.assert_close(omega, ref_omega, rtol=1e-12, atol=1e-12)
     real = text_mask[:, None, :] & mask[..., None]
     assert masks[real].min() < 0.1 and masks[real].max() > 0.9  # the masks do select frames
+
+
+def test_ablation_without_token_masks_is_the_moc_with_m_1():
+    """token_masks=False: same parameters, same attention and gates; only M_i ≡ 1."""
+    full, ablated = random_moc(), random_moc(token_masks=False)
+    assert ablated.state_dict().keys() == full.state_dict().keys()
+    ablated.load_state_dict(full.state_dict())
+    h, tokens, text_mask, eot, mask = moc_inputs()
+    eot_emb = tokens[torch.arange(len(eot)), eot]
+    out = ablated(h, tokens, text_mask, eot_emb, mask)
+    ref = reference_moc(full, h, tokens, text_mask, eot, mask, token_masks=False)[0]
+    torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-10)
+    assert not torch.allclose(out, full(h, tokens, text_mask, eot_emb, mask), atol=1e-3)
+    _, attn = ablated.attend(ablated.down(h), tokens, text_mask)
+    assert torch.equal(ablated.token_masks(attn, text_mask, mask), text_mask[:, None].double().expand_as(attn))
+
+
+def test_ablation_single_ffn():
+    """experts="single_ffn": no gate or expert pool; out = W_up FFN(AdaIN(attend(W_down h)))."""
+    full, ablated = random_moc(), random_moc(experts="single_ffn")
+    keys, full_keys = set(ablated.state_dict()), set(full.state_dict())
+    expert_pool = {"w1", "b1", "w2", "b2"} | {k for k in full_keys if k.startswith("gate.")}
+    assert keys == (full_keys - expert_pool) | {"ffn.0.weight", "ffn.0.bias", "ffn.2.weight", "ffn.2.bias"}
+    assert ablated.ffn[0].weight.shape == (10, 8) and ablated.ffn[2].weight.shape == (8, 10)
+    ablated.load_state_dict({k: v for k, v in full.state_dict().items() if k in keys}, strict=False)
+    h, tokens, text_mask, eot, mask = moc_inputs()
+    out = ablated(h, tokens, text_mask, tokens[torch.arange(len(eot)), eot], mask)
+    for b in range(h.shape[0]):  # one sample at a time, real tokens and real frames only
+        e = tokens[b, text_mask[b]]
+        f = ablated.down(h[b])
+        A = torch.softmax(ablated.q(f) @ ablated.k(e).T / math.sqrt(8), dim=-1)
+        f = f + A @ ablated.v(e)
+        real = f[mask[b]]
+        scale, shift = ablated.eot_affine(tokens[b, eot[b]]).chunk(2)
+        f = (f - real.mean(0)) / torch.sqrt(real.var(0, unbiased=False) + 1e-5) * (1 + scale) + shift
+        W1, b1, W2, b2 = ablated.ffn[0].weight, ablated.ffn[0].bias, ablated.ffn[2].weight, ablated.ffn[2].bias
+        ref = ablated.up(F.gelu(f @ W1.T + b1) @ W2.T + b2)
+        torch.testing.assert_close(out[b], ref, rtol=1e-10, atol=1e-10)
 
 
 def test_moc_is_nan_free_without_real_tokens_or_frames():
@@ -270,9 +324,80 @@ def test_moc_is_nan_free_without_real_tokens_or_frames():
 
 def trained_like(layers=None, **overrides) -> MotionControlNet:
     """A ControlNet whose zero-initialised layers were randomised, so D_c differs from D_u."""
+    moc = {k: overrides.pop(k) for k in ("wiring", "token_masks", "experts") if k in overrides}
     torch.manual_seed(0)
-    net = MotionControlNet(frozen_base(**overrides), MoCConfig(**SMALL_MOC, layers=layers))
+    net = MotionControlNet(frozen_base(**overrides), MoCConfig(**SMALL_MOC, layers=layers, **moc))
     return randomize_zeros(net).eval()
+
+
+def reference_fig3(net: MotionControlNet, x, t, tokens, text_mask, eot, mask):
+    """Paper Fig. 3, written out: layer l's copy reads h_l (the main stream entering frozen
+    layer l), the MoC turns the copy's output into token-masked residuals (the loop-based MoC
+    reference), and they are added to the frozen layer's output h_{l+1}."""
+    base = net.base
+    h, c, mod, rope = base.embed(x, t)
+    for l, frozen in enumerate(base.blocks):
+        h_next = frozen(h, mod, rope, mask)
+        if str(l) in net.mocs:
+            g = net.copy_blocks[str(l)](h, mod, rope, mask)
+            h_next = h_next + reference_moc(net.mocs[str(l)], g, tokens, text_mask, eot, mask)[0]
+        h = h_next
+    return base.final_layer(h, c)
+
+
+def reference_parallel_stream(net: MotionControlNet, x, t, tokens, text_mask, eot, mask):
+    base = net.base
+    h, c, mod, rope = base.embed(x, t)
+    h_c = h
+    for l, frozen in enumerate(base.blocks):
+        h_c = net.copy_blocks[str(l)](h_c, mod, rope, mask)
+        if str(l) in net.mocs:
+            h_c = h_c + reference_moc(net.mocs[str(l)], h_c, tokens, text_mask, eot, mask)[0]
+        h = frozen(h, mod, rope, mask) + net.zero_projs[l](h_c)
+    return base.final_layer(h, c)
+
+
+@pytest.mark.parametrize("wiring, layers", [("per_layer", None), ("per_layer", [0, 2]), ("parallel_stream", [1, 3])])
+def test_controlnet_matches_loop_reference(wiring, layers):
+    net = trained_like(layers=layers, wiring=wiring).double()
+    with torch.no_grad():  # sharper attention, so the token masks select frames
+        for moc in net.mocs.values():
+            moc.q.weight.mul_(8)
+    assert all(p.any() for p in net.parameters())  # up-projections included: nothing trivial
+    x, t = motion_batch(2, 9)
+    x = x.double()
+    mask = frame_mask([9, 6], 9)
+    tokens, text_mask, eot = text_batch([5, 3])
+    tokens = tokens.double()
+    reference = reference_fig3 if wiring == "per_layer" else reference_parallel_stream
+    with torch.no_grad():
+        out = net(x, t, tokens, text_mask, eot, mask)
+        expected = reference(net, x, t, tokens, text_mask, eot, mask)
+        torch.testing.assert_close(out, expected, rtol=1e-9, atol=1e-9)
+        assert not torch.allclose(out, net.forward_uncond(x, t, mask), atol=1e-3)
+        if wiring == "per_layer":  # a layer without a controller adds nothing
+            h, _, mod, rope = net.base.embed(x, t)
+            control = net.controller(h, mod, rope, mask, tokens, text_mask, eot)
+            skipped = [i for i in range(4) if str(i) not in net.mocs]
+            assert all(control(i, h) is None for i in skipped)
+
+
+def test_layers_choose_where_controllers_sit():
+    net = trained_like(layers=[1, 3])
+    assert sorted(net.mocs) == sorted(net.copy_blocks) == ["1", "3"]
+    assert not hasattr(net, "zero_projs")
+    parallel = trained_like(layers=[1, 3], wiring="parallel_stream")
+    assert sorted(parallel.mocs) == ["1", "3"] and len(parallel.copy_blocks) == len(parallel.zero_projs) == 4
+    x, t = motion_batch(1, 6)
+    tokens, text_mask, eot = text_batch([3])
+    with torch.no_grad():
+        h0, c, mod, rope = parallel.base.embed(x, t)
+        a = parallel.controller(h0, mod, rope, None, tokens, text_mask, eot)
+        b = parallel.controller(h0, mod, rope, None, tokens + 1, text_mask, eot)
+        ra, rb = [a(i, h0) for i in range(4)], [b(i, h0) for i in range(4)]
+    # The parallel stream's copy before the first controller is a text-independent path.
+    assert torch.equal(ra[0], rb[0]) and not torch.equal(ra[0], torch.zeros_like(ra[0]))
+    assert all(not torch.allclose(ra[i], rb[i]) for i in (1, 2, 3))
 
 
 def test_padding_of_frames_and_tokens_does_not_leak():
@@ -293,23 +418,9 @@ def test_padding_of_frames_and_tokens_does_not_leak():
     torch.testing.assert_close(out[1:, :8], alone, rtol=1e-4, atol=1e-5)
 
 
-def test_layers_choose_where_text_enters():
-    net = trained_like(layers=[1, 3])
-    assert sorted(net.mocs) == ["1", "3"]
-    assert len(net.copy_blocks) == len(net.zero_projs) == 4
-    x, t = motion_batch(1, 6)
-    tokens, text_mask, eot = text_batch([3])
-    with torch.no_grad():
-        h0, c, mod, rope = net.base.embed(x, t)
-        a = net.controls(h0, mod, rope, None, tokens, text_mask, eot)
-        b = net.controls(h0, mod, rope, None, tokens + 1, text_mask, eot)
-    assert torch.equal(a[0], b[0])  # before the first controller: text-independent
-    assert all(not torch.allclose(a[i], b[i]) for i in (1, 2, 3))
-
-
-@pytest.mark.parametrize("with_mask", [False, True])
-def test_forward_guided_is_the_cfg_mix(with_mask):
-    net = trained_like()
+@pytest.mark.parametrize("wiring, with_mask", [("per_layer", False), ("per_layer", True), ("parallel_stream", True)])
+def test_forward_guided_is_the_cfg_mix(wiring, with_mask):
+    net = trained_like(layers=[0, 1, 3], wiring=wiring)
     B, T = 3, 11
     x, t = motion_batch(B, T)
     mask = frame_mask([11, 5, 8], T) if with_mask else None
@@ -329,7 +440,7 @@ def test_forward_guided_is_the_cfg_mix(with_mask):
 
 
 def test_forward_guided_shares_work():
-    net = trained_like()
+    net = trained_like(layers=[0, 2])
     calls = []
 
     def record(kind):
@@ -338,12 +449,90 @@ def test_forward_guided_shares_work():
     net.base.input_proj.register_forward_hook(record("embed"))
     for block in net.base.blocks:
         block.register_forward_hook(record("frozen"))
-    for block in net.copy_blocks:
+    for block in net.copy_blocks.values():
         block.register_forward_hook(record("copy"))
+    for moc in net.mocs.values():
+        moc.register_forward_hook(record("moc"))
     x, t = motion_batch(2, 7)
     with torch.no_grad():
         net.forward_guided(x, t, *text_batch([3, 2]), 3.0)
-    assert sorted(calls) == sorted([("embed", 2)] + [("frozen", 4)] * 4 + [("copy", 2)] * 4)
+    expected = [("embed", 2)] + [("frozen", 4)] * 4 + [("copy", 2)] * 2 + [("moc", 2)] * 2
+    assert sorted(calls) == sorted(expected)
+
+
+# -- ablations on the whole ControlNet ------------------------------------------------------
+
+
+def test_ablation_zero_init_off_changes_only_the_projections():
+    torch.manual_seed(0)
+    base = frozen_base()
+    nets = {}
+    for zero_init in (True, False):
+        torch.manual_seed(1)
+        nets[zero_init] = MotionControlNet(base, MoCConfig(**SMALL_MOC, zero_init=zero_init))
+    on, off = (nets[z].state_dict() for z in (True, False))
+    assert on.keys() == off.keys()
+    differ = {k for k in on if not torch.equal(on[k], off[k])}
+    assert differ == {k for k in on if k.startswith("mocs.") and (".down." in k or ".up." in k)}
+    x, t = motion_batch(2, 8)
+    with torch.no_grad():
+        d_u = base(x, t)
+        assert torch.equal(nets[True](x, t, *text_batch([3, 2])), d_u)
+        assert not torch.allclose(nets[False](x, t, *text_batch([3, 2])), d_u, atol=1e-4)
+
+
+def test_ablation_switches_build_what_they_name():
+    n_params = {}
+    for name, extra in [("moc", {}), ("ffn", {"experts": "single_ffn"}), ("nomask", {"token_masks": False})]:
+        torch.manual_seed(0)
+        net = MotionControlNet(frozen_base(), MoCConfig(**SMALL_MOC, **extra))
+        n_params[name] = {k: v.shape for k, v in net.state_dict().items()}
+    assert n_params["nomask"] == n_params["moc"]  # a switch of the forward pass only
+    assert not any(".gate." in k or k.endswith((".w1", ".w2")) for k in n_params["ffn"])
+    assert {k for k in n_params["moc"] if ".ffn." in k} == set()
+
+
+# -- text tokens: trimming CLIP-style padding -------------------------------------------------
+
+
+def test_trimmed_tokens_give_the_same_outputs():
+    """CLIP pads every caption to 77 tokens; the hash encoder pads to the longest caption, so
+    it is made to pad like CLIP here. Trimming to the longest caption changes no output."""
+    encoder = HashTextEncoder(dim=D_TEXT, max_tokens=77)
+    encoder.pad_to_max = True  # CLIP's fixed context
+    texts = ["a person walks forward", "a person jumps", "someone waves with the left hand twice"]
+    padded = encoder(texts)
+    trimmed = padded.trimmed()
+    assert padded.tokens.shape[1] == 77 and trimmed.tokens.shape[1] == 9  # start + 7 words + end
+    assert trimmed.trimmed() is trimmed and torch.equal(trimmed.eot, padded.eot)
+    assert torch.equal(trimmed.padded(77).tokens, padded.tokens)
+    assert torch.equal(trimmed.padded(77).mask, padded.mask)
+    assert torch.equal(encoder.__class__(dim=D_TEXT, max_tokens=77)(texts).tokens, trimmed.tokens)
+
+    net = trained_like()
+    x, t = motion_batch(3, 10)
+    mask = frame_mask([10, 6, 8], 10)
+    with torch.no_grad():
+        for dtype, tol in ((torch.float32, 1e-6), (torch.float64, 1e-12)):  # float32: summation order
+            net, x = net.to(dtype), x.to(dtype)
+            for run, gain in (  # guidance s = 4.5 scales D_c's differences by s
+                (lambda f: net(x, t, f.tokens.to(dtype), f.mask, f.eot, mask), 1.0),
+                (lambda f: net.forward_guided(x, t, f.tokens.to(dtype), f.mask, f.eot, 4.5, mask), 4.5),
+            ):
+                torch.testing.assert_close(run(trimmed), run(padded), rtol=tol, atol=tol * gain)
+
+
+def test_controlnet_module_encodes_trimmed_text():
+    from omg.lit.controlnet import ControlNetModule
+
+    spec = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
+            "mean": [0.0] * 263, "std": [1.0] * 263}
+    module = ControlNetModule(base={"flavor": "mini", "dit": {"n_layers": 1}, "spec": spec}, text_encoder="hash",
+                              text_encoder_args={"max_tokens": 77}, moc={"d_c": 8, "num_experts": 2})
+    module.text_encoder.pad_to_max = True
+    assert module.text_encoder(["a person walks"]).tokens.shape[1] == 77
+    text = module.encode_text(["a person walks", "a person walks forward"], drop_eot=torch.tensor([True, False]))
+    assert text.tokens.shape[1] == 6 and text.mask.all(0).tolist() == [True] * 5 + [False]
 
 
 # -- sizes ----------------------------------------------------------------------------------
@@ -361,9 +550,9 @@ def moc_params(d: int, cfg: MoCConfig) -> int:
     )
 
 
-@pytest.mark.parametrize("flavor", ["mini", "base"])
-def test_parameter_counts_on_meta_device(flavor):
-    cfg = MoCConfig(text_dim=512)
+@pytest.mark.parametrize("flavor, wiring", [("mini", "per_layer"), ("base", "per_layer"), ("base", "parallel_stream")])
+def test_parameter_counts_on_meta_device(flavor, wiring):
+    cfg = MoCConfig(text_dim=768, wiring=wiring)  # CLIP ViT-L/14 tokens, paper's d_c 256, K 12
     with torch.device("meta"):
         base = MotionDiT(DiTConfig.from_name(flavor))
         net = MotionControlNet(base, cfg)
@@ -371,15 +560,20 @@ def test_parameter_counts_on_meta_device(flavor):
     frozen = sum(p.numel() for p in base.parameters())
     copies = sum(p.numel() for p in net.copy_blocks.parameters())
     mocs = sum(p.numel() for p in net.mocs.parameters())
-    projs = sum(p.numel() for p in net.zero_projs.parameters())
+    projs = sum(p.numel() for p in net.zero_projs.parameters()) if wiring == "parallel_stream" else 0
     trainable = sum(p.numel() for p in net.trainable_parameters())
     print(
-        f"{flavor}: frozen {frozen / 1e6:.2f}M, trainable {trainable / 1e6:.2f}M = copies "
+        f"{flavor} {wiring}: frozen {frozen / 1e6:.2f}M, trainable {trainable / 1e6:.2f}M = copies "
         f"{copies / 1e6:.2f}M + MoC {mocs / 1e6:.2f}M ({mocs // n / 1e6:.3f}M per layer) + "
         f"zero projections {projs / 1e6:.2f}M"
     )
     assert copies == sum(p.numel() for p in base.blocks.parameters())
     assert mocs == n * moc_params(d, cfg)
-    assert projs == n * (d * d + d)
+    assert projs == (n * (d * d + d) if wiring == "parallel_stream" else 0)
     assert trainable == copies + mocs + projs
     assert sum(p.numel() for p in net.parameters()) == frozen + trainable
+    if flavor == "base":
+        assert round(trainable / 1e5) == {"per_layer": 1224, "parallel_stream": 1308}[wiring]
+    with torch.device("meta"):  # a controller on half the layers: half the copies and MoCs
+        half = MotionControlNet(base, MoCConfig(text_dim=768, layers=list(range(0, n, 2))))
+    assert sum(p.numel() for p in half.trainable_parameters()) == (copies + mocs) // 2

@@ -64,7 +64,7 @@ def test_starts_as_the_frozen_model_and_trains_only_the_controlnet(pretrained, t
     _fit(module, _data(), 4, tmp_path)
     assert all(torch.equal(module.model.state_dict()[k], v) for k, v in frozen.items())
     changed = [k for k, v in module.controlnet.state_dict().items() if k in controlnet_before and not torch.equal(controlnet_before[k], v)]
-    assert any(k.startswith("zero_projs") for k in changed) and any("moc" in k or "blocks" in k for k in changed)
+    assert any(".up." in k for k in changed) and any("moc" in k or "blocks" in k for k in changed)
 
 
 def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
@@ -130,12 +130,14 @@ def test_generate_from_text(finetuned, tmp_path, capsys):
 
 def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
     """A few minutes of fine-tuning on the mini data: "walks forward" travels, "jumps in place"
-    stays put and bobs up and down (a sanity check of the whole stage, not a quality claim)."""
+    stays put and bobs up and down (a sanity check of the whole stage, not a quality claim).
+    900 steps: on whole captioned clips every clip is seen equally often (sliding windows drew
+    the long walking takes more often), so walking takes longer to learn than it did on windows."""
     from omg.motion import get_representation
 
     torch.manual_seed(0)
     module = _controlnet(pretrained, text_encoder="minilm")
-    _fit(module, _data(), 600, tmp_path)
+    _fit(module, _data(), 900, tmp_path)
     decode = get_representation("humanml3d263", "smpl22").decode
     travel, bob = {}, {}
     for prompt in ("a person walks forward", "a person jumps in place"):

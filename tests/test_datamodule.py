@@ -82,7 +82,11 @@ def test_resumed_loader_continues_at_the_saved_position(toy_shards):
     partial.load_state_dict({"epoch": 1, "batches_done": 4})
     rest = _epoch(partial)
     assert [b["id"] for b in rest] == [b["id"] for b in full[4:]]
-    assert partial.state_dict() == {"epoch": 2, "batches_done": 0}
+    assert partial.state_dict() == {"epoch": 1, "batches_done": 6}
+    # a position at an epoch's end resumes at the next epoch's start, skipping nothing
+    after = _datamodule(toy_shards, num_workers=2).train_dataloader()
+    after.load_state_dict(partial.state_dict())
+    assert [b["id"] for b in _epoch(after)] == [b["id"] for b in _epoch(loader)]
 
 
 def test_corrupt_samples_are_skipped_with_a_warning(tmp_path, caplog):
@@ -92,7 +96,8 @@ def test_corrupt_samples_are_skipped_with_a_warning(tmp_path, caplog):
     for shard, key in zip(Manifest.load(shards).shard_paths, ("clip_0007", "clip_0107")):
         _rewrite_member(shard, f"{key}.motion.npy", b"garbage")
     with caplog.at_level(logging.WARNING):
-        batches = _epoch(_datamodule(shards, batches_per_epoch=60, shuffle_buffer=2, max_bad_fraction=0.05).train_dataloader())
+        batches = _epoch(_datamodule(shards, batches_per_epoch=60, shuffle_buffer=2, max_bad_fraction=0.05,
+                                     verify_shards=False).train_dataloader())
     assert len(batches) == 60
     assert not {"clip.0007", "clip.0107"} & {i for b in batches for i in b["id"]}
     warnings = [r.message for r in caplog.records]
@@ -106,7 +111,44 @@ def test_too_many_corrupt_samples_stop_the_run(tmp_path):
     for i in range(0, 20, 2):
         _rewrite_member(Manifest.load(shards).shard_paths[0], f"clip_{i:04d}.motion.npy", b"garbage")
     with pytest.raises(TooManyBadSamples, match="max_bad_fraction"):
-        _epoch(_datamodule(shards, max_bad_fraction=0.1).train_dataloader())
+        _epoch(_datamodule(shards, max_bad_fraction=0.1, verify_shards=False).train_dataloader())
+
+
+def _garble(shard, offset_from_end=2000):
+    data = bytearray(shard.read_bytes())
+    data[-offset_from_end] ^= 0xFF  # inside the last sample's payload: the tar still parses
+    shard.write_bytes(bytes(data))
+
+
+def test_shards_that_fail_verification_are_skipped_whole(tmp_path, caplog):
+    """Garbled bytes and a tar cut at a header boundary parse as valid tars; the manifest's
+    sha256, size and sample count catch them before any of their samples is trained on."""
+    shards = write_toy_shards(tmp_path / "s", num_clips=60, max_clips=5)  # 12 shards
+    paths = Manifest.load(shards).shard_paths
+    _garble(paths[0])
+    cut = paths[1].read_bytes()
+    paths[1].write_bytes(cut[: 512 * (len(cut) // 1024)])  # a header boundary, half the shard
+    with caplog.at_level(logging.WARNING):
+        batches = _epoch(_datamodule(shards, batches_per_epoch=30, max_bad_fraction=0.5).train_dataloader())
+    seen = {int(i.split(".")[1]) for b in batches for i in b["id"]}
+    assert len(batches) == 30 and seen and not seen & set(range(10))  # nothing of shards 0 and 1
+    warnings = " ".join(r.getMessage() for r in caplog.records)
+    assert "shard-000000.tar" in warnings and "sha256" in warnings
+    assert "shard-000001.tar" in warnings
+    # unverified, the garbled shard's samples would be trained on
+    unverified = _epoch(_datamodule(shards, batches_per_epoch=30, max_bad_fraction=0.5,
+                                     verify_shards=False).train_dataloader())
+    assert {int(i.split(".")[1]) for b in unverified for i in b["id"]} & set(range(5))
+
+
+def test_bad_validation_shards_are_counted_and_stop_past_the_limit(tmp_path, caplog):
+    shards = write_toy_shards(tmp_path / "s", num_clips=20, max_clips=5)
+    _garble(Manifest.load(shards).shard_paths[0])
+    with caplog.at_level(logging.WARNING):
+        clips = _datamodule(shards, val=str(shards), max_bad_fraction=0.3).val_clips()
+    assert len(clips) == 15 and "shard-000000.tar" in caplog.text
+    with pytest.raises(TooManyBadSamples, match="5 of 20 samples"):
+        _datamodule(shards, val=str(shards), max_bad_fraction=0.1).val_clips()
 
 
 def test_missing_shards_and_bad_settings_are_usage_errors(tmp_path):
@@ -118,7 +160,7 @@ def test_missing_shards_and_bad_settings_are_usage_errors(tmp_path):
     with pytest.raises(UsageError, match="batch_size"):
         MotionDataModule(str(shards), batch_size=0)
     dm = _datamodule(shards)
-    dm.trainer = SimpleNamespace(global_rank=0, world_size=2)
+    dm.trainer = SimpleNamespace(global_rank=0, world_size=2, current_epoch=0, lightning_module=None)
     with pytest.raises(UsageError, match="1 shards cannot be split disjointly across 2 ranks"):
         dm.train_dataloader()
 
@@ -144,7 +186,7 @@ def _rank_main(rank, world, port, shards, start_method, out):
     dist.init_process_group("gloo", rank=rank, world_size=world)
     torch.set_num_threads(1)
     dm = _datamodule(shards, batches_per_epoch=5, num_workers=2)
-    dm.trainer = SimpleNamespace(global_rank=rank, world_size=world)  # what Lightning's trainer tells the datamodule
+    dm.trainer = SimpleNamespace(global_rank=rank, world_size=world, current_epoch=0, lightning_module=None)  # what Lightning's trainer tells the datamodule
     base = dm.train_dataloader()
     loader = StreamLoader(base.dataset, num_workers=2, collate_fn=base.collate_fn, multiprocessing_context=start_method)
     ids = [i for batch in loader for i in batch["id"]]
@@ -166,3 +208,63 @@ def test_two_ranks_read_disjoint_shards_and_equal_batch_counts(tmp_path):
     assert {shard_of(i) for i in r0["ids"]} <= {0, 2, 4, 6}
     assert {shard_of(i) for i in r1["ids"]} <= {1, 3, 5, 7}
     assert not set(r0["ids"]) & set(r1["ids"])
+
+
+def test_captioned_clips_are_used_whole_up_to_the_cap(toy_shards):
+    from omg.evaluation import prompt_set
+
+    lengths = {f"clip.{i:04d}": len(toy_clip(i)) for i in range(40)}  # 20..79 frames
+    dm = _datamodule(toy_shards, clips="whole", max_len=60, min_len=10)
+    for batch in _epoch(dm.train_dataloader()):
+        for clip_id, n in zip(batch["id"], batch["lengths"].tolist()):
+            assert n == min(lengths[clip_id], 60)
+    # the evaluation's real motions: the clip its caption describes
+    from omg.data.datamodule import ClipDataset
+
+    samples = ClipDataset.from_shards(dm.train_urls, dm.feature_dim, dm.windows).samples
+    prompts = prompt_set(samples, 40, seed=0, windows=dm.windows)
+    for text, n in zip(prompts.texts, prompts.lengths.tolist()):
+        assert n == min(lengths[f"clip.{int(text.split()[1]):04d}"], 60)
+
+
+def test_clips_auto_follows_what_the_model_asks_for(toy_shards):
+    dm = _datamodule(toy_shards)  # clips: auto
+    assert dm.windows.mode == "windows"  # no model: sliding windows
+    dm.trainer = SimpleNamespace(global_rank=0, world_size=1, current_epoch=0,
+                                 lightning_module=SimpleNamespace(clip_sampling="whole"))
+    assert dm.windows.mode == "whole"
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.evaluator import EvaluatorModule
+    from omg.lit.pretrain import PretrainModule
+
+    assert PretrainModule.clip_sampling == "windows"
+    assert ControlNetModule.clip_sampling == EvaluatorModule.clip_sampling == "whole"
+    with pytest.raises(UsageError, match="data.clips"):
+        _datamodule(toy_shards, clips="crops")
+
+
+def test_window_starts_follow_the_sliding_window_distribution():
+    from scipy.stats import chisquare
+
+    T, low, high, n = 50, 10, 30, 100_000
+    w, rng = WindowSampler(max_len=high, min_len=low), np.random.default_rng(0)
+    starts = np.bincount([w.random(T, rng)[0] for _ in range(n)], minlength=T)
+    # l ~ U[low, high], then start ~ U[0, T - l]
+    expected = np.zeros(T)
+    for length in range(low, high + 1):
+        expected[: T - length + 1] += 1 / (high - low + 1) / (T - length + 1)
+    assert starts[: T - low + 1].min() > 0 and starts[T - low + 1:].sum() == 0  # every possible start occurs
+    assert chisquare(starts[: T - low + 1], expected[: T - low + 1] * n).pvalue > 1e-3
+
+
+def test_long_clips_contribute_in_proportion_to_their_frames(tmp_path):
+    from conftest import JointPositions
+    from omg.data.shards import ShardWriter
+    from omg.skeleton import SMPL22
+
+    clips = [toy_clip(i, frames=40 if i % 2 else 160) for i in range(40)]  # 20 short, 20 four times longer
+    ShardWriter(tmp_path / "s", JointPositions(SMPL22), fps=20.0, max_clips=5, log=lambda m: None).write(clips)
+    dm = _datamodule(tmp_path / "s", batches_per_epoch=400, max_len=40, min_len=20, shuffle_buffer=16)
+    ids = [i for b in _epoch(dm.train_dataloader()) for i in b["id"]]
+    long_share = sum(int(i.split(".")[1]) % 2 == 0 for i in ids) / len(ids)
+    assert abs(long_share - 0.8) < 0.04, long_share  # 160 / (160 + 40) of the frames

@@ -359,6 +359,40 @@ def test_t2m_word_vectorizer_and_caption_fallback(t2m_files):
         "someone/PRON", "is/AUX", "wave/VERB", "both/DET", "hand/NOUN"]
 
 
+class _Payload:
+    """Unpickling this calls ``open(path, "w")``: a crafted GloVe file would call os.system."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return open, (self.path, "w")
+
+
+def test_t2m_glove_files_cannot_run_code(t2m_files, tmp_path):
+    import shutil
+
+    from omg.models.t2m import WordVectorizer
+
+    crafted = {"our_vab_words.pkl": lambda marker: [*WORDS, _Payload(marker)],
+               "our_vab_idx.pkl": lambda marker: {"unk": 0, "sos": _Payload(marker)}}
+    for name, content in crafted.items():
+        glove, marker = tmp_path / name, tmp_path / f"ran-{name}"
+        shutil.copytree(t2m_files["glove"], glove)
+        (glove / name).write_bytes(pickle.dumps(content(marker)))
+        with pytest.raises(UsageError, match=rf"{name} holds pickled Python objects .*refused"):
+            WordVectorizer(glove)
+        assert not marker.exists()
+    glove = tmp_path / "wrong_types"
+    shutil.copytree(t2m_files["glove"], glove)
+    (glove / "our_vab_idx.pkl").write_bytes(pickle.dumps(WORDS))  # a list where the dict belongs
+    with pytest.raises(UsageError, match="holds a list, not the dict"):
+        WordVectorizer(glove)
+    np.save(glove / "our_vab_data.npy", np.array([object()] * 3), allow_pickle=True)
+    with pytest.raises(UsageError, match="our_vab_data.npy is not a plain array file"):
+        WordVectorizer(glove)
+
+
 def test_t2m_missing_files_name_the_argument(t2m_files, tmp_path):
     from omg.models.t2m import load_t2m_evaluator
 

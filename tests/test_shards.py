@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import tarfile
@@ -33,6 +34,12 @@ def test_written_shards_hold_every_clip_with_manifest_stats(tmp_path):
     assert meta["id"] == "clip.0000" and meta["skeleton"] == "smpl22" and meta["category"] == "human"
     assert json.loads(first["texts.json"]) == ["caption 0"]
     assert not (out / BUILD_STATE).exists()
+    # per shard the manifest records what a reader checks: sample count, byte size, sha256
+    for entry, path in zip(m["shards"], m.shard_paths):
+        data = path.read_bytes()
+        assert m.expected(path) == {"samples": entry["clips"], "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        assert len(list(iter_tar(path, **m.expected(path), whole=True))) == entry["clips"]
+    assert [e["clips"] for e in m["shards"]] == [5, 5, 5, 5, 3]
 
 
 def test_bad_clips_are_skipped_and_counted(tmp_path):
@@ -104,8 +111,9 @@ def test_validate_names_bad_samples_by_shard_and_key(toy_shards):
     truncated.write_bytes(truncated.read_bytes()[:1500])
     _, good, problems = validate(toy_shards)
     assert any(p.startswith("shard-000001.tar clip_0006:") for p in problems)
-    assert any(p.startswith("shard-000003.tar") for p in problems)
-    assert good < 40
+    assert any(p.startswith("shard-000001.tar: size check failed: truncated: ") for p in problems)  # rewritten shard
+    assert any(p.startswith("shard-000003.tar: readable check failed: unreadable after 0 samples") for p in problems)
+    assert good == 30  # only samples of shards that pass every check
 
 
 def test_inspect_command_exit_codes(toy_shards, capsys):

@@ -19,12 +19,10 @@ from omg.registry import CALLBACKS
 
 def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
     """The decoded clips of the data module's validation/test set and its window sampler."""
-    from omg.data.datamodule import ClipDataset
-
     data = trainer.datamodule
     if data is None or not getattr(data, "val_urls", None):
         raise UsageError(f"{key} draws its prompts from the validation/test set: set data.val to a shard directory")
-    return ClipDataset.from_shards(data.val_urls, data.feature_dim, data.windows).samples, data
+    return data.val_clips().samples, data
 
 
 def check_sampler(module: L.LightningModule, key: str) -> None:
@@ -103,6 +101,8 @@ class EvalCallback(Callback):
         self._samples, data = eval_samples(trainer, "EvalCallback")
         self.spec, self._windows = data.spec, data.windows
         check_evaluator_spec(self.evaluator, self.spec, key="EvalCallback.evaluator")
+        # generated and real motions are compared at one frame rate: the model's must be the data's
+        check_evaluator_spec(pl_module, self.spec, key=f"the model ({type(pl_module).__name__})")
         for name, options in self.metrics.items():  # pool sizes and pair counts the prompt set can fill
             for option, default in (("pool_size", 32 if name == "r_precision" else None),
                                     ("num_pairs", 300 if name == "diversity" else None)):

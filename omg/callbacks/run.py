@@ -3,13 +3,17 @@ disturbing training (module modes and the global RNG)."""
 
 from __future__ import annotations
 
+import os
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
 import lightning as L
 import torch
+from lightning.pytorch.callbacks import OnExceptionCheckpoint
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 
 def run_dir(trainer: L.Trainer) -> Path:
@@ -47,3 +51,38 @@ def sampling(module: L.LightningModule) -> Iterator[None]:
         finally:
             for m, training in modes.items():
                 m.train(training)
+
+
+class InterruptCheckpoint(OnExceptionCheckpoint):
+    """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) save ``interrupted.ckpt``
+    beside the run's checkpoints at the end of the step in which the signal came, the point where
+    ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly (Lightning counts
+    it among the "last" candidates and takes the newest). Lightning's loops then stop. Other
+    exceptions save nothing: a crash mid-step leaves a state that must not be resumed from.
+
+    On several ranks Lightning shares the signal through collectives of its own at points that
+    differ between ranks, and a checkpoint (a collective too) cannot be slotted in safely: the
+    run stops at its last periodic checkpoint. ``omg fit`` then exits non-zero (``omg.cli``)
+    unless the stop was a SLURM requeue, and its last line says which and where the checkpoint is.
+    """
+
+    def __init__(self, dirpath: str | Path):
+        super().__init__(dirpath, filename="interrupted")
+        self.started, self.saved_step = time.time(), None
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
+        if trainer.received_sigterm and trainer.world_size == 1 and self.saved_step is None:
+            trainer.save_checkpoint(self.ckpt_path)
+            self.saved_step = trainer.global_step
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        if not isinstance(exception, SIGTERMException) or trainer.state.fn != "fit":
+            return
+        if self.saved_step is not None:
+            checkpoint = self.ckpt_path
+        else:
+            saver = trainer.checkpoint_callback
+            checkpoint = getattr(saver, "last_model_path", "") or getattr(saver, "best_model_path", "") or None
+        hpc = sorted(Path(trainer.default_root_dir).glob("hpc_ckpt_*.ckpt"), key=lambda p: p.stat().st_mtime)
+        requeued = bool(hpc) and hpc[-1].stat().st_mtime >= self.started and "SLURM_JOB_ID" in os.environ
+        exception.omg_stop = {"step": trainer.global_step, "checkpoint": checkpoint, "requeued": requeued}

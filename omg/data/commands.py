@@ -2,20 +2,28 @@
 
 from __future__ import annotations
 
+import argparse
 import hashlib
+import inspect
+import math
 import shlex
 import sys
+import types
+import typing
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import yaml
 
-from omg.cli import ToolParser
-from omg.data.shards import ShardWriter, validate
+from omg.cli import (ToolParser, check_output_dir, nonneg_float, positive_float, positive_int, read_text,
+                     removing_created, seed_int)
+from omg.data.shards import ShardWriter, check_shards
 from omg.errors import UsageError
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import get_skeleton
+
+MAX_FPS = 1000.0
 
 # What `omg shards synth` builds by default: the embedded mini data in shards/mini.
 # (subdirectory, skeleton, representation, clips)
@@ -53,32 +61,147 @@ def build(
     command: str = "",
     log=lambda message: None,
 ) -> list:
-    """Build a shard set (``out``, or ``out/train`` and ``out/val`` with a validation split)."""
-    if not 0.0 <= val_fraction < 1.0:
-        raise UsageError(f"--val-fraction must be in [0, 1), got {val_fraction}")
+    """Build a shard set (``out``, or ``out/train`` and ``out/val`` with a validation split).
+
+    Every argument is checked before a folder is made; a build that fails removes the folders
+    it created (an existing ``out`` stays, and with it the shards an interrupted build finished)."""
+    if not _is_number(fps) or not 0 < fps <= MAX_FPS:
+        raise UsageError(f"--fps must be a number in (0, {MAX_FPS:g}], got {fps!r}")
+    if not _is_number(val_fraction) or not 0.0 <= val_fraction < 1.0:
+        raise UsageError(f"--val-fraction must be in [0, 1), got {val_fraction!r}")
+    if not _is_number(max_clips) or isinstance(max_clips, float) or max_clips < 1:
+        raise UsageError(f"--max-clips must be a positive integer, got {max_clips!r}")
+    if not _is_number(max_mb) or max_mb * 2**20 < 1:
+        raise UsageError(f"--max-mb must be a positive number of megabytes (at least 1 byte), got {max_mb!r}")
     open_source = DATA_SOURCES.get(source)
+    options = _check_options(source, open_source, options or {})
     rep = get_representation(representation, get_skeleton(skeleton))
+    out = check_output_dir(out)
     splits = {"train": False, "val": True} if val_fraction > 0 else {"": False}
     summaries = []
-    for name, want_val in splits.items():
-        items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **(options or {}))
-        stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
-        if val_fraction > 0:
-            items = _split(items, val_fraction, want_val)
-        writer = ShardWriter(Path(out) / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
-                             stats=stats)
-        summaries.append(writer.write(items))
+    try:
+        with removing_created(*(out / name for name in splits)):
+            for name, want_val in splits.items():
+                items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **options)
+                stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
+                if val_fraction > 0:
+                    items = _split(items, val_fraction, want_val)
+                writer = ShardWriter(out / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
+                                     stats=stats)
+                summaries.append(writer.write(items))
+    except UnicodeDecodeError as e:  # a text file an option names (a YAML joint map, ...) in another encoding
+        named = [f"--option {k}={v}" for k, v in options.items() if isinstance(v, str) and not _is_utf8_file(v)]
+        which = f"{named[0]}: not a UTF-8 text file" if named else "a file is not UTF-8 text"
+        raise UsageError(f"{which} ({e.reason} at offset {e.start}); save it as UTF-8") from None
     return summaries
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _is_utf8_file(path: str) -> bool:
+    try:
+        Path(path).read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    except (OSError, ValueError):
+        return True  # not a readable file: not the one
+    return True
+
+
+RESERVED_OPTIONS = {"input": "--input", "skeleton": "--skeleton", "fps": "--fps"}
+_KINDS = {int: "an integer", float: "a number", str: "a string", bool: "true or false", list: "a list",
+          dict: "a mapping", type(None): "null"}
+
+
+def _check_options(name: str, source, options: dict) -> dict:
+    """``--option`` keys against the source's parameters, values against their annotations.
+
+    Numbers must be finite and >= 0: source options that are numbers count clips or frames, or
+    are seeds and sizes."""
+    try:
+        params = inspect.signature(source).parameters
+    except (TypeError, ValueError):  # not introspectable: the source checks its own options
+        params = {}
+    try:
+        hints = typing.get_type_hints(source)
+    except Exception:  # an annotation that does not resolve: no type check
+        hints = {}
+    open_ended = not params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    known = [k for k, p in params.items() if k not in RESERVED_OPTIONS and p.kind is not inspect.Parameter.VAR_KEYWORD]
+    for key, value in options.items():
+        if not isinstance(key, str) or not key.isidentifier():
+            raise UsageError(f"--option {key}={value}: the key must be a name such as num_clips")
+        if key in RESERVED_OPTIONS:
+            raise UsageError(f"--option {key}=...: give it as {RESERVED_OPTIONS[key]}")
+        if key not in params and not open_ended:
+            raise UsageError(f"--option {key}: the {name} source has no such option; "
+                             f"its options: {', '.join(known) or 'none'}")
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and not (math.isfinite(value) and value >= 0):
+            raise UsageError(f"--option {key}={value}: expected a finite number >= 0")
+        allowed = _allowed_types(hints.get(key))
+        if allowed and not _fits(value, allowed):
+            kinds = " or ".join(dict.fromkeys(_KINDS[t] for t in allowed))
+            raise UsageError(f"--option {key}={value!r}: the {name} source expects {kinds}")
+    return options
+
+
+def _allowed_types(hint) -> tuple[type, ...] | None:
+    """The plain types a parameter annotation admits, or None when it is not that simple."""
+    if hint is None or hint is typing.Any:
+        return None
+    args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+    plain = tuple(typing.get_origin(a) or a for a in args)
+    if any(t not in _KINDS for t in plain):
+        return None
+    return plain
+
+
+def _fits(value, allowed: tuple[type, ...]) -> bool:
+    if isinstance(value, bool):
+        return bool in allowed
+    if isinstance(value, int) and (int in allowed or float in allowed):
+        return True
+    return isinstance(value, tuple(t for t in allowed if t is not int))
 
 
 def _parse_options(pairs: list[str]) -> dict:
     options = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
-        if not sep:
+        if not sep or not key.strip():
             raise UsageError(f"--option {pair!r} must look like key=value")
-        options[key.replace("-", "_")] = yaml.safe_load(value)
+        try:
+            options[key.strip().replace("-", "_")] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            raise UsageError(f"--option {pair!r}: the value is not valid YAML ({str(e).splitlines()[0]})") from None
     return options
+
+
+def _config_value(config: str, key: str, action: argparse.Action, value):
+    """A value of ``omg shards build --config FILE`` checked as its command-line flag would be."""
+    if action.dest == "option":
+        if value is None:
+            return []
+        if isinstance(value, dict):
+            return value
+        if isinstance(value, list) and all(isinstance(v, str) for v in value):
+            return _parse_options(value)
+        raise UsageError(f"{config}: {key!r} must be a mapping of source options, got {value!r}")
+    if value is None:
+        return None
+    if action.type is None:
+        if not isinstance(value, str):
+            raise UsageError(f"{config}: {key!r} must be a string, got {value!r}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise UsageError(f"{config}: {key!r} must be a number, got {value!r}")
+    try:
+        return action.type(str(value))
+    except (argparse.ArgumentTypeError, TypeError, ValueError) as e:
+        reason = str(e) if isinstance(e, argparse.ArgumentTypeError) else f"invalid value {value!r}"
+        raise UsageError(f"{config}: {key!r}: {reason}") from None
 
 
 def _build_main(argv: list[str]) -> None:
@@ -89,23 +212,26 @@ def _build_main(argv: list[str]) -> None:
     p.add_argument("--out", help="output directory")
     p.add_argument("--representation", default="humanml3d263")
     p.add_argument("--skeleton", default="smpl22")
-    p.add_argument("--fps", type=float, default=30.0)
-    p.add_argument("--val-fraction", type=float, default=0.0, help="put this share of clips in out/val, the rest in out/train")
-    p.add_argument("--max-clips", type=int, default=1000, help="clips per shard at most")
-    p.add_argument("--max-mb", type=float, default=256.0, help="megabytes per shard at most")
+    p.add_argument("--fps", type=positive_float, default=30.0, help=f"frames per second, at most {MAX_FPS:g}")
+    p.add_argument("--val-fraction", type=nonneg_float, default=0.0, help="put this share of clips in out/val, the rest in out/train")
+    p.add_argument("--max-clips", type=positive_int, default=1000, help="clips per shard at most")
+    p.add_argument("--max-mb", type=positive_float, default=256.0, help="megabytes per shard at most")
     p.add_argument("--option", action="append", default=[], help="key=value passed to the source (repeatable)")
     args = p.parse_args(argv)
     if args.config:
-        config = yaml.safe_load(Path(args.config).read_text()) if Path(args.config).exists() else None
+        try:
+            config = yaml.safe_load(read_text(args.config, "--config"))
+        except yaml.YAMLError as e:
+            raise UsageError(f"--config {args.config}: not valid YAML ({str(e).splitlines()[0]})") from None
         if not isinstance(config, dict):
             raise UsageError(f"--config {args.config}: not a YAML mapping file")
-        dests = {a.dest for a in p._actions} - {"help", "config"}
+        actions = {a.dest: a for a in p._actions if a.dest not in ("help", "config")}
         for key, value in config.items():
-            dest = key.replace("-", "_")
-            if dest not in dests:
-                raise UsageError(f"{args.config}: unknown key {key!r}; known keys: {', '.join(sorted(dests))}")
+            dest = str(key).replace("-", "_")
+            if dest not in actions:
+                raise UsageError(f"{args.config}: unknown key {key!r}; known keys: {', '.join(sorted(actions))}")
             if getattr(args, dest) == p.get_default(dest):
-                setattr(args, dest, value)
+                setattr(args, dest, _config_value(args.config, key, actions[dest], value))
     for required in ("source", "out"):
         if not getattr(args, required):
             raise UsageError(f"omg shards build: --{required} is required")
@@ -120,33 +246,51 @@ def _synth_main(argv: list[str]) -> None:
     p = ToolParser(prog="omg shards synth", description="Procedural labeled motion (humans on smpl22, quadrupeds on smal35) "
                    "into shard sets: the embedded mini data.")
     p.add_argument("--out", default="shards/mini")
-    p.add_argument("--scale", type=float, default=1.0, help="multiply every set's clip count")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fps", type=float, default=20.0)
-    p.add_argument("--val-fraction", type=float, default=0.15)
-    p.add_argument("--max-clips", type=int, default=32, help="clips per shard at most")
+    p.add_argument("--scale", type=positive_float, default=1.0, help="multiply every set's clip count")
+    p.add_argument("--seed", type=seed_int, default=0)
+    p.add_argument("--fps", type=positive_float, default=20.0, help=f"frames per second, at most {MAX_FPS:g}")
+    p.add_argument("--val-fraction", type=nonneg_float, default=0.15)
+    p.add_argument("--max-clips", type=positive_int, default=32, help="clips per shard at most")
     args = p.parse_args(argv)
     command = "omg shards synth " + shlex.join(argv)
-    for subdir, skeleton, representation, clips in MINI_SETS:
-        options = {"num_clips": max(1, round(clips * args.scale)), "seed": args.seed}
-        for summary in build("synth", Path(args.out) / subdir, representation, skeleton, args.fps,
-                             val_fraction=args.val_fraction, max_clips=args.max_clips, options=options, command=command):
-            print(summary)
+    out = check_output_dir(args.out)
+    with removing_created(*(out / subdir for subdir, *_ in MINI_SETS)):  # a failed set removes the ones before it
+        for subdir, skeleton, representation, clips in MINI_SETS:
+            options = {"num_clips": max(1, round(clips * args.scale)), "seed": args.seed}
+            for summary in build("synth", out / subdir, representation, skeleton, args.fps,
+                                 val_fraction=args.val_fraction, max_clips=args.max_clips, options=options, command=command):
+                print(summary)
 
 
 def _inspect_main(argv: list[str]) -> None:
-    p = ToolParser(prog="omg shards inspect", description="Summarise a shard set and validate every sample.")
+    p = ToolParser(prog="omg shards inspect", description="Summarise a shard set, check every shard against its "
+                   "manifest (file, size, sample count, end-of-archive, sha256) and validate every sample. "
+                   "Exits 1 when a shard or sample is bad, 2 when a manifest is missing or invalid.")
     p.add_argument("dirs", nargs="+", help="shard directories (with manifest.json)")
     args = p.parse_args(argv)
-    failed = False
+    failures = []
     for d in args.dirs:
-        manifest, good, problems = validate(d)
-        print(manifest.summary())
-        for problem in problems:
+        result = check_shards(d)
+        print(result.manifest.summary())
+        for problem in result.problems:
             print(f"  BAD {problem}")
-        print(f"  {good} valid samples, {len(problems)} problems")
-        failed |= bool(problems)
-    if failed:
+        n, unhashed = len(result.shards), sum("sha256" not in s.checks for s in result.shards)
+        line = f"  {result.verified} of {n} shards verified against the manifest"
+        if result.failed:
+            line += f", {len(result.failed)} failed ({', '.join(f'{s.name}: {s.error.check}' for s in result.failed)})"
+        if unhashed:
+            line += f", {unhashed} without a sha256 in the manifest"
+        bad_samples = sum(len(s.problems) for s in result.shards)
+        print(f"{line}; {result.good} valid samples, {len(result.problems)} problems")
+        if result.failed or bad_samples:
+            what = [f"{len(result.failed)} of {n} shards failed verification"] if result.failed else []
+            what += [f"{bad_samples} bad samples"] if bad_samples else []
+            first = result.problems[0]
+            failures.append(f"{result.manifest.dir}: {' and '.join(what)} (first: {first})")
+    if failures:
+        sys.stdout.flush()
+        for failure in failures:
+            print(f"omg: error: {failure}", file=sys.stderr)
         raise SystemExit(1)
 
 

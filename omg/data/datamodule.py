@@ -22,14 +22,14 @@ from __future__ import annotations
 import logging
 import warnings
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
-from omg.data.shards import Manifest, decode_sample, iter_tar
-from omg.data.windows import Collate, WindowSampler, make_item, pick_text
+from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
+from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, pick_text
 from omg.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -42,8 +42,10 @@ class TooManyBadSamples(RuntimeError):
     pass
 
 
-def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest]:
-    """Shard directories or URL patterns -> (sorted shard urls, the manifest of the set).
+def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest, dict[str, dict]]:
+    """Shard directories or URL patterns -> (sorted shard urls, the manifest of the set, and by
+    url what its manifest records about each shard: the ``iter_tar`` keyword arguments that
+    verify it as it is read).
 
     A directory lists its shards in its manifest; a pattern such as
     ``/data/h3d/shard-{000000..000127}.tar`` is brace-expanded and its manifest is read from
@@ -54,25 +56,32 @@ def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest]:
     specs = [spec] if isinstance(spec, str) else list(spec)
     if not specs:
         raise UsageError("no shards given: set data.train to a shard directory or URL pattern")
-    urls, manifests = [], []
+    checks, manifests = {}, []
     for s in specs:
         if Path(s).is_dir():
             m = Manifest.load(s)
-            urls += [str(p) for p in m.shard_paths]
+            urls = [str(p) for p in m.shard_paths]
         else:
-            expanded = list(braceexpand.braceexpand(s))
-            first = expanded[0]
+            urls = list(braceexpand.braceexpand(s))
+            first = urls[0]
             if "://" not in first and not first.startswith("pipe:") and not Path(first).exists():
                 raise UsageError(f"shards {s!r}: no such directory or file; build them with `omg shards build` or `omg shards synth`")
             m = Manifest.load(Path(first.split("://")[-1]).parent)
-            urls += expanded
+        checks.update({url: m.expected(url) for url in urls})
         manifests.append(m)
     first = manifests[0]
     for m in manifests[1:]:
         for key in ("representation", "skeleton", "fps", "feature_dim"):
             if m[key] != first[key]:
                 raise UsageError(f"shard sets disagree on {key}: {first.dir} has {first[key]}, {m.dir} has {m[key]}")
-    return sorted(urls), first
+    return sorted(checks), first, checks
+
+
+def shard_problem(error: Exception) -> str:
+    """Why a shard was skipped, in a few words (without its path, which the caller names)."""
+    if isinstance(error, ShardError):
+        return f"{error.check} check failed ({error.reason})"
+    return f"unreadable ({type(error).__name__}: {error})"
 
 
 def rank_shards(urls: list[str], rank: int, world_size: int) -> list[str]:
@@ -91,10 +100,13 @@ def worker_share(total: int, worker: int, num_workers: int) -> int:
 
 
 class MotionStream(IterableDataset):
-    """Endless resampled shards -> shuffle buffer -> one random window per clip.
+    """Endless resampled shards -> shuffle buffer -> training samples cut by ``windows``.
 
-    One epoch yields exactly ``batches`` batches of ``batch_size`` windows (the DataLoader
-    batches inside each worker, so each worker yields whole batches).
+    One epoch yields exactly ``batches`` batches of ``batch_size`` samples (the DataLoader
+    batches inside each worker, so each worker yields whole batches). With sliding windows and
+    ``mean_frames`` (the set's mean clip length), a clip read from a shard stays in the buffer
+    for as many windows as ``WindowSampler.visits`` gives it, so long takes contribute in
+    proportion to their frames and their windows are spread over many batches.
     """
 
     def __init__(
@@ -108,12 +120,14 @@ class MotionStream(IterableDataset):
         seed: int = 0,
         shuffle_buffer: int = 1000,
         max_bad_fraction: float = 0.01,
+        mean_frames: float | None = None,
+        checks: dict[str, dict] | None = None,
     ):
-        self.urls, self.rank = urls, rank
+        self.urls, self.rank, self.checks = urls, rank, checks or {}
         self.batches, self.batch_size = batches, batch_size
         self.windows, self.feature_dim = windows, feature_dim
         self.seed, self.shuffle_buffer = seed, shuffle_buffer
-        self.max_bad_fraction = max_bad_fraction
+        self.max_bad_fraction, self.mean_frames = max_bad_fraction, mean_frames
         self.epoch, self.skip_batches = 0, 0  # set by StreamLoader before workers start
 
     def __len__(self) -> int:
@@ -124,8 +138,10 @@ class MotionStream(IterableDataset):
         seen = bad = 0
         while True:
             url = self.urls[int(rng.integers(len(self.urls)))]
+            expected = self.checks.get(url)
             try:
-                for raw in iter_tar(url):
+                # a verified shard is checked whole before any of its samples is used
+                for raw in iter_tar(url, **expected, whole=True) if expected else iter_tar(url):
                     seen += 1
                     try:
                         yield decode_sample(raw, self.feature_dim)
@@ -134,9 +150,12 @@ class MotionStream(IterableDataset):
                         where, reason = f"{url} key {raw.get('__key__')}", e
                     bad += 1
                     self._bad(where, reason, bad, seen)
-            except Exception as e:  # noqa: BLE001 - an unreadable shard counts as one bad sample
-                seen, bad = seen + 1, bad + 1
-                self._bad(url, f"unreadable ({type(e).__name__}: {e})", bad, seen)
+            except TooManyBadSamples:
+                raise
+            except Exception as e:  # noqa: BLE001 - a bad shard counts as its samples, or one when unknown
+                lost = (expected or {}).get("samples", 1)
+                seen, bad = seen + lost, bad + lost
+                self._bad(url, shard_problem(e), bad, seen)
 
     def _bad(self, where: str, reason, bad: int, seen: int) -> None:
         log.warning("skipping bad sample %s: %s (%d bad of %d read by this worker)", where, reason, bad, seen)
@@ -152,17 +171,22 @@ class MotionStream(IterableDataset):
         rng = np.random.default_rng([self.seed, self.rank, worker, self.epoch])
         to_yield = worker_share(self.batches, worker, num_workers) * self.batch_size
         to_skip = worker_share(self.skip_batches, worker, num_workers) * self.batch_size
-        buffer: list[dict] = []
+        buffer: list[list] = []  # [sample, samples it still yields]
         samples = self._samples(rng)
         produced = 0
         while produced < to_yield:
             while len(buffer) < self.shuffle_buffer:
-                buffer.append(next(samples))
+                sample = next(samples)
+                if visits := self.windows.visits(len(sample["motion"]), self.mean_frames, rng):
+                    buffer.append([sample, visits])
             i = int(rng.integers(len(buffer)))
-            sample = buffer[i]
-            buffer[i] = buffer[-1]
-            buffer.pop()
-            start, length = self.windows.random(len(sample["motion"]), rng)
+            entry = buffer[i]
+            entry[1] -= 1
+            if entry[1] == 0:
+                buffer[i] = buffer[-1]
+                buffer.pop()
+            sample = entry[0]
+            start, length = self.windows(len(sample["motion"]), rng)
             text = pick_text(sample["texts"], rng)
             produced += 1
             if produced > to_skip:
@@ -172,42 +196,76 @@ class MotionStream(IterableDataset):
 class StreamLoader(DataLoader):
     """A DataLoader over a ``MotionStream`` that knows its position in the stream.
 
-    Lightning saves ``state_dict()`` in checkpoints and calls ``load_state_dict()`` on resume.
+    The position is (epoch, batches yielded in it). The epoch is the trainer's (``epoch_fn``):
+    Lightning ends epochs by batch count and never runs the iterator dry, so a count of
+    exhausted iterators would replay epoch 0 forever. Without a trainer each ``iter()`` is the
+    next epoch. Lightning saves ``state_dict()`` in checkpoints and calls ``load_state_dict()``
+    on resume: the saved epoch's remaining batches are then yielded, and nothing is skipped when
+    the trainer resumes into a later epoch (a checkpoint written at an epoch's last batch).
     """
 
-    def __init__(self, dataset: MotionStream, **kwargs):
+    def __init__(self, dataset: MotionStream, epoch_fn: Callable[[], int] | None = None, **kwargs):
         super().__init__(dataset, batch_size=dataset.batch_size, **kwargs)
-        self.epoch, self.batches_done, self._resume_at = 0, 0, 0
+        self.epoch_fn = epoch_fn
+        self.epoch, self.batches_done = -1, 0  # nothing yielded yet
+        self._resume: dict | None = None
 
     def __len__(self) -> int:
         return self.dataset.batches
 
     def __iter__(self):
-        self.dataset.epoch, self.dataset.skip_batches = self.epoch, self._resume_at
-        self.batches_done, self._resume_at = self.dataset.skip_batches, 0
+        epoch = self.epoch_fn() if self.epoch_fn is not None else self.epoch + 1
+        resume, self._resume = self._resume, None
+        skip = resume["batches_done"] if resume is not None and resume["epoch"] == epoch else 0
+        self.epoch, self.batches_done = epoch, skip
+        self.dataset.epoch, self.dataset.skip_batches = epoch, skip
         for batch in super().__iter__():
             self.batches_done += 1
             yield batch
-        self.epoch, self.batches_done = self.epoch + 1, 0
 
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "batches_done": self.batches_done}
 
     def load_state_dict(self, state: dict) -> None:
-        self.epoch, self._resume_at = state["epoch"], state["batches_done"]
+        epoch, done = int(state["epoch"]), int(state["batches_done"])
+        if done >= self.dataset.batches:  # that epoch is complete: resume at the next one's start
+            epoch, done = epoch + 1, 0
+        self._resume = {"epoch": epoch, "batches_done": done}
+        if self.epoch_fn is None:
+            self.epoch = epoch - 1
 
 
 class ClipDataset(Dataset):
-    """All clips in RAM (map-style): center windows for validation, or random windows, as
-    the MDM / HumanML3D loaders do for training."""
+    """All clips in RAM (map-style): center windows for validation, or samples cut by the
+    window sampler, as the MDM / HumanML3D loaders do for training."""
 
     def __init__(self, samples: list[dict], windows: WindowSampler, random_windows: bool = False):
         self.samples, self.windows = samples, windows
         self.random_windows = random_windows
 
     @classmethod
-    def from_shards(cls, urls: list[str], feature_dim: int, windows: WindowSampler, **kwargs) -> ClipDataset:
-        samples = [decode_sample(raw, feature_dim) for url in urls for raw in iter_tar(url)]
+    def from_shards(cls, urls: list[str], feature_dim: int, windows: WindowSampler,
+                    max_bad_fraction: float = 0.01, checks: dict[str, dict] | None = None, **kwargs) -> ClipDataset:
+        """Decode every sample of ``urls``; bad samples and unreadable shards are skipped with a
+        warning and counted, and more than ``max_bad_fraction`` of them stops with one line."""
+        samples, bad, last, checks = [], 0, "", checks or {}
+        for url in urls:
+            expected = checks.get(url)
+            try:
+                for raw in iter_tar(url, **expected, whole=True) if expected else iter_tar(url):
+                    try:
+                        samples.append(decode_sample(raw, feature_dim))
+                    except (ValueError, KeyError) as e:
+                        bad, last = bad + 1, f"{url} key {raw.get('__key__')}: {e}"
+                        log.warning("skipping bad sample %s", last)
+            except Exception as e:  # noqa: BLE001 - a bad shard is counted, not raised
+                bad += (expected or {}).get("samples", 1)
+                last = f"{url}: {shard_problem(e)}"
+                log.warning("skipping %s", last)
+        seen = len(samples) + bad
+        if bad and (not samples or bad > max_bad_fraction * seen):
+            raise TooManyBadSamples(f"{bad} of {seen} samples of {len(urls)} shards were bad (last: {last}), over "
+                                    f"data.max_bad_fraction={max_bad_fraction}; check them with `omg shards inspect`")
         return cls(samples, windows, **kwargs)
 
     def __len__(self) -> int:
@@ -217,7 +275,7 @@ class ClipDataset(Dataset):
         sample = self.samples[index]
         if self.random_windows:
             rng = np.random.default_rng()
-            start, length = self.windows.random(len(sample["motion"]), rng)
+            start, length = self.windows(len(sample["motion"]), rng)
             return make_item(sample, start, length, pick_text(sample["texts"], rng))
         start, length = self.windows.center(len(sample["motion"]))
         return make_item(sample, start, length, sample["texts"][0] if sample["texts"] else "")
@@ -229,12 +287,21 @@ class MotionDataModule(L.LightningDataModule):
     Args:
         train: shard directory, URL pattern (``/data/shard-{000000..000099}.tar``) or a list.
         val: the same for validation (a small set: it is loaded into memory), or None.
-        batch_size: windows per batch on each rank.
-        max_len / min_len: window length bounds in frames (OMG: 300 at 30 fps).
+        batch_size: samples per batch on each rank.
+        max_len / min_len: sample length bounds in frames (OMG pretraining: windows of up to 300
+            frames; HumanML3D fine-tuning: whole clips of up to 196 frames at 20 fps).
+        clips: how samples are cut from clips: ``windows`` (sliding random windows, long takes
+            sampled in proportion to their length: unlabeled pretraining), ``whole`` (the whole
+            clip, a random ``max_len`` crop when longer: captioned data), or ``auto``: what the
+            model asks for (its ``clip_sampling`` attribute; ``windows`` when it names none).
         batches_per_epoch: batches each rank yields per training epoch.
         shuffle_buffer: samples held by each worker to shuffle within.
         normalize: standardise features with the manifest's mean/std.
         max_bad_fraction: stop when more than this fraction of the samples a worker read were bad.
+        timeout: seconds a data worker may take for one batch before the run stops with an error
+            (0: wait forever); a stalled worker never hangs a run.
+        verify_shards: check each shard against its manifest (size, sample count, sha256) before
+            any of its samples is used; a shard that fails is skipped whole and counted as bad.
     """
 
     def __init__(
@@ -244,12 +311,15 @@ class MotionDataModule(L.LightningDataModule):
         batch_size: int = 32,
         max_len: int = 300,
         min_len: int = 40,
+        clips: str = "auto",
         batches_per_epoch: int = 1000,
         num_workers: int = 2,
         shuffle_buffer: int = 1000,
         seed: int = 0,
         normalize: bool = True,
         max_bad_fraction: float = 0.01,
+        timeout: float = 600.0,
+        verify_shards: bool = True,
     ):
         super().__init__()
         if batch_size < 1 or batches_per_epoch < 1 or num_workers < 0 or shuffle_buffer < 1:
@@ -257,10 +327,18 @@ class MotionDataModule(L.LightningDataModule):
                 "data.batch_size, data.batches_per_epoch and data.shuffle_buffer must be positive and "
                 f"data.num_workers >= 0, got {batch_size}, {batches_per_epoch}, {shuffle_buffer}, {num_workers}"
             )
+        if not timeout >= 0:  # also NaN
+            raise UsageError(f"data.timeout must be >= 0 seconds (0: no limit), got {timeout}")
+        if clips not in ("auto", *CLIP_MODES):
+            raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
         self.save_hyperparameters()
-        self.windows = WindowSampler(max_len, min_len)
-        self.train_urls, self.manifest = resolve_shards(train)
-        self.val_urls = resolve_shards(val)[0] if val else []
+        self.train_urls, self.manifest, self.shard_checks = resolve_shards(train)
+        self.val_urls = []
+        if val:
+            self.val_urls, _, val_checks = resolve_shards(val)
+            self.shard_checks = {**self.shard_checks, **val_checks}
+        if not verify_shards:
+            self.shard_checks = {}
         mean, std = (self.manifest.mean, self.manifest.std) if normalize else (None, None)
         self.collate = Collate(mean, std)
 
@@ -285,6 +363,15 @@ class MotionDataModule(L.LightningDataModule):
     def spec(self) -> dict:
         return self.manifest.spec()
 
+    @property
+    def windows(self) -> WindowSampler:
+        """How samples are cut: ``data.clips``, or under ``auto`` the attached model's ``clip_sampling``."""
+        mode = self.hparams.clips
+        if mode == "auto":
+            model = self.trainer.lightning_module if self.trainer is not None else None
+            mode = getattr(model, "clip_sampling", "windows")
+        return WindowSampler(self.hparams.max_len, self.hparams.min_len, mode)
+
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer
         return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
@@ -292,6 +379,7 @@ class MotionDataModule(L.LightningDataModule):
     def train_dataloader(self) -> StreamLoader:
         h = self.hparams
         rank, world = self._rank_world()
+        manifest = self.manifest
         stream = MotionStream(
             rank_shards(self.train_urls, rank, world),
             rank=rank,
@@ -302,14 +390,24 @@ class MotionDataModule(L.LightningDataModule):
             seed=h.seed,
             shuffle_buffer=h.shuffle_buffer,
             max_bad_fraction=h.max_bad_fraction,
+            checks=self.shard_checks,
+            mean_frames=manifest["num_frames"] / max(1, manifest["num_clips"]),
         )
-        return StreamLoader(stream, num_workers=h.num_workers, collate_fn=self.collate, persistent_workers=False)
+        trainer = self.trainer
+        return StreamLoader(stream, epoch_fn=(lambda: trainer.current_epoch) if trainer is not None else None,
+                            num_workers=h.num_workers, collate_fn=self.collate, persistent_workers=False,
+                            timeout=h.timeout if h.num_workers > 0 else 0)
+
+    def val_clips(self) -> ClipDataset:
+        """The validation set, decoded and verified (bad samples skipped and counted)."""
+        return ClipDataset.from_shards(self.val_urls, self.feature_dim, self.windows, self.hparams.max_bad_fraction,
+                                       self.shard_checks)
 
     def val_dataloader(self) -> DataLoader | list:
         if not self.val_urls:
             return []
-        dataset = ClipDataset.from_shards(self.val_urls, self.feature_dim, self.windows)
-        return DataLoader(dataset, batch_size=self.hparams.batch_size, collate_fn=self.collate, num_workers=0)
+        return DataLoader(self.val_clips(), batch_size=self.hparams.batch_size, collate_fn=self.collate,
+                          num_workers=0)
 
     def test_dataloader(self) -> DataLoader | list:
         return self.val_dataloader()

@@ -10,7 +10,9 @@ is one clip stored under a key without dots:
 - ``<key>.texts.json``: a list of captions, empty for unlabeled data.
 
 Shards are written under a temporary name and renamed when complete, so a shard file that
-exists is whole. ``build-state.json`` records the finished shards with the source position
+exists is whole. The manifest records each shard's sample count, byte size and sha256;
+``iter_tar`` checks a shard against them as it reads (``ShardError`` names the shard and the
+failed check) and ``check_shards`` (``omg shards inspect``) checks a whole set. ``build-state.json`` records the finished shards with the source position
 and feature statistics they cover; an interrupted build resumes after the last of them.
 """
 
@@ -350,9 +352,79 @@ class ShardWriter:
         write_json(self.out_dir / MANIFEST, manifest)
 
 
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _manifest_problem(data) -> str | None:
+    """What is wrong with a parsed manifest, in a few words, or None."""
+    if not isinstance(data, dict):
+        return f"not a JSON object but a JSON {type(data).__name__}"
+    if "schema_version" not in data:
+        return "missing key 'schema_version'"
+    if data["schema_version"] != SCHEMA_VERSION:
+        return f"schema version {data['schema_version']!r}, this omg reads {SCHEMA_VERSION}; rebuild the shards"
+    required = ("representation", "skeleton", "feature_dim", "fps", "shards", "mean", "std")
+    if missing := [k for k in required if k not in data]:
+        return f"missing key{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))}"
+    for key in ("representation", "skeleton"):
+        if not isinstance(data[key], str) or not data[key]:
+            return f"{key!r} must be a non-empty string, got {data[key]!r}"
+    if not _is_int(data["feature_dim"]) or data["feature_dim"] < 1:
+        return f"'feature_dim' must be a positive integer, got {data['feature_dim']!r}"
+    if not _is_number(data["fps"]) or not data["fps"] > 0:
+        return f"'fps' must be a positive number, got {data['fps']!r}"
+    for key in ("mean", "std"):
+        values = data[key]
+        if not isinstance(values, list) or not all(_is_number(v) for v in values):
+            return f"{key!r} must be a list of numbers"
+        if len(values) != data["feature_dim"]:
+            return f"{key!r} has {len(values)} values, 'feature_dim' is {data['feature_dim']}"
+        if not np.isfinite(values).all() or (key == "std" and min(values) <= 0):
+            return f"{key!r} must be {'positive and ' if key == 'std' else ''}finite"
+    for key in ("num_clips", "num_frames", "num_shards"):
+        if key in data and (not _is_int(data[key]) or data[key] < 0):
+            return f"{key!r} must be a non-negative integer, got {data[key]!r}"
+    shards = data["shards"]
+    if not isinstance(shards, list) or not shards:
+        return "'shards' must be a non-empty list of shard entries"
+    names = set()
+    for i, entry in enumerate(shards):
+        if not isinstance(entry, dict):
+            return f"shards[{i}] must be an object, got {entry!r}"
+        name = entry.get("name")
+        if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in (".", ".."):
+            return f"shards[{i}] needs a 'name' (a file name in the manifest's directory), got {name!r}"
+        if name in names:
+            return f"shard {name} is listed twice"
+        names.add(name)
+        for key in ("clips", "frames", "bytes"):
+            if key in entry and (not _is_int(entry[key]) or entry[key] < 0):
+                return f"shard {name}: {key!r} must be a non-negative integer, got {entry[key]!r}"
+        sha = entry.get("sha256")
+        if sha is not None and not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+            return f"shard {name}: 'sha256' must be 64 lowercase hex digits, got {sha!r}"
+    if "num_shards" in data and data["num_shards"] != len(shards):
+        return f"'num_shards' is {data['num_shards']} but {len(shards)} shards are listed"
+    if "num_clips" in data and all("clips" in s for s in shards) and data["num_clips"] != sum(s["clips"] for s in shards):
+        return f"'num_clips' is {data['num_clips']} but the shards hold {sum(s['clips'] for s in shards)} clips"
+    return None
+
+
 @dataclass
 class Manifest:
-    """The parsed ``manifest.json`` of a shard set."""
+    """The parsed ``manifest.json`` of a shard set.
+
+    ``load`` checks the schema: a manifest that is not JSON, lacks a key, has a value of the
+    wrong type or another schema version is a ``UsageError`` naming the file and the problem.
+    Per shard it records ``name`` and, in manifests written by ``ShardWriter``, ``clips``
+    (samples), ``frames``, ``bytes`` (file size) and ``sha256`` (of the file); the last three
+    are optional for readers: a check whose value is not recorded is not made.
+    """
 
     path: Path
     data: dict
@@ -363,9 +435,17 @@ class Manifest:
         if not path.exists():
             hint = " (an unfinished build: run the same build command again)" if (path.parent / BUILD_STATE).exists() else ""
             raise UsageError(f"no {MANIFEST} in {path.parent}{hint}; build shards with `omg shards build` or `omg shards synth`")
-        data = json.loads(path.read_text())
-        if data.get("schema_version") != SCHEMA_VERSION:
-            raise UsageError(f"{path}: schema version {data.get('schema_version')}, this omg reads {SCHEMA_VERSION}; rebuild the shards")
+        try:
+            data = json.loads(path.read_bytes())
+        except OSError as e:
+            raise UsageError(f"{path}: cannot be read ({e.strerror or e})") from None
+        except UnicodeDecodeError:
+            raise UsageError(f"{path}: not a text file (invalid UTF-8); rebuild the shards") from None
+        except json.JSONDecodeError as e:
+            raise UsageError(f"{path}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno}); rebuild the shards") from None
+        if problem := _manifest_problem(data):
+            hint = "" if "schema version" in problem else "; rebuild the shards"
+            raise UsageError(f"{path}: invalid manifest: {problem}{hint}")
         return cls(path, data)
 
     @property
@@ -375,6 +455,19 @@ class Manifest:
     @property
     def shard_paths(self) -> list[Path]:
         return [self.dir / s["name"] for s in self.data["shards"]]
+
+    def entry(self, url: str | Path) -> dict | None:
+        """The manifest's entry for a shard path or URL (matched by file name), or None."""
+        name = str(url).rstrip("/").rsplit("/", 1)[-1]
+        return next((s for s in self.data["shards"] if s["name"] == name), None)
+
+    def expected(self, url: str | Path) -> dict:
+        """What the manifest records about one shard, as keyword arguments of ``iter_tar``:
+        ``{"sha256": hex, "samples": clips, "size": bytes}`` (only those recorded; ``{}`` for a
+        shard the manifest does not list)."""
+        entry = self.entry(url) or {}
+        found = {"sha256": entry.get("sha256"), "samples": entry.get("clips"), "size": entry.get("bytes")}
+        return {k: v for k, v in found.items() if v is not None}
 
     @property
     def mean(self) -> np.ndarray:
@@ -393,11 +486,14 @@ class Manifest:
 
     def summary(self) -> str:
         d = self.data
-        hours = d["num_frames"] / d["fps"] / 3600
+        shards = d["shards"]
+        clips = d.get("num_clips", sum(s.get("clips", 0) for s in shards))
+        frames = d.get("num_frames", sum(s.get("frames", 0) for s in shards))
+        hours = frames / d["fps"] / 3600
         return (
-            f"{self.dir}: {d['num_clips']} clips, {d['num_frames']} frames ({hours:.2f} h at {d['fps']} fps) "
-            f"in {d['num_shards']} shards; representation {d['representation']} ({d['feature_dim']}-d) "
-            f"on {d['skeleton']}; built by: {d['command'] or 'unknown'}"
+            f"{self.dir}: {clips} clips, {frames} frames ({hours:.2f} h at {d['fps']} fps) "
+            f"in {len(shards)} shards; representation {d['representation']} ({d['feature_dim']}-d) "
+            f"on {d['skeleton']}; built by: {d.get('command') or 'unknown'}"
         )
 
 
@@ -422,40 +518,291 @@ def decode_sample(raw: dict[str, bytes], feature_dim: int | None = None) -> dict
     return {"key": raw.get("__key__", meta["id"]), "motion": motion, "meta": meta, "texts": texts}
 
 
-def iter_tar(path: str | Path) -> Iterator[dict[str, bytes]]:
-    """Raw samples (``{"__key__", ext: bytes}``) of one tar, grouped by key like WebDataset."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading shards, checked against the manifest
+
+SHARD_CHECKS = ("file", "size", "readable", "samples", "end-of-archive", "sha256")
+_END_OF_ARCHIVE = b"\0" * 1024  # two zero blocks end every tar
+_COMPRESSED_MAGIC = (b"\x1f\x8b", b"BZh", b"\xfd7zXZ", b"\x28\xb5\x2f\xfd")
+
+
+class ShardError(ValueError):
+    """A shard that is missing, unreadable, or does not match what its manifest records.
+
+    ``shard``: the path or URL; ``check``: which check failed, one of ``SHARD_CHECKS``
+    (``file`` missing, ``size`` bytes differ, ``readable`` the tar is broken, ``samples`` the
+    sample count differs, ``end-of-archive`` the tar lacks its closing zero blocks, ``sha256``
+    the bytes are garbled or replaced); ``reason``: what was found, e.g. "truncated: 3 of 5
+    samples". ``str(e)`` is ``"<shard>: <reason>"``.
+    """
+
+    def __init__(self, shard: str, check: str = "readable", reason: str = ""):
+        super().__init__(f"{shard}: {reason}" if reason else str(shard))
+        self.shard, self.check, self.reason = str(shard), check, reason or str(shard)
+
+    def __reduce__(self):  # keep the fields through pickling (DataLoader workers)
+        return type(self), (self.shard, self.check, self.reason)
+
+
+class _CheckedReader:
+    """A read-only stream wrapper that hashes and counts the bytes as they pass and keeps the
+    first and the last bytes, so a shard is verified in the same single pass that parses it."""
+
+    def __init__(self, raw, sha256: bool):
+        self.raw = raw
+        self.hash = hashlib.sha256() if sha256 else None
+        self.count = 0
+        self.head = self.tail = b""
+        self.trailing_garbage = False  # non-zero bytes drained after tarfile stopped reading
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.raw.read(size)
+        if data:
+            if self.hash is not None:
+                self.hash.update(data)
+            self.count += len(data)
+            if len(self.head) < 8:
+                self.head = (self.head + data)[:8]
+            self.tail = data[-1024:] if len(data) >= 1024 else (self.tail + data)[-1024:]
+        return data
+
+    def drain(self) -> None:
+        """Read the rest: what follows the point where tarfile stopped (its read-ahead aside)
+        must be end-of-archive zeros, else a damaged header ended the archive early."""
+        while data := self.read(1 << 20):
+            if data.count(0) != len(data):
+                self.trailing_garbage = True
+
+    @property
+    def compressed(self) -> bool:
+        return self.head.startswith(_COMPRESSED_MAGIC)
+
+
+def _local_path(url: str) -> Path | None:
+    if url.startswith("file://"):
+        return Path(url[len("file://"):])
+    if "://" in url or url.startswith("pipe:") or url == "-":
+        return None
+    return Path(url)
+
+
+def _first_arg(e: Exception) -> str:
+    """An exception's own message, without the " @ <stream>" webdataset appends."""
+    return str(e.args[0]).split(" @ <")[0] if e.args else type(e).__name__
+
+
+def _size_error(url: str, found: int, size: int) -> ShardError:
+    if found < size:
+        return ShardError(url, "size", f"truncated: {found} of {size} bytes")
+    return ShardError(url, "size", f"{found} bytes, the manifest says {size}")
+
+
+def _byte_errors(url: str, reader: _CheckedReader, sha256: str | None, size: int | None,
+                 early_end: bool = False) -> list[ShardError]:
+    """Checks on the bytes of a fully read shard, most telling first; ``early_end``: non-zero
+    bytes followed the point where tarfile saw the end of the archive."""
+    errors = []
+    if size is not None and reader.count != size:
+        errors.append(_size_error(url, reader.count, size))
+    if not reader.compressed and (reader.count < len(_END_OF_ARCHIVE) or reader.tail != _END_OF_ARCHIVE):
+        errors.append(ShardError(url, "end-of-archive", f"no end-of-archive blocks: the tar is cut after {reader.count} bytes"))
+    elif early_end:
+        errors.append(ShardError(url, "end-of-archive", "data after an early end of the archive (a damaged member header?)"))
+    if sha256 is not None and reader.hash is not None and (digest := reader.hash.hexdigest()) != sha256:
+        errors.append(ShardError(url, "sha256", f"sha256 {digest[:12]}… of its {reader.count} bytes does not match "
+                                                f"the manifest's {sha256[:12]}… (garbled or replaced)"))
+    return errors
+
+
+def _count_error(url: str, count: int, samples: int | None) -> ShardError | None:
+    if samples is None or count == samples:
+        return None
+    if count < samples:
+        return ShardError(url, "samples", f"truncated: {count} of {samples} samples")
+    return ShardError(url, "samples", f"{count} samples, the manifest says {samples}")
+
+
+def _tar_samples(stream, url: str) -> Iterator[dict[str, bytes]]:
     import webdataset as wds
 
-    stream = wds.gopen(str(path))
+    files = wds.tariterators.tar_file_expander([{"url": url, "stream": stream}])
+    for sample in wds.tariterators.group_by_keys(files):
+        sample.pop("__url__", None)
+        yield sample
+
+
+def _read_shard(url: str, sha256: str | None = None, samples: int | None = None, size: int | None = None,
+                whole: bool = False, precheck: bool = True) -> Iterator[dict[str, bytes]]:
+    import webdataset as wds
+
+    local = _local_path(url)
+    if local is not None:
+        if not local.is_file():
+            raise ShardError(url, "file", "no such file")
+        if precheck and size is not None and (found := local.stat().st_size) != size:
+            raise _size_error(url, found, size)
     try:
-        files = wds.tariterators.tar_file_expander([{"url": str(path), "stream": stream}])
-        for sample in wds.tariterators.group_by_keys(files):
-            sample.pop("__url__", None)
-            yield sample
+        raw = open(local, "rb") if local is not None else wds.gopen(url)
+    except OSError as e:
+        raise ShardError(url, "file", f"cannot be opened ({e.strerror or e})") from None
+    source = _CheckedReader(raw, sha256 is not None)  # hashes, counts and keeps the tail of the file's bytes
+    try:
+        if whole:  # parsed from memory: every check runs before the first sample is yielded
+            data = b"".join(iter(lambda: source.read(1 << 22), b""))
+            reader = _CheckedReader(io.BytesIO(data), False)
+            del data
+        else:
+            reader = source
+        count, buffered, parsed = 0, [], _tar_samples(reader, url)
+        while True:
+            try:
+                sample = next(parsed)
+            except StopIteration:
+                break
+            except Exception as e:  # noqa: BLE001 - any failure to parse the tar names the shard
+                reason = f"unreadable after {count} sample{'' if count == 1 else 's'} ({type(e).__name__}: {_first_arg(e)})"
+                source.drain()
+                if notes := [err.reason for err in _byte_errors(url, source, sha256, size) if err.check != "end-of-archive"]:
+                    reason += "; " + "; ".join(notes)
+                raise ShardError(url, "readable", reason) from None
+            count += 1
+            if whole:
+                buffered.append(sample)
+            else:
+                yield sample
+        reader.drain()
+        errors = _byte_errors(url, source, sha256, size, early_end=reader.trailing_garbage)
+        if error := _count_error(url, count, samples):
+            errors.insert(0, error)
+        if errors:
+            raise errors[0]
+        yield from buffered
     finally:
-        stream.close()
+        raw.close()
+
+
+def iter_tar(path: str | Path, sha256: str | None = None, *, samples: int | None = None, size: int | None = None,
+             whole: bool = False) -> Iterator[dict[str, bytes]]:
+    """Raw samples (``{"__key__", ext: bytes}``) of one tar, grouped by key like WebDataset.
+
+    ``path`` is a file or any URL ``webdataset.gopen`` opens. The expected values come from
+    the manifest (``Manifest.expected(url)`` gives them as keyword arguments):
+
+    - ``sha256``: the bytes are hashed as they are read;
+    - ``samples``: the number of samples the shard must yield ("truncated: N of M samples");
+    - ``size``: the file size in bytes; a local file is measured before anything is read.
+
+    A tar without its end-of-archive zero blocks (cut at a member boundary) fails whether
+    or not anything is expected. Any failure raises ``ShardError`` naming the shard and the
+    check. Streaming (``whole=False``) yields samples as they are read, so the count, hash and
+    end checks raise only after the shard's last sample: the samples before cannot be taken
+    back. ``whole=True`` reads the shard into memory and runs every check before yielding
+    the first sample: nothing from a bad shard is ever yielded.
+    """
+    return _read_shard(str(path), sha256, samples, size, whole, precheck=True)
+
+
+def verify_shard(path: str | Path, sha256: str | None = None, *, size: int | None = None) -> str:
+    """Hash a whole shard file (in chunks, without parsing it); raises ``ShardError`` when it is
+    missing or its size or sha256 differ from the expected ones; returns its sha256."""
+    url = str(path)
+    local = _local_path(url)
+    if local is None or not local.is_file():
+        raise ShardError(url, "file", "no such file")
+    if size is not None and (found := local.stat().st_size) != size:
+        raise _size_error(url, found, size)
+    digest = hashlib.sha256()
+    with open(local, "rb") as f:
+        while chunk := f.read(1 << 22):
+            digest.update(chunk)
+    if sha256 is not None and digest.hexdigest() != sha256:
+        raise ShardError(url, "sha256", f"sha256 {digest.hexdigest()[:12]}… does not match the manifest's "
+                                        f"{sha256[:12]}… (garbled or replaced)")
+    return digest.hexdigest()
+
+
+@dataclass
+class ShardCheck:
+    """The result of checking one shard: samples read and decoded, sample-level problems,
+    the shard-level ``error`` if any, and which manifest checks could be made."""
+
+    name: str
+    samples: int = 0
+    good: int = 0
+    problems: list[str] = field(default_factory=list)
+    error: ShardError | None = None
+    checks: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None and not self.problems
+
+    @property
+    def verified(self) -> bool:
+        """Its bytes matched the manifest's sha256 (and every other recorded check passed)."""
+        return self.error is None and "sha256" in self.checks
+
+
+@dataclass
+class ShardSetCheck:
+    """The result of ``check_shards``: one ``ShardCheck`` per shard of the manifest."""
+
+    manifest: Manifest
+    shards: list[ShardCheck]
+
+    @property
+    def good(self) -> int:
+        """Samples that decoded, in shards that passed every shard-level check."""
+        return sum(s.good for s in self.shards if s.error is None)
+
+    @property
+    def failed(self) -> list[ShardCheck]:
+        return [s for s in self.shards if s.error is not None]
+
+    @property
+    def verified(self) -> int:
+        return sum(s.verified for s in self.shards)
+
+    @property
+    def problems(self) -> list[str]:
+        """Shard-level failures as '<shard>: <check> check failed: <reason>' and bad samples as
+        '<shard> <key>: <reason>'."""
+        out = []
+        for s in self.shards:
+            if s.error is not None:
+                out.append(f"{s.name}: {s.error.check} check failed: {s.error.reason}")
+            out += s.problems
+        return out
+
+
+def check_shards(shard_dir: str | Path) -> ShardSetCheck:
+    """Read every shard of a set once: decode every sample and check each shard's file, size,
+    sample count, end-of-archive blocks and sha256 against the manifest. Raises
+    ``UsageError`` only for a missing or invalid manifest; every other fault is reported."""
+    manifest = Manifest.load(shard_dir)
+    results = []
+    for entry, path in zip(manifest["shards"], manifest.shard_paths):
+        expected = manifest.expected(path)
+        result = ShardCheck(path.name, checks=("file", "readable", "end-of-archive", *expected))
+        try:
+            # streamed without the size pre-check: a bad shard's samples are still decoded and named
+            for raw in _read_shard(str(path), whole=False, precheck=False, **expected):
+                result.samples += 1
+                try:
+                    decode_sample(raw, manifest["feature_dim"])
+                    result.good += 1
+                except (ValueError, KeyError) as e:
+                    result.problems.append(f"{path.name} {raw.get('__key__')}: {e}")
+        except ShardError as e:
+            result.error = e
+        results.append(result)
+    return ShardSetCheck(manifest, results)
 
 
 def validate(shard_dir: str | Path) -> tuple[Manifest, int, list[str]]:
-    """Decode every sample; returns (manifest, good sample count, problems as 'shard key: reason')."""
-    manifest = Manifest.load(shard_dir)
-    problems, good = [], 0
-    for entry, path in zip(manifest["shards"], manifest.shard_paths):
-        if not path.exists():
-            problems.append(f"{path.name}: missing")
-            continue
-        count = 0
-        try:
-            for raw in iter_tar(path):
-                count += 1
-                try:
-                    decode_sample(raw, manifest["feature_dim"])
-                    good += 1
-                except (ValueError, KeyError) as e:
-                    problems.append(f"{path.name} {raw.get('__key__')}: {e}")
-        except Exception as e:  # noqa: BLE001 - a broken tar is reported, not raised
-            problems.append(f"{path.name}: unreadable after {count} samples ({type(e).__name__}: {e})")
-            continue
-        if count != entry["clips"]:
-            problems.append(f"{path.name}: {count} samples, the manifest says {entry['clips']}")
-    return manifest, good, problems
+    """Decode every sample and check every shard against the manifest (see ``check_shards``);
+    returns (manifest, good sample count, problems as 'shard key: reason' or 'shard: ...')."""
+    result = check_shards(shard_dir)
+    return result.manifest, result.good, result.problems

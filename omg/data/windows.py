@@ -1,8 +1,13 @@
-"""Sliding random windows over clips, and the pad + mask collate.
+"""What a training sample is cut from a clip, and the pad + mask collate.
 
-Every clip of T frames yields one window per visit: a length l ~ U[min_len, min(L, T)] and a
-start i ~ U[0, T - l] (OMG: L = 300 frames at 30 fps). Clips shorter than ``min_len`` are
-used whole, so no data is dropped for being short.
+Two ways to cut, chosen by what the model learns from:
+
+- ``windows`` (unlabeled pretraining, OMG Sec. 3.1): sliding random windows, a length
+  l ~ U[min_len, min(L, T)] and a start i ~ U[0, T - l] (OMG: L = 300 frames). A long take
+  yields proportionally more windows than a short clip (``visits``), so every frame of the
+  data is equally likely to be trained on. Clips shorter than ``min_len`` are used whole.
+- ``whole`` (captioned data: a caption describes its whole clip): the clip itself, cropped at
+  a random start to ``max_len`` only when longer, as HumanML3D's loaders do (196 frames).
 """
 
 from __future__ import annotations
@@ -23,14 +28,24 @@ def length_mask(lengths, frames: int | None = None, device: torch.device | str |
     return torch.arange(frames, device=lengths.device)[None, :] < lengths[:, None]
 
 
+CLIP_MODES = ("windows", "whole")
+
+
 @dataclass(frozen=True)
 class WindowSampler:
     max_len: int = 300
     min_len: int = 40
+    mode: str = "windows"  # one of CLIP_MODES
 
     def __post_init__(self):
         if not 1 <= self.min_len <= self.max_len:
             raise UsageError(f"windows need 1 <= min_len <= max_len, got min_len={self.min_len}, max_len={self.max_len}")
+        if self.mode not in CLIP_MODES:
+            raise UsageError(f"data.clips must be one of {', '.join(CLIP_MODES)}, got {self.mode!r}")
+
+    def __call__(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
+        """(start, length) of the next training sample of a clip, by ``mode``."""
+        return self.random(num_frames, rng) if self.mode == "windows" else self.whole(num_frames, rng)
 
     def random(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
         """(start, length) of a random window."""
@@ -39,6 +54,25 @@ class WindowSampler:
         length = int(rng.integers(low, high + 1))
         start = int(rng.integers(0, num_frames - length + 1))
         return start, length
+
+    def whole(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
+        """(start, length): the whole clip, or a random ``max_len`` crop of a longer one."""
+        length = min(self.max_len, num_frames)
+        return int(rng.integers(0, num_frames - length + 1)), length
+
+    def visits(self, num_frames: int, mean_frames: float | None, rng: np.random.Generator) -> int:
+        """How many samples a clip yields when the stream reads it.
+
+        ``whole`` clips and streams without a ``mean_frames`` yield one per read. Sliding windows
+        yield T / mean_frames on average (random rounding of the fraction), so over a pass of
+        the data a clip contributes in proportion to its frames and a set of average clips
+        still yields one window per clip read; a clip may then yield none on a given read.
+        """
+        if self.mode == "whole" or not mean_frames:
+            return 1
+        expected = num_frames / mean_frames
+        whole = int(expected)
+        return whole + int(rng.random() < expected - whole)
 
     def center(self, num_frames: int) -> tuple[int, int]:
         """The deterministic window used for validation: the middle ``max_len`` frames."""

@@ -9,6 +9,8 @@ has put the joint so far, so that errors do not accumulate along a chain.
 from __future__ import annotations
 
 import json
+import math
+import os
 import re
 import time
 from pathlib import Path
@@ -17,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from omg.cli import ToolParser
+from omg.cli import ToolParser, positive_float, read_text
 from omg.errors import UsageError
 from omg.io.bvh import write_bvh
 from omg.io.contacts import clean_foot_contacts
@@ -133,10 +135,10 @@ def parse_args(argv: list[str]):
     p = ToolParser(prog="omg export", description="Write BVH files (and GIF previews) of generated motions.")
     p.add_argument("inputs", nargs="+", help="directories (of *.joints.npy, else *.features.npy) or .npy files")
     p.add_argument("--skeleton", help=f"skeleton name (default: generation.json's, else {DEFAULT_SKELETON})")
-    p.add_argument("--fps", type=float, help=f"frames per second (default: generation.json's, else {DEFAULT_FPS:g})")
+    p.add_argument("--fps", type=positive_float, help=f"frames per second (default: generation.json's, else {DEFAULT_FPS:g})")
     p.add_argument("--representation", help="decode *.features.npy with this representation (e.g. humanml3d263)")
     p.add_argument("--order", default="ZXY", choices=EULER_ORDERS, help="Euler order of the BVH rotation channels")
-    p.add_argument("--scale", type=float, default=1.0, help="BVH units per metre (100 for centimetres)")
+    p.add_argument("--scale", type=positive_float, default=1.0, help="BVH units per metre (100 for centimetres)")
     p.add_argument("--no-preview", action="store_true", help="skip the GIF previews")
     p.add_argument("--clean-contacts", action="store_true", help="pin planted feet (removes foot skating) before IK")
     return p.parse_args(argv)
@@ -155,13 +157,30 @@ def _inputs(spec: str) -> list[Path]:
 
 
 def _settings(directory: Path) -> dict:
+    """``omg generate``'s generation.json beside the motions, checked; {} when there is none."""
     path = directory / "generation.json"
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         return {}
     try:
-        return json.loads(path.read_text())
+        settings = json.loads(read_text(path, "settings file"))
     except json.JSONDecodeError as e:
         raise UsageError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(settings, dict):
+        raise UsageError(f"{path}: expected a JSON object (omg generate's settings), got a JSON {type(settings).__name__}")
+    for key in ("skeleton", "representation"):
+        if settings.get(key) is not None and not isinstance(settings[key], str):
+            raise UsageError(f"{path}: {key!r} must be a name, got {settings[key]!r}")
+    fps = settings.get("fps")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float))
+                            or not math.isfinite(fps) or fps <= 0):
+        raise UsageError(f"{path}: 'fps' must be a positive number, got {fps!r}; or pass --fps")
+    prompts = settings.get("prompts")
+    if prompts is not None and not (isinstance(prompts, list) and all(isinstance(p, str) for p in prompts)):
+        raise UsageError(f"{path}: 'prompts' must be a list of strings, got {prompts!r}")
+    num = settings.get("num_samples")
+    if num is not None and (isinstance(num, bool) or not isinstance(num, int) or num < 1):
+        raise UsageError(f"{path}: 'num_samples' must be a positive integer, got {num!r}")
+    return settings
 
 
 def _prompt(settings: dict, stem: str) -> list[str]:
@@ -205,8 +224,12 @@ def _load_positions(path: Path, skeleton: Skeleton, representation: str | None) 
 
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
-    if args.fps is not None and args.fps <= 0:
-        raise UsageError(f"--fps must be positive, got {args.fps}")
+    if args.representation is not None:
+        from omg.registry import REPRESENTATIONS
+
+        REPRESENTATIONS.get(args.representation)  # an unknown name is a UsageError naming the known ones
+    if args.skeleton is not None:
+        get_skeleton(args.skeleton)
     jobs = []  # every file is read and checked before anything is written
     for path in [f for spec in args.inputs for f in _inputs(spec)]:
         settings = _settings(path.parent)
@@ -215,10 +238,23 @@ def main(argv: list[str]) -> None:
         stem = path.with_name(re.sub(r"(\.joints|\.features)?\.npy$", "", path.name))
         fps = args.fps or settings.get("fps") or DEFAULT_FPS
         jobs.append((path, stem, positions, skel, fps, _prompt(settings, stem.name)))
-    for path, stem, positions, skel, fps, texts in jobs:
-        start = time.perf_counter()
-        report = export_motion(stem, positions, skel, fps, texts, not args.no_preview, args.order, args.scale,
-                               args.clean_contacts)
-        written = ", ".join(Path(report[k]).name for k in ("bvh", "gif") if k in report)
-        print(f"{path}: {written} ({report['frames']} frames at {fps:g} fps, IK error "
-              f"{report['ik_error_m'] * 1000:.3f} mm, {time.perf_counter() - start:.1f} s)")  # fmt: skip
+    extensions = ("bvh",) if args.no_preview else ("bvh", "gif")
+    targets = [stem.with_name(f"{stem.name}.{ext}") for _, stem, *_ in jobs for ext in extensions]
+    for target in targets:
+        if target.is_dir():
+            raise UsageError(f"{target}: a folder is in the way of the output file; move it or export elsewhere")
+        if not os.access(target.parent, os.W_OK | os.X_OK):
+            raise UsageError(f"{target.parent}: not writable; copy the motions to a folder you can write to")
+    new = [t for t in targets if not t.exists()]
+    try:
+        for path, stem, positions, skel, fps, texts in jobs:
+            start = time.perf_counter()
+            report = export_motion(stem, positions, skel, fps, texts, not args.no_preview, args.order, args.scale,
+                                   args.clean_contacts)
+            written = ", ".join(Path(report[k]).name for k in ("bvh", "gif") if k in report)
+            print(f"{path}: {written} ({report['frames']} frames at {fps:g} fps, IK error "
+                  f"{report['ik_error_m'] * 1000:.3f} mm, {time.perf_counter() - start:.1f} s)")  # fmt: skip
+    except Exception:  # a failed export leaves none of the files it created
+        for target in new:
+            target.unlink(missing_ok=True)
+        raise

@@ -8,6 +8,18 @@ while the fp32 master weights lie flattened in the optimizer-states files, one p
 ``load_checkpoint`` reads either, or a file written by ``convert``, into one Lightning-style
 dict with fp32 weights; ``load_module`` rebuilds the LightningModule from it; ``convert``
 writes the file that inference and fine-tuning load without DeepSpeed.
+
+Reading a checkpoint never runs code from it. Every pickle is read with
+``torch.load(weights_only=True)``, which builds only containers, numbers, strings and tensors
+plus the few classes allow-listed below, and refuses anything else (a crafted pickle's
+``__reduce__`` is never called): ``UnsafeCheckpoint``. DeepSpeed's own ``zero_to_fp32`` loader
+passes ``weights_only=False``; it runs here only after every pickle it will read has passed the
+weights-only load, and with torch's ``TORCH_FORCE_WEIGHTS_ONLY_LOAD`` switch on, so that its
+loads are weights-only too. The class a checkpoint names is imported only when it is one of
+omg's (``omg.lit``) or already imported (a plugin's, the caller's own), and only a
+LightningModule subclass is ever instantiated. ``torch.save`` records a CRC-32 of every entry,
+which ``torch.load`` does not check: it is checked here, so zeroed or overwritten bytes are a
+``CorruptCheckpoint`` rather than silently wrong weights.
 """
 
 from __future__ import annotations
@@ -17,9 +29,15 @@ import importlib
 import io
 import json
 import os
+import pickle
+import re
+import struct
+import sys
+import warnings
 import zipfile
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import lightning as L
 import torch
@@ -43,9 +61,148 @@ DEEPSPEED_KEYS = {
 }
 METADATA_KEYS = ("module_class", "hyper_parameters", "ema_weights")  # JSON strings in the safetensors header
 
+# The only Python classes (beyond containers, numbers, strings, tensors, dtypes, torch.Size) that a
+# checkpoint's pickles may hold, found by saving real checkpoints and listing their globals with
+# torch.serialization.get_unsafe_globals_in_checkpoint. The .ckpt files that `omg fit` (LightningCLI)
+# and a plain Trainer write for PretrainModule, ControlNetModule and EvaluatorModule hold none:
+# hyper-parameters are plain dicts (LightningCLI stores the config's values, not jsonargparse
+# Namespaces), paths are strings, the data position, EMA and RNG state are ints and tensors
+# (tests/test_checkpoint_safety.py keeps this true).
+LIGHTNING_SAFE_GLOBALS: tuple[str, ...] = ()
+# A DeepSpeed 0.19 ZeRO-2 checkpoint (bf16, one rank, as Lightning's DeepSpeedStrategy saves it): the
+# model-states file holds none; the optimizer-states file holds these. All four are plain records
+# (an int enum, two loss-scaler objects restored by __dict__ update, a dataclass of two ints).
+DEEPSPEED_SAFE_GLOBALS: tuple[str, ...] = (
+    "deepspeed.runtime.zero.config.ZeroStageEnum",  # zero_stage
+    "deepspeed.runtime.fp16.loss_scaler.LossScaler",  # loss_scaler (bf16, fp32, static fp16)
+    "deepspeed.runtime.fp16.loss_scaler.DynamicLossScaler",  # loss_scaler (fp16 with dynamic scaling)
+    "deepspeed.utils.tensor_fragment.fragment_address",  # param_slice_mappings
+)
+ZIP_MAGIC = b"PK\x03\x04"
+
+
+class CorruptCheckpoint(UsageError):
+    """A checkpoint whose bytes cannot be read back: truncated, zeroed, overwritten, or not a checkpoint."""
+
+
+class UnsafeCheckpoint(UsageError):
+    """A checkpoint whose pickles hold objects that a weights-only load refuses: loading it could run code."""
+
 
 def class_path(cls: type) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
+
+
+# -- reading pickles safely ---------------------------------------------------------------
+
+def _globals(names: Iterable[str]) -> list[type]:
+    out = []
+    for name in names:
+        module, _, attr = name.rpartition(".")
+        out.append(getattr(importlib.import_module(module), attr))
+    return out
+
+
+def _check_zip(path: Path) -> None:
+    """Raise CorruptCheckpoint unless every entry of the zip that ``torch.save`` wrote is whole and
+    matches its CRC-32 (one sequential read of the file; entries saved without a CRC are skipped)."""
+    try:
+        with zipfile.ZipFile(path) as z, open(path, "rb") as f:
+            for info in z.infolist():
+                f.seek(info.header_offset)
+                header = f.read(30)
+                if len(header) < 30 or header[:4] != ZIP_MAGIC:
+                    raise CorruptCheckpoint(f"{path} is corrupt: the header of its entry {info.filename} is damaged "
+                                            "(zeroed or overwritten bytes); use another checkpoint")
+                name_len, extra_len = struct.unpack("<HH", header[26:30])
+                if info.compress_type != zipfile.ZIP_STORED or not info.CRC:
+                    continue  # torch.save stores entries uncompressed, with a CRC unless switched off
+                f.seek(info.header_offset + 30 + name_len + extra_len)
+                remaining, crc = info.compress_size, 0
+                while remaining:
+                    chunk = f.read(min(remaining, 1 << 24))
+                    if not chunk:
+                        raise CorruptCheckpoint(f"{path} is corrupt: it ends inside its entry {info.filename} "
+                                                "(truncated); use another checkpoint")
+                    crc, remaining = zlib.crc32(chunk, crc), remaining - len(chunk)
+                if crc != info.CRC:
+                    raise CorruptCheckpoint(f"{path} is corrupt: the bytes of its entry {info.filename} do not match "
+                                            "their checksum (zeroed or overwritten); use another checkpoint")
+    except zipfile.BadZipFile as e:
+        raise CorruptCheckpoint(f"{path} is corrupt: {e} (a truncated or damaged file); use another checkpoint") from None
+
+
+def _refusal(path: Path, error: Exception) -> str:
+    found = re.search(r"GLOBAL ([\w.]+)", str(error)) or re.search(r"(?:function|object|got) (<[^>]+>|[\w.]+)", str(error))
+    what = f" ({found.group(1)})" if found else ""
+    return (f"{path} holds pickled Python objects{what} that a checkpoint does not contain, and unpickling them could "
+            "run code: refused (checkpoints are read with torch.load(weights_only=True)); load only checkpoints "
+            "written by omg/Lightning from a source you trust")
+
+
+def _torch_load(path: Path, allowed: tuple[str, ...] = LIGHTNING_SAFE_GLOBALS, mmap: bool = False) -> Any:
+    """``torch.load`` of a torch.save zip file: CRC-checked, weights-only, with ``allowed`` classes."""
+    if not zipfile.is_zipfile(path):
+        raise CorruptCheckpoint(f"{path} is corrupt: a torch zip file without its central directory "
+                                "(truncated?); use another checkpoint")
+    _check_zip(path)
+    try:
+        with torch.serialization.safe_globals(_globals(allowed)):
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+    except pickle.UnpicklingError as e:
+        raise UnsafeCheckpoint(_refusal(path, e)) from None
+    except (RuntimeError, EOFError, ValueError, KeyError, IndexError, TypeError) as e:
+        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        raise CorruptCheckpoint(f"{path} is corrupt: torch cannot read it ({reason}); use another checkpoint") from None
+
+
+@contextlib.contextmanager
+def _weights_only_loads():
+    """Every ``torch.load`` in the block is weights-only, also one that passes ``weights_only=False``
+    (DeepSpeed's zero_to_fp32): torch's own switch, read at each call."""
+    names = ("TORCH_FORCE_WEIGHTS_ONLY_LOAD", "TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD")
+    saved = {k: os.environ.pop(k, None) for k in names}
+    os.environ["TORCH_FORCE_WEIGHTS_ONLY_LOAD"] = "1"
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _is_torch_zip(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(4) == ZIP_MAGIC or zipfile.is_zipfile(path)
+
+
+# -- reading checkpoints ------------------------------------------------------------------
+
+def recorded_class(ckpt: dict[str, Any]) -> str | None:
+    """The LightningModule class a checkpoint names: LightningCLI's ``hyper_parameters._class_path``,
+    else the ``module_class`` omg's modules record; None when it names none."""
+    hparams = ckpt.get("hyper_parameters") or {}
+    return (hparams.get("_class_path") if isinstance(hparams, dict) else None) or ckpt.get("module_class")
+
+
+def inspect_checkpoint(path: PathLike) -> dict[str, Any]:
+    """Check a checkpoint without materialising its weights: ``{"kind": "lightning" | "deepspeed" |
+    "safetensors", "module_class", "hyper_parameters"}``. Every pickle is read (weights-only, tensors
+    memory-mapped) and every byte CRC-checked, so that a checkpoint that passes loads; raises
+    CorruptCheckpoint, UnsafeCheckpoint or UsageError otherwise."""
+    path = Path(path)
+    if path.is_dir():
+        _, _, states = _deepspeed_states(path)
+        return {"kind": "deepspeed", "module_class": recorded_class(states),
+                "hyper_parameters": states.get("hyper_parameters")}
+    if path.suffix == ".safetensors" and path.is_file():
+        metadata = _safetensors_metadata(path)
+        return {"kind": "safetensors", "module_class": metadata["module_class"],
+                "hyper_parameters": metadata["hyper_parameters"]}
+    ckpt = _read_lightning(path, mmap=True)
+    return {"kind": "lightning", "module_class": recorded_class(ckpt), "hyper_parameters": ckpt.get("hyper_parameters")}
 
 
 def load_checkpoint(path: PathLike, default_class: type[L.LightningModule] | None = None) -> dict[str, Any]:
@@ -58,17 +215,8 @@ def load_checkpoint(path: PathLike, default_class: type[L.LightningModule] | Non
         ckpt = _read_deepspeed(path)
     elif path.suffix == ".safetensors" and path.is_file():
         ckpt = _read_safetensors(path)
-    elif zipfile.is_zipfile(path):  # torch.save's format
-        try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=False)  # Lightning pickles non-tensor state
-        except RuntimeError:
-            ckpt = None
-        if not (isinstance(ckpt, dict) and "state_dict" in ckpt):
-            raise UsageError(f"{path} is a torch file but not a Lightning checkpoint; {ACCEPTED}")
-    elif path.exists():
-        raise UsageError(f"{path} is not a checkpoint; {ACCEPTED}")
     else:
-        raise UsageError(f"{path}: no such file or directory; {ACCEPTED}")
+        ckpt = _read_lightning(path)
 
     hparams = dict(ckpt.get("hyper_parameters") or {})
     hparams.pop("_instantiator", None)  # LightningCLI's; we call the class directly
@@ -78,25 +226,60 @@ def load_checkpoint(path: PathLike, default_class: type[L.LightningModule] | Non
             "module_class": module_class or (class_path(default_class) if default_class else None)}
 
 
-def _read_deepspeed(path: Path) -> dict[str, Any]:
+def _read_lightning(path: Path, mmap: bool = False) -> dict[str, Any]:
+    if not path.exists():
+        raise UsageError(f"{path}: no such file or directory; {ACCEPTED}")
+    if not (path.is_file() and _is_torch_zip(path)):  # torch.save's format is a zip file
+        raise UsageError(f"{path} is not a checkpoint; {ACCEPTED}")
+    ckpt = _torch_load(path, LIGHTNING_SAFE_GLOBALS, mmap=mmap)
+    if not (isinstance(ckpt, dict) and isinstance(ckpt.get("state_dict"), dict)):
+        raise UsageError(f"{path} is a torch file but not a Lightning checkpoint; {ACCEPTED}")
+    return ckpt
+
+
+def _deepspeed_states(path: Path) -> tuple[Path, str, dict[str, Any]]:
+    """(root, tag, rank 0's model states) of a DeepSpeed checkpoint directory, after every pickle in
+    its tag folder (the model- and optimizer-states files DeepSpeed's loaders read) passed a
+    weights-only load."""
     if (path / "latest").is_file():
         root, tag = path, (path / "latest").read_text().strip()
     elif any(path.glob("*_model_states.pt")):
         root, tag = path.parent, path.name
     else:
         raise UsageError(f"{path} is a directory without a `latest` file or *_model_states.pt; {ACCEPTED}")
+    folder = root / tag
+    model_files = sorted(folder.glob("*_model_states.pt")) if tag and folder.is_dir() else []
+    if not model_files:
+        raise CorruptCheckpoint(f"{path} is corrupt: its `latest` file names the tag {tag!r}, and {folder} holds no "
+                                "*_model_states.pt (an interrupted save?); use another checkpoint")
+    model_file = folder / "mp_rank_00_model_states.pt"
+    if not model_file.is_file():  # ZeRO-3 writes one per rank
+        model_file = folder / "zero_pp_rank_0_mp_rank_00_model_states.pt"
+    if not model_file.is_file():
+        raise CorruptCheckpoint(f"{path} is corrupt: {folder} lacks rank 0's model states file; use another checkpoint")
+    states = _torch_load(model_file, DEEPSPEED_SAFE_GLOBALS)
+    for file in [*model_files, *sorted(folder.glob("*_optim_states.pt"))]:
+        if file != model_file:
+            _torch_load(file, DEEPSPEED_SAFE_GLOBALS, mmap=True)
+    if not isinstance(states, dict):
+        raise UsageError(f"{model_file} is not a DeepSpeed model-states file; {ACCEPTED}")
+    return root, tag, states
+
+
+def _read_deepspeed(path: Path) -> dict[str, Any]:
+    root, tag, states = _deepspeed_states(path)
     from deepspeed.utils.zero_to_fp32 import get_fp32_state_dict_from_zero_checkpoint  # slow import: only here
 
     try:
-        # it prints a line per stage and a progress bar: the command prints its own summary
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        # it prints a line per stage and a progress bar: the command prints its own summary.
+        # Its loads pass weights_only=False: forced weights-only, with the same allow-list.
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()), \
+                _weights_only_loads(), torch.serialization.safe_globals(_globals(DEEPSPEED_SAFE_GLOBALS)):
             weights = get_fp32_state_dict_from_zero_checkpoint(root, tag)
-    except (FileNotFoundError, ValueError) as e:
-        raise UsageError(f"{path}: unreadable DeepSpeed checkpoint: {e}") from None
-    model_file = root / tag / "mp_rank_00_model_states.pt"
-    if not model_file.is_file():  # ZeRO-3 writes one per rank
-        model_file = root / tag / "zero_pp_rank_0_mp_rank_00_model_states.pt"
-    states = torch.load(model_file, map_location="cpu", weights_only=False)
+    except pickle.UnpicklingError as e:
+        raise UnsafeCheckpoint(_refusal(root / tag, e)) from None
+    except (FileNotFoundError, ValueError, KeyError, RuntimeError) as e:
+        raise UsageError(f"{path}: unreadable DeepSpeed checkpoint: {' '.join(str(e).split())[:300]}") from None
     ckpt = {k: v for k, v in states.items() if k not in DEEPSPEED_KEYS}
     # ZeRO-2 weights are views into one flat fp32 buffer per group: clone so each owns its storage.
     # Lightning < 2.1 wrapped the module, so its names carry the wrapper's attribute.
@@ -104,28 +287,105 @@ def _read_deepspeed(path: Path) -> dict[str, Any]:
     return ckpt
 
 
-def _read_safetensors(path: Path) -> dict[str, Any]:
+def _safetensors_metadata(path: Path) -> dict[str, Any]:
     try:
         with safe_open(path, "pt") as f:
-            metadata, state = f.metadata() or {}, {k: f.get_tensor(k) for k in f.keys()}
+            metadata = f.metadata() or {}
     except SafetensorError as e:
         raise UsageError(f"{path} is not a readable safetensors file ({e}); {ACCEPTED}") from None
     if missing := [k for k in METADATA_KEYS if k not in metadata]:
         raise UsageError(f"{path} lacks omg metadata ({', '.join(missing)}); write it with `omg convert-ckpt`")
-    return {"state_dict": state, **{k: json.loads(metadata[k]) for k in METADATA_KEYS}}
-
-
-def _import_class(name: str | None, src: PathLike) -> type[L.LightningModule]:
-    if name is None:
-        raise UsageError(f"{src} does not say which LightningModule it holds; pass default_class")
-    module, _, attr = name.rpartition(".")
     try:
-        cls = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError, ValueError):
+        return {k: json.loads(metadata[k]) for k in METADATA_KEYS}
+    except json.JSONDecodeError as e:
+        raise UsageError(f"{path}: its omg metadata is not JSON ({e}); write it with `omg convert-ckpt`") from None
+
+
+def _read_safetensors(path: Path) -> dict[str, Any]:
+    metadata = _safetensors_metadata(path)
+    try:
+        with safe_open(path, "pt") as f:
+            state = {k: f.get_tensor(k) for k in f.keys()}
+    except SafetensorError as e:
+        raise UsageError(f"{path} is not a readable safetensors file ({e}); {ACCEPTED}") from None
+    return {"state_dict": state, **metadata}
+
+
+# -- classes ------------------------------------------------------------------------------
+
+def resolve_class(name: str | None, src: PathLike) -> type[L.LightningModule]:
+    """The LightningModule class ``name`` (``"pkg.mod.Class"``) that a checkpoint ``src`` names.
+
+    A checkpoint's metadata is data: naming a module must not make omg import it (an import runs
+    the module's code). Only omg's own modules (``omg.lit``) are imported; any other class must
+    live in a module that is already imported (a plugin's, loaded from its entry point before
+    anything is parsed, or the caller's own code), and it must be a LightningModule subclass.
+    """
+    if not name:
+        raise UsageError(f"{src} does not say which LightningModule it holds; pass default_class")
+    parts = name.split(".")
+    if not all(p.isidentifier() for p in parts) or len(parts) < 2:
+        raise UsageError(f"{src} names {name!r} as its module, which is not a class path")
+    for split in range(len(parts) - 1, 0, -1):  # the longest prefix that is a module
+        module = ".".join(parts[:split])
+        if module in sys.modules:
+            obj: Any = sys.modules[module]
+            break
+        if module == "omg.lit" or module.startswith("omg.lit."):
+            try:
+                obj = importlib.import_module(module)
+            except ImportError:
+                continue
+            break
+    else:
+        raise UsageError(f"{src} holds a {name} checkpoint: omg imports only its own LightningModules (omg.lit) and "
+                         f"those of modules already imported (plugins), and {name} is neither")
+    try:
+        for attr in parts[split:]:
+            obj = getattr(obj, attr)
+    except AttributeError:
         raise UsageError(f"{src} holds a {name} checkpoint, and {name} cannot be imported here") from None
-    if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
+    if not (isinstance(obj, type) and issubclass(obj, L.LightningModule)):
         raise UsageError(f"{src} names {name} as its module, which is not a LightningModule")
-    return cls
+    return obj
+
+
+def _build(cls: type[L.LightningModule], hparams: dict[str, Any], src: PathLike, device: str | None = None):
+    """``cls(**hparams)``; on the meta device (structure only, no weights read) when asked."""
+    try:
+        with torch.device(device) if device else contextlib.nullcontext(), warnings.catch_warnings():
+            # a module that loads weights while it is built (ControlNetModule's frozen base) copies onto meta
+            warnings.filterwarnings("ignore", message=".*non-meta parameter in the checkpoint to a meta parameter")
+            return cls(**hparams)
+    except TypeError as e:
+        raise UsageError(f"{src}: its hyper-parameters do not fit {class_path(cls)} ({e})") from None
+
+
+def _trainable_prefix(module: L.LightningModule, src: PathLike) -> str:
+    """The state-dict prefix of the submodule whose parameters the module's EMA tracks
+    (``module.trainable_module()``: ``model.`` for PretrainModule, ``controlnet.`` for ControlNetModule)."""
+    trainable = module.trainable_module() if callable(getattr(module, "trainable_module", None)) else None
+    for name, sub in module.named_modules():
+        if sub is trainable:
+            return f"{name}." if name else ""
+    raise UsageError(f"{src}: {class_path(type(module))} does not say which of its submodules its EMA tracks "
+                     "(a trainable_module() method); convert without --ema")
+
+
+def check_weights(module: L.LightningModule, state: dict[str, torch.Tensor], src: PathLike) -> None:
+    """UsageError unless ``state`` holds exactly the module's weights, with their shapes."""
+    expected = module.state_dict()
+    name = class_path(type(module))
+    if missing := [k for k in expected if k not in state]:
+        raise UsageError(f"{src} lacks {len(missing)} of the {len(expected)} weights of a {name} (e.g. {missing[0]}): "
+                         "not a complete checkpoint of that module")
+    if unexpected := [k for k in state if k not in expected]:
+        raise UsageError(f"{src} holds {len(unexpected)} weights a {name} does not have (e.g. {unexpected[0]}): "
+                         "a checkpoint of another model")
+    for k, t in expected.items():
+        if tuple(state[k].shape) != tuple(t.shape):
+            raise UsageError(f"{src}: {k} has the shape {tuple(state[k].shape)}, where a {name} built from the "
+                             f"checkpoint's hyper-parameters has {tuple(t.shape)}")
 
 
 def load_module(
@@ -142,10 +402,11 @@ def load_module(
     class (or a base class) the caller needs.
     """
     ckpt = load_checkpoint(path, default_class)
-    cls = _import_class(ckpt["module_class"], path)
+    cls = resolve_class(ckpt["module_class"], path)
     if expect is not None and not issubclass(cls, expect):
         raise UsageError(f"{path} holds a {class_path(cls)} checkpoint, not a {class_path(expect)}")
-    module = cls(**ckpt["hyper_parameters"])
+    module = _build(cls, ckpt["hyper_parameters"], path)
+    check_weights(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     module.to(map_location)  # before the EMA is rebuilt, so that it lands on the same device
     module.on_load_checkpoint(ckpt)
@@ -156,28 +417,98 @@ def load_module(
 
 def convert(src: PathLike, dst: PathLike, ema: bool = False,
             default_class: type[L.LightningModule] | None = PretrainModule) -> dict[str, Any]:
-    """Write ``src``'s weights (with ``ema``: the EMA in place of the ``model.`` parameters) as one
-    fp32 safetensors file whose metadata lets ``load_module`` rebuild the module."""
+    """Write ``src``'s weights (with ``ema``: the EMA in place of the parameters it tracks, those of
+    the module's ``trainable_module()``) as one fp32 safetensors file whose metadata lets
+    ``load_module`` rebuild the module. The weights must be exactly those of the module the
+    checkpoint names (checked on a structure-only build, on the meta device)."""
     dst = Path(dst)
     if dst.suffix != ".safetensors":
         raise UsageError(f"{dst}: the output file must end in .safetensors")
     ckpt = load_checkpoint(src, default_class)
+    cls = resolve_class(ckpt["module_class"], src)
+    module = _build(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
     state = dict(ckpt["state_dict"])
+    check_weights(module, state, src)
     if ema and not ckpt["ema_weights"]:
         if "ema" not in ckpt:
             raise UsageError(f"{src} has no EMA weights (trained with model.ema_decay=0?); convert without --ema")
-        shadow = ckpt["ema"]["shadow"]  # names inside module.model
-        if unknown := [n for n in shadow if f"model.{n}" not in state]:
-            raise UsageError(f"{src}: the EMA holds model.{unknown[0]}, which the module's weights lack")
-        state.update({f"model.{n}": t.float() for n, t in shadow.items()})
+        prefix = _trainable_prefix(module, src)
+        shadow = ckpt["ema"]["shadow"]  # names inside module.trainable_module()
+        if unknown := [n for n in shadow if f"{prefix}{n}" not in state]:
+            raise UsageError(f"{src}: the EMA holds {prefix}{unknown[0]}, which the module's weights lack")
+        for n, t in shadow.items():
+            if tuple(t.shape) != tuple(state[f"{prefix}{n}"].shape):
+                raise UsageError(f"{src}: the EMA's {prefix}{n} has the shape {tuple(t.shape)}, the weight "
+                                 f"{tuple(state[f'{prefix}{n}'].shape)}")
+        state.update({f"{prefix}{n}": t.float() for n, t in shadow.items()})
     ema_weights = ema or ckpt["ema_weights"]
     metadata = {"format": "pt", "module_class": json.dumps(ckpt["module_class"]),
                 "hyper_parameters": json.dumps(ckpt["hyper_parameters"]), "ema_weights": json.dumps(ema_weights)}
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(dst) as tmp:
-        save_file({k: v.contiguous() for k, v in state.items()}, tmp, metadata)
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(dst) as tmp:
+            save_file(_unshared(state), tmp, metadata)
+    except (OSError, SafetensorError) as e:
+        reason = getattr(e, "strerror", None) or " ".join(str(e).split())
+        raise UsageError(f"{dst}: cannot write the converted checkpoint there ({reason})") from None
     return {"path": str(dst), "parameters": sum(t.numel() for t in state.values()), "ema_weights": ema_weights,
             "bytes": dst.stat().st_size, "module_class": ckpt["module_class"]}
+
+
+def _unshared(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Tensors that own their storage: safetensors refuses shared ones, and a module's state_dict
+    shares them where one submodule holds another (ControlNetModule: ``controlnet.base`` is ``model``)."""
+    out, seen = {}, set()
+    for k, v in state.items():
+        v = v.contiguous()
+        storage = v.untyped_storage()
+        if storage.data_ptr() in seen or storage.nbytes() != v.nbytes:
+            v = v.clone()
+        seen.add(v.untyped_storage().data_ptr())
+        out[k] = v
+    return out
+
+
+# -- resuming -----------------------------------------------------------------------------
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return float("-inf")
+
+
+def resume_candidate(last: Iterable[PathLike], directories: Iterable[PathLike],
+                     warn=lambda message: None) -> tuple[Path, dict[str, Any]] | None:
+    """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest of
+    ``last`` (Lightning's ``last*.ckpt`` candidates) when it reads; when it does not (truncated,
+    zeroed, an interrupted save), the newest readable checkpoint (``*.ckpt``) in ``directories``,
+    after ``warn`` names both. None when there is no candidate at all (Lightning then starts
+    afresh, as with its own "last"); a UsageError when no checkpoint reads, and UnsafeCheckpoint as
+    soon as one holds pickled code."""
+    existing = sorted({Path(p) for p in last if Path(p).exists()}, key=_mtime, reverse=True)
+    if not existing:
+        return None
+    newest = existing[0]
+    try:
+        return newest, inspect_checkpoint(newest)
+    except UnsafeCheckpoint:
+        raise
+    except UsageError as e:
+        problem = str(e)
+    directories = [Path(d) for d in directories] or [newest.parent]
+    others = {p for d in directories if d.is_dir() for p in d.glob("*.ckpt") if p != newest}
+    for candidate in sorted(others, key=_mtime, reverse=True):
+        try:
+            header = inspect_checkpoint(candidate)
+        except UnsafeCheckpoint:
+            raise
+        except UsageError:
+            continue
+        warn(f"--ckpt_path last: {problem}; resuming from {candidate} instead, the newest readable checkpoint there")
+        return candidate, header
+    raise UsageError(f"--ckpt_path last: {problem}; and no other checkpoint in {', '.join(map(str, directories))} "
+                     "reads; pass a checkpoint with --ckpt_path PATH, or leave it out to start afresh")
 
 
 def main(argv: list[str]) -> None:

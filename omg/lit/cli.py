@@ -14,14 +14,24 @@ metrics.csv, so a second run never overwrites the first. To log to Weights & Bia
 
 from __future__ import annotations
 
+import importlib
+import sys
+from pathlib import Path
+from typing import Any
+
 import lightning as L
 from jsonargparse import Namespace
+from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
+from lightning.pytorch.utilities import rank_zero_warn
 
 import omg.callbacks  # noqa: F401  (short callback names: EvalCallback, RenderCallback)
 import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
-from omg.callbacks.run import run_dir
+from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
+from omg.errors import UsageError
+
+SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
 
 
 class SaveRunConfig(SaveConfigCallback):
@@ -51,6 +61,15 @@ class OmgLightningCLI(LightningCLI):
             args=args,
         )
 
+    def instantiate_trainer(self, **kwargs) -> L.Trainer:
+        """The configured Trainer, plus a checkpoint on SIGTERM beside the run's own checkpoints."""
+        trainer = super().instantiate_trainer(**kwargs)
+        if self.subcommand == "fit":
+            saver = trainer.checkpoint_callback
+            dirpath = getattr(saver, "dirpath", None) or Path(trainer.default_root_dir) / "checkpoints"
+            trainer.callbacks.append(InterruptCheckpoint(dirpath))
+        return trainer
+
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         parser.link_arguments("data", "model.init_args.spec", compute_fn=lambda data: data.spec, apply_on="instantiate")
 
@@ -62,3 +81,96 @@ class OmgLightningCLI(LightningCLI):
         if trainer.logger is None or trainer.logger is True:
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
+
+    # -- --ckpt_path -------------------------------------------------------------------------
+    # Lightning reads --ckpt_path twice: LightningCLI right after parsing, to take the model's
+    # hyper-parameters from it (and its class: a checkpoint of another class replaced the
+    # configured model without a word), and the Trainer when the run starts. Both are checked here
+    # first (omg.lit.checkpoint: readable, CRC-checked, no pickled code), so a missing, truncated,
+    # zeroed or foreign file, or a checkpoint of another class, is one UsageError line.
+
+    def _parse_ckpt_path(self) -> None:
+        from omg.lit.checkpoint import inspect_checkpoint
+
+        subcommand = self.config.get("subcommand")
+        if not subcommand:
+            return
+        ckpt_path = self.config[subcommand].get("ckpt_path")
+        if not ckpt_path or str(ckpt_path) in SPECIAL_CKPT_PATHS:
+            return
+        try:
+            header = inspect_checkpoint(ckpt_path)
+        except UsageError as e:
+            raise type(e)(f"--ckpt_path {e}") from None
+        if header["kind"] == "safetensors":
+            raise UsageError(f"--ckpt_path {ckpt_path}: a converted .safetensors file holds weights only and cannot "
+                             "restore a run; pass a Lightning .ckpt or DeepSpeed checkpoint directory (to start from "
+                             "its weights, use it as the model's pretrained checkpoint or with `omg generate`)")
+        strategy = self.config[subcommand].get("trainer", {}).get("strategy")
+        if header["kind"] == "deepspeed" and "deepspeed" not in str(strategy).lower():
+            raise UsageError(f"--ckpt_path {ckpt_path} is a DeepSpeed checkpoint directory, which only a DeepSpeed run "
+                             f"restores (trainer.strategy is {strategy!r}); convert it with `omg convert-ckpt` to use "
+                             "its weights elsewhere")
+        model = self.config[subcommand].get("model")
+        configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
+        self._check_ckpt_class(ckpt_path, header["module_class"], configured)
+        hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
+        hparams.pop("_instantiator", None)
+        if not hparams:  # as LightningCLI: a checkpoint file's hyper-parameters become the model's config
+            return
+        if "_class_path" in hparams:
+            hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
+        try:
+            self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+        except SystemExit:
+            sys.stderr.write("Parsing of ckpt_path hyperparameters failed!\n")
+            raise
+
+    @staticmethod
+    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> None:
+        """UsageError unless the checkpoint's recorded class is the configured model's class (LightningCLI
+        would otherwise replace the configured model by the recorded class, or restore its state into
+        a module of another kind)."""
+        from omg.lit.checkpoint import class_path, resolve_class
+
+        if not recorded or configured is None:
+            return
+        if isinstance(configured, str):
+            if recorded == configured:
+                return
+            module, _, name = configured.rpartition(".")
+            try:
+                configured = getattr(importlib.import_module(module), name)  # jsonargparse imported it already
+            except (ImportError, AttributeError, ValueError):
+                return  # jsonargparse reports a bad class_path itself
+        try:
+            if resolve_class(recorded, ckpt_path) is configured:
+                return
+        except UsageError:
+            pass  # a class that cannot be resolved here is not the configured one
+        hint = (" (to start a ControlNet from a stage-1 checkpoint, set model.init_args.pretrained instead)"
+                if recorded.endswith("PretrainModule") else "")
+        raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
+                         f"{class_path(configured)}: resume with a checkpoint of that class{hint}")
+
+    def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
+        """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
+        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here, as Lightning would
+        (the newest ``last*.ckpt`` of the ModelCheckpoint folders), but when that file is unreadable
+        to the newest readable checkpoint beside it, with a warning naming both."""
+        from omg.callbacks.checkpoint import prepare_checkpointing
+        from omg.lit.checkpoint import resume_candidate
+
+        kwargs = super()._prepare_subcommand_kwargs(subcommand)
+        prepare_checkpointing(self.trainer)
+        if kwargs.get("ckpt_path") == "last":
+            callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
+            last = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
+            last += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # e.g. omg's InterruptCheckpoint
+                     if isinstance(cb, OnExceptionCheckpoint) and getattr(cb, "ckpt_path", None)]
+            found = resume_candidate(last, sorted({p.parent for p in last}), warn=rank_zero_warn)
+            if found is not None:
+                resolved, header = found
+                self._check_ckpt_class(resolved, header["module_class"], type(self.model))
+                kwargs["ckpt_path"] = str(resolved)
+        return kwargs

@@ -33,7 +33,8 @@ class ControlNetModule(MotionDiffusionModule):
             safetensors file from ``omg convert-ckpt`` (its EMA weights are used when present).
         text_encoder: registered name (``clip-vit-l-14``, ``minilm``, ``hash``).
         text_encoder_args: keyword arguments of the encoder (e.g. ``pretrained: /path/ViT-L-14.pt``).
-        moc: MoCConfig fields (d_c, num_experts, gamma, beta, layers, ...).
+        moc: MoCConfig fields (d_c, num_experts, gamma, beta, layers, ...; the ablation switches
+            token_masks, zero_init, experts and wiring, see ``omg.models.controlnet.MoCConfig``).
         eot_drop: probability of replacing the end-of-text token with the empty text's (OMG: 0.5).
         guidance_scale: s in (1 − s)·D_u + s·D_c when sampling (OMG: 4.5).
         lr, weight_decay, warmup_steps: AdamW and schedule (OMG: 3e-5, 1e-5, 1K warm-up, cosine).
@@ -43,6 +44,7 @@ class ControlNetModule(MotionDiffusionModule):
     """
 
     text_conditional = True
+    clip_sampling = "whole"  # a caption describes its whole clip (HumanML3D: up to 196 frames)
 
     def __init__(
         self,
@@ -81,6 +83,12 @@ class ControlNetModule(MotionDiffusionModule):
             if mismatch := [k for k in MATCHING if self.data_spec[k] != self.spec[k]]:
                 raise UsageError(f"the fine-tuning data and the pretrained model differ in {', '.join(mismatch)}: "
                                  f"{ {k: self.data_spec[k] for k in mismatch} } vs { {k: self.spec[k] for k in mismatch} }")
+            if (data_fps := self.data_spec["fps"]) != (prior_fps := self.spec["fps"]):
+                # a motion prior learns velocities per frame: fine-tuning it at another rate, or
+                # generating at its rate from clips of another, would change what every frame means
+                raise UsageError(f"the fine-tuning shards are at {data_fps:g} fps but the pretrained model at {prior_fps:g} "
+                                 f"fps: rebuild the shards with `omg shards build ... --fps {prior_fps:g}`, or pretrain "
+                                 f"on shards at {data_fps:g} fps")
             self.register_buffer("data_mean", torch.tensor(self.data_spec["mean"]), persistent=False)
             self.register_buffer("data_std", torch.tensor(self.data_spec["std"]), persistent=False)
 
@@ -101,8 +109,9 @@ class ControlNetModule(MotionDiffusionModule):
 
     # -- text ----------------------------------------------------------------------------
     def encode_text(self, texts: list[str], drop_eot: Tensor | None = None) -> TextFeatures:
-        """Text features on this device; ``drop_eot`` (B,) bool replaces those EOT tokens by the empty text's."""
-        text = self.text_encoder(list(texts)).to(self.device)
+        """Text features on this device, trimmed to the longest caption (CLIP pads to 77 tokens; the
+        MoC cost grows with the token count); ``drop_eot`` (B,) bool replaces those EOT tokens by the empty text's."""
+        text = self.text_encoder(list(texts)).trimmed().to(self.device)
         if drop_eot is not None and drop_eot.any():
             empty = self.text_encoder([""]).to(self.device)
             tokens = text.tokens.clone()

@@ -40,6 +40,8 @@ class EvaluatorModule(L.LightningModule):
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
     """
 
+    clip_sampling = "whole"  # a caption describes its whole clip (omg.data.windows)
+
     def __init__(
         self,
         text_encoder: str = "minilm",

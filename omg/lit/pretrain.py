@@ -8,6 +8,7 @@ velocities of x̂0 and x0, and L_foot penalises the velocity of feet that are in
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from contextlib import nullcontext
@@ -23,8 +24,10 @@ from omg.errors import UsageError
 from omg.lit.ema import EMA
 from omg.models.dit import DiTConfig, MotionDiT
 from omg.motion import Representation, get_representation
+from omg.motion.humanml3d263 import FOOT_CONTACT_SPEED
 from omg.skeleton import get_skeleton
 
+log = logging.getLogger(__name__)
 SPEC_KEYS = ("representation", "skeleton", "fps", "feature_dim", "mean", "std")
 
 
@@ -38,14 +41,11 @@ def check_spec(spec: dict | None) -> dict:
 
 
 def contact_from_positions(positions: Tensor, feet: tuple[int, ...], fps: float) -> Tensor:
-    """(B, T, J, 3) -> (B, T-1, F) 1 where a foot moves less than HumanML3D's contact threshold.
-
-    HumanML3D marks contact below a squared displacement of 0.002 m² per frame at 20 fps;
-    the same speed (≈ 0.89 m/s) is used at any fps.
-    """
+    """(B, T, J, 3) -> (B, T-1, F) 1 where a foot moves slower than HumanML3D's contact speed
+    (0.002 m² per 20-fps frame, ≈ 0.89 m/s), the same speed at any fps."""
     step = positions[:, 1:, list(feet)] - positions[:, :-1, list(feet)]  # (B, T-1, F, 3)
     speed = step.norm(dim=-1) * fps
-    return (speed < math.sqrt(0.002) * 20).float()
+    return (speed < FOOT_CONTACT_SPEED).float()
 
 
 class GeometricLoss:
@@ -90,6 +90,7 @@ class MotionDiffusionModule(L.LightningModule):
     schedule, the weight EMA and sampling. Subclasses save their own hyper-parameters."""
 
     text_conditional = False  # whether sample_for_eval follows its texts
+    clip_sampling = "windows"  # what data.clips=auto cuts from clips (omg.data.windows)
 
     def __init__(self, flavor: str, dit: dict[str, Any] | None, lr: float, weight_decay: float, warmup_steps: int,
                  loss_weighting: str, spec: dict | None):
@@ -203,9 +204,12 @@ class MotionDiffusionModule(L.LightningModule):
             self.ema = EMA(self.trainable_module(), self.hparams.ema_decay)
 
     def optimizer_step(self, *args, **kwargs) -> None:
-        # once per optimizer step, and before checkpoint callbacks see the step
         super().optimizer_step(*args, **kwargs)
-        if self.ema is not None:
+        # Once per real optimizer step, and before checkpoint callbacks see the step. Strategies
+        # that accumulate gradients themselves (DeepSpeed) get this call on every micro-batch and
+        # step on the last one of each window: the EMA must not average over micro-batches, or
+        # its horizon would depend on the accumulation and so on the number of GPUs.
+        if self.ema is not None and not self.trainer.fit_loop._should_accumulate():
             self.ema.update(self.trainable_module())
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
@@ -213,11 +217,28 @@ class MotionDiffusionModule(L.LightningModule):
         checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
         if self.ema is not None:
             checkpoint["ema"] = self.ema.state_dict()
-        checkpoint["noise_rng"] = self.noise_generator().get_state().cpu()
+        checkpoint["noise_rng"] = self._gather_noise_states()
+
+    def _gather_noise_states(self) -> Tensor:
+        """Every rank's noise-RNG state, (world size, state bytes): each rank draws its own
+        timesteps and noise, and a resumed run must give each rank its own back. Lightning calls
+        ``on_save_checkpoint`` on every rank, so the gather is collective-safe."""
+        state = self.noise_generator().get_state()  # (n,) uint8, on the CPU for every device
+        trainer = self._trainer
+        if trainer is None or trainer.world_size == 1:
+            return state[None]
+        return self.all_gather(state.to(self.device)).reshape(trainer.world_size, -1).cpu()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if "noise_rng" in checkpoint:
-            self._noise_gen, self._noise_state = None, checkpoint["noise_rng"]
+            states = checkpoint["noise_rng"]
+            states = states[None] if states.ndim == 1 else states  # one rank's, as older omg wrote
+            rank = self.global_rank if self._trainer is not None else 0
+            if rank < len(states):
+                self._noise_gen, self._noise_state = None, states[rank].clone()  # set_state needs its own storage
+            else:
+                log.warning("this checkpoint holds the noise RNG of %d ranks; rank %d starts a fresh one, so "
+                            "the run does not repeat the uninterrupted one exactly", len(states), rank)
         if "ema" in checkpoint and self.hparams.ema_decay > 0:
             self.ema = EMA(self.trainable_module(), self.hparams.ema_decay)
             self.ema.load_state_dict(checkpoint["ema"])

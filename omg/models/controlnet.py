@@ -1,66 +1,104 @@
-"""Motion ControlNet with Mixture-of-Controllers (OMG, Liang et al., CVPR 2024).
+"""Motion ControlNet with Mixture-of-Controllers (OMG, Liang et al., CVPR 2024, Fig. 3, Sec. 3.2).
 
 Stage 2 of OMG turns the unconditional pretrained ``MotionDiT`` into a text-to-motion model
-without touching its weights. The pretrained model is frozen; a trainable copy of its
-transformer blocks runs beside it, and after every controlled copy block a Mixture-of-Controllers
-(MoC) block writes text information into the copy stream. Copy block i feeds frozen block i
-through a zero-initialised Linear(d, d), whose output is ``block_residuals[i]``:
+without touching its weights. The pretrained model is frozen. Every controlled layer l (the
+blocks in ``MoCConfig.layers``; default: all) gets a trainable copy of frozen block l and a
+Mixture-of-Controllers (MoC) block. The copy reads h_l, the main-stream hidden state entering
+frozen block l (which already carries the residuals of the layers before it); the MoC turns the
+copy's output into token-masked residuals, whose sum is added to frozen block l's output:
 
-    h0, c, mod, rope = base.embed(x, t)                     # frozen, computed once
-    h_c = h0                                                # the copy stream starts at h0
-    for i:  h_c = copy_i(h_c, mod, rope)                    # trainable deepcopy of block i
-            h_c = h_c + MoC_i(h_c, text)                    # only where i is in config.layers
-            r_i = Z_i h_c                                   # zero-init Linear(d, d)
-            h   = frozen_i(h, mod, rope) + r_i              # the frozen stream
-    D_c = base.final_layer(h, c)
+    h_0, c, mod, rope = base.embed(x, t)        # h_0 (B, T, d), c (B, d), mod (B, 6d)
+    for l in 0..n-1:
+        h_{l+1} = frozen_l(h_l, mod, rope)      # (B, T, d), weights frozen
+                + MoC_l(copy_l(h_l, mod, rope), text)   # (B, T, d), only where l is controlled
+    D_c = base.final_layer(h_n, c)              # (B, T, D_in)
 
-Every layer has its copy and its zero projection, as in ControlNet (the copy stream is a
-sequential stack: a block cannot be left out of it without changing what later copies see).
-``MoCConfig.layers`` only chooses where text enters; a copy block before the first controller
-sees no text and learns a text-independent correction. At initialisation the zero projections
-make D_c equal the frozen model bit for bit, and the zero up-projection of every MoC makes the
-copy stream equal the frozen stream, so the copy starts from the pretrained features.
+    MoC_l(g, text) = W_up Σ_i M_i ⊙ F_i(g, text)    # i over the caption's real tokens
+
+(see ``MoCBlock``: g (B, T, d) -> W_down -> cross-attention to the tokens (B, L, D_text) ->
+AdaIN from the EOT token -> K blended experts, one per token, and token masks M_i (B, T) ->
+W_up, zero-initialised, back to d). A layer outside ``MoCConfig.layers`` has neither copy nor
+MoC and adds nothing. At initialisation W_up = 0, so every residual is exactly 0 and D_c equals
+the frozen model bit for bit, while the copies start as the pretrained blocks. The block loop is
+the DiT's own (``MotionDiT.forward_embedded`` asks ``residual_fn(l, h_l)`` for each layer's
+residual), with its activation checkpointing applied to the frozen blocks and, per layer, to
+copy + MoC. Trainable parameters, Base (d 1024, 8 layers) with the paper's d_c 256, K 12 and
+CLIP ViT-L/14 tokens (768): 122.4M = copies 84.0M + MoC 38.4M (4.8M per layer).
+
+``MoCConfig.wiring = "parallel_stream"`` keeps an earlier, non-paper wiring for comparison: a
+separate copy stream h^c (h^c_0 = h_0; h^c_{l+1} = copy_l(h^c_l) + MoC_l(copy_l(h^c_l))), which
+never sees the main stream after the embedding, feeds every frozen layer through an extra
+zero-initialised Linear(d, d) Z_l: h_{l+1} = frozen_l(h_l) + Z_l h^c_{l+1}. Every layer then has
+a copy and a Z_l (+n·d² parameters: 8.4M for Base, 101M for Giant) and copies before the first
+controller add a text-independent path into D_c.
 
 Classifier-free guidance needs no dropped-text training: D_u is the frozen model itself, and
-``forward_guided`` returns (1 - s)·D_u + s·D_c from one embed, one controller pass and one
-frozen pass on the doubled batch [x; x] with residuals on the conditional half only.
+``forward_guided`` returns (1 - s)·D_u + s·D_c from one embed and one pass over the doubled
+batch [x; x] (2B rows): each frozen block runs on all 2B rows, the copy + MoC of that layer on
+the conditional half's main stream h_l[B:] (B rows), and its residual is added to the
+conditional half only.
 
 Text arrives as three tensors (the fields of ``omg.text``'s features): tokens (B, L, D_text)
 per-token embeddings, text_mask (B, L) bool, True = real token, and eot (B,) long, the index of
 the end-of-text token. Padded tokens never reach the output (they are zeroed, masked out of the
 attention and out of the residual sum), so captions can be padded to any length; the cost grows
-with L, so pass tokens trimmed to the longest caption of the batch rather than CLIP's 77.
+with L, so pass tokens trimmed to the longest caption of the batch (``TextFeatures.trimmed``)
+rather than CLIP's 77.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torch.utils.checkpoint import checkpoint
 
 from omg.errors import UsageError
 from omg.models.dit import MotionDiT, Rope
 
 ADAIN_EPS = 1e-5
+WIRINGS = ("per_layer", "parallel_stream")
+EXPERTS = ("moc", "single_ffn")
+
+ResidualFn = Callable[[int, Tensor], "Tensor | None"]
 
 
 @dataclass
 class MoCConfig:
+    """The controller's size and, as switches, the paper's ablations (Sec. 4.4).
+
+    Ablation switches (defaults: the full OMG model):
+      token_masks=False   "w/o token masks": M_i ≡ 1 for every real token, so each token's
+                          expert acts on every frame.
+      zero_init=False     "w/o zero initialisation": W_down and W_up (and, with the parallel
+                          stream, the projections Z_l) keep PyTorch's default Linear init, so
+                          D_c differs from D_u from the first step.
+      experts="single_ffn"  "cross-attention + FFN": the expert pool is replaced by one FFN
+                          (d_c -> expert_hidden -> d_c) on the attended, AdaIN-normalised
+                          features; no gate, no blending, no token masks (num_experts,
+                          gate_hidden, gamma, beta and token_masks are unused).
+      layers              which blocks get a controller (copy + MoC); None: every block.
+      wiring              "per_layer" (paper, Fig. 3) or "parallel_stream" (see the module
+                          docstring), for comparison only.
+    """
+
     d_c: int = 256  # controller width
     num_experts: int = 12  # K, size of the expert pool
     expert_hidden: int | None = None  # hidden width of each expert; None: 2·d_c
     gamma: float = 24.0  # sharpness of the token masks
     beta: float = 0.25  # mask threshold, relative to the token's strongest frame
     gate_hidden: int | None = None  # hidden width of the gating MLP G; None: d_c
-    layers: list[int] | None = None  # blocks followed by a MoC block; None: every block
+    layers: list[int] | None = None  # blocks with a controller; None: every block
     text_dim: int = 512  # D_text: width of the text token embeddings (CLIP ViT-B: 512)
+    token_masks: bool = True  # ablation "w/o token masks" when False
+    zero_init: bool = True  # ablation "w/o zero initialisation" when False
+    experts: str = "moc"  # "moc" (K blended experts per token) | "single_ffn" (ablation)
+    wiring: str = "per_layer"  # "per_layer" (paper) | "parallel_stream" (comparison)
 
     def __post_init__(self) -> None:
         if self.expert_hidden is None:
@@ -76,6 +114,14 @@ class MoCConfig:
             raise UsageError(f"MoCConfig.gamma={gamma!r} must be a positive number (paper: 24)")
         if not (isinstance(self.beta, (int, float)) and 0 <= self.beta <= 1):
             raise UsageError(f"MoCConfig.beta={self.beta!r} must lie in [0, 1] (paper: 0.25)")
+        for name in ("token_masks", "zero_init"):
+            if not isinstance(getattr(self, name), bool):
+                raise UsageError(f"MoCConfig.{name}={getattr(self, name)!r} must be true or false")
+        for name, choices in (("experts", EXPERTS), ("wiring", WIRINGS)):
+            if getattr(self, name) not in choices:
+                raise UsageError(
+                    f"MoCConfig.{name}={getattr(self, name)!r} must be one of {', '.join(choices)}"
+                )
         if self.layers is not None:
             layers = list(self.layers)
             bad = [i for i in layers if isinstance(i, bool) or not isinstance(i, int) or i < 0]
@@ -87,7 +133,7 @@ class MoCConfig:
             self.layers = sorted(layers)
 
     def controlled_layers(self, n_layers: int) -> list[int]:
-        """The block indices that get a MoC block, checked against the model's depth."""
+        """The block indices that get a controller, checked against the model's depth."""
         if self.layers is None:
             return list(range(n_layers))
         if max(self.layers) >= n_layers:
@@ -118,7 +164,12 @@ class MoCBlock(nn.Module):
     ``eot_affine``(e_eot), a Linear(D_text, 2·d_c); σ_t includes ε = 1e-5. W_down alone would
     not silence the block (with f = 0 the attention is uniform, AdaIN returns the shift b and
     the experts their biases), so W_up is zero-initialised as well: the block outputs exactly 0
-    at init, and the copy stream starts equal to the frozen stream.
+    at init, and the ControlNet starts as the frozen model.
+
+    Ablations (``MoCConfig``): token_masks=False sets M_i = 1 for every real token;
+    zero_init=False keeps W_down, W_up at PyTorch's default init; experts="single_ffn" replaces
+    the gate, the expert pool and the masks by one FFN: out = W_up FFN(f̃), with
+    FFN(f̃) = gelu(f̃ W1 + b1) W2 + b2 (d_c -> expert_hidden -> d_c).
     """
 
     def __init__(self, d_model: int, config: MoCConfig) -> None:
@@ -136,13 +187,16 @@ class MoCBlock(nn.Module):
         self.k = nn.Linear(D, c)
         self.v = nn.Linear(D, c)
         self.eot_affine = nn.Linear(D, 2 * c)  # EOT embedding -> AdaIN (scale, shift)
-        self.gate = nn.Sequential(
-            nn.Linear(D, G), nn.GELU(), nn.Linear(G, G), nn.GELU(), nn.Linear(G, K)
-        )
-        self.w1 = nn.Parameter(torch.empty(K, c, H))  # expert k's first layer: f @ w1[k]
-        self.b1 = nn.Parameter(torch.empty(K, H))
-        self.w2 = nn.Parameter(torch.empty(K, H, c))
-        self.b2 = nn.Parameter(torch.empty(K, c))
+        if config.experts == "single_ffn":  # ablation: one FFN, no gate, no token masks
+            self.ffn = nn.Sequential(nn.Linear(c, H), nn.GELU(), nn.Linear(H, c))
+        else:
+            self.gate = nn.Sequential(
+                nn.Linear(D, G), nn.GELU(), nn.Linear(G, G), nn.GELU(), nn.Linear(G, K)
+            )
+            self.w1 = nn.Parameter(torch.empty(K, c, H))  # expert k's first layer: f @ w1[k]
+            self.b1 = nn.Parameter(torch.empty(K, H))
+            self.w2 = nn.Parameter(torch.empty(K, H, c))
+            self.b2 = nn.Parameter(torch.empty(K, c))
         self.up = nn.Linear(c, d_model)
         self.init_weights()
 
@@ -151,14 +205,16 @@ class MoCBlock(nn.Module):
         for module in self.modules():
             if isinstance(module, nn.Linear):
                 module.reset_parameters()
-        # Each expert as an nn.Linear would start: U(±1/√fan_in) for weights and biases.
-        for w, b in ((self.w1, self.b1), (self.w2, self.b2)):
-            bound = 1 / math.sqrt(w.shape[1])
-            nn.init.uniform_(w, -bound, bound)
-            nn.init.uniform_(b, -bound, bound)
-        for layer in (self.down, self.up):
-            nn.init.zeros_(layer.weight)
-            nn.init.zeros_(layer.bias)
+        if self.config.experts == "moc":
+            # Each expert as an nn.Linear would start: U(±1/√fan_in) for weights and biases.
+            for w, b in ((self.w1, self.b1), (self.w2, self.b2)):
+                bound = 1 / math.sqrt(w.shape[1])
+                nn.init.uniform_(w, -bound, bound)
+                nn.init.uniform_(b, -bound, bound)
+        if self.config.zero_init:
+            for layer in (self.down, self.up):
+                nn.init.zeros_(layer.weight)
+                nn.init.zeros_(layer.bias)
 
     def attend(self, f: Tensor, tokens: Tensor, text_mask: Tensor) -> tuple[Tensor, Tensor]:
         """f (B, T, d_c), tokens (B, L, D_text) -> (f + A V (B, T, d_c), A (B, T, L)).
@@ -192,7 +248,11 @@ class MoCBlock(nn.Module):
         return self.gate(tokens).softmax(dim=-1)
 
     def token_masks(self, attn: Tensor, text_mask: Tensor, mask: Tensor | None) -> Tensor:
-        """M_i = sigmoid(γ(A_i − β·max_frames A_i)) (B, T, L); 0 at padded tokens."""
+        """M_i = sigmoid(γ(A_i − β·max_frames A_i)) (B, T, L); 0 at padded tokens.
+
+        With ``MoCConfig.token_masks`` off (ablation): M_i = 1 at every real token."""
+        if not self.config.token_masks:
+            return text_mask[:, None, :].to(attn.dtype).expand_as(attn)
         # A >= 0, so filling padded frames with 0 leaves the max over real frames unchanged.
         real_attn = attn if mask is None else attn.masked_fill(~mask[..., None], 0)
         peak = real_attn.amax(dim=1, keepdim=True)  # (B, 1, L)
@@ -231,23 +291,25 @@ class MoCBlock(nn.Module):
         eot_emb: Tensor,
         mask: Tensor | None = None,
     ) -> Tensor:
-        """h (B, T, d) copy-stream features, tokens (B, L, D_text), text_mask (B, L) bool,
+        """h (B, T, d) the block copy's output, tokens (B, L, D_text), text_mask (B, L) bool,
         eot_emb (B, D_text), mask (B, T) bool real frames -> residual (B, T, d)."""
         f = self.down(h)  # (B, T, c)
         f, attn = self.attend(f, tokens, text_mask)  # (B, T, c), (B, T, L)
         f = self.adain(f, eot_emb, mask)  # (B, T, c)
+        if self.config.experts == "single_ffn":
+            return self.up(self.ffn(f))  # (B, T, d)
         omega = self.gates(tokens)  # (B, L, K)
         masks = self.token_masks(attn, text_mask, mask)  # (B, T, L)
         return self.up(self.experts(f, omega, masks))  # (B, T, d)
 
 
 class MotionControlNet(nn.Module):
-    """Frozen ``MotionDiT`` + trainable block copies + MoC blocks + zero projections.
+    """Frozen ``MotionDiT`` + per-layer trainable block copies and MoC blocks.
 
     ``forward`` is D_c, ``forward_uncond`` is D_u (the frozen model alone), ``forward_guided``
-    the classifier-free-guidance mix. After loading new weights into ``base`` (or after
-    ``to_empty`` from the meta device), call ``init_weights`` to re-copy the blocks and reset
-    the controller.
+    the classifier-free-guidance mix. ``copy_blocks`` and ``mocs`` are keyed by block index
+    (str). After loading new weights into ``base`` (or after ``to_empty`` from the meta
+    device), call ``init_weights`` to re-copy the blocks and reset the controllers.
     """
 
     def __init__(self, base: MotionDiT, config: MoCConfig) -> None:
@@ -255,9 +317,12 @@ class MotionControlNet(nn.Module):
         self.config = config
         n_layers, d = len(base.blocks), base.config.d_model
         self.controlled = config.controlled_layers(n_layers)
-        self.copy_blocks = copy.deepcopy(base.blocks)  # (n_layers,) DiTBlock
+        parallel = config.wiring == "parallel_stream"
+        copied = range(n_layers) if parallel else self.controlled
+        self.copy_blocks = nn.ModuleDict({str(i): copy.deepcopy(base.blocks[i]) for i in copied})
         self.mocs = nn.ModuleDict({str(i): MoCBlock(d, config) for i in self.controlled})
-        self.zero_projs = nn.ModuleList(nn.Linear(d, d) for _ in range(n_layers))
+        if parallel:
+            self.zero_projs = nn.ModuleList(nn.Linear(d, d) for _ in range(n_layers))
         self.base = base.requires_grad_(False).eval()
         for p in self.trainable_parameters():
             p.requires_grad_(True)
@@ -265,21 +330,24 @@ class MotionControlNet(nn.Module):
 
     @torch.no_grad()
     def init_weights(self) -> None:
-        """Copy the frozen blocks into the trainable ones, reset the MoC blocks, zero the
-        projections."""
-        for copy_block, block in zip(self.copy_blocks, self.base.blocks):
-            for dst, src in zip(copy_block.parameters(), block.parameters()):
+        """Copy the frozen blocks into the trainable ones, reset the MoC blocks (and the
+        parallel stream's projections)."""
+        for i, copy_block in self.copy_blocks.items():
+            for dst, src in zip(copy_block.parameters(), self.base.blocks[int(i)].parameters()):
                 dst.copy_(src)
         for moc in self.mocs.values():
             moc.init_weights()
-        for proj in self.zero_projs:
-            nn.init.zeros_(proj.weight)
-            nn.init.zeros_(proj.bias)
+        for proj in getattr(self, "zero_projs", ()):
+            proj.reset_parameters()
+            if self.config.zero_init:
+                nn.init.zeros_(proj.weight)
+                nn.init.zeros_(proj.bias)
 
     def trainable_parameters(self) -> Iterator[nn.Parameter]:
-        """What the optimiser gets: copy blocks, MoC blocks and zero projections."""
-        for module in (self.copy_blocks, self.mocs, self.zero_projs):
-            yield from module.parameters()
+        """What the optimiser gets: everything but the frozen ``base``."""
+        for name, module in self.named_children():
+            if name != "base":
+                yield from module.parameters()
 
     def train(self, mode: bool = True) -> MotionControlNet:
         super().train(mode)
@@ -287,11 +355,6 @@ class MotionControlNet(nn.Module):
         return self
 
     # -- pieces ---------------------------------------------------------------------------
-
-    def _maybe_checkpoint(self, fn: Callable[..., Tensor], *args) -> Tensor:
-        if self.base.config.activation_checkpointing and self.training and torch.is_grad_enabled():
-            return checkpoint(fn, *args, use_reentrant=False)
-        return fn(*args)
 
     def _prepare_text(
         self, tokens: Tensor, text_mask: Tensor, eot: Tensor
@@ -304,20 +367,27 @@ class MotionControlNet(nn.Module):
                 f"{self.config.text_dim}; set text_dim to the text encoder's token width"
             )
         text_mask = text_mask.bool()
-        dtype = self.zero_projs[0].weight.dtype
+        dtype = next(iter(self.mocs.values())).k.weight.dtype
         tokens = tokens.masked_fill(~text_mask[..., None], 0).to(dtype)  # (B, L, D_text)
         eot_emb = tokens[torch.arange(tokens.shape[0], device=tokens.device), eot]  # (B, D_text)
         return tokens, text_mask, eot_emb
 
-    def _control_layer(
+    def _layer_residual(
         self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: tuple
     ) -> Tensor:
-        h = self.copy_blocks[i](h, mod, rope, mask)  # (B, T, d)
+        """Per-layer wiring: MoC_i(copy_i(h_i)) (B, T, d) from block i's input h_i (B, T, d)."""
+        return self.mocs[str(i)](self.copy_blocks[str(i)](h, mod, rope, mask), *text, mask)
+
+    def _stream_layer(
+        self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: tuple
+    ) -> Tensor:
+        """Parallel-stream wiring: the copy stream's next state (B, T, d)."""
+        h = self.copy_blocks[str(i)](h, mod, rope, mask)
         if str(i) in self.mocs:
             h = h + self.mocs[str(i)](h, *text, mask)
         return h
 
-    def controls(
+    def controller(
         self,
         h0: Tensor,
         mod: Tensor,
@@ -326,32 +396,29 @@ class MotionControlNet(nn.Module):
         tokens: Tensor,
         text_mask: Tensor,
         eot: Tensor,
-    ) -> list[Tensor]:
-        """The copy stream from the frozen embedding h0 (B, T, d) -> one residual (B, T, d)
-        per frozen block."""
+    ) -> ResidualFn:
+        """The ``residual_fn(i, h_i)`` that ``MotionDiT.forward_embedded`` calls after block i:
+        block i's residual (B, T, d) from its input h_i (B, T, d), or None for a layer without
+        a controller. h0, mod, rope come from ``base.embed`` (h0 only feeds the parallel
+        stream, whose function keeps the stream's state and must be called for i = 0, 1, ...)."""
         text = self._prepare_text(tokens, text_mask, eot)
-        h, residuals = h0, []
-        for i, proj in enumerate(self.zero_projs):
-            h = self._maybe_checkpoint(self._control_layer, i, h, mod, rope, mask, text)
-            residuals.append(proj(h))  # (B, T, d)
-        return residuals
+        run = self.base.checkpointed
+        if self.config.wiring == "per_layer":
 
-    def _frozen(
-        self,
-        h: Tensor,
-        c: Tensor,
-        mod: Tensor,
-        rope: Rope,
-        mask: Tensor | None,
-        residuals: Sequence[Tensor],
-        offset: int = 0,
-    ) -> Tensor:
-        """The frozen blocks and final layer; residual i is added to rows offset: of block i's
-        output (offset = B on the doubled batch of ``forward_guided``)."""
-        for block, r in zip(self.base.blocks, residuals):
-            h = self._maybe_checkpoint(block, h, mod, rope, mask)  # (B', T, d)
-            h = h + r if offset == 0 else torch.cat([h[:offset], h[offset:] + r])
-        return self.base.final_layer(h, c)  # (B', T, D_in)
+            def residual(i: int, h: Tensor) -> Tensor | None:
+                if str(i) not in self.mocs:
+                    return None
+                return run(self._layer_residual, i, h, mod, rope, mask, text)
+
+            return residual
+
+        stream = [h0]
+
+        def stream_residual(i: int, h: Tensor) -> Tensor:
+            stream[0] = run(self._stream_layer, i, stream[0], mod, rope, mask, text)
+            return self.zero_projs[i](stream[0])
+
+        return stream_residual
 
     # -- the three denoisers --------------------------------------------------------------
 
@@ -367,8 +434,8 @@ class MotionControlNet(nn.Module):
         """D_c: x (B, T, D_in) noisy motion, t (B,), text_tokens (B, L, D_text), text_mask
         (B, L) bool, eot (B,) long, mask (B, T) bool real frames -> x̂0 (B, T, D_in)."""
         h0, c, mod, rope = self.base.embed(x, t)
-        residuals = self.controls(h0, mod, rope, mask, text_tokens, text_mask, eot)
-        return self._frozen(h0, c, mod, rope, mask, residuals)
+        control = self.controller(h0, mod, rope, mask, text_tokens, text_mask, eot)
+        return self.base.forward_embedded(h0, c, mod, rope, mask, control)
 
     def forward_uncond(self, x: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
         """D_u: the frozen pretrained model alone, (B, T, D_in)."""
@@ -386,16 +453,21 @@ class MotionControlNet(nn.Module):
     ) -> Tensor:
         """(1 − s)·D_u + s·D_c (B, T, D_in); scale s is a number or one per sample (B,).
 
-        One embed, one controller pass on B, one frozen pass on [x; x] (2B) with residuals on
-        the conditional half only.
+        One embed on B rows, then one pass over the doubled batch [x; x] (2B rows): the frozen
+        blocks run on all rows, each controller on the conditional half's main stream
+        h_i[B:] (B rows), its residual added to that half only.
         """
         B = x.shape[0]
         h0, c, mod, rope = self.base.embed(x, t)
-        residuals = self.controls(h0, mod, rope, mask, text_tokens, text_mask, eot)
+        control = self.controller(h0, mod, rope, mask, text_tokens, text_mask, eot)
+
+        def residual(i: int, h: Tensor) -> Tensor | None:  # h (2B, T, d) = [uncond; cond]
+            r = control(i, h[B:])  # (B, T, d)
+            return None if r is None else torch.cat([torch.zeros_like(r), r])
+
         mask2 = None if mask is None else torch.cat([mask, mask])
-        out = self._frozen(
-            torch.cat([h0, h0]), torch.cat([c, c]), torch.cat([mod, mod]), rope, mask2,
-            residuals, offset=B,
+        out = self.base.forward_embedded(
+            torch.cat([h0, h0]), torch.cat([c, c]), torch.cat([mod, mod]), rope, mask2, residual
         )  # (2B, T, D_in)
         uncond, cond = out[:B], out[B:]
         if isinstance(scale, Tensor) and scale.ndim > 0:

@@ -12,16 +12,17 @@ get shift/scale/gate for attention and feed-forward. The shared Linear, the tabl
 output projection start at zero, so every block starts as the identity and x̂0 starts at 0.
 The feed-forward is GEGLU: fc1 d -> 2·ffn (value, gate), gelu(gate)·value, fc2 ffn -> d.
 
-For the Motion ControlNet, ``embed`` returns what the blocks and the final layer take,
-``run_block`` runs one block, and ``forward`` accepts one residual per block, added to that
-block's output.
+For the Motion ControlNet, ``embed`` returns what the blocks and the final layer take and
+``forward_embedded`` runs the block loop and the final layer from there, asking an optional
+``residual_fn(i, h_i)`` after every block for a residual to add to that block's output;
+``checkpointed`` is the activation checkpointing the blocks use, for the ControlNet's own layers.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -266,13 +267,37 @@ class MotionDiT(nn.Module):
         rope = rotary_embedding(positions, self.config.head_dim, self.config.rope_base)
         return h, c, mod, rope
 
+    def checkpointed(self, fn: Callable[..., Tensor], *args: Any) -> Tensor:
+        """fn(*args), recomputed in backward instead of keeping its activations when activation
+        checkpointing is on and autograd records (training, or a frozen model that gradients
+        still flow through, as under a ControlNet)."""
+        if self.config.activation_checkpointing and torch.is_grad_enabled():
+            return checkpoint(fn, *args, use_reentrant=False)
+        return fn(*args)
+
     def run_block(self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None) -> Tensor:
-        """Block i on h (B, T, d) with mod (B, 6d) from ``embed``; recomputed in backward when
-        activation checkpointing is on."""
-        block = self.blocks[i]
-        if self.config.activation_checkpointing and self.training and torch.is_grad_enabled():
-            return checkpoint(block, h, mod, rope, mask, use_reentrant=False)
-        return block(h, mod, rope, mask)
+        """Block i on h (B, T, d) with mod (B, 6d) from ``embed``; checkpointed as above."""
+        return self.checkpointed(self.blocks[i], h, mod, rope, mask)
+
+    def forward_embedded(
+        self,
+        h: Tensor,
+        c: Tensor,
+        mod: Tensor,
+        rope: Rope,
+        mask: Tensor | None = None,
+        residual_fn: Callable[[int, Tensor], Tensor | None] | None = None,
+    ) -> Tensor:
+        """The block loop and the final layer on ``embed``'s outputs -> x̂0 (B, T, D_in).
+
+        ``residual_fn(i, h_i)``, if given, is called with block i's input h_i (B, T, d) and
+        may return a residual (B, T, d) to add to block i's output (ControlNet), or None.
+        """
+        for i in range(len(self.blocks)):
+            h_next = self.run_block(i, h, mod, rope, mask)  # (B, T, d)
+            r = None if residual_fn is None else residual_fn(i, h)
+            h = h_next if r is None else h_next + r
+        return self.final_layer(h, c)  # (B, T, D_in)
 
     def forward(
         self,
@@ -283,7 +308,8 @@ class MotionDiT(nn.Module):
     ) -> Tensor:
         """x: (B, T, D_in) noisy motion; t: (B,) steps; mask: (B, T) bool, True = real frame.
 
-        block_residuals[i] (B, T, d), if given, is added to block i's output (ControlNet).
+        block_residuals[i] (B, T, d), if given, is added to block i's output (fixed residuals;
+        ``forward_embedded`` takes residuals computed from each block's input).
         Outputs at padded frames are unconstrained; callers mask them.
         """
         if block_residuals is not None and len(block_residuals) != len(self.blocks):
@@ -292,8 +318,5 @@ class MotionDiT(nn.Module):
                 f"{len(self.blocks)} blocks (use None for blocks without a residual)"
             )
         h, c, mod, rope = self.embed(x, t)
-        for i in range(len(self.blocks)):
-            h = self.run_block(i, h, mod, rope, mask)  # (B, T, d)
-            if block_residuals is not None and block_residuals[i] is not None:
-                h = h + block_residuals[i]
-        return self.final_layer(h, c)  # (B, T, D_in)
+        residual_fn = None if block_residuals is None else (lambda i, _h: block_residuals[i])
+        return self.forward_embedded(h, c, mod, rope, mask, residual_fn)

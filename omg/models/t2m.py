@@ -89,11 +89,19 @@ class WordVectorizer:
         if missing := [f.name for f in files if not f.is_file()]:
             raise UsageError(f"glove_dir={str(glove_dir)!r} lacks {', '.join(missing)}: pass the folder of HumanML3D's "
                              f"GloVe files ({', '.join(GLOVE_FILES)}; text2motion's ./glove)")
-        vectors = np.load(files[0])
-        with open(files[1], "rb") as f:
-            words = pickle.load(f)
-        with open(files[2], "rb") as f:
-            self.word2idx = pickle.load(f)
+        try:
+            vectors = np.load(files[0], allow_pickle=False)
+        except ValueError as e:  # an object array (pickled objects) or not an .npy file
+            raise UsageError(f"glove_dir={str(glove_dir)!r}: {files[0].name} is not a plain array file ({e})") from None
+        words = _read_vocabulary(files[1], list)
+        self.word2idx = _read_vocabulary(files[2], dict)
+        if not (vectors.ndim == 2 and all(isinstance(w, str) for w in words)
+                and all(isinstance(w, str) and isinstance(i, int) and 0 <= i < len(vectors)
+                        for w, i in self.word2idx.items())):
+            raise UsageError(f"glove_dir={str(glove_dir)!r}: expected a (N, 300) array, a list of words and a dict "
+                             "word -> row: not HumanML3D's GloVe files")
+        if missing := [w for w in words if w not in self.word2idx]:
+            raise UsageError(f"glove_dir={str(glove_dir)!r}: {files[2].name} has no row for {missing[0]!r}")
         self.word2vec = {w: vectors[self.word2idx[w]] for w in words}
         if "unk" not in self.word2vec:
             raise UsageError(f"glove_dir={str(glove_dir)!r}: the vocabulary has no 'unk' word; not HumanML3D's GloVe files")
@@ -115,6 +123,30 @@ class WordVectorizer:
             return self.word2vec["unk"], self._get_pos_ohot("OTHER")
         vip_pos = next((key for key, values in VIP_dict.items() if word in values), None)
         return self.word2vec[word], self._get_pos_ohot(vip_pos if vip_pos is not None else pos)
+
+
+class _VocabularyUnpickler(pickle.Unpickler):
+    """Unpickles plain data only. A list of str and a dict str -> int pickle without a single
+    global (any protocol); a global is what lets a pickle call code, so none is resolved."""
+
+    def find_class(self, module: str, name: str):
+        raise pickle.UnpicklingError(f"{module}.{name}")
+
+
+def _read_vocabulary(path: Path, kind: type) -> list | dict:
+    """HumanML3D's ``*_words.pkl`` (a list of str) or ``*_idx.pkl`` (a dict str -> int), read
+    without letting the file run code."""
+    try:
+        with open(path, "rb") as f:
+            value = _VocabularyUnpickler(f).load()
+    except pickle.UnpicklingError as e:
+        raise UsageError(f"{path} holds pickled Python objects ({e}), not a plain {kind.__name__} of words: "
+                         "refused (unpickling it could run code); not HumanML3D's GloVe file") from None
+    except (EOFError, ValueError, TypeError, IndexError, KeyError) as e:
+        raise UsageError(f"{path} is not a readable pickle ({type(e).__name__}: {e})") from None
+    if type(value) is not kind:
+        raise UsageError(f"{path} holds a {type(value).__name__}, not the {kind.__name__} of HumanML3D's GloVe file")
+    return value
 
 
 def process_tokens(tokens: list[str], max_text_len: int = 20) -> tuple[list[str], int]:
@@ -387,7 +419,10 @@ def _read_mean_std(mean_std_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
     d = Path(mean_std_dir)
     for mean_name, std_name in (("mean.npy", "std.npy"), ("t2m_mean.npy", "t2m_std.npy")):
         if (d / mean_name).is_file() and (d / std_name).is_file():
-            return np.load(d / mean_name), np.load(d / std_name)
+            try:
+                return np.load(d / mean_name, allow_pickle=False), np.load(d / std_name, allow_pickle=False)
+            except ValueError as e:  # an object array (pickled objects) or not an .npy file
+                raise UsageError(f"mean_std_dir={str(d)!r}: {mean_name}/{std_name} are not plain array files ({e})") from None
     raise UsageError(f"mean_std_dir={str(d)!r} holds neither mean.npy/std.npy nor t2m_mean.npy/t2m_std.npy: pass the "
                      "folder of the evaluator's normalisation (text2motion's checkpoints/t2m/<model>/meta, or MDM's dataset/)")
 

@@ -7,7 +7,8 @@ cal_mean_variance.ipynb), kept file-compatible with its ``new_joint_vecs``:
 1. uniform skeleton: every bone keeps its direction and gets the target length (the
    skeleton's rest bone lengths); the root trajectory is scaled by the ratio of leg lengths;
 2. put on the floor, root XZ of frame 0 at the origin, frame 0 turned to face +Z;
-3. IK to per-bone quaternions, with the heading smoothed over time (gaussian, sigma 20 frames);
+3. IK to per-bone quaternions, with the heading smoothed over time (gaussian, sigma 20 frames),
+   except frame 0, whose root rotation IK sets to the identity;
 4. per frame t (velocities t -> t+1, so T - 1 rows):
    [0] root yaw velocity, [1:3] root XZ velocity, [3] root height, [4:67] joints 1..21
    relative to the root in its heading frame (ric), [67:193] IK rotations of joints 1..21
@@ -17,10 +18,16 @@ cal_mean_variance.ipynb), kept file-compatible with its ``new_joint_vecs``:
 Two HumanML3D details are kept on purpose because its files contain them:
 - its IK unpacks the face joints (r_hip, l_hip, r_shoulder, l_shoulder) as
   (l_hip, r_hip, ...), so the hip term of the heading has the opposite sign to the one of
-  step 2; together with the smoothing, the IK heading of frame 0 is a few degrees off +Z;
-- ``recover_from_ric`` starts the heading at zero, so decoded positions are the canonical
-  ones turned about +Y by that frame-0 IK heading. ``canonicalize`` returns exactly these
-  positions (HumanML3D's ``new_joints``), so ``decode(encode(x)) == canonicalize(x)[:-1]``.
+  step 2; together with the smoothing, the IK heading is a few degrees off the facing;
+- its IK (``inverse_kinematics_np``) sets the root rotation of frame 0 to the identity
+  (``root_quat[0] = [1, 0, 0, 0]``) instead of the smoothed heading, and every frame-0
+  feature follows from it: [0] is the yaw from the identity to frame 1's heading, and the
+  ric, the 6D rotations (relative to that identity root) and the local velocities of frame 0
+  are taken in the frame of step 2 (facing +Z by the unsmoothed face joints).
+  ``recover_from_ric`` starts the heading at zero, i.e. at that same identity, so decoded
+  positions are exactly the ones of step 2, which ``canonicalize`` returns (HumanML3D's
+  ``new_joints``): ``decode(encode(x)) == canonicalize(x)[:-1]``, and FK of the rotations
+  (``recover_from_rot``) gives the same positions.
 
 Quaternions here follow HumanML3D's skeleton: the rotation stored at joint j turns the
 bone parent(j) -> j from its rest direction (``T2M_RAW_OFFSETS``), relative to the previous
@@ -28,6 +35,8 @@ bone of its kinematic chain (the root for the first bone of each chain).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -44,7 +53,6 @@ from omg.rotations import (
     quat_to_6d,
     quat_to_matrix,
     sixd_to_matrix,
-    yaw_quat,
 )
 from omg.skeleton import SMPL22_PARENTS, Skeleton
 
@@ -59,8 +67,19 @@ T2M_CHAINS = ((0, 2, 5, 8, 11), (0, 1, 4, 7, 10), (0, 3, 6, 9, 12, 15), (9, 14, 
 FACE_JOINTS = (2, 1, 17, 16)  # right hip, left hip, right shoulder, left shoulder
 FEET_LEFT, FEET_RIGHT = (7, 10), (8, 11)
 LEG_JOINTS = (5, 8)  # right knee, right ankle: their bones set the scale of the root trajectory
-FOOT_THRESHOLD = 0.002  # squared displacement per frame (m^2) under which a foot is in contact
-HEADING_SIGMA = 20.0  # frames
+# HumanML3D's constants are per 20-fps frame; as a speed and a time they mean the same at any fps
+# (and give HumanML3D's own values at 20 fps):
+HUMANML3D_FPS = 20.0
+FOOT_THRESHOLD = 0.002  # squared displacement per 20-fps frame (m^2) under which a foot is in contact
+FOOT_CONTACT_SPEED = math.sqrt(FOOT_THRESHOLD) * HUMANML3D_FPS  # ≈ 0.894 m/s
+HEADING_SIGMA = 20.0  # frames at 20 fps: the heading is smoothed over about a second
+
+
+def foot_contacts(joints: torch.Tensor, fps: float) -> torch.Tensor:
+    """(T, J, 3) positions of the four foot joints' skeleton -> (T-1, 4) bool: feet slower than
+    HumanML3D's contact speed (0.002 m² per 20-fps frame) between frames t and t+1."""
+    step = joints[1:, list(FEET_LEFT + FEET_RIGHT)] - joints[:-1, list(FEET_LEFT + FEET_RIGHT)]
+    return step.square().sum(-1) < (FOOT_CONTACT_SPEED / fps) ** 2
 # feature groups whose std is averaged (cal_mean_variance); the root and contact groups
 # are the ones T2M's loaders divide by feat_bias
 GROUPS = ((0, 1), (1, 3), (3, 4), (4, 67), (67, 193), (193, 259), (259, 263))
@@ -85,14 +104,21 @@ def _heading(across: torch.Tensor) -> torch.Tensor:
     return quat_between(forward, _FORWARD.expand_as(forward))
 
 
-def inverse_kinematics(joints: torch.Tensor) -> torch.Tensor:
-    """(T, 22, 3) -> (T, 22, 4): HumanML3D's ``inverse_kinematics_np(smooth_forward=True)``."""
+def inverse_kinematics(joints: torch.Tensor, fps: float = HUMANML3D_FPS) -> torch.Tensor:
+    """(T, 22, 3) -> (T, 22, 4): HumanML3D's ``inverse_kinematics_np(smooth_forward=True)``, its
+    heading smoothing scaled to ``fps``.
+
+    As there, the root rotation of frame 0 is the identity, not the smoothed heading, and the
+    rotations of frame 0's chains are relative to it.
+    """
     r_hip, l_hip, r_shoulder, l_shoulder = FACE_JOINTS
     # their hip term is left - right (see the module docstring), the shoulder term right - left
     across = (joints[:, l_hip] - joints[:, r_hip]) + (joints[:, r_shoulder] - joints[:, l_shoulder])
     forward = torch.cross(_UP.expand_as(across), F.normalize(across, dim=-1), dim=-1)
-    forward = F.normalize(torch.from_numpy(gaussian_filter1d(forward.numpy(), HEADING_SIGMA)), dim=-1)
+    sigma = HEADING_SIGMA * fps / HUMANML3D_FPS
+    forward = F.normalize(torch.from_numpy(gaussian_filter1d(forward.numpy(), sigma)), dim=-1)
     root = quat_between(forward, _FORWARD.expand_as(forward))  # (T, 4)
+    root[0] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=root.dtype)  # HumanML3D: root_quat[0] = identity
     quats = [root] * 22
     raw = torch.from_numpy(T2M_RAW_OFFSETS)
     for chain in T2M_CHAINS:
@@ -155,20 +181,17 @@ class HumanML3D263(Representation):
 
     def canonicalize(self, positions: np.ndarray) -> np.ndarray:
         """(T, 22, 3) -> the (T, 22, 3) positions the features describe (HumanML3D's ``new_joints``)."""
-        joints = self._global_positions(positions)
-        heading0 = inverse_kinematics(joints)[0, 0]  # (4,) frame 0's IK heading, a yaw
-        return quat_apply(heading0, joints).numpy()
+        return self._global_positions(positions).numpy()
 
     def encode(self, clip: Clip) -> tuple[np.ndarray, dict]:
         joints = self._global_positions(clip.positions)  # (T, 22, 3)
-        quats = inverse_kinematics(joints)  # (T, 22, 4)
-        heading = quats[:, 0]  # (T, 4) turns each frame's facing to +Z
+        quats = inverse_kinematics(joints, clip.fps)  # (T, 22, 4)
+        heading = quats[:, 0]  # (T, 4) turns each frame's facing to +Z (frame 0: the identity)
         root_velocity = quat_apply(heading[1:], joints[1:, 0] - joints[:-1, 0])  # (T-1, 3)
         yaw_velocity = quat_mul(heading[1:], quat_conjugate(heading[:-1]))[:, 2].clamp(-1, 1).asin()
         ric = quat_apply(heading[:, None], joints - joints[:, :1] * _XZ)  # (T, 22, 3)
         local_velocity = quat_apply(heading[:-1, None], joints[1:] - joints[:-1])  # (T-1, 22, 3)
-        feet = list(FEET_LEFT + FEET_RIGHT)
-        contacts = ((joints[1:, feet] - joints[:-1, feet]) ** 2).sum(-1) < FOOT_THRESHOLD  # (T-1, 4)
+        contacts = foot_contacts(joints, clip.fps)  # (T-1, 4)
         features = torch.cat(
             [
                 yaw_velocity[:, None],
@@ -181,9 +204,7 @@ class HumanML3D263(Representation):
             ],
             dim=1,
         )
-        # frame 0's IK heading: what HumanML3D's features drop; ``positions_from_rotations`` can use it
-        heading0 = 2.0 * torch.atan2(heading[0, 2], heading[0, 0]).item()
-        return features.numpy().astype(np.float32), {"heading0": heading0}
+        return features.numpy().astype(np.float32), {}
 
     def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
         """(..., T, 263) -> (..., T, 22, 3): ``recover_from_ric`` (``offsets`` are not needed)."""
@@ -196,18 +217,14 @@ class HumanML3D263(Representation):
         self,
         features: torch.Tensor,  # (..., T, 263)
         offsets: torch.Tensor | None = None,  # (22, 3); the uniform skeleton (target_offsets) if None
-        heading0: float | torch.Tensor | None = None,  # (...,) radians, meta["heading0"]
     ) -> torch.Tensor:  # (..., T, 22, 3)
-        """FK of the 6D rotations: HumanML3D's ``recover_from_rot`` when ``heading0`` is None.
+        """FK of the 6D rotations: HumanML3D's ``recover_from_rot``; the positions of ``decode``.
 
-        The features keep each frame's heading relative to frame 0 only. ``recover_from_rot``
-        uses it as the root rotation, which turns the pose about +Y by -2 * heading0 against
-        ``decode``; passing the encoder's ``meta["heading0"]`` gives ``decode``'s positions.
+        Frame 0's root rotation is the identity (module docstring), so the heading that the
+        features integrate from zero is the IK's root rotation of every frame, and FK of the
+        rotations on the uniform skeleton gives ``decode``'s positions.
         """
         heading, root = _root_heading_position(features)
-        if heading0 is not None:
-            turn = torch.as_tensor(heading0, dtype=features.dtype, device=features.device)
-            heading = quat_mul(heading, yaw_quat(2.0 * turn)[..., None, :])
         offsets = features.new_tensor(self.target_offsets) if offsets is None else offsets
         rotations = sixd_to_matrix(features[..., 67:193].unflatten(-1, (21, 6)))  # (..., T, 21, 3, 3)
         root_matrix = quat_to_matrix(heading)  # (..., T, 3, 3)

@@ -33,6 +33,26 @@ class TextFeatures:
     def to(self, device: torch.device | str) -> TextFeatures:
         return TextFeatures(self.tokens.to(device), self.mask.to(device), self.eot.to(device))
 
+    def trimmed(self) -> TextFeatures:
+        """The same batch with L cut to its longest text: fixed-context encoders (CLIP) pad
+        every text to 77 tokens, and what consumes the tokens (the MoC blocks) pays for every
+        position, padded or not. Only padding is removed (itself when there is none)."""
+        real = self.mask.any(0).nonzero()  # token positions real in some text
+        length = int(real.max()) + 1 if len(real) else 0
+        if len(self.eot):
+            length = max(length, int(self.eot.max()) + 1)
+        if length >= self.tokens.shape[1]:
+            return self
+        return TextFeatures(self.tokens[:, :length], self.mask[:, :length], self.eot)
+
+    def padded(self, length: int) -> TextFeatures:
+        """The same batch zero-padded to ``length`` tokens (as CLIP's fixed context pads it)."""
+        extra = length - self.tokens.shape[1]
+        if extra < 0:
+            raise UsageError(f"cannot pad {self.tokens.shape[1]} tokens to {length}")
+        tokens = torch.nn.functional.pad(self.tokens, (0, 0, 0, extra))
+        return TextFeatures(tokens, torch.nn.functional.pad(self.mask, (0, extra)), self.eot)
+
     def eot_embedding(self) -> Tensor:
         """(B, D): the sentence summary, ``tokens[b, eot[b]]``."""
         return self.tokens[torch.arange(len(self.eot), device=self.eot.device), self.eot]

@@ -1,0 +1,277 @@
+"""Bad input ends as one line on stderr (``omg: error: ...``), exit code 2, no traceback, and
+leaves nothing behind: no output files, no empty folders, pre-existing folders untouched.
+
+One table of bad invocations of ``omg generate``, ``export``, ``shards build|synth``, ``fit``
+(the config file) and ``bench``, run in-process. The checkpoints are tiny and untrained: only
+the argument handling is under test, so nothing needs training.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO, TINY_BVH
+from omg.cli import main
+from omg.skeleton import SMPL22
+
+TINY_DIT = {"n_layers": 1, "d_model": 32, "n_heads": 2}
+
+
+@pytest.fixture(scope="module")
+def ckpts(tmp_path_factory) -> dict[str, str]:
+    """Untrained tiny checkpoints: unconditional, text-conditioned, and one with NaN weights."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import class_path
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.pretrain import PretrainModule
+
+    root = tmp_path_factory.mktemp("bad_input_ckpts")
+
+    def save(module, name):
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                    "module_class": class_path(type(module))}, root / name)
+        return str(root / name)
+
+    torch.manual_seed(0)
+    spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
+    pre = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
+    paths = {"pre": save(pre, "pre.ckpt")}
+    cn = ControlNetModule(pretrained=paths["pre"], text_encoder="hash", moc={"d_c": 16, "num_experts": 2}, ema_decay=0)
+    paths["cn"] = save(cn, "cn.ckpt")
+    with torch.no_grad():
+        for p in pre.parameters():
+            p.fill_(float("nan"))
+    paths["nanck"] = save(pre, "nan.ckpt")
+    return paths
+
+
+def _write_inputs(d: Path, out: Path) -> None:
+    """Small bad (and good) input files, fresh for every row."""
+    rng = np.random.default_rng(0)
+    d.mkdir()
+    (d / "latin1.txt").write_bytes("a person walks to the caf\u00e9\n".encode("latin-1"))
+    (d / "elf.bin").write_bytes(b"\x7fELF\x02\x01\x01\x00\xff\xfe" + rng.bytes(2000))  # like /bin/ls
+    (d / "random.bin").write_bytes(b"\x81\xff" + rng.bytes(2000))
+    (d / "nul.txt").write_bytes(b"\x00" * 64 + b"\n")  # valid UTF-8, still binary
+    (d / "afile").write_text("a file, not a folder\n")
+    (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
+    (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
+    (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
+    (d / "bvh").mkdir()
+    (d / "bvh/tiny.bvh").write_text(TINY_BVH)
+    (d / "empty").mkdir()
+    (d / "user").mkdir()
+    (d / "user/keep.txt").write_text("the user's own file\n")
+
+    positions = np.repeat(SMPL22.rest_positions()[None], 10, axis=0).astype(np.float32)
+    settings = {"binary": None, "list": "[1, 2]", "types": '{"skeleton": 5}',
+                "nan": '{"fps": NaN, "prompts": 5, "num_samples": -1}', "dir": None, "bvhdir": "{}"}
+    for name, text in settings.items():
+        gen = d / f"gen_{name}"
+        gen.mkdir()
+        np.save(gen / "sample_000.joints.npy", positions)
+        if text is not None:
+            (gen / "generation.json").write_text(text)
+    (d / "gen_binary/generation.json").write_bytes(b"\xff\xfe{\x00")
+    (d / "gen_dir/generation.json").mkdir()
+    (d / "gen_bvhdir/sample_000.bvh").mkdir()  # where the BVH file would go
+
+
+# (id, argv); {in}: the input folder, {out}: a path that does not exist yet, {pre}/{cn}/{nanck}: checkpoints
+GEN = ["generate", "--steps", "2", "--length", "1", "--num-samples", "1", "--no-preview"]
+TEXT = [*GEN, "a person walks", "--ckpt", "{cn}", "--out", "{out}"]
+UNCOND = [*GEN, "--unconditional", "--ckpt", "{pre}", "--out", "{out}"]
+EXPORT = ["export", "{in}/gen_list/sample_000.joints.npy", "--no-preview"]  # no generation.json read: a plain file
+SYNTH_BUILD = ["shards", "build", "--source", "synth", "--out", "{out}", "--option", "num_clips=2"]
+FIT = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.default_root_dir", "{out}"]
+# small sizes: were a check missing, the benchmark would run (and fail or hang) quickly
+BENCH_DATA = ["bench", "data", "--clips", "20", "--batch-size", "4", "--batches", "2", "--workers", "0"]
+BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch-size", "1"]
+BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch-sizes", "1"]
+MINI_SHARDS = str(REPO / "shards/mini/human263/train")
+ROWS = [
+    # omg generate
+    ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/latin1.txt"]),
+    ("gen-prompts-binary", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/elf.bin"]),
+    ("gen-prompts-nul", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/nul.txt"]),
+    ("gen-prompts-dir", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}"]),
+    ("gen-prompts-missing", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/nope.txt"]),
+    ("gen-length-nan", [*UNCOND, "--length", "nan"]),
+    ("gen-length-inf", [*UNCOND, "--length", "inf"]),
+    ("gen-length-neg", [*UNCOND, "--length", "-1"]),
+    ("gen-guidance-nan", [*TEXT, "--guidance", "nan"]),
+    ("gen-guidance-inf", [*TEXT, "--guidance", "inf"]),
+    ("gen-guidance-overflow", [*TEXT, "--guidance", "1e308"]),
+    ("gen-device-banana", [*UNCOND, "--device", "banana"]),
+    ("gen-device-cuda99", [*UNCOND, "--device", "cuda:99"]),
+    ("gen-out-is-file", [*UNCOND, "--out", "{in}/afile"]),
+    ("gen-out-under-file", [*UNCOND, "--out", "{in}/afile/sub"]),
+    ("gen-steps-too-many", [*UNCOND, "--steps", "100000"]),
+    ("gen-steps-zero", [*UNCOND, "--steps", "0"]),
+    ("gen-seed-neg", [*UNCOND, "--seed", "-1"]),
+    ("gen-seed-overflow", [*UNCOND, "--seed", "99999999999999999999999"]),
+    ("gen-num-samples-neg", [*UNCOND, "--num-samples", "-2"]),
+    ("gen-batch-size-zero", [*UNCOND, "--batch-size", "0"]),
+    ("gen-nan-weights", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{out}"]),
+    ("gen-fails-in-user-folder", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{in}/user"]),
+    # omg export (writes beside its inputs: nothing may appear there either)
+    ("export-fps-nan", [*EXPORT, "--fps", "nan"]),
+    ("export-fps-inf", [*EXPORT, "--fps", "inf"]),
+    ("export-fps-neg", [*EXPORT, "--fps", "-3"]),
+    ("export-scale-nan", [*EXPORT, "--scale", "nan"]),
+    ("export-scale-inf", [*EXPORT, "--scale", "inf"]),
+    ("export-scale-zero", [*EXPORT, "--scale", "0"]),
+    ("export-scale-neg", [*EXPORT, "--scale", "-100"]),
+    ("export-representation-unknown", [*EXPORT, "--representation", "banana"]),
+    ("export-settings-binary", ["export", "{in}/gen_binary", "--no-preview"]),
+    ("export-settings-list", ["export", "{in}/gen_list", "--no-preview"]),
+    ("export-settings-types", ["export", "{in}/gen_types", "--no-preview"]),
+    ("export-settings-nan", ["export", "{in}/gen_nan", "--no-preview"]),
+    ("export-settings-dir", ["export", "{in}/gen_dir", "--no-preview"]),
+    ("export-bvh-is-dir", ["export", "{in}/gen_bvhdir", "--no-preview"]),
+    ("export-input-binary", ["export", "{in}/random.bin"]),
+    # omg shards build
+    ("build-fps-nan", [*SYNTH_BUILD, "--fps", "nan"]),
+    ("build-fps-inf", [*SYNTH_BUILD, "--fps", "inf"]),
+    ("build-fps-neg", [*SYNTH_BUILD, "--fps", "-20"]),
+    ("build-max-mb-nan", [*SYNTH_BUILD, "--max-mb", "nan"]),
+    ("build-max-mb-inf", [*SYNTH_BUILD, "--max-mb", "inf"]),
+    ("build-max-clips-neg", [*SYNTH_BUILD, "--max-clips", "-1"]),
+    ("build-val-fraction-nan", [*SYNTH_BUILD, "--val-fraction", "nan"]),
+    ("build-out-is-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile", "--option", "num_clips=2"]),
+    ("build-out-under-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile/x", "--option", "num_clips=2"]),
+    ("build-config-binary", ["shards", "build", "--config", "{in}/random.bin"]),
+    ("build-config-latin1", ["shards", "build", "--config", "{in}/latin1.yaml"]),
+    ("build-config-dir", ["shards", "build", "--config", "{in}", "--source", "synth", "--out", "{out}"]),
+    ("build-config-nan", ["shards", "build", "--config", "{in}/nan.yaml"]),
+    ("build-config-wrong-type", ["shards", "build", "--config", "{in}/list_out.yaml"]),
+    ("build-option-nan", [*SYNTH_BUILD, "--option", "num_clips=nan"]),
+    ("build-option-neg-seed", [*SYNTH_BUILD, "--option", "seed=-1"]),
+    ("build-option-unknown", [*SYNTH_BUILD, "--option", "banana=1"]),
+    ("build-option-no-key", [*SYNTH_BUILD, "--option", "=3"]),
+    ("build-option-bad-yaml", [*SYNTH_BUILD, "--option", "seed=[1, 2"]),
+    ("build-option-neg-count", ["shards", "build", "--source", "synth", "--out", "{out}", "--option", "num_clips=-1"]),
+    ("build-joint-map-binary", ["shards", "build", "--source", "bvh-dir", "--input", "{in}/bvh", "--out", "{out}",
+                                "--option", "joint_map={in}/random.bin"]),
+    ("build-empty-source", ["shards", "build", "--source", "bvh-dir", "--input", "{in}/empty", "--out", "{out}/a/b"]),
+    ("build-fails-in-user-folder", ["shards", "build", "--source", "synth", "--out", "{in}/user", "--val-fraction", "0.5",
+                                    "--option", "num_clips=1"]),
+    # omg shards synth
+    ("synth-scale-nan", ["shards", "synth", "--out", "{out}", "--scale", "nan"]),
+    ("synth-scale-neg", ["shards", "synth", "--out", "{out}", "--scale", "-1"]),
+    ("synth-fps-nan", ["shards", "synth", "--out", "{out}", "--fps", "nan"]),
+    ("synth-seed-neg", ["shards", "synth", "--out", "{out}", "--seed", "-1", "--scale", "0.02"]),
+    ("synth-out-is-file", ["shards", "synth", "--out", "{in}/afile", "--scale", "0.02"]),
+    # omg fit: the config files
+    ("fit-config-elf", ["fit", "--config", "{in}/elf.bin"]),
+    ("fit-config-random", ["fit", "--config", "{in}/random.bin"]),
+    ("fit-config-random-eq", ["fit", "--config={in}/random.bin"]),
+    ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
+    ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
+    # omg bench
+    ("bench-train-batch-neg", ["bench", "train", "--batch-size", "-1", "--steps", "1", "--warmup", "0", "--frames", "8"]),
+    ("bench-train-peak-nan", ["bench", "train", "--peak-tflops", "nan", "--steps", "1", "--warmup", "0", "--frames", "8",
+                              "--batch-size", "1"]),
+    ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch-sizes", "1"]),
+    ("bench-data-batches-zero", [*BENCH_DATA, "--batches", "0"]),
+    ("bench-data-batches-nan", [*BENCH_DATA, "--batches", "nan"]),
+    ("bench-data-batch-size-zero", [*BENCH_DATA, "--batch-size", "0"]),
+    ("bench-data-clips-zero", [*BENCH_DATA, "--clips", "0"]),
+    ("bench-data-clips-below-batch", [*BENCH_DATA, "--clips", "3"]),
+    ("bench-data-feature-dim-zero", [*BENCH_DATA, "--feature-dim", "0"]),
+    ("bench-data-workers-neg", [*BENCH_DATA, "--workers", "-1"]),
+    ("bench-data-max-len-zero", [*BENCH_DATA, "--max-len", "0"]),
+    ("bench-data-max-len-below-window", [*BENCH_DATA, "--max-len", "40"]),
+    ("bench-data-shards-missing", [*BENCH_DATA, "--shards", "{in}/nope"]),
+    ("bench-data-shards-not-shards", [*BENCH_DATA, "--shards", "{in}/empty"]),
+    ("bench-data-shards-file", [*BENCH_DATA, "--shards", "{in}/afile"]),
+    ("bench-data-shards-below-batch", [*BENCH_DATA, "--shards", MINI_SHARDS, "--batch-size", "100000"]),
+    ("bench-train-steps-zero", [*BENCH_TRAIN, "--steps", "0"]),
+    ("bench-train-steps-nan", [*BENCH_TRAIN, "--steps", "nan"]),
+    ("bench-train-batch-zero", [*BENCH_TRAIN, "--batch-size", "0"]),
+    ("bench-train-frames-zero", [*BENCH_TRAIN, "--frames", "0"]),
+    ("bench-train-warmup-neg", [*BENCH_TRAIN, "--warmup", "-1"]),
+    ("bench-train-peak-zero", [*BENCH_TRAIN, "--peak-tflops", "0"]),
+    ("bench-train-peak-inf", [*BENCH_TRAIN, "--peak-tflops", "inf"]),
+    ("bench-train-peak-neg", [*BENCH_TRAIN, "--peak-tflops", "-5"]),
+    ("bench-train-precision-banana", [*BENCH_TRAIN, "--precision", "banana"]),
+    ("bench-train-strategy-banana", [*BENCH_TRAIN, "--strategy", "banana"]),
+    ("bench-train-flavor-banana", [*BENCH_TRAIN, "--flavor", "banana"]),
+    ("bench-sample-batch-sizes-letters", [*BENCH_SAMPLE, "--batch-sizes", "a,b"]),
+    ("bench-sample-batch-sizes-zero", [*BENCH_SAMPLE, "--batch-sizes", "0"]),
+    ("bench-sample-batch-sizes-neg", [*BENCH_SAMPLE, "--batch-sizes", "1,-8"]),
+    ("bench-sample-batch-sizes-gap", [*BENCH_SAMPLE, "--batch-sizes", "1,,8"]),
+    ("bench-sample-batch-sizes-empty", [*BENCH_SAMPLE, "--batch-sizes", ""]),
+    ("bench-sample-batch-sizes-nan", [*BENCH_SAMPLE, "--batch-sizes", "nan"]),
+    ("bench-sample-steps-zero", [*BENCH_SAMPLE, "--steps", "0"]),  # legitimate only with --token-steps
+    ("bench-sample-steps-too-many", [*BENCH_SAMPLE, "--steps", "100000"]),
+    ("bench-sample-steps-nan", [*BENCH_SAMPLE, "--steps", "nan"]),
+    ("bench-sample-frames-zero", [*BENCH_SAMPLE, "--frames", "0"]),
+    ("bench-sample-token-steps-neg", [*BENCH_SAMPLE, "--token-steps", "-1"]),
+    ("bench-sample-flavor-banana", [*BENCH_SAMPLE, "--flavor", "banana"]),
+    ("bench-sample-text-encoder-banana", [*BENCH_SAMPLE, "--text-encoder", "banana"]),
+    ("bench-sample-precision-banana", [*BENCH_SAMPLE, "--precision", "banana"]),
+]
+
+
+def _tree(root: Path) -> dict[str, tuple]:
+    """Every file and folder under root, with size and modification time of the files."""
+    tree = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames:
+            tree[os.path.relpath(os.path.join(dirpath, name), root)] = ("dir",)
+        for name in filenames:
+            stat = os.stat(os.path.join(dirpath, name))
+            tree[os.path.relpath(os.path.join(dirpath, name), root)] = (stat.st_size, stat.st_mtime_ns)
+    return tree
+
+
+@pytest.mark.parametrize("argv", [argv for _, argv in ROWS], ids=[name for name, _ in ROWS])
+def test_bad_input_is_one_line_exit_2_and_leaves_nothing(argv, ckpts, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # default output folders would land here
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
+    _write_inputs(tmp_path / "in", tmp_path / "out")
+    before = _tree(tmp_path)
+    argv = [a.format(**{"in": tmp_path / "in", "out": tmp_path / "out", **ckpts}) for a in argv]
+
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert e.value.code == 2, captured.err[-3000:]
+    assert "Traceback" not in captured.out + captured.err
+    assert len(lines) == 1 and lines[0].startswith("omg: error: "), captured.err[-3000:]
+    assert _tree(tmp_path) == before, "the failed run left files behind or changed them"
+
+
+def test_the_table_covers_every_command():
+    commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
+    assert commands == {"generate", "export", "shards build", "shards synth", "fit", "bench data", "bench train",
+                        "bench sample"}
+    assert len({name for name, _ in ROWS}) == len(ROWS)
+
+
+def test_good_input_still_works(ckpts, tmp_path, capsys, monkeypatch):
+    """The checks refuse only bad input: the same commands with sound values run (and write)."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "gen"
+    main([*GEN, "--unconditional", "--ckpt", ckpts["pre"], "--out", str(out), "--seed", "0", "--device", "cpu"])
+    assert (out / "sample_000.bvh").is_file() and json.loads((out / "generation.json").read_text())["seed"] == 0
+    main([*GEN, "a person walks", "--ckpt", ckpts["cn"], "--out", str(out), "--guidance", "-0.5"])
+    main(["export", str(out), "--no-preview", "--scale", "100", "--fps", "20"])
+    config = tmp_path / "build.yaml"
+    config.write_text(f"source: synth\nout: {tmp_path / 'shards'}\nfps: 20\nmax_mb: 1\nmax_clips: 2\n"
+                      "option: {num_clips: 3, seed: 1}\n")
+    main(["shards", "build", "--config", str(config)])
+    assert (tmp_path / "shards/manifest.json").is_file()
+    assert "Traceback" not in capsys.readouterr().err
+    main(["bench", "sample", "--steps", "0", "--token-steps", "1", "--batch-sizes", "1", "--frames", "8"])
+    captured = capsys.readouterr()  # --steps 0 with --token-steps: only the token padding is timed
+    assert "trimming:" in captured.out and "Traceback" not in captured.err

@@ -1,0 +1,60 @@
+"""One frame rate across stages: the prior's rate is the fine-tuning data's and the output's."""
+
+from __future__ import annotations
+
+import lightning as L
+import pytest
+
+from conftest import walking_clip
+from omg.data.datamodule import MotionDataModule
+from omg.data.shards import ShardWriter
+from omg.errors import UsageError
+from omg.motion import get_representation
+from omg.skeleton import SMPL22
+
+TINY = {"n_layers": 1, "d_model": 32, "n_heads": 2}
+
+
+def shards_at(root, fps: float):
+    rep = get_representation("humanml3d263", SMPL22)
+    ShardWriter(root, rep, fps, max_clips=8, log=lambda m: None).write(walking_clip(i, fps=fps) for i in range(8))
+    return root
+
+
+@pytest.fixture(scope="module")
+def prior_30fps(tmp_path_factory):
+    """A stage-1 checkpoint trained (one step) on 30-fps shards."""
+    from omg.lit.pretrain import PretrainModule
+
+    root = tmp_path_factory.mktemp("prior30")
+    data = MotionDataModule(str(shards_at(root / "shards", 30.0)), batch_size=4, max_len=30, min_len=10,
+                            batches_per_epoch=1, num_workers=0, shuffle_buffer=4)
+    model = PretrainModule(flavor="mini", dit=TINY, warmup_steps=1, spec=data.spec)
+    trainer = L.Trainer(accelerator="cpu", max_steps=1, logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0)
+    trainer.fit(model, data)
+    trainer.save_checkpoint(root / "prior.ckpt")
+    return root / "prior.ckpt"
+
+
+def test_fine_tuning_data_at_another_rate_is_refused(prior_30fps, tmp_path):
+    from omg.lit.controlnet import ControlNetModule
+
+    data_20 = MotionDataModule(str(shards_at(tmp_path / "s20", 20.0)))
+    with pytest.raises(UsageError, match=r"20 fps but the pretrained model at 30 fps: rebuild the shards .*--fps 30"):
+        ControlNetModule(pretrained=str(prior_30fps), text_encoder="hash", spec=data_20.spec)
+    data_30 = MotionDataModule(str(shards_at(tmp_path / "s30", 30.0)))
+    module = ControlNetModule(pretrained=str(prior_30fps), text_encoder="hash", spec=data_30.spec)
+    assert module.spec["fps"] == module.data_spec["fps"] == 30.0
+
+
+def test_generated_bvh_is_at_the_training_rate(prior_30fps, tmp_path):
+    from omg.cli import main
+
+    out = tmp_path / "gen"
+    main(["generate", "--unconditional", "--ckpt", str(prior_30fps), "--num-samples", "1", "--length", "1",
+          "--steps", "2", "--no-preview", "--out", str(out)])
+    bvh = (out / "sample_000.bvh").read_text()
+    frame_time = float(bvh.split("Frame Time:")[1].split()[0])
+    frames = int(bvh.split("Frames:")[1].split()[0])
+    assert frame_time == pytest.approx(1 / 30, abs=1e-6) and frames == 30

@@ -1,0 +1,223 @@
+"""Fault injection: a run killed anywhere resumes to exactly the state of the run never killed.
+
+Tiny models on the CPU with a real Lightning Trainer and real shards. A kill is an exception
+raised from a callback at the start of a step (the process state is then thrown away: the
+resumed run builds a new Trainer, module and data module from the config). Every comparison
+is bit for bit: weights, EMA, optimizer, LR schedule, noise RNG, data position, and the
+batches each step trained on.
+"""
+
+from __future__ import annotations
+
+import lightning as L
+import pytest
+import torch
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+
+from omg.data.datamodule import MotionDataModule
+from omg.lit.pretrain import PretrainModule
+
+BATCHES_PER_EPOCH = 4
+TOTAL_STEPS = 10
+
+
+class Killed(Exception):
+    """Stands for SIGKILL: nothing after it runs, and the next run starts from the files."""
+
+
+class KillAt(Callback):
+    def __init__(self, step: int):
+        self.step = step
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.global_step == self.step:
+            raise Killed(f"killed at the start of step {self.step}")
+
+
+class Recorder(Callback):
+    """What each optimizer step trained on: the batch's clip ids and lengths, and the epoch."""
+
+    def __init__(self):
+        self.steps: dict[int, tuple] = {}
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.steps[trainer.global_step] = (trainer.current_epoch, tuple(batch["id"]), tuple(batch["lengths"].tolist()))
+
+
+def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_workers: int = 0,
+        accumulate: int = 1) -> tuple[Recorder, L.Trainer]:
+    L.seed_everything(0, verbose=False)
+    data = MotionDataModule(str(shards / "train"), batch_size=4, max_len=30, min_len=10,
+                            batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers, shuffle_buffer=8)
+    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=3,
+                           ema_decay=0.9, spec=data.spec)
+    recorder = Recorder()
+    callbacks = [recorder, ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1, save_top_k=-1)]
+    if kill_at is not None:
+        callbacks.append(KillAt(kill_at))
+    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=TOTAL_STEPS, accumulate_grad_batches=accumulate,
+                        logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+                        num_sanity_val_steps=0, default_root_dir=root, callbacks=callbacks)
+    try:
+        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
+    except Killed:
+        pass
+    return recorder, trainer
+
+
+def final_state(root) -> dict:
+    ckpt = torch.load(root / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
+    return {
+        "global_step": ckpt["global_step"],
+        "epoch": ckpt["epoch"],
+        "state_dict": ckpt["state_dict"],
+        "ema": ckpt["ema"],
+        "optimizer": ckpt["optimizer_states"],
+        "lr": ckpt["lr_schedulers"],
+        "noise_rng": ckpt["noise_rng"],
+        "data": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"],  # the stream position
+    }
+
+
+def assert_identical(a, b, path="checkpoint"):
+    assert type(a) is type(b), f"{path}: {type(a)} vs {type(b)}"
+    if isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), f"{path} differs"
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), f"{path}: keys {sorted(a)} vs {sorted(b)}"
+        for k in a:
+            assert_identical(a[k], b[k], f"{path}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), f"{path}: length {len(a)} vs {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_identical(x, y, f"{path}[{i}]")
+    else:
+        assert a == b, f"{path}: {a!r} vs {b!r}"
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(h263_shards, tmp_path_factory):
+    root = tmp_path_factory.mktemp("uninterrupted")
+    recorder, _ = fit(h263_shards, root)
+    return recorder.steps, final_state(root)
+
+
+def test_every_epoch_trains_on_new_batches(uninterrupted):
+    steps, state = uninterrupted
+    assert len(steps) == TOTAL_STEPS and state["global_step"] == TOTAL_STEPS
+    assert state["data"] == [{"epoch": 2, "batches_done": 2}]
+    epochs = {}
+    for step, (epoch, ids, lengths) in steps.items():
+        assert epoch == step // BATCHES_PER_EPOCH
+        epochs.setdefault(epoch, []).append((ids, lengths))
+    assert epochs[0] != epochs[1][: len(epochs[0])] and epochs[1] != epochs[2] + epochs[1][len(epochs[2]):]
+    assert epochs[0][:2] != epochs[2], "epoch 2 replays epoch 0"
+
+
+# kills at the start of a step: 4 and 8 resume from a checkpoint written at an epoch's last batch
+@pytest.mark.parametrize("kill_at", [1, 3, 4, 5, 8, 9])
+def test_killed_run_resumes_bit_for_bit(h263_shards, uninterrupted, tmp_path, kill_at):
+    steps, expected = uninterrupted
+    first, _ = fit(h263_shards, tmp_path, kill_at=kill_at)
+    assert max(first.steps) == kill_at  # killed in step kill_at, after the checkpoint of step kill_at
+    second, _ = fit(h263_shards, tmp_path, resume=True)
+    assert min(second.steps) == kill_at
+    assert {**first.steps, **second.steps} == steps, "the resumed run trained on other batches"
+    assert_identical(final_state(tmp_path), expected)
+
+
+def test_resume_with_loader_workers(h263_shards, tmp_path_factory):
+    full = tmp_path_factory.mktemp("full")
+    steps, _ = fit(h263_shards, full, num_workers=2)
+    root = tmp_path_factory.mktemp("killed")
+    first, _ = fit(h263_shards, root, kill_at=4, num_workers=2)
+    second, _ = fit(h263_shards, root, resume=True, num_workers=2)
+    assert {**first.steps, **second.steps} == steps.steps
+    assert_identical(final_state(root), final_state(full))
+
+
+class AccumulatingStrategy(L.pytorch.strategies.SingleDeviceStrategy):
+    """Accumulates gradients itself, as DeepSpeed does: Lightning calls its optimizer step on
+    every micro-batch, and it steps the optimizer on the last micro-batch of each window."""
+
+    def __init__(self, accumulate: int):
+        super().__init__(device=torch.device("cpu"))
+        self.accumulate, self.micro_batches = accumulate, 0
+
+    @property
+    def handles_gradient_accumulation(self) -> bool:
+        return True
+
+    def optimizer_step(self, optimizer, closure, model=None, **kwargs):
+        closure()  # forward + backward of this micro-batch
+        self.micro_batches += 1
+        if self.micro_batches % self.accumulate == 0:
+            optimizer.step()
+
+
+class WeightsAfterStep(Callback):
+    def __init__(self):
+        self.weights, self.last_step = [], 0
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step != self.last_step:  # a real optimizer step happened
+            self.last_step = trainer.global_step
+            self.weights.append({n: p.detach().clone() for n, p in pl_module.model.named_parameters()})
+
+
+@pytest.mark.parametrize("strategy", ["lightning", "deepspeed-like"])
+def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, strategy):
+    accumulate, decay = 4, 0.9
+    L.seed_everything(0, verbose=False)
+    data = MotionDataModule(str(h263_shards / "train"), batch_size=2, max_len=30, min_len=10, batches_per_epoch=12,
+                            num_workers=0, shuffle_buffer=8)
+    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-2, warmup_steps=1,
+                           ema_decay=decay, spec=data.spec)
+    initial = {n: p.detach().clone() for n, p in model.model.named_parameters()}
+    recorder = WeightsAfterStep()
+    trainer = L.Trainer(accelerator="cpu", max_steps=3, accumulate_grad_batches=accumulate, logger=False,
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                        limit_val_batches=0, num_sanity_val_steps=0, callbacks=[recorder],
+                        strategy=AccumulatingStrategy(accumulate) if strategy == "deepspeed-like" else "auto")
+    trainer.fit(model, data)
+    assert len(recorder.weights) == 3 and model.ema.updates == 3
+    shadow = {n: t.float() for n, t in initial.items()}
+    for u, weights in enumerate(recorder.weights):  # EMA.current_decay's warm-up, by hand
+        d = min(decay, (1 + u) / (10 + u))
+        shadow = {n: d * shadow[n] + (1 - d) * weights[n] for n in shadow}
+    for n, expected in shadow.items():
+        torch.testing.assert_close(model.ema.shadow[n], expected, rtol=0, atol=1e-6)
+
+
+def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
+    """Two gloo ranks on the CPU: kill at an epoch boundary, resume, compare with the run never
+    killed, each rank's noise RNG included."""
+    import os
+    import socket
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    shards = h263_shards / "train"  # 4 shards, 2 per rank
+    script = Path(__file__).with_name("ddp_resume_run.py")
+
+    def run(root, kill_at=-1, resume=False):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "OMP_NUM_THREADS": "1"}
+        for key in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK"):
+            env.pop(key, None)
+        done = subprocess.run([sys.executable, str(script), str(shards), str(root), str(kill_at), str(int(resume))],
+                              env=env, capture_output=True, text=True, timeout=300)
+        return done.returncode, done.stderr[-3000:]
+
+    code, err = run(tmp_path / "full")
+    assert code == 0, err
+    code, err = run(tmp_path / "killed", kill_at=3)
+    assert code != 0
+    code, err = run(tmp_path / "killed", resume=True)
+    assert code == 0, err
+    expected, resumed = final_state(tmp_path / "full"), final_state(tmp_path / "killed")
+    assert expected["noise_rng"].shape[0] == 2 and not torch.equal(*expected["noise_rng"])  # one state per rank
+    assert_identical(resumed, expected)
