@@ -17,6 +17,7 @@ import os
 import re
 import shutil
 import sys
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -168,6 +169,9 @@ def lightning_main(argv: list[str]) -> None:
     from omg.lit.cli import OmgLightningCLI
 
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)
+    # Lightning's advertising and its own deprecation notices are not the user's business
+    logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(lambda r: "💡 Tip" not in r.getMessage())
+    warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)` is deprecated.*")
     _check_config_files(argv)
     sys.argv = ["omg", *argv]  # LightningCLI reads sys.argv; passing args as well makes it warn
     try:

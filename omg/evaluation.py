@@ -29,7 +29,7 @@ from torchmetrics import Metric
 from omg.data.shards import atomic_write, write_json
 from omg.data.windows import WindowSampler, length_mask
 from omg.errors import UsageError
-from omg.metrics import (CLIPScore, Diversity, FID, FIDOOD, FootSkating, IntraFID, MMDist, MultiModality, OneNNA,
+from omg.metrics import (CLIPScore, Diversity, FID, FIDOOD, FootSkating, IntraFID, LabelAccuracy, MMDist, MultiModality, OneNNA,
                          RPrecision)
 from omg.motion import get_representation
 from omg.registry import METRICS
@@ -41,7 +41,7 @@ SPEC_MATCH = ("representation", "skeleton", "feature_dim", "fps")
 # how each built-in metric is fed (a third-party metric defines ``eval_update(outputs, real)`` instead)
 PAIRED = (RPrecision, MMDist, CLIPScore)  # update(text, motion)
 # metrics that describe one set of motions: also reported for the real motions as ``real/<name>``
-REFERENCE = (*PAIRED, Diversity, FootSkating)
+REFERENCE = (*PAIRED, Diversity, FootSkating, LabelAccuracy)
 
 
 # -- the evaluator ------------------------------------------------------------------------
@@ -108,6 +108,7 @@ class PromptSet:
     motions: Tensor
     categories: list[str]
     offsets: Tensor | None = None
+    labels: list[dict] | None = None  # each clip's labels ({content, style, ...}), {} when it has none
 
     def __len__(self) -> int:
         return len(self.texts)
@@ -115,13 +116,15 @@ class PromptSet:
     def slice(self, start: int, stop: int) -> PromptSet:
         T = int(self.lengths[start:stop].max())
         return PromptSet(self.texts[start:stop], self.lengths[start:stop], self.motions[start:stop, :T],
-                         self.categories[start:stop], None if self.offsets is None else self.offsets[start:stop])
+                         self.categories[start:stop], None if self.offsets is None else self.offsets[start:stop],
+                         None if self.labels is None else self.labels[start:stop])
 
     def repeat(self, count: int, repeats: int) -> PromptSet:
         """The first ``count`` prompts, each ``repeats`` times in a row (MultiModality's generations)."""
         index = torch.arange(min(count, len(self))).repeat_interleave(repeats)
         return PromptSet([self.texts[i] for i in index], self.lengths[index], self.motions[index],
-                         [self.categories[i] for i in index], None if self.offsets is None else self.offsets[index])
+                         [self.categories[i] for i in index], None if self.offsets is None else self.offsets[index],
+                         None if self.labels is None else [self.labels[i] for i in index])
 
 
 def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSampler) -> PromptSet:
@@ -133,13 +136,14 @@ def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSamp
         raise UsageError("the evaluation set holds no clips; set data.val to a shard directory")
     rng = np.random.default_rng(seed)
     order = np.concatenate([rng.permutation(len(pool)) for _ in range(math.ceil(num / len(pool)))])[:num]
-    texts, windows_, categories, offsets = [], [], [], []
+    texts, windows_, categories, offsets, labels = [], [], [], [], []
     for i in order:
         s = pool[int(i)]
         start, length = (windows.whole if s["texts"] else windows.random)(len(s["motion"]), rng)
         texts.append(s["texts"][int(rng.integers(len(s["texts"])))] if s["texts"] else "")
         windows_.append(s["motion"][start:start + length])
         categories.append(s["meta"].get("category") or "")
+        labels.append(s["meta"].get("labels") or {})
         offsets.append(s["meta"].get("offsets"))
     lengths = torch.tensor([len(w) for w in windows_])
     motions = torch.zeros(num, int(lengths.max()), windows_[0].shape[1])
@@ -147,7 +151,7 @@ def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSamp
         motions[b, : len(w)] = torch.from_numpy(np.ascontiguousarray(w))
     has_offsets = all(o is not None for o in offsets)
     return PromptSet(texts, lengths, motions, categories,
-                     torch.tensor(np.array(offsets), dtype=torch.float32) if has_offsets else None)
+                     torch.tensor(np.array(offsets), dtype=torch.float32) if has_offsets else None, labels)
 
 
 # -- metrics ------------------------------------------------------------------------------
@@ -206,6 +210,7 @@ class Outputs:
     gen_joints: Tensor | None = None
     mm: Tensor | None = None
     mm_ids: Tensor | None = None
+    labels: list[dict] | None = None  # each row's clip labels
 
 
 def update_metric(metric: Metric, out: Outputs, real: bool = False) -> None:
@@ -279,7 +284,12 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
     evaluator.to(device)
     categories = sorted(set(prompts.categories))
     probe = evaluator.encode_text([prompts.texts[0]])
-    context = {"num_features": probe.shape[-1], "categories": categories, "seed": seed + replication}
+    label_values: dict[str, set] = {}
+    for labels in prompts.labels or []:
+        for key, value in labels.items():
+            label_values.setdefault(key, set()).add(str(value))
+    context = {"num_features": probe.shape[-1], "categories": categories, "seed": seed + replication,
+               "labels": {key: sorted(values) for key, values in label_values.items()}}
     representation = None
     if spec is not None:
         context |= {"skeleton": spec["skeleton"], "fps": spec["fps"]}
@@ -309,7 +319,7 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
             text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, mask), gen=embed(gen, mask),
             category=torch.tensor([category_index[c] for c in part.categories], device=device), mask=mask,
             real_joints=decode(real, part) if needs_joints else None,
-            gen_joints=decode(gen, part) if needs_joints else None)
+            gen_joints=decode(gen, part) if needs_joints else None, labels=part.labels)
         for name, metric in built.items():
             if not isinstance(metric, MultiModality):
                 update_metric(metric, out)

@@ -38,6 +38,8 @@ def parse_args(argv: list[str]):
     p.add_argument("--batch-size", type=positive_int, default=32)
     p.add_argument("--no-ema", action="store_true", help="use the trained weights instead of their EMA")
     p.add_argument("--no-preview", action="store_true", help="skip the GIF preview")
+    p.add_argument("--preview-count", type=positive_int, default=MAX_PREVIEW,
+                   help=f"motions shown side by side in preview.gif (default {MAX_PREVIEW})")
     p.add_argument("--clean-contacts", action="store_true", help="pin planted feet in the BVH files (removes foot skating)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu, cuda, cuda:N or mps")
     p.add_argument("--out", default="out/generate", help="output folder (created; files in it are overwritten)")
@@ -178,6 +180,6 @@ def _generate(module, args, argv: list[str], prompts: list[str], jobs: list, fra
     }
     write_json(out / "generation.json", settings)
     if not args.no_preview:  # the first motions side by side with their captions
-        shown = previews[:MAX_PREVIEW]
+        shown = previews[:args.preview_count]
         render_gif(out / "preview.gif", [m for m, _ in shown], module.representation.skeleton, fps, titles=[t for _, t in shown])
     return settings

@@ -192,6 +192,25 @@ def test_duplicate_captions_are_not_negatives():
     assert info_nce(twins, same_pairs(["a", "a"])) == pytest.approx(0.0, abs=1e-6)
 
 
+def test_paraphrases_with_the_same_labels_are_not_negatives():
+    texts = ["a person walks backward like an old person.", "an old man backs away slowly.",
+             "a person bows like an old person.", "a person stands."]
+    labels = [{"content": "walk-back", "style": "old"}, {"style": "old", "content": "walk-back"},
+              {"content": "bow", "style": "old"}, {}]
+    same = same_pairs(texts, ids=["a", "b", "c", "d"], labels=labels)
+    assert same.tolist() == [[True, True, False, False], [True, True, False, False],
+                             [False, False, True, False], [False, False, False, True]]
+    # rows without labels are not all one class
+    assert not same_pairs(["x", "y"], labels=[{}, {}])[0, 1]
+
+
+def test_batches_carry_each_clips_labels(toy_shards):
+    from omg.data.datamodule import MotionDataModule
+
+    batch = next(iter(MotionDataModule(str(toy_shards), batch_size=4, num_workers=0, batches_per_epoch=1).train_dataloader()))
+    assert batch["labels"] == [{}] * 4  # toy clips carry no labels; bandai1 takes carry {content, style}
+
+
 def test_any_skeleton_animals_train_and_registry(tmp_path):
     assert MODELS.get("contrastive") is TextMotionEvaluator
     data = _data(ANIMAL, batch_size=8, max_len=60, min_len=40)

@@ -123,6 +123,12 @@ def test_cli_export(tmp_path, capsys):
     assert "sample_001.bvh, sample_001.gif" in capsys.readouterr().out
 
 
+def test_cli_export_into_another_folder(tmp_path):
+    np.save(tmp_path / "walk.joints.npy", SMPL22.rest_positions()[None].repeat(3, 0))
+    cli_main(["export", str(tmp_path / "walk.joints.npy"), "--out", str(tmp_path / "exported"), "--no-preview"])
+    assert (tmp_path / "exported" / "walk.bvh").is_file() and not (tmp_path / "walk.bvh").exists()
+
+
 def test_cli_export_features(tmp_path):
     from omg.motion import get_representation
 

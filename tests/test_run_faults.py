@@ -79,6 +79,11 @@ def test_sigterm_saves_a_checkpoint_exits_nonzero_and_resumes_exactly(h263_shard
     for key in a["state_dict"]:
         assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
     assert torch.equal(a["noise_rng"], b["noise_rng"])
+    # a run without --ckpt_path starts afresh, even beside another run's checkpoints
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", resumed])
+    assert "Restoring states" not in caplog.text
 
 
 def _stall(self, rng):

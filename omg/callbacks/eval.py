@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from lightning.pytorch.callbacks import Callback
-from lightning.pytorch.utilities import rank_zero_only
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor, nn
 
 from omg.callbacks.run import log_scalars, run_dir, sampling
@@ -139,7 +140,16 @@ class EvalCallback(Callback):
 
     # -- test: the protocol -----------------------------------------------------------------
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        summary = protocol(lambda r: self.run_once(trainer, pl_module, r), self.replications)
+        def replication(r: int) -> dict[str, float]:
+            start = time.perf_counter()
+            values = self.run_once(trainer, pl_module, r)
+            rank_zero_info(f"omg: evaluation replication {r + 1}/{self.replications}: {self.num_prompts} prompts "
+                           f"in {time.perf_counter() - start:.0f} s")
+            return values
+
+        rank_zero_info(f"omg: evaluating {self.replications} replications of {self.num_prompts} prompts "
+                       f"({self.sampling.get('steps')} sampling steps)")
+        summary = protocol(replication, self.replications)
         for key, s in summary.items():
             pl_module.log(f"eval/{key}", s["mean"])
             pl_module.log(f"eval/{key}_ci95", s["ci95"])

@@ -11,7 +11,7 @@ from typing import Iterator
 
 import lightning as L
 import torch
-from lightning.pytorch.callbacks import OnExceptionCheckpoint
+from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -53,12 +53,14 @@ def sampling(module: L.LightningModule) -> Iterator[None]:
                 m.train(training)
 
 
-class InterruptCheckpoint(OnExceptionCheckpoint):
+class InterruptCheckpoint(Callback):
     """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) save ``interrupted.ckpt``
     beside the run's checkpoints at the end of the step in which the signal came, the point where
-    ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly (Lightning counts
-    it among the "last" candidates and takes the newest). Lightning's loops then stop. Other
-    exceptions save nothing: a crash mid-step leaves a state that must not be resumed from.
+    ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly (``omg.lit.cli``
+    counts it among the "last" candidates and takes the newest). Lightning's loops then stop.
+    Other exceptions save nothing: a crash mid-step leaves a state that must not be resumed from.
+    (Not Lightning's OnExceptionCheckpoint: with one of those, every ``fit`` without a
+    ``--ckpt_path`` silently resumes from the newest checkpoint in the folder.)
 
     On several ranks Lightning shares the signal through collectives of its own at points that
     differ between ranks, and a checkpoint (a collective too) cannot be slotted in safely: the
@@ -67,7 +69,7 @@ class InterruptCheckpoint(OnExceptionCheckpoint):
     """
 
     def __init__(self, dirpath: str | Path):
-        super().__init__(dirpath, filename="interrupted")
+        self.ckpt_path = str(Path(dirpath) / "interrupted.ckpt")
         self.started, self.saved_step = time.time(), None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections import Counter
 import hashlib
 import inspect
 import math
@@ -13,10 +14,11 @@ import typing
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import numpy as np
 import yaml
 
-from omg.cli import (ToolParser, check_output_dir, nonneg_float, positive_float, positive_int, read_text,
-                     removing_created, seed_int)
+from omg.cli import (ToolParser, check_output_dir, nonneg_float, nonneg_int, positive_float, positive_int,
+                     read_text, removing_created, seed_int)
 from omg.data.shards import ShardWriter, check_shards
 from omg.errors import UsageError
 from omg.motion import Clip, get_representation
@@ -39,12 +41,38 @@ def in_val_split(clip_id: str, val_fraction: float) -> bool:
     return h < val_fraction
 
 
-def _split(items: Iterable[Clip | Exception], val_fraction: float, want_val: bool) -> Iterator[Clip | Exception | None]:
+def in_val_labels(clip: Clip, val_where: dict[str, list[str]]) -> bool:
+    """A split by take: the clip's labels match every ``key: [values]`` of ``val_where``."""
+    return all(str(clip.labels.get(key)) in values for key, values in val_where.items())
+
+
+def _split(items: Iterable[Clip | Exception | None], want_val: bool, val_fraction: float,
+           val_where: dict[str, list[str]] | None) -> Iterator[Clip | Exception | None]:
     for item in items:
         if isinstance(item, Clip):
-            yield item if in_val_split(item.id, val_fraction) == want_val else None
+            in_val = in_val_labels(item, val_where) if val_where else in_val_split(item.id, val_fraction)
+            yield item if in_val == want_val else None
         else:  # a failed item is counted once, in the training split
-            yield None if want_val else item
+            yield None if want_val or item is None else item
+
+
+def shuffled(items: Iterable, buffer: int, seed: int) -> Iterator:
+    """The source's items in a seeded random order, through a buffer of ``buffer`` items (0: as
+    they come). Sources list their files in name order, which puts long runs of one action into
+    one shard; the training stream's shuffle buffer then sees few actions per batch. The order
+    is a function of the source's order and the seed, so an interrupted build resumes."""
+    if buffer <= 1:
+        yield from items
+        return
+    rng, pool = np.random.default_rng(seed), []
+    for item in items:
+        pool.append(item)
+        if len(pool) >= buffer:
+            i = int(rng.integers(len(pool)))
+            pool[i], pool[-1] = pool[-1], pool[i]
+            yield pool.pop()
+    order = rng.permutation(len(pool))
+    yield from (pool[i] for i in order)
 
 
 def build(
@@ -60,6 +88,9 @@ def build(
     options: dict | None = None,
     command: str = "",
     log=lambda message: None,
+    val_where: dict[str, list[str]] | None = None,
+    shuffle_buffer: int = 0,
+    seed: int = 0,
 ) -> list:
     """Build a shard set (``out``, or ``out/train`` and ``out/val`` with a validation split).
 
@@ -77,15 +108,20 @@ def build(
     options = _check_options(source, open_source, options or {})
     rep = get_representation(representation, get_skeleton(skeleton))
     out = check_output_dir(out)
-    splits = {"train": False, "val": True} if val_fraction > 0 else {"": False}
+    if not _is_number(shuffle_buffer) or isinstance(shuffle_buffer, float) or shuffle_buffer < 0:
+        raise UsageError(f"--shuffle-buffer must be an integer >= 0, got {shuffle_buffer!r}")
+    if val_where and val_fraction > 0:
+        raise UsageError("give --val-fraction (a random split) or --val-where (a split by label), not both")
+    splits = {"train": False, "val": True} if val_fraction > 0 or val_where else {"": False}
     summaries = []
     try:
         with removing_created(*(out / name for name in splits)):
             for name, want_val in splits.items():
                 items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **options)
                 stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
-                if val_fraction > 0:
-                    items = _split(items, val_fraction, want_val)
+                items = shuffled(items, shuffle_buffer, seed)
+                if name:
+                    items = _split(items, want_val, val_fraction, val_where)
                 writer = ShardWriter(out / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
                                      stats=stats)
                 summaries.append(writer.write(items))
@@ -189,6 +225,10 @@ def _config_value(config: str, key: str, action: argparse.Action, value):
         if isinstance(value, list) and all(isinstance(v, str) for v in value):
             return _parse_options(value)
         raise UsageError(f"{config}: {key!r} must be a mapping of source options, got {value!r}")
+    if action.dest == "val_where":
+        if isinstance(value, dict) and all(isinstance(v, (str, list)) for v in value.values()):
+            return _parse_val_where([f"{k}={v if isinstance(v, str) else ','.join(map(str, v))}" for k, v in value.items()])
+        raise UsageError(f"{config}: {key!r} must map labels to values, e.g. {{style: [old, proud]}}, got {value!r}")
     if value is None:
         return None
     if action.type is None:
@@ -216,6 +256,11 @@ def _build_main(argv: list[str]) -> None:
     p.add_argument("--val-fraction", type=nonneg_float, default=0.0, help="put this share of clips in out/val, the rest in out/train")
     p.add_argument("--max-clips", type=positive_int, default=1000, help="clips per shard at most")
     p.add_argument("--max-mb", type=positive_float, default=256.0, help="megabytes per shard at most")
+    p.add_argument("--val-where", action="append", default=[], metavar="LABEL=V1,V2",
+                   help="put the clips whose label LABEL is one of the values in out/val (a split by take; repeatable: all must match)")
+    p.add_argument("--shuffle-buffer", type=nonneg_int, default=1000,
+                   help="write clips in a seeded random order through a buffer of this many clips (0: input order)")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of the clip order")
     p.add_argument("--option", action="append", default=[], help="key=value passed to the source (repeatable)")
     args = p.parse_args(argv)
     if args.config:
@@ -237,9 +282,21 @@ def _build_main(argv: list[str]) -> None:
             raise UsageError(f"omg shards build: --{required} is required")
     options = args.option if isinstance(args.option, dict) else _parse_options(args.option)
     command = "omg shards build " + shlex.join(argv)
+    val_where = args.val_where if isinstance(args.val_where, dict) else _parse_val_where(args.val_where)
     for summary in build(args.source, args.out, args.representation, args.skeleton, args.fps, args.input,
-                         args.val_fraction, args.max_clips, args.max_mb, options, command, log=print):
+                         args.val_fraction, args.max_clips, args.max_mb, options, command, log=print,
+                         val_where=val_where, shuffle_buffer=args.shuffle_buffer, seed=args.seed):
         print(summary)
+
+
+def _parse_val_where(pairs: list[str]) -> dict[str, list[str]]:
+    where = {}
+    for pair in pairs:
+        key, sep, values = pair.partition("=")
+        if not sep or not key.strip() or not values.strip():
+            raise UsageError(f"--val-where {pair!r}: expected LABEL=VALUE[,VALUE...], e.g. style=old,proud")
+        where[key.strip()] = [v.strip() for v in values.split(",") if v.strip()]
+    return where
 
 
 def _synth_main(argv: list[str]) -> None:
@@ -262,11 +319,47 @@ def _synth_main(argv: list[str]) -> None:
                 print(summary)
 
 
+def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: int, batches: int = 50) -> str:
+    """How fair a sample of the set a training batch is: the distinct captions, and the distinct
+    values of each clip label (e.g. a take's content), in batches drawn as the training stream
+    draws them, against the whole set's."""
+    from omg.data.datamodule import ClipDataset, MotionDataModule, MotionStream
+    from omg.data.windows import WindowSampler
+
+    data = MotionDataModule(str(shard_dir), verify_shards=False)
+    stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size,
+                          windows=WindowSampler(mode="whole"), feature_dim=data.feature_dim,
+                          shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
+    items = list(stream)
+    samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows, max_bad_fraction=1.0).samples
+    groups = {"captions": ([it["text"] for it in items], [s["texts"][0] if s["texts"] else "" for s in samples])}
+    for label in sorted({k for s in samples for k in s["meta"]["labels"]}):
+        groups[label] = ([str(it["labels"].get(label)) for it in items],
+                         [str(s["meta"]["labels"].get(label)) for s in samples])
+    parts, unfair = [], False
+    for name, (drawn, whole) in groups.items():
+        counts = Counter(whole)
+        if len(counts) < 2:
+            continue
+        mean = sum(len(set(drawn[i:i + batch_size])) for i in range(0, len(drawn), batch_size)) / batches
+        # what batches drawn independently from the whole set would hold
+        fair = sum(1 - (1 - n / len(whole)) ** batch_size for n in counts.values())
+        parts.append(f"{name} {mean:.1f} of {len(counts)} (fair: {fair:.1f})")
+        unfair |= mean < 0.8 * fair
+    if not parts:
+        return "no captions or labels to report a batch composition for"
+    return (f"a batch of {batch_size} through a shuffle buffer of {shuffle_buffer} holds on average: "
+            f"{', '.join(parts)}{'; raise data.shuffle_buffer (or rebuild with --shuffle-buffer)' if unfair else ''}")
+
+
 def _inspect_main(argv: list[str]) -> None:
     p = ToolParser(prog="omg shards inspect", description="Summarise a shard set, check every shard against its "
                    "manifest (file, size, sample count, end-of-archive, sha256) and validate every sample. "
                    "Exits 1 when a shard or sample is bad, 2 when a manifest is missing or invalid.")
     p.add_argument("dirs", nargs="+", help="shard directories (with manifest.json)")
+    p.add_argument("--batch-size", type=positive_int, default=16, help="batch size of the batch-composition report")
+    p.add_argument("--shuffle-buffer", type=positive_int, default=1000,
+                   help="the training stream's shuffle buffer (data.shuffle_buffer) for that report")
     args = p.parse_args(argv)
     failures = []
     for d in args.dirs:
@@ -282,6 +375,8 @@ def _inspect_main(argv: list[str]) -> None:
             line += f", {unhashed} without a sha256 in the manifest"
         bad_samples = sum(len(s.problems) for s in result.shards)
         print(f"{line}; {result.good} valid samples, {len(result.problems)} problems")
+        if not result.failed and result.good:
+            print("  " + batch_composition(d, args.batch_size, args.shuffle_buffer))
         if result.failed or bad_samples:
             what = [f"{len(result.failed)} of {n} shards failed verification"] if result.failed else []
             what += [f"{bad_samples} bad samples"] if bad_samples else []

@@ -285,7 +285,8 @@ class MotionDataModule(L.LightningDataModule):
     """Motion shards -> batches of ``motion`` (B, T, D) normalised, ``mask`` (B, T), ``text``.
 
     Args:
-        train: shard directory, URL pattern (``/data/shard-{000000..000099}.tar``) or a list.
+        train: shard directory, URL pattern (``/data/shard-{000000..000099}.tar``) or a list; not
+            needed by ``omg validate`` and ``omg test``, which read ``val``.
         val: the same for validation (a small set: it is loaded into memory), or None.
         batch_size: samples per batch on each rank.
         max_len / min_len: sample length bounds in frames (OMG pretraining: windows of up to 300
@@ -306,7 +307,7 @@ class MotionDataModule(L.LightningDataModule):
 
     def __init__(
         self,
-        train: str | list[str],
+        train: str | list[str] | None = None,
         val: str | list[str] | None = None,
         batch_size: int = 32,
         max_len: int = 300,
@@ -332,11 +333,17 @@ class MotionDataModule(L.LightningDataModule):
         if clips not in ("auto", *CLIP_MODES):
             raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
         self.save_hyperparameters()
-        self.train_urls, self.manifest, self.shard_checks = resolve_shards(train)
-        self.val_urls = []
+        if not train and not val:
+            raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
+                             "is enough for `omg validate` and `omg test`)")
+        self.train_urls, self.val_urls, self.shard_checks, manifest = [], [], {}, None
+        if train:
+            self.train_urls, manifest, self.shard_checks = resolve_shards(train)
         if val:
-            self.val_urls, _, val_checks = resolve_shards(val)
+            self.val_urls, val_manifest, val_checks = resolve_shards(val)
             self.shard_checks = {**self.shard_checks, **val_checks}
+            manifest = manifest or val_manifest
+        self.manifest = manifest  # the training set's; the validation set's when there is none
         if not verify_shards:
             self.shard_checks = {}
         mean, std = (self.manifest.mean, self.manifest.std) if normalize else (None, None)
@@ -377,6 +384,8 @@ class MotionDataModule(L.LightningDataModule):
         return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
 
     def train_dataloader(self) -> StreamLoader:
+        if not self.train_urls:
+            raise UsageError("training needs data.train: a shard directory or URL pattern")
         h = self.hparams
         rank, world = self._rank_world()
         manifest = self.manifest

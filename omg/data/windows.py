@@ -88,6 +88,7 @@ def make_item(sample: dict, start: int, length: int, text: str) -> dict:
         "text": text,
         "id": meta["id"],
         "category": meta.get("category") or "",
+        "labels": meta.get("labels") or {},
         "start": start,
     }
     if "offsets" in meta:
@@ -104,7 +105,8 @@ class Collate:
 
     Returns ``motion`` (B, T, D) normalised and zero at padding, ``mask`` (B, T) True on real
     frames, ``lengths`` (B,), ``text`` (list of B captions, "" when unlabeled), ``id``,
-    ``category``, and ``offsets`` (B, J, 3) when every clip carries them.
+    ``category``, ``labels`` (each clip's label dict, {} when it has none), and ``offsets``
+    (B, J, 3) when every clip carries them.
     """
 
     def __init__(self, mean: np.ndarray | None = None, std: np.ndarray | None = None):
@@ -127,6 +129,7 @@ class Collate:
             "text": [it["text"] for it in items],
             "id": [it["id"] for it in items],
             "category": [it["category"] for it in items],
+            "labels": [it["labels"] for it in items],
         }
         if all("offsets" in it for it in items):
             batch["offsets"] = torch.from_numpy(np.stack([it["offsets"] for it in items]))

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from omg.cli import ToolParser, positive_float, read_text
+from omg.cli import ToolParser, check_output_dir, positive_float, read_text
 from omg.errors import UsageError
 from omg.io.bvh import write_bvh
 from omg.io.contacts import clean_foot_contacts
@@ -140,6 +140,7 @@ def parse_args(argv: list[str]):
     p.add_argument("--order", default="ZXY", choices=EULER_ORDERS, help="Euler order of the BVH rotation channels")
     p.add_argument("--scale", type=positive_float, default=1.0, help="BVH units per metre (100 for centimetres)")
     p.add_argument("--no-preview", action="store_true", help="skip the GIF previews")
+    p.add_argument("--out", help="write the files into this folder (default: beside each input)")
     p.add_argument("--clean-contacts", action="store_true", help="pin planted feet (removes foot skating) before IK")
     return p.parse_args(argv)
 
@@ -230,12 +231,15 @@ def main(argv: list[str]) -> None:
         REPRESENTATIONS.get(args.representation)  # an unknown name is a UsageError naming the known ones
     if args.skeleton is not None:
         get_skeleton(args.skeleton)
+    out = check_output_dir(args.out) if args.out else None
     jobs = []  # every file is read and checked before anything is written
     for path in [f for spec in args.inputs for f in _inputs(spec)]:
         settings = _settings(path.parent)
         skel = get_skeleton(args.skeleton or settings.get("skeleton") or DEFAULT_SKELETON)
         positions = _load_positions(path, skel, args.representation or settings.get("representation"))
         stem = path.with_name(re.sub(r"(\.joints|\.features)?\.npy$", "", path.name))
+        if args.out:
+            stem = out / stem.name
         fps = args.fps or settings.get("fps") or DEFAULT_FPS
         jobs.append((path, stem, positions, skel, fps, _prompt(settings, stem.name)))
     extensions = ("bvh",) if args.no_preview else ("bvh", "gif")
@@ -243,10 +247,15 @@ def main(argv: list[str]) -> None:
     for target in targets:
         if target.is_dir():
             raise UsageError(f"{target}: a folder is in the way of the output file; move it or export elsewhere")
-        if not os.access(target.parent, os.W_OK | os.X_OK):
+        if target.parent.exists() and not os.access(target.parent, os.W_OK | os.X_OK):
             raise UsageError(f"{target.parent}: not writable; copy the motions to a folder you can write to")
+    if len({t for t in targets}) < len(targets):
+        raise UsageError("two inputs have the same name and would be written to the same --out file; export them apart")
     new = [t for t in targets if not t.exists()]
+    created = out is not None and not out.exists()
     try:
+        if created:
+            out.mkdir(parents=True)
         for path, stem, positions, skel, fps, texts in jobs:
             start = time.perf_counter()
             report = export_motion(stem, positions, skel, fps, texts, not args.no_preview, args.order, args.scale,
@@ -257,4 +266,6 @@ def main(argv: list[str]) -> None:
     except Exception:  # a failed export leaves none of the files it created
         for target in new:
             target.unlink(missing_ok=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
         raise

@@ -87,9 +87,10 @@ class EvaluatorModule(L.LightningModule):
         rows = torch.tensor(keep, device=batch["motion"].device)
         texts = [batch["text"][i] for i in keep]
         ids = [batch["id"][i] for i in keep] if "id" in batch else None
+        labels = [batch["labels"][i] for i in keep] if "labels" in batch else None
         text = self.evaluator.encode_text(texts)
         motion = self.evaluator.encode_normalized_motion(batch["motion"][rows], batch["mask"][rows])
-        return text, motion, same_pairs(texts, ids).to(self.device)
+        return text, motion, same_pairs(texts, ids, labels).to(self.device)
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor | None:
         out = self.embed(batch)

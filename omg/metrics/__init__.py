@@ -7,7 +7,7 @@ lists), so ``compute()`` gives the same result on every rank as one process seei
 from omg.metrics.distribution import FID, FIDOOD, IntraFID, OneNNA, frechet_distance
 from omg.metrics.diversity import Diversity, MultiModality
 from omg.metrics.joints import MPJPE, FootSkating
-from omg.metrics.text_motion import CLIPScore, MMDist, RPrecision
+from omg.metrics.text_motion import CLIPScore, LabelAccuracy, MMDist, RPrecision
 
 __all__ = [
     "CLIPScore",
@@ -16,6 +16,7 @@ __all__ = [
     "FIDOOD",
     "FootSkating",
     "IntraFID",
+    "LabelAccuracy",
     "MMDist",
     "MPJPE",
     "MultiModality",

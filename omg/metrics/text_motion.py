@@ -97,3 +97,59 @@ class CLIPScore(RunningMean):
         _check_pairs(text_features, motion_features)
         text, motion = text_features.detach().double(), motion_features.detach().double()
         self.accumulate(F.cosine_similarity(text, motion, dim=1).sum(), len(text_features))
+
+
+@METRICS.register("label_accuracy")
+class LabelAccuracy(Metric):
+    """How often the evaluator recognises a motion's class: each motion's nearest caption (among
+    the distinct captions of the pass, Euclidean in the evaluator's space) carries the same value
+    of the clip label ``label`` (e.g. a take's ``content``: walk, bow, ...) as the motion's own.
+
+    ``compute()`` returns ``{"label_accuracy": overall, "label_accuracy/<value>": per class}``;
+    chance is about 1 / number of classes. ``values`` (every value of the label in the prompt
+    set, filled in by the evaluation) makes the class indices the same on every rank. Motions
+    whose clip has no such label are left out.
+    """
+
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+
+    def __init__(self, label: str = "content", labels: dict[str, list[str]] | None = None, **kwargs):
+        super().__init__(**kwargs)
+        self.label = label
+        self.values = list((labels or {}).get(label, []))
+        if not self.values:
+            raise UsageError(f"label_accuracy: no clip of the evaluation set has a {label!r} label "
+                             "(set label: to one of the clips' labels)")
+        self.add_state("text", default=[], dist_reduce_fx="cat")
+        self.add_state("motion", default=[], dist_reduce_fx="cat")
+        self.add_state("klass", default=[], dist_reduce_fx="cat")
+
+    def update(self, text_features: Tensor, motion_features: Tensor, labels: list[dict]) -> None:
+        """Matched text and motion features (N, F) and each row's clip labels."""
+        _check_pairs(text_features, motion_features)
+        index = {v: i for i, v in enumerate(self.values)}
+        rows = [i for i, lab in enumerate(labels) if str(lab.get(self.label)) in index]
+        if rows:
+            keep = torch.tensor(rows, device=text_features.device)
+            self.text.append(text_features[keep].detach().double())
+            self.motion.append(motion_features[keep].detach().double())
+            self.klass.append(torch.tensor([index[str(labels[i][self.label])] for i in rows], device=keep.device))
+
+    def eval_update(self, out, real: bool = False) -> None:
+        """The evaluation's hook (omg.evaluation.update_metric)."""
+        self.update(out.text, out.real if real else out.gen, out.labels or [])
+
+    def compute(self) -> dict[str, Tensor]:
+        text, motion, klass = dim_zero_cat(self.text), dim_zero_cat(self.motion), dim_zero_cat(self.klass)
+        captions, inverse = torch.unique(text, dim=0, return_inverse=True)  # distinct captions
+        caption_class = torch.zeros(len(captions), dtype=klass.dtype, device=klass.device)
+        caption_class[inverse] = klass
+        predicted = caption_class[torch.cdist(motion, captions).argmin(dim=1)]
+        hit = (predicted == klass).double()
+        out = {"label_accuracy": hit.mean()}
+        for i, value in enumerate(self.values):
+            if (klass == i).any():
+                out[f"label_accuracy/{value}"] = hit[klass == i].mean()
+        return out

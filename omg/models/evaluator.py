@@ -224,8 +224,11 @@ def info_nce(logits: Tensor, same: Tensor | None = None) -> Tensor:
     return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
 
 
-def same_pairs(texts: Sequence[str], ids: Sequence[str] | None = None) -> Tensor:
-    """(B, B) bool: True where two batch rows share their caption (case/space-insensitive) or clip id."""
+def same_pairs(texts: Sequence[str], ids: Sequence[str] | None = None, labels: Sequence[dict] | None = None) -> Tensor:
+    """(B, B) bool: True where two batch rows share their caption (case/space-insensitive), clip
+    id, or labels (two takes labelled {content: walk, style: old} are the same motion class
+    whatever their captions say, so neither is a negative of the other; rows without labels
+    match on caption and id only)."""
     keys = [" ".join(t.lower().split()).rstrip(".") for t in texts]
     index = {k: i for i, k in enumerate(dict.fromkeys(keys))}
     codes = torch.tensor([index[k] for k in keys])
@@ -234,6 +237,12 @@ def same_pairs(texts: Sequence[str], ids: Sequence[str] | None = None) -> Tensor
         id_index = {k: i for i, k in enumerate(dict.fromkeys(ids))}
         id_codes = torch.tensor([id_index[k] for k in ids])
         same |= id_codes[:, None] == id_codes[None, :]
+    if labels is not None:
+        keys = [tuple(sorted((str(k), str(v)) for k, v in (lab or {}).items())) for lab in labels]
+        label_index = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+        label_codes = torch.tensor([label_index[k] for k in keys])
+        labelled = torch.tensor([bool(k) for k in keys])
+        same |= (label_codes[:, None] == label_codes[None, :]) & labelled[:, None] & labelled[None, :]
     return same
 
 
