@@ -77,6 +77,12 @@ def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest, dict[str
     return sorted(checks), first, checks
 
 
+def read_shard(url: str, expected: dict | None) -> Iterator[dict[str, bytes]]:
+    """Raw samples of one shard; given what its manifest records (``expected``), the shard is
+    checked whole before any of its samples is yielded."""
+    return iter_tar(url, **expected, whole=True) if expected else iter_tar(url)
+
+
 def shard_problem(error: Exception) -> str:
     """Why a shard was skipped, in a few words (without its path, which the caller names)."""
     if isinstance(error, ShardError):
@@ -140,8 +146,7 @@ class MotionStream(IterableDataset):
             url = self.urls[int(rng.integers(len(self.urls)))]
             expected = self.checks.get(url)
             try:
-                # a verified shard is checked whole before any of its samples is used
-                for raw in iter_tar(url, **expected, whole=True) if expected else iter_tar(url):
+                for raw in read_shard(url, expected):
                     seen += 1
                     try:
                         yield decode_sample(raw, self.feature_dim)
@@ -252,7 +257,7 @@ class ClipDataset(Dataset):
         for url in urls:
             expected = checks.get(url)
             try:
-                for raw in iter_tar(url, **expected, whole=True) if expected else iter_tar(url):
+                for raw in read_shard(url, expected):
                     try:
                         samples.append(decode_sample(raw, feature_dim))
                     except (ValueError, KeyError) as e:
