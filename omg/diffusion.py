@@ -2,8 +2,8 @@
 
 The model predicts the clean motion x̂0 (as MDM and OMG do). Schedule math is float64; the
 tensors move to the data's device and dtype where they are used. Sampling takes any
-``denoise(x_t, t) -> x̂0`` callable, so classifier-free guidance is only another callable
-(see ``guided``).
+``denoise(x_t, t) -> x̂0`` callable, so classifier-free guidance is the model's business
+(``omg.models.controlnet.MotionControlNet.forward_guided`` mixes D_u and D_c in one pass).
 """
 
 from __future__ import annotations
@@ -150,15 +150,3 @@ class Diffusion:
                 x = x * keep
         return x
 
-
-def guided(denoise_uncond: Denoiser, denoise_cond: Denoiser, scale: float) -> Denoiser:
-    """Classifier-free guidance: (1-s)·D_u + s·D_c (s=0: unconditional, s=1: conditional).
-
-    When both share work (one forward on the batch concatenated with its null-condition copy),
-    pass ``ddim_sample`` a single callable that does that and mixes the halves instead.
-    """
-
-    def denoise(x: Tensor, t: Tensor) -> Tensor:
-        return (1 - scale) * denoise_uncond(x, t) + scale * denoise_cond(x, t)
-
-    return denoise

@@ -26,23 +26,15 @@ import torch
 from torch import Tensor, nn
 from torchmetrics import Metric
 
-from omg.data.shards import atomic_write, write_json
-from omg.data.windows import WindowSampler, length_mask
+from omg.data.windows import WindowSampler
 from omg.errors import UsageError
-from omg.metrics import (CLIPScore, Diversity, FID, FIDOOD, FootSkating, IntraFID, LabelAccuracy, MMDist, MultiModality, OneNNA,
-                         RPrecision)
-from omg.motion import get_representation
+from omg.files import atomic_write, write_json
+from omg.metrics import EvalBatch
+from omg.motion import DataSpec, get_representation, length_mask
 from omg.registry import METRICS
 from omg.skeleton import get_skeleton
 
 DEFAULT_METRICS = ("fid", "r_precision", "mm_dist", "diversity", "multimodality")
-SPEC_MATCH = ("representation", "skeleton", "feature_dim", "fps")
-
-# how each built-in metric is fed (a third-party metric defines ``eval_update(outputs, real)`` instead)
-PAIRED = (RPrecision, MMDist, CLIPScore)  # update(text, motion)
-# metrics that describe one set of motions: also reported for the real motions as ``real/<name>``
-REFERENCE = (*PAIRED, Diversity, FootSkating, LabelAccuracy)
-
 
 # -- the evaluator ------------------------------------------------------------------------
 
@@ -55,7 +47,7 @@ def build_evaluator(spec: str | dict[str, Any] | nn.Module, key: str = "evaluato
         if not Path(spec).exists():
             raise UsageError(f"{key}: no evaluator checkpoint at {spec}; train one (configs/evaluator_*.yaml) "
                              f"or use the T2M port with {key}: {{t2m: {{checkpoint, glove_dir, mean_std_dir}}}}")
-        from omg.models.evaluator import load_evaluator
+        from omg.lit.evaluator import load_evaluator  # imports Lightning: only when a checkpoint is given
 
         model = load_evaluator(str(spec), map_location="cpu")
     elif isinstance(spec, dict) and set(spec) == {"t2m"}:
@@ -88,12 +80,11 @@ def build_evaluator(spec: str | dict[str, Any] | nn.Module, key: str = "evaluato
     return model.eval().requires_grad_(False)
 
 
-def check_evaluator_spec(evaluator: nn.Module, data_spec: dict, key: str = "evaluator") -> None:
-    """The evaluator must read the same features as the data (where it says what it reads)."""
-    spec = getattr(evaluator, "spec", None) or {}
-    if bad := [k for k in SPEC_MATCH if k in spec and k in data_spec and spec[k] != data_spec[k]]:
-        raise UsageError(f"{key} was trained on {', '.join(f'{k}={spec[k]}' for k in bad)} but the data has "
-                         f"{', '.join(f'{k}={data_spec[k]}' for k in bad)}")
+def check_evaluator_spec(evaluator: nn.Module, data_spec: DataSpec, key: str = "evaluator") -> None:
+    """The evaluator must read the same features as the data, where it says what it reads (its
+    ``spec``: a DataSpec, or a dict of the fields it knows, as the T2M port has)."""
+    if (spec := getattr(evaluator, "spec", None)) is not None:
+        data_spec.check_compatible(spec, "the data", key)
 
 
 # -- prompts ------------------------------------------------------------------------------
@@ -156,7 +147,8 @@ def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSamp
 
 # -- metrics ------------------------------------------------------------------------------
 
-def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None, key: str = "metrics") -> dict[str, dict]:
+def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None,
+                  key: str = "metrics") -> dict[str, dict]:
     """``[fid, {diversity: {num_pairs: 100}}]`` or ``{fid: {}, ...}`` -> {name: options}."""
     spec = DEFAULT_METRICS if spec is None else spec
     items = list(spec.items()) if isinstance(spec, dict) else []
@@ -175,8 +167,7 @@ def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None, 
         if not isinstance(options, dict | None):
             raise UsageError(f"{key}.{name}: options must be a mapping, got {options!r}")
         cls = METRICS.get(name)
-        if cls is FIDOOD or (not hasattr(cls, "eval_update") and not issubclass(
-                cls, (FID, IntraFID, OneNNA, MultiModality, *REFERENCE))):
+        if not callable(getattr(cls, "eval_update", None)) or not getattr(cls, "from_prompts", True):
             raise UsageError(f"{key}: {name} cannot be computed from generated prompts (it needs other inputs); "
                              f"use {', '.join(DEFAULT_METRICS)}, clip_score, intra_fid, one_nna or foot_skating")
         out[name] = dict(options or {})
@@ -193,50 +184,6 @@ def build_metric(name: str, options: dict, context: dict, key: str = "metrics") 
         return cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise UsageError(f"{key}.{name}: {e}") from None
-
-
-@dataclass
-class Outputs:
-    """What one pass feeds the metrics: embeddings (N, E) of texts, real and generated motions,
-    category indices (N,), decoded joints (N, T, J, 3) with mask (N, T), and MultiModality's
-    repeated generations (M, E) with their prompt ids (M,)."""
-
-    text: Tensor | None = None
-    real: Tensor | None = None
-    gen: Tensor | None = None
-    category: Tensor | None = None
-    mask: Tensor | None = None
-    real_joints: Tensor | None = None
-    gen_joints: Tensor | None = None
-    mm: Tensor | None = None
-    mm_ids: Tensor | None = None
-    labels: list[dict] | None = None  # each row's clip labels
-
-
-def update_metric(metric: Metric, out: Outputs, real: bool = False) -> None:
-    """Feed one pass to a metric; ``real`` feeds the real motions in place of the generated ones
-    (the reference row of the published tables)."""
-    if hasattr(metric, "eval_update"):
-        metric.eval_update(out, real)
-        return
-    motion, joints = (out.real, out.real_joints) if real else (out.gen, out.gen_joints)
-    if isinstance(metric, IntraFID):
-        metric.update(out.real, out.category, real=True)
-        metric.update(out.gen, out.category, real=False)
-    elif isinstance(metric, (FID, OneNNA)):
-        metric.update(out.real, real=True)
-        metric.update(out.gen, real=False)
-    elif isinstance(metric, PAIRED):
-        metric.update(out.text, motion)
-    elif isinstance(metric, Diversity):
-        metric.update(motion)
-    elif isinstance(metric, FootSkating):
-        metric.update(joints, out.mask)
-    elif isinstance(metric, MultiModality):
-        if out.mm is not None and len(out.mm):
-            metric.update(out.mm, out.mm_ids)
-    else:
-        raise TypeError(f"no rule to feed {type(metric).__name__}")
 
 
 def metric_values(name: str, value: Tensor | dict[str, Tensor]) -> dict[str, float]:
@@ -274,7 +221,7 @@ def _my_batches(n: int, batch_size: int, rank: int, world: int) -> list[tuple[in
 
 @torch.no_grad()
 def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metrics: dict[str, dict], *,
-             seed: int, replication: int = 0, settings: EvalSettings | None = None, spec: dict | None = None,
+             seed: int, replication: int = 0, settings: EvalSettings | None = None, spec: DataSpec | None = None,
              device: torch.device | str = "cpu", rank: int = 0, world_size: int = 1) -> dict[str, float]:
     """One evaluation pass over ``prompts``: {metric key: value}, the same on every rank.
 
@@ -292,14 +239,15 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
                "labels": {key: sorted(values) for key, values in label_values.items()}}
     representation = None
     if spec is not None:
-        context |= {"skeleton": spec["skeleton"], "fps": spec["fps"]}
-        representation = get_representation(spec["representation"], get_skeleton(spec["skeleton"]))
+        context |= {"skeleton": spec.skeleton, "fps": spec.fps}
+        representation = get_representation(spec.representation, get_skeleton(spec.skeleton))
     built = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()}
     reference = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()
-                 if settings.reference and isinstance(built[name], REFERENCE)}
-    needs_joints = any(isinstance(m, FootSkating) for m in built.values())
+                 if settings.reference and getattr(built[name], "reference", False)}
+    needs_joints = any(getattr(m, "needs_joints", False) for m in built.values())
     if needs_joints and representation is None:
-        raise UsageError("foot_skating needs the data spec (representation, skeleton, fps) to decode joint positions")
+        raise UsageError("joint-position metrics (foot_skating) need the data spec (representation, skeleton, fps) "
+                         "to decode joint positions")
     category_index = {c: i for i, c in enumerate(categories)}
 
     def embed(motion: Tensor, mask: Tensor) -> Tensor:
@@ -315,18 +263,18 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
         gen = generate(part.texts, lengths, batch_seed(seed, replication, 0, b))[:, : part.motions.shape[1]]
         real = part.motions.to(device)
         mask = length_mask(lengths, real.shape[1])  # (B, T) real frames, shared by both sets
-        out = Outputs(
+        out = EvalBatch(
             text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, mask), gen=embed(gen, mask),
             category=torch.tensor([category_index[c] for c in part.categories], device=device), mask=mask,
             real_joints=decode(real, part) if needs_joints else None,
             gen_joints=decode(gen, part) if needs_joints else None, labels=part.labels)
-        for name, metric in built.items():
-            if not isinstance(metric, MultiModality):
-                update_metric(metric, out)
+        for metric in built.values():
+            if not getattr(metric, "repeated", False):
+                metric.eval_update(out)
         for metric in reference.values():
-            update_metric(metric, out, real=True)
+            metric.eval_update(out, real=True)
 
-    mm_metrics = [m for m in built.values() if isinstance(m, MultiModality)]
+    mm_metrics = [m for m in built.values() if getattr(m, "repeated", False)]
     if mm_metrics:
         repeated = prompts.repeat(settings.mm_prompts, settings.mm_repeats)
         ids = torch.arange(min(settings.mm_prompts, len(prompts))).repeat_interleave(settings.mm_repeats)
@@ -334,10 +282,10 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
             part = repeated.slice(start, stop)
             gen = generate(part.texts, part.lengths.to(device), batch_seed(seed, replication, 1, b))
             frames = part.motions.shape[1]
-            out = Outputs(mm=embed(gen[:, :frames], length_mask(part.lengths, frames, device)),
+            out = EvalBatch(mm=embed(gen[:, :frames], length_mask(part.lengths, frames, device)),
                           mm_ids=ids[start:stop].to(device))
             for metric in mm_metrics:
-                update_metric(metric, out)
+                metric.eval_update(out)
 
     values: dict[str, float] = {}
     for name, metric in built.items():

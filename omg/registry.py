@@ -98,18 +98,18 @@ SKELETONS = Registry("skeleton", ("omg.skeleton",))
 REPRESENTATIONS = Registry("representation", ("omg.motion",))
 TEXT_ENCODERS = Registry("text encoder", ("omg.text",))
 DATA_SOURCES = Registry("data source", ("omg.data.sources",))
-MODELS = Registry("model", ("omg.models.evaluator",))
 METRICS = Registry("metric", ("omg.metrics",))
-CALLBACKS = Registry("callback", ("omg.callbacks",))
+SAMPLERS = Registry("sampler", ("omg.samplers",))
+JOINT_MAPS = Registry("joint map", ("omg.joint_maps",))  # YAML paths or omg.retarget.JointMap objects
 
 ALL: dict[str, Registry] = {
     "skeletons": SKELETONS,
     "representations": REPRESENTATIONS,
     "text_encoders": TEXT_ENCODERS,
     "data_sources": DATA_SOURCES,
-    "models": MODELS,
     "metrics": METRICS,
-    "callbacks": CALLBACKS,
+    "samplers": SAMPLERS,
+    "joint_maps": JOINT_MAPS,
 }
 
 _plugins_loaded: list[str] | None = None

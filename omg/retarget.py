@@ -1,16 +1,20 @@
 """Retargeting any rig's motion (``RigMotion``) onto a model skeleton (smpl22, smal35) by joint names.
 
-A joint map says which source joint each target joint sits on. Built-in maps cover the
-Bandai-Namco BVH rig, CMU's rigs (cgspeed BVH in both namings, ASF/AMC), the DeepMimic
-humanoid (-> smpl22), the MANN dog BVH and the DeepMimic dog (-> smal35); without a map the
-one whose source joints are all present is picked. A user map is a YAML file::
+A joint map says which source joint each target joint sits on. It is a YAML file::
 
     target: smpl22            # the skeleton it maps onto
     category: human           # optional: the clips' category (default: human for smpl22, else animal)
-    joints:                   # target joint: source joint
+    name: my_rig              # optional (default: the file's stem)
+    joints:                   # target joint: source joint, every one written out
       pelvis: Hips
       left_hip: LeftUpLeg
       ...
+
+The built-in maps are such files in ``omg/joint_maps/`` (the Bandai-Namco BVH rig, CMU's rigs:
+cgspeed BVH in both namings and ASF/AMC, the DeepMimic humanoid -> smpl22; the MANN dog BVH
+and the DeepMimic dog -> smal35), registered in ``omg.registry.JOINT_MAPS`` by name; a plugin
+registers its own the same way (``JOINT_MAPS.register("my_rig", path_or_JointMap)``). Without
+a map, the registered one whose source joints are all present is picked.
 
 Source names are joint names, or ``<joint>_end`` for a joint's end site (BVH End Site,
 DeepMimic body tip). Target joints left out are filled in:
@@ -23,18 +27,20 @@ DeepMimic body tip). Target joints left out are filled in:
 The root and the parent of every end effector must be mapped or filled in between mapped
 joints. The output clip has constant bone lengths by construction: each target joint's
 global rotation turns the template's rest bone directions onto the mapped directions
-(parent -> child; the best fit where a joint has several children), and bone lengths are
+(parent -> child; the best fit where a joint has several children: ``omg.kinematics``'s
+``positions_to_rotations`` aiming from the mapped places), and bone lengths are
 measured on the source's rest pose (so individual proportions stay; ``height`` rescales).
 The source's up axis is detected (pelvis above the feet) and turned to +Y, the floor y = 0
-is put under the feet of contact frames (low foot speed), and the motion is resampled to
-the requested fps before anything else.
+is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slow and low),
+and the motion is resampled to the requested fps before anything else.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from functools import cache
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -42,12 +48,11 @@ import yaml
 
 from omg.errors import UsageError
 from omg.io.rig import RigMotion
+from omg.kinematics import ground_contacts, positions_to_rotations
 from omg.motion.base import Clip
-from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_mul
+from omg.registry import JOINT_MAPS
+from omg.rotations import quat_apply, quat_between, quat_identity
 from omg.skeleton import Skeleton, get_skeleton
-
-CONTACT_SPEED = 0.3  # m/s: a foot joint slower than this, and low, is taken to be on the ground
-CONTACT_BAND = 0.10  # m: "low" = within this of the clip's lowest foot joints
 
 
 @dataclass(frozen=True)
@@ -62,67 +67,8 @@ class JointMap:
         return [s for s in self.joints.values() if s not in present]
 
 
-def _mirror(left: dict, target_swap: tuple[str, str], source_swap: tuple[str, str], centre: dict) -> dict:
-    """``centre`` plus the left-side entries and their right-side twins (first occurrence swapped)."""
-    out = dict(centre)
-    for t, s in left.items():
-        out[t] = s
-        out[t.replace(*target_swap, 1)] = s.replace(*source_swap, 1)
-    return out
-
-
-_SMPL_LR, _SMAL_LR = ("left_", "right_"), ("L", "R")
-
-BUILTIN_MAPS: dict[str, JointMap] = {
-    m.name: m
-    for m in (
-        JointMap("bandai", "smpl22", _mirror(
-            {"left_hip": "UpperLeg_L", "left_knee": "LowerLeg_L", "left_ankle": "Foot_L", "left_foot": "Toes_L",
-             "left_collar": "Shoulder_L", "left_shoulder": "UpperArm_L", "left_elbow": "LowerArm_L",
-             "left_wrist": "Hand_L"}, _SMPL_LR, ("_L", "_R"),
-            {"pelvis": "Hips", "spine1": "Spine", "spine3": "Chest", "neck": "Neck", "head": "Head"})),
-        # CMU cgspeed BVH ("MotionBuilder" naming); collars are filled in: CMU's clavicles
-        # start at the neck base, SMPL's collars halfway to the shoulders
-        JointMap("cmu", "smpl22", _mirror(
-            {"left_hip": "LeftUpLeg", "left_knee": "LeftLeg", "left_ankle": "LeftFoot", "left_foot": "LeftToeBase",
-             "left_shoulder": "LeftArm", "left_elbow": "LeftForeArm", "left_wrist": "LeftHand"},
-            _SMPL_LR, ("Left", "Right"),
-            {"pelvis": "Hips", "spine1": "Spine", "spine3": "Spine1", "neck": "Neck1", "head": "Head"})),
-        # the same rig in cgspeed's "3dsMax" naming (131_*.bvh): note LeftShoulder = upper arm here
-        JointMap("cmu_3dsmax", "smpl22", _mirror(
-            {"left_hip": "LeftHip", "left_knee": "LeftKnee", "left_ankle": "LeftAnkle", "left_foot": "LeftToe",
-             "left_shoulder": "LeftShoulder", "left_elbow": "LeftElbow", "left_wrist": "LeftWrist"},
-            _SMPL_LR, ("Left", "Right"),
-            {"pelvis": "Hips", "spine1": "Chest", "spine3": "Chest2", "neck": "Neck", "head": "Head"})),
-        JointMap("cmu_asf", "smpl22", _mirror(
-            {"left_hip": "lfemur", "left_knee": "ltibia", "left_ankle": "lfoot", "left_foot": "ltoes",
-             "left_shoulder": "lhumerus", "left_elbow": "lradius", "left_wrist": "lwrist"},
-            _SMPL_LR, ("l", "r"),
-            {"pelvis": "root", "spine1": "upperback", "spine3": "thorax", "neck": "upperneck", "head": "head"})),
-        JointMap("deepmimic_humanoid", "smpl22", _mirror(
-            {"left_hip": "left_hip", "left_knee": "left_knee", "left_ankle": "left_ankle",
-             "left_foot": "left_ankle_end", "left_shoulder": "left_shoulder", "left_elbow": "left_elbow",
-             "left_wrist": "left_wrist"}, _SMPL_LR, ("left_", "right_"),
-            {"pelvis": "root", "spine3": "chest", "neck": "neck", "head": "neck_end"})),
-        # dogs: SMAL's spine3 (where the front legs and the neck branch) sits at the withers
-        JointMap("mann_dog", "smal35", _mirror(
-            {"LLeg1": "LeftArm", "LLeg2": "LeftForeArm", "LLeg3": "LeftHand", "LFoot": "LeftHand_end",
-             "LLegBack1": "LeftUpLeg", "LLegBack2": "LeftLeg", "LLegBack3": "LeftFoot",
-             "LFootBack": "LeftFoot_end"}, _SMAL_LR, ("Left", "Right"),
-            {"pelvis": "Hips", "spine1": "Spine1", "spine3": "Neck", "Head": "Head", "Mouth": "Head_end",
-             "Tail1": "Tail", "Tail4": "Tail1", "Tail7": "Tail1_end"}), "dog"),
-        JointMap("deepmimic_dog", "smal35", _mirror(
-            {"LLeg1": "left_shoulder", "LLeg2": "left_forearm", "LLeg3": "left_hand", "LFoot": "left_finger_end",
-             "LLegBack1": "left_upper_leg", "LLegBack2": "left_leg", "LLegBack3": "left_foot",
-             "LFootBack": "left_toe_end"}, _SMAL_LR, ("left_", "right_"),
-            {"pelvis": "root", "spine1": "spine1", "spine3": "neck", "Head": "head", "Mouth": "head_end",
-             "Tail1": "tail0", "Tail4": "tail1", "Tail7": "tail1_end"}), "dog"),
-    )
-}  # fmt: skip
-
-
 def load_joint_map(path: str | Path) -> JointMap:
-    """A user joint map from YAML (format in the module docstring)."""
+    """A joint map from YAML (format in the module docstring; the built-in ones are in omg/joint_maps/)."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -131,22 +77,45 @@ def load_joint_map(path: str | Path) -> JointMap:
     except yaml.YAMLError as e:
         raise UsageError(f"joint map {path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict) or not isinstance(data.get("joints"), dict) or not data.get("target"):
-        raise UsageError(f"joint map {path}: expected a mapping with 'target: SKELETON' and 'joints: {{target: source}}'")
+        raise UsageError(
+            f"joint map {path}: expected a mapping with 'target: SKELETON' and 'joints: {{target: source}}'"
+        )
     joints = {str(k): str(v) for k, v in data["joints"].items()}
     target = str(data["target"])
     category = str(data.get("category") or ("human" if target == "smpl22" else "animal"))
     return JointMap(str(data.get("name") or path.stem), target, joints, category)
 
 
+@cache
+def _load_registered(name: str, path: Path) -> JointMap:
+    jmap = load_joint_map(path)
+    return jmap if jmap.name == name else replace(jmap, name=name)
+
+
+def _registered(name: str) -> JointMap:
+    """The map registered in ``JOINT_MAPS`` as ``name`` (a YAML file's path, or a ``JointMap``), named ``name``."""
+    entry = JOINT_MAPS.get(name)
+    if isinstance(entry, JointMap):
+        return entry if entry.name == name else replace(entry, name=name)
+    if isinstance(entry, (str, Path)):
+        return _load_registered(name, Path(entry))
+    raise UsageError(f"joint map {name!r} is registered as a {type(entry).__name__}; register a YAML path or JointMap")
+
+
+def registered_joint_maps() -> list[JointMap]:
+    """Every map of the ``JOINT_MAPS`` registry (the built-in ones and those plugins add), by name."""
+    return [_registered(name) for name in JOINT_MAPS.names()]
+
+
 def get_joint_map(spec: str | Path | JointMap) -> JointMap:
-    """A built-in map by name, a YAML file, or the map itself."""
+    """A registered map by name, a YAML file, or the map itself."""
     if isinstance(spec, JointMap):
         return spec
-    if str(spec) in BUILTIN_MAPS:
-        return BUILTIN_MAPS[str(spec)]
+    if str(spec) in JOINT_MAPS:
+        return _registered(str(spec))
     if Path(spec).suffix.lower() in (".yaml", ".yml") or Path(spec).exists():
         return load_joint_map(spec)
-    raise UsageError(f"unknown joint map {str(spec)!r}: give a YAML file or one of {', '.join(BUILTIN_MAPS)}")
+    raise UsageError(f"unknown joint map {str(spec)!r}: give a YAML file or one of {', '.join(JOINT_MAPS.names())}")
 
 
 def source_names(motion: RigMotion) -> list[str]:
@@ -155,10 +124,10 @@ def source_names(motion: RigMotion) -> list[str]:
 
 
 def detect_joint_map(motion: RigMotion, target: str | None = None) -> JointMap | None:
-    """The built-in map (for ``target``, or any) whose source joints are all in ``motion``; the one
-    with most joints where several fit; None where none does."""
+    """The registered map (for ``target``, or any) whose source joints are all in ``motion``; the one
+    with most joints where several fit (the first by name on a tie); None where none does."""
     names = source_names(motion)
-    fits = [m for m in BUILTIN_MAPS.values() if (target is None or m.target == target) and not m.missing(names)]
+    fits = [m for m in registered_joint_maps() if (target is None or m.target == target) and not m.missing(names)]
     return max(fits, key=lambda m: len(m.joints), default=None)
 
 
@@ -170,12 +139,12 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
         found = detect_joint_map(motion, target.name)
         if found is not None:
             return found
-        candidates = [m for m in BUILTIN_MAPS.values() if m.target == target.name]
+        candidates = [m for m in registered_joint_maps() if m.target == target.name]
         if not candidates:
-            raise UsageError(f"{where}: no built-in joint map targets {target.name!r}; pass joint_map=YAML")
+            raise UsageError(f"{where}: no registered joint map targets {target.name!r}; pass joint_map=YAML")
         closest = min(candidates, key=lambda m: len(m.missing(names)))
         raise UsageError(
-            f"{where}: cannot map the rig onto {target.name} (no built-in map fits); closest {closest.name!r} "
+            f"{where}: cannot map the rig onto {target.name} (no registered map fits); closest {closest.name!r} "
             f"lacks joints {', '.join(closest.missing(names))}; pass joint_map=YAML"
         )
     jmap = get_joint_map(joint_map)
@@ -271,35 +240,11 @@ def _up_rotation(q: torch.Tensor, target: Skeleton, up: str | None) -> torch.Ten
     return quat_between(axis, torch.tensor([0.0, 1.0, 0.0], dtype=q.dtype))
 
 
-def _best_rotation(rest: torch.Tensor, cur: torch.Tensor) -> torch.Tensor:
-    """(C, 3) rest directions, (T, C, 3) current ones -> (T, 4) rotation best taking rest to current (Kabsch)."""
-    h = torch.einsum("ci,tcj->tij", rest, cur)  # (T, 3, 3)
-    u, _, vh = torch.linalg.svd(h)
-    v = vh.transpose(-1, -2)
-    d = torch.sign(torch.det(v @ u.transpose(-1, -2)))
-    fix = torch.ones_like(h[..., 0])  # (T, 3)
-    fix[:, 2] = torch.where(d == 0, torch.ones_like(d), d)
-    return matrix_to_quat(v @ torch.diag_embed(fix) @ u.transpose(-1, -2))
-
-
-def foot_contacts(positions: np.ndarray | torch.Tensor, skeleton: Skeleton | str, fps: float,
-                  max_speed: float = CONTACT_SPEED) -> np.ndarray:
-    """(T, F) bool: each of ``skeleton.feet`` slower than ``max_speed`` and within CONTACT_BAND of
-    the clip's lowest foot heights (their 2nd percentile over the clip: robust to a stray frame)."""
-    skel = get_skeleton(skeleton)
-    p = torch.as_tensor(np.asarray(positions), dtype=torch.float64)[:, list(skel.feet)]  # (T, F, 3)
-    h = p[..., 1]
-    base = float(torch.quantile(h.min(1).values, 0.02))
-    speed = (p[1:] - p[:-1]).norm(dim=-1) * fps  # (T-1, F)
-    speed = torch.cat([speed, speed[-1:]])
-    return ((speed < max_speed) & (h < base + CONTACT_BAND)).numpy()
-
-
 def _floor(positions: torch.Tensor, skeleton: Skeleton, fps: float) -> float:
     """Height of the ground: the median height of the lowest foot joint in contact over the
     contact frames; the feet's 2nd percentile where no foot is ever in contact."""
     h = positions[:, list(skeleton.feet), 1]  # (T, F)
-    contact = torch.from_numpy(foot_contacts(positions.numpy(), skeleton, fps))
+    contact = ground_contacts(positions, skeleton.feet, fps)
     lowest = torch.where(contact, h, torch.full_like(h, float("inf"))).min(1).values  # (T,)
     lowest = lowest[torch.isfinite(lowest)]
     return float(lowest.median()) if len(lowest) else float(torch.quantile(h.min(1).values, 0.02))
@@ -330,7 +275,8 @@ def retarget(
     if fps is not None:
         motion = motion.resample(fps)
     if len(motion) < 2:
-        raise UsageError(f"{motion.source or motion.name}: {len(motion)} frame(s) at {motion.fps:g} fps, need 2 or more")
+        where = motion.source or motion.name
+        raise UsageError(f"{where}: {len(motion)} frame(s) at {motion.fps:g} fps, need 2 or more")
     J, parents = skel.num_joints, skel.parents
     tmpl = torch.from_numpy(skel.rest_offsets.astype(np.float64))  # (J, 3) template offsets
     tmpl_len = tmpl.norm(dim=-1)
@@ -357,29 +303,12 @@ def retarget(
     turn = _up_rotation(q, skel, up)
     q = quat_apply(turn.expand(T, J, 4), q)
 
-    # global rotations: template directions onto the mapped ones, parents first
-    glob = torch.zeros(T, J, 4, dtype=torch.float64)
-    identity = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64).expand(T, 4)
-    for j in range(J):
-        kids = [c for c in skel.children(j) if plan.proxied[c] and plan.proxied[j] and lengths[c] > 1e-9]
-        parent_rot = glob[:, parents[j]] if j else identity
-        if len(kids) >= 2:
-            cur = q[:, kids] - q[:, j : j + 1]  # (T, C, 3)
-            cur = cur / cur.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-            glob[:, j] = _best_rotation(tmpl_dir[kids], cur)
-        elif len(kids) == 1:
-            c = kids[0]
-            swing = quat_between(quat_apply(parent_rot, tmpl_dir[c].expand(T, 3)), q[:, c] - q[:, j])
-            glob[:, j] = quat_mul(swing, parent_rot)
-        else:  # nothing to follow: rigid with the parent
-            glob[:, j] = parent_rot
-    local = glob.clone()
-    for j in range(1, J):
-        local[:, j] = quat_mul(quat_conjugate(glob[:, parents[j]]), glob[:, j])
+    # rotations turning the template's directions onto the mapped ones, parents first
+    local = positions_to_rotations(skel, q, offsets, placed=plan.proxied, aim_from_fk=False)
     positions = skel.forward_kinematics(local, q[:, 0], offsets=offsets)  # (T, J, 3)
 
     if height is not None:
-        rest_pose = skel.forward_kinematics(identity[:1].expand(1, J, 4).clone(), offsets[0][None], offsets=offsets)
+        rest_pose = skel.forward_kinematics(quat_identity((1, J), torch.float64), offsets[0][None], offsets=offsets)
         factor = height / float(rest_pose[0, :, 1].max() - rest_pose[0, :, 1].min())
         positions, offsets = positions * factor, offsets * factor
     positions[..., 1] -= _floor(positions, skel, motion.fps)

@@ -9,10 +9,9 @@ import lightning as L
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_resume import TOTAL_STEPS, KillAt, Killed  # noqa: E402
-
 from omg.data.datamodule import MotionDataModule  # noqa: E402
 from omg.lit.pretrain import PretrainModule  # noqa: E402
+from test_resume import TOTAL_STEPS, KillAt, Killed  # noqa: E402
 
 if __name__ == "__main__":
     shards, root, kill_at, resume = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"

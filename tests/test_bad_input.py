@@ -85,24 +85,24 @@ def _write_inputs(d: Path, out: Path) -> None:
 
 
 # (id, argv); {in}: the input folder, {out}: a path that does not exist yet, {pre}/{cn}/{nanck}: checkpoints
-GEN = ["generate", "--steps", "2", "--length", "1", "--num-samples", "1", "--no-preview"]
+GEN = ["generate", "--steps", "2", "--length", "1", "--num_samples", "1", "--no_preview"]
 TEXT = [*GEN, "a person walks", "--ckpt", "{cn}", "--out", "{out}"]
 UNCOND = [*GEN, "--unconditional", "--ckpt", "{pre}", "--out", "{out}"]
-EXPORT = ["export", "{in}/gen_list/sample_000.joints.npy", "--no-preview"]  # no generation.json read: a plain file
-SYNTH_BUILD = ["shards", "build", "--source", "synth", "--out", "{out}", "--option", "num_clips=2"]
+EXPORT = ["export", "{in}/gen_list/sample_000.joints.npy", "--no_preview"]  # no generation.json read: a plain file
+SYNTH_BUILD = ["shards", "build", "--source", "synth", "--out", "{out}", "--option.num_clips", "2"]
 FIT = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.default_root_dir", "{out}"]
 # small sizes: were a check missing, the benchmark would run (and fail or hang) quickly
-BENCH_DATA = ["bench", "data", "--clips", "20", "--batch-size", "4", "--batches", "2", "--workers", "0"]
-BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch-size", "1"]
-BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch-sizes", "1"]
+BENCH_DATA = ["bench", "data", "--clips", "20", "--batch_size", "4", "--batches", "2", "--workers", "0"]
+BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch_size", "1"]
+BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch_sizes", "[1]"]
 MINI_SHARDS = str(REPO / "shards/mini/human263/train")
 ROWS = [
     # omg generate
-    ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/latin1.txt"]),
-    ("gen-prompts-binary", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/elf.bin"]),
-    ("gen-prompts-nul", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/nul.txt"]),
-    ("gen-prompts-dir", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}"]),
-    ("gen-prompts-missing", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts-file", "{in}/nope.txt"]),
+    ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
+    ("gen-prompts-binary", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/elf.bin"]),
+    ("gen-prompts-nul", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/nul.txt"]),
+    ("gen-prompts-dir", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}"]),
+    ("gen-prompts-missing", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/nope.txt"]),
     ("gen-length-nan", [*UNCOND, "--length", "nan"]),
     ("gen-length-inf", [*UNCOND, "--length", "inf"]),
     ("gen-length-neg", [*UNCOND, "--length", "-1"]),
@@ -117,8 +117,8 @@ ROWS = [
     ("gen-steps-zero", [*UNCOND, "--steps", "0"]),
     ("gen-seed-neg", [*UNCOND, "--seed", "-1"]),
     ("gen-seed-overflow", [*UNCOND, "--seed", "99999999999999999999999"]),
-    ("gen-num-samples-neg", [*UNCOND, "--num-samples", "-2"]),
-    ("gen-batch-size-zero", [*UNCOND, "--batch-size", "0"]),
+    ("gen-num-samples-neg", [*UNCOND, "--num_samples", "-2"]),
+    ("gen-batch-size-zero", [*UNCOND, "--batch_size", "0"]),
     ("gen-nan-weights", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{out}"]),
     ("gen-fails-in-user-folder", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{in}/user"]),
     # omg export (writes beside its inputs: nothing may appear there either)
@@ -130,42 +130,45 @@ ROWS = [
     ("export-scale-zero", [*EXPORT, "--scale", "0"]),
     ("export-scale-neg", [*EXPORT, "--scale", "-100"]),
     ("export-representation-unknown", [*EXPORT, "--representation", "banana"]),
-    ("export-settings-binary", ["export", "{in}/gen_binary", "--no-preview"]),
-    ("export-settings-list", ["export", "{in}/gen_list", "--no-preview"]),
-    ("export-settings-types", ["export", "{in}/gen_types", "--no-preview"]),
-    ("export-settings-nan", ["export", "{in}/gen_nan", "--no-preview"]),
-    ("export-settings-dir", ["export", "{in}/gen_dir", "--no-preview"]),
-    ("export-bvh-is-dir", ["export", "{in}/gen_bvhdir", "--no-preview"]),
+    ("export-settings-binary", ["export", "{in}/gen_binary", "--no_preview"]),
+    ("export-settings-list", ["export", "{in}/gen_list", "--no_preview"]),
+    ("export-settings-types", ["export", "{in}/gen_types", "--no_preview"]),
+    ("export-settings-nan", ["export", "{in}/gen_nan", "--no_preview"]),
+    ("export-settings-dir", ["export", "{in}/gen_dir", "--no_preview"]),
+    ("export-bvh-is-dir", ["export", "{in}/gen_bvhdir", "--no_preview"]),
     ("export-input-binary", ["export", "{in}/random.bin"]),
     # omg shards build
     ("build-fps-nan", [*SYNTH_BUILD, "--fps", "nan"]),
     ("build-fps-inf", [*SYNTH_BUILD, "--fps", "inf"]),
     ("build-fps-neg", [*SYNTH_BUILD, "--fps", "-20"]),
-    ("build-max-mb-nan", [*SYNTH_BUILD, "--max-mb", "nan"]),
-    ("build-max-mb-inf", [*SYNTH_BUILD, "--max-mb", "inf"]),
-    ("build-max-clips-neg", [*SYNTH_BUILD, "--max-clips", "-1"]),
-    ("build-val-fraction-nan", [*SYNTH_BUILD, "--val-fraction", "nan"]),
-    ("build-val-where-no-value", [*SYNTH_BUILD, "--val-where", "style"]),
-    ("build-val-where-and-fraction", [*SYNTH_BUILD, "--val-where", "style=old", "--val-fraction", "0.1"]),
-    ("build-shuffle-buffer-neg", [*SYNTH_BUILD, "--shuffle-buffer", "-1"]),
-    ("build-out-is-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile", "--option", "num_clips=2"]),
-    ("build-out-under-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile/x", "--option", "num_clips=2"]),
+    ("build-max-mb-nan", [*SYNTH_BUILD, "--max_mb", "nan"]),
+    ("build-max-mb-inf", [*SYNTH_BUILD, "--max_mb", "inf"]),
+    ("build-max-clips-neg", [*SYNTH_BUILD, "--max_clips", "-1"]),
+    ("build-val-fraction-nan", [*SYNTH_BUILD, "--val_fraction", "nan"]),
+    ("build-val-where-no-value", [*SYNTH_BUILD, "--val_where", "style"]),
+    ("build-val-where-empty", [*SYNTH_BUILD, "--val_where.style", "[]"]),
+    ("build-val-where-and-fraction", [*SYNTH_BUILD, "--val_where.style", "old", "--val_fraction", "0.1"]),
+    ("build-shuffle-buffer-neg", [*SYNTH_BUILD, "--shuffle_buffer", "-1"]),
+    ("build-out-is-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile", "--option.num_clips", "2"]),
+    ("build-out-under-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile/x",
+                              "--option.num_clips", "2"]),
     ("build-config-binary", ["shards", "build", "--config", "{in}/random.bin"]),
     ("build-config-latin1", ["shards", "build", "--config", "{in}/latin1.yaml"]),
     ("build-config-dir", ["shards", "build", "--config", "{in}", "--source", "synth", "--out", "{out}"]),
     ("build-config-nan", ["shards", "build", "--config", "{in}/nan.yaml"]),
     ("build-config-wrong-type", ["shards", "build", "--config", "{in}/list_out.yaml"]),
-    ("build-option-nan", [*SYNTH_BUILD, "--option", "num_clips=nan"]),
-    ("build-option-neg-seed", [*SYNTH_BUILD, "--option", "seed=-1"]),
-    ("build-option-unknown", [*SYNTH_BUILD, "--option", "banana=1"]),
-    ("build-option-no-key", [*SYNTH_BUILD, "--option", "=3"]),
-    ("build-option-bad-yaml", [*SYNTH_BUILD, "--option", "seed=[1, 2"]),
-    ("build-option-neg-count", ["shards", "build", "--source", "synth", "--out", "{out}", "--option", "num_clips=-1"]),
+    ("build-option-nan", [*SYNTH_BUILD, "--option.num_clips", "nan"]),
+    ("build-option-neg-seed", [*SYNTH_BUILD, "--option.seed", "-1"]),
+    ("build-option-unknown", [*SYNTH_BUILD, "--option.banana", "1"]),
+    ("build-option-no-key", [*SYNTH_BUILD, "--option.=3"]),
+    ("build-option-not-mapping", [*SYNTH_BUILD, "--option", "num_clips=2"]),
+    ("build-option-bad-yaml", [*SYNTH_BUILD, "--option", "{{seed: [1, 2"]),  # {{: a brace after format()
+    ("build-option-neg-count", ["shards", "build", "--source", "synth", "--out", "{out}", "--option.num_clips", "-1"]),
     ("build-joint-map-binary", ["shards", "build", "--source", "bvh-dir", "--input", "{in}/bvh", "--out", "{out}",
-                                "--option", "joint_map={in}/random.bin"]),
+                                "--option.joint_map", "{in}/random.bin"]),
     ("build-empty-source", ["shards", "build", "--source", "bvh-dir", "--input", "{in}/empty", "--out", "{out}/a/b"]),
-    ("build-fails-in-user-folder", ["shards", "build", "--source", "synth", "--out", "{in}/user", "--val-fraction", "0.5",
-                                    "--option", "num_clips=1"]),
+    ("build-fails-in-user-folder", ["shards", "build", "--source", "synth", "--out", "{in}/user",
+                                    "--val_fraction", "0.5", "--option.num_clips", "1"]),
     # omg shards synth
     ("synth-scale-nan", ["shards", "synth", "--out", "{out}", "--scale", "nan"]),
     ("synth-scale-neg", ["shards", "synth", "--out", "{out}", "--scale", "-1"]),
@@ -179,47 +182,49 @@ ROWS = [
     ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
     # omg bench
-    ("bench-train-batch-neg", ["bench", "train", "--batch-size", "-1", "--steps", "1", "--warmup", "0", "--frames", "8"]),
-    ("bench-train-peak-nan", ["bench", "train", "--peak-tflops", "nan", "--steps", "1", "--warmup", "0", "--frames", "8",
-                              "--batch-size", "1"]),
-    ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch-sizes", "1"]),
+    ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
+                               "--frames", "8"]),
+    ("bench-train-peak-nan", ["bench", "train", "--peak_tflops", "nan", "--steps", "1", "--warmup", "0",
+                              "--frames", "8", "--batch_size", "1"]),
+    ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
     ("bench-data-batches-zero", [*BENCH_DATA, "--batches", "0"]),
     ("bench-data-batches-nan", [*BENCH_DATA, "--batches", "nan"]),
-    ("bench-data-batch-size-zero", [*BENCH_DATA, "--batch-size", "0"]),
+    ("bench-data-batch-size-zero", [*BENCH_DATA, "--batch_size", "0"]),
     ("bench-data-clips-zero", [*BENCH_DATA, "--clips", "0"]),
     ("bench-data-clips-below-batch", [*BENCH_DATA, "--clips", "3"]),
-    ("bench-data-feature-dim-zero", [*BENCH_DATA, "--feature-dim", "0"]),
+    ("bench-data-feature-dim-zero", [*BENCH_DATA, "--feature_dim", "0"]),
     ("bench-data-workers-neg", [*BENCH_DATA, "--workers", "-1"]),
-    ("bench-data-max-len-zero", [*BENCH_DATA, "--max-len", "0"]),
-    ("bench-data-max-len-below-window", [*BENCH_DATA, "--max-len", "40"]),
+    ("bench-data-max-len-zero", [*BENCH_DATA, "--max_len", "0"]),
+    ("bench-data-max-len-below-window", [*BENCH_DATA, "--max_len", "40"]),
     ("bench-data-shards-missing", [*BENCH_DATA, "--shards", "{in}/nope"]),
     ("bench-data-shards-not-shards", [*BENCH_DATA, "--shards", "{in}/empty"]),
     ("bench-data-shards-file", [*BENCH_DATA, "--shards", "{in}/afile"]),
-    ("bench-data-shards-below-batch", [*BENCH_DATA, "--shards", MINI_SHARDS, "--batch-size", "100000"]),
+    ("bench-data-shards-below-batch", [*BENCH_DATA, "--shards", MINI_SHARDS, "--batch_size", "100000"]),
     ("bench-train-steps-zero", [*BENCH_TRAIN, "--steps", "0"]),
     ("bench-train-steps-nan", [*BENCH_TRAIN, "--steps", "nan"]),
-    ("bench-train-batch-zero", [*BENCH_TRAIN, "--batch-size", "0"]),
+    ("bench-train-batch-zero", [*BENCH_TRAIN, "--batch_size", "0"]),
     ("bench-train-frames-zero", [*BENCH_TRAIN, "--frames", "0"]),
     ("bench-train-warmup-neg", [*BENCH_TRAIN, "--warmup", "-1"]),
-    ("bench-train-peak-zero", [*BENCH_TRAIN, "--peak-tflops", "0"]),
-    ("bench-train-peak-inf", [*BENCH_TRAIN, "--peak-tflops", "inf"]),
-    ("bench-train-peak-neg", [*BENCH_TRAIN, "--peak-tflops", "-5"]),
+    ("bench-train-peak-zero", [*BENCH_TRAIN, "--peak_tflops", "0"]),
+    ("bench-train-peak-inf", [*BENCH_TRAIN, "--peak_tflops", "inf"]),
+    ("bench-train-peak-neg", [*BENCH_TRAIN, "--peak_tflops", "-5"]),
     ("bench-train-precision-banana", [*BENCH_TRAIN, "--precision", "banana"]),
     ("bench-train-strategy-banana", [*BENCH_TRAIN, "--strategy", "banana"]),
     ("bench-train-flavor-banana", [*BENCH_TRAIN, "--flavor", "banana"]),
-    ("bench-sample-batch-sizes-letters", [*BENCH_SAMPLE, "--batch-sizes", "a,b"]),
-    ("bench-sample-batch-sizes-zero", [*BENCH_SAMPLE, "--batch-sizes", "0"]),
-    ("bench-sample-batch-sizes-neg", [*BENCH_SAMPLE, "--batch-sizes", "1,-8"]),
-    ("bench-sample-batch-sizes-gap", [*BENCH_SAMPLE, "--batch-sizes", "1,,8"]),
-    ("bench-sample-batch-sizes-empty", [*BENCH_SAMPLE, "--batch-sizes", ""]),
-    ("bench-sample-batch-sizes-nan", [*BENCH_SAMPLE, "--batch-sizes", "nan"]),
+    ("bench-sample-batch-sizes-letters", [*BENCH_SAMPLE, "--batch_sizes", "[a, b]"]),
+    ("bench-sample-batch-sizes-zero", [*BENCH_SAMPLE, "--batch_sizes", "[0]"]),
+    ("bench-sample-batch-sizes-neg", [*BENCH_SAMPLE, "--batch_sizes", "[1, -8]"]),
+    ("bench-sample-batch-sizes-gap", [*BENCH_SAMPLE, "--batch_sizes", "[1,,8]"]),
+    ("bench-sample-batch-sizes-not-list", [*BENCH_SAMPLE, "--batch_sizes", "1,8"]),
+    ("bench-sample-batch-sizes-empty", [*BENCH_SAMPLE, "--batch_sizes", ""]),
+    ("bench-sample-batch-sizes-nan", [*BENCH_SAMPLE, "--batch_sizes", "[nan]"]),
     ("bench-sample-steps-zero", [*BENCH_SAMPLE, "--steps", "0"]),  # legitimate only with --token-steps
     ("bench-sample-steps-too-many", [*BENCH_SAMPLE, "--steps", "100000"]),
     ("bench-sample-steps-nan", [*BENCH_SAMPLE, "--steps", "nan"]),
     ("bench-sample-frames-zero", [*BENCH_SAMPLE, "--frames", "0"]),
-    ("bench-sample-token-steps-neg", [*BENCH_SAMPLE, "--token-steps", "-1"]),
+    ("bench-sample-token-steps-neg", [*BENCH_SAMPLE, "--token_steps", "-1"]),
     ("bench-sample-flavor-banana", [*BENCH_SAMPLE, "--flavor", "banana"]),
-    ("bench-sample-text-encoder-banana", [*BENCH_SAMPLE, "--text-encoder", "banana"]),
+    ("bench-sample-text-encoder-banana", [*BENCH_SAMPLE, "--text_encoder", "banana"]),
     ("bench-sample-precision-banana", [*BENCH_SAMPLE, "--precision", "banana"]),
 ]
 
@@ -268,13 +273,13 @@ def test_good_input_still_works(ckpts, tmp_path, capsys, monkeypatch):
     main([*GEN, "--unconditional", "--ckpt", ckpts["pre"], "--out", str(out), "--seed", "0", "--device", "cpu"])
     assert (out / "sample_000.bvh").is_file() and json.loads((out / "generation.json").read_text())["seed"] == 0
     main([*GEN, "a person walks", "--ckpt", ckpts["cn"], "--out", str(out), "--guidance", "-0.5"])
-    main(["export", str(out), "--no-preview", "--scale", "100", "--fps", "20"])
+    main(["export", str(out), "--no_preview", "--scale", "100", "--fps", "20"])
     config = tmp_path / "build.yaml"
     config.write_text(f"source: synth\nout: {tmp_path / 'shards'}\nfps: 20\nmax_mb: 1\nmax_clips: 2\n"
                       "option: {num_clips: 3, seed: 1}\n")
     main(["shards", "build", "--config", str(config)])
     assert (tmp_path / "shards/manifest.json").is_file()
     assert "Traceback" not in capsys.readouterr().err
-    main(["bench", "sample", "--steps", "0", "--token-steps", "1", "--batch-sizes", "1", "--frames", "8"])
+    main(["bench", "sample", "--steps", "0", "--token_steps", "1", "--batch_sizes", "[1]", "--frames", "8"])
     captured = capsys.readouterr()  # --steps 0 with --token-steps: only the token padding is timed
     assert "trimming:" in captured.out and "Traceback" not in captured.err

@@ -5,14 +5,15 @@ from __future__ import annotations
 
 import pytest
 
-from omg.data.commands import build, shuffled
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.errors import UsageError
+from omg.tools.shards import build, shuffled
 
 
 def _actions(shard_dir):
     dm = MotionDataModule(str(shard_dir))
-    return [s["meta"]["labels"]["action"] for s in ClipDataset.from_shards(dm.train_urls, dm.feature_dim, dm.windows).samples]
+    return [s["meta"]["labels"]["action"]
+            for s in ClipDataset.from_shards(dm.train_urls, dm.feature_dim, dm.windows).samples]
 
 
 def test_val_where_holds_out_the_labelled_takes(tmp_path):

@@ -10,11 +10,11 @@ import pytest
 
 from conftest import TINY_BVH
 from omg.cli import main
-from omg.data.commands import build
 from omg.data.sources.bvh_dir import SkippedClip, bvh_dir_source
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.skeleton import SMAL35, SMPL22
+from omg.tools.shards import build
 
 GOOD = TINY_BVH
 BAD = {
@@ -109,7 +109,8 @@ def test_manifest_duplicates_missing_and_options(shared_motion, tmp_path):
     d.mkdir()
     (d / "a.bvh").symlink_to(shared_motion / "human/bandai1/dataset-1_bow_normal_001.bvh")
     clips = [
-        {"id": "bow", "path": "a.bvh", "format": "bvh", "domain": "human", "texts": ["a person bows."], "labels": {"x": 1}},
+        {"id": "bow", "path": "a.bvh", "format": "bvh", "domain": "human", "texts": ["a person bows."],
+         "labels": {"x": 1}},
         {"id": "bow", "path": "a.bvh", "format": "bvh", "domain": "human"},
         {"id": "gone", "path": "missing.bvh", "format": "bvh", "domain": "human"},
         {"id": "a_dog", "path": "a.bvh", "format": "bvh", "domain": "dog"},  # not for smpl22

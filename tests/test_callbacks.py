@@ -16,7 +16,6 @@ from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
-from omg.registry import CALLBACKS
 
 MINI = REPO / "shards/mini/human263"
 TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
@@ -60,7 +59,6 @@ def _eval_callback(evaluator, **kw):
 
 
 def test_registered_and_bad_arguments_are_one_clear_line(evaluator_ckpt, tmp_path):
-    assert CALLBACKS.get("eval") is EvalCallback and CALLBACKS.get("render") is RenderCallback
     for kwargs, message in (({"evaluator": str(tmp_path / "nope.ckpt")}, "EvalCallback.evaluator: no evaluator"),
                             ({"replications": 0}, "EvalCallback.replications must be"),
                             ({"metrics": ["fdi"]}, "EvalCallback.metrics: unknown metric 'fdi'")):
@@ -95,7 +93,8 @@ def test_eval_during_fit_and_the_protocol_at_test(evaluator_ckpt, tmp_path):
     assert results["eval/fid"] == pytest.approx(report["metrics"]["fid"]["mean"])
     assert "| fid |" in (tmp_path / "run/version_0/eval.md").read_text()
 
-    for key in ("fid", "r_precision/top1", "multimodality"):  # replication 0 is the fixed set of fit: same weights, same values
+    # replication 0 is the fixed set of fit: same weights, same values
+    for key in ("fid", "r_precision/top1", "multimodality"):
         assert report["metrics"][key]["values"][0] == pytest.approx(float(rows[-1][f"eval/{key}"]), rel=1e-9)
     assert len(set(report["metrics"]["fid"]["values"])) == 3  # other replications: other prompts and seeds
 
@@ -105,17 +104,26 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     torch.manual_seed(0)
     module = ControlNetModule(base={"flavor": "mini", "dit": TINY, "spec": data.spec}, text_encoder="hash",
                               moc={"d_c": 32, "num_experts": 2}, spec=data.spec, ema_decay=0).eval()
-    for p in module.controlnet.trainable_parameters():  # as if trained: the residuals are not zero
+    for p in module.controlnet.parameters():  # as if trained: neither the prior's output nor the residuals are zero
         p.data.normal_(0, 0.05)
     texts = ["a person walks forward", "a person jumps"]
-    out = module.sample_for_eval(texts, torch.tensor([12, 20]), seed=3, steps=4)
+    out = module.sample(texts, torch.tensor([12, 20]), seed=3, steps=4)
     assert out.shape == (2, 20, 263) and torch.isfinite(out).all()
-    torch.testing.assert_close(module.sample_for_eval(texts, torch.tensor([12, 20]), seed=3, steps=4), out)
-    full = torch.tensor([16, 16])
-    for scale in (0.0, 2.0):  # guidance is passed through to the guided denoiser
-        torch.testing.assert_close(module.sample_for_eval(texts, full, seed=1, steps=4, guidance=scale),
-                                   module.generate(texts, 16, steps=4, seed=1, scale=scale), rtol=0, atol=1e-4)
+    torch.testing.assert_close(module.sample(texts, torch.tensor([12, 20]), seed=3, steps=4), out)
+    full = [16, 16]
+    prior = module.sample(None, full, seed=1, steps=4)  # no texts: the frozen prior alone
+    torch.testing.assert_close(module.sample(texts, full, seed=1, steps=4, guidance=0.0), prior, rtol=0, atol=1e-5)
+    assert not torch.allclose(module.sample(texts, full, seed=1, steps=4, guidance=2.0), prior, atol=1e-3)
     assert module.text_conditional and not PretrainModule.text_conditional
+
+    # what depends only on the text runs once per sample() call, what depends on the motion at every step
+    calls = {"k": 0, "gate": 0, "eot_affine": 0, "q": 0}
+    for moc in module.controlnet.mocs.values():
+        for name in calls:
+            getattr(moc, name).register_forward_hook(lambda *_, name=name: calls.__setitem__(name, calls[name] + 1))
+    module.sample(texts, full, seed=1, steps=4)
+    layers = len(module.controlnet.mocs)
+    assert calls == {"k": layers, "gate": layers, "eot_affine": layers, "q": 4 * layers}
 
 
 def test_render_writes_gifs_into_the_run_directory(tmp_path):
@@ -163,15 +171,17 @@ def test_omg_fit_versions_runs_and_omg_test_prints_the_protocol(evaluator_ckpt, 
               "--trainer.enable_model_summary=false"]
     fit = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *common, "--trainer.max_steps=2",
            "--trainer.val_check_interval=1000", "--trainer.default_root_dir=pre",
-           "--trainer.callbacks.dirpath=pre/checkpoints", '--model.init_args.dit={"n_layers": 2, "d_model": 64, "n_heads": 2}']
+           "--trainer.callbacks.dirpath=pre/checkpoints",
+           '--model.init_args.dit={"n_layers": 2, "d_model": 64, "n_heads": 2}']
     _cli(*fit)
     _cli(*fit, "--trainer.max_steps=1")
     for version, steps in (("version_0", 2), ("version_1", 1)):  # a second run never clashes with the first
         assert f"max_steps: {steps}" in (tmp_path / "pre" / version / "config.yaml").read_text()
 
     _cli("fit", "--config", str(REPO / "configs/mini/controlnet.yaml"), *common, "--trainer.max_steps=1",
-         "--trainer.val_check_interval=1000", "--trainer.default_root_dir=cn", "--trainer.callbacks.dirpath=cn/checkpoints",
-         "--model.init_args.pretrained=pre/checkpoints/last.ckpt", "--model.init_args.text_encoder=hash",
+         "--trainer.val_check_interval=1000", "--trainer.default_root_dir=cn",
+         "--trainer.callbacks.dirpath=cn/checkpoints", "--model.init_args.pretrained=pre/checkpoints/last.ckpt",
+         "--model.init_args.text_encoder=hash",
          '--model.init_args.moc={"d_c": 32, "num_experts": 2}')
     capsys.readouterr()
     _cli("test", "--config", str(REPO / "configs/mini/eval.yaml"), *common, "--trainer.default_root_dir=ev",

@@ -324,7 +324,7 @@ def _evaluator_batches():
 
 
 def test_convert_evaluator_and_its_ema(tmp_path, capsys):
-    from omg.models.evaluator import load_evaluator
+    from omg.lit.evaluator import load_evaluator
 
     torch.manual_seed(0)
     module = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC, lr=1e-3, warmup_steps=1)

@@ -24,7 +24,7 @@ from torch.serialization import get_unsafe_globals_in_checkpoint
 from conftest import REPO
 from omg.cli import main as omg
 from omg.errors import UsageError
-from omg.lit.checkpoint import (LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module)
+from omg.lit.checkpoint import LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module
 from omg.lit.pretrain import PretrainModule
 from test_checkpoint import SPEC, TINY, write_zero2_checkpoint, zero_tensor_bytes
 
@@ -289,7 +289,8 @@ def test_resume_last_falls_back_to_the_newest_readable_checkpoint(runs, tmp_path
     finally:
         logging.getLogger("lightning.pytorch").removeHandler(handler)
     assert any("Restoring states from the checkpoint path at" in m and m.endswith("step=2.ckpt") for m in restored)
-    newest = max(ck.glob("last*.ckpt"), key=lambda p: p.stat().st_mtime)  # last-v1.ckpt: the copy's state names another dir
+    # last-v1.ckpt: the copy's state names another dir
+    newest = max(ck.glob("last*.ckpt"), key=lambda p: p.stat().st_mtime)
     assert torch.load(newest, weights_only=True)["global_step"] == 3
     assert not any(p.exists() for p in stale) and all(p.exists() for p in keep)
     assert not [p for p in ck.iterdir() if p.name.startswith(".") and p not in keep]  # atomic writes left nothing

@@ -16,7 +16,8 @@ from omg.cli import COMMANDS, LIGHTNING, main
 
 def run_omg(*args, env_extra=None, cwd=REPO):
     env = {**os.environ, **(env_extra or {})}
-    return subprocess.run([sys.executable, "-m", "omg.cli", *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+    return subprocess.run([sys.executable, "-m", "omg.cli", *args], capture_output=True, text=True, env=env, cwd=cwd,
+                          timeout=300)
 
 
 def test_help_lists_every_command(capsys):
@@ -42,9 +43,11 @@ def test_unknown_command_is_one_line(capsys):
 
 
 def test_tool_command_errors_are_one_line(capsys, tmp_path):
-    _assert_usage_error(capsys, ["shards", "frobnicate"], "unknown shards command")
-    _assert_usage_error(capsys, ["shards", "build", "--max-clips", "many"], "--max-clips", "invalid int value")
-    _assert_usage_error(capsys, ["shards", "build", "--source", "nope", "--out", str(tmp_path)], "unknown data source 'nope'", "synth")
+    _assert_usage_error(capsys, ["shards", "frobnicate"], "frobnicate", "build")
+    _assert_usage_error(capsys, ["shards", "build", "--max_clips", "many"],
+                        "max_clips: expected an integer >= 1, got 'many'")
+    _assert_usage_error(capsys, ["shards", "build", "--source", "nope", "--out", str(tmp_path)],
+                        "unknown data source 'nope'", "synth")
     _assert_usage_error(capsys, ["shards", "inspect", str(tmp_path)], "no manifest.json")
 
 
@@ -113,7 +116,8 @@ def test_plugin_components_are_listed_and_selected_by_name_from_yaml(plugin_path
 
     config.write_text(config.read_text() + "colour: blue\n")
     bad = run_omg("shards", "build", "--config", str(config), env_extra=env)
-    assert bad.returncode == 2 and "unknown key 'colour'" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert bad.returncode == 2 and "does not accept option 'colour'" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1
 
 
 def test_a_broken_plugin_is_named(tmp_path, plugin_path):
@@ -128,4 +132,5 @@ def test_print_config_resolves_the_mini_config(capsys):
         main(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--print_config"])
     assert e.value.code == 0
     out = capsys.readouterr().out
-    assert "class_path: omg.lit.PretrainModule" in out and "flavor: mini" in out and "train: shards/mini/human263/train" in out
+    assert "class_path: omg.lit.PretrainModule" in out and "flavor: mini" in out
+    assert "train: shards/mini/human263/train" in out

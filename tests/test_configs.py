@@ -12,8 +12,8 @@ import yaml
 from jsonargparse import ActionConfigFile
 from lightning.pytorch.cli import LightningArgumentParser
 
-from conftest import REPO
 import omg.lit  # noqa: F401  (short class names in configs resolve among imported modules)
+from conftest import REPO
 from omg.data.datamodule import MotionDataModule
 
 CONFIGS = sorted(p for p in (REPO / "configs").rglob("*.yaml"))
@@ -83,8 +83,9 @@ def test_size_configs_differ_only_where_they_must(flavor):
     base = flat(yaml.safe_load((REPO / "configs/pretrain_base.yaml").read_text()))
     this = flat(yaml.safe_load((REPO / f"configs/pretrain_{flavor}.yaml").read_text()))
     differing = {k for k in base.keys() | this.keys() if base.get(k) != this.get(k)}
-    allowed = {"model.init_args.flavor", "trainer.strategy", "trainer.strategy.class_path", "trainer.strategy.init_args.config",
-               "data.batch_size", "trainer.accumulate_grad_batches", "trainer.default_root_dir", "trainer.callbacks"}
+    allowed = {"model.init_args.flavor", "trainer.strategy", "trainer.strategy.class_path",
+               "trainer.strategy.init_args.config", "data.batch_size", "trainer.accumulate_grad_batches",
+               "trainer.default_root_dir", "trainer.callbacks"}
     assert differing <= allowed, differing - allowed
     cfg = parse(REPO / f"configs/pretrain_{flavor}.yaml")
     assert cfg.data.batch_size * 8 * cfg.trainer.accumulate_grad_batches == 256  # global batch on one 8-GPU node
@@ -110,4 +111,5 @@ def test_deepspeed_config_is_valid_for_deepspeed():
     assert parsed.zero_optimization_stage == 2 and parsed.train_batch_size == 32
     assert parsed.zero_config.overlap_comm
     with pytest.raises(Exception, match="overlap_comms"):
-        DeepSpeedConfig({**config, "train_micro_batch_size_per_gpu": 8, "zero_optimization": {"stage": 2, "overlap_comms": True}})
+        DeepSpeedConfig({**config, "train_micro_batch_size_per_gpu": 8,
+                         "zero_optimization": {"stage": 2, "overlap_comms": True}})

@@ -38,7 +38,8 @@ def test_sliding_feet_are_pinned_with_bones_kept(kind, index):
     t = np.arange(len(clip)) / fps
     drift = np.stack([0.04 * np.sin(2 * np.pi * 3 * t), 0 * t, 0.04 * np.cos(2 * np.pi * 3 * t)], -1)
     sliding = (clip.positions + drift[:, None]).astype(np.float32)  # the whole body wobbles: planted feet skate
-    assert _contact_speed(clip.positions, skel, contacts, fps) < 0.01 < 0.5 < _contact_speed(sliding, skel, contacts, fps)
+    assert (_contact_speed(clip.positions, skel, contacts, fps) < 0.01
+            < 0.5 < _contact_speed(sliding, skel, contacts, fps))
 
     fixed = clean_foot_contacts(sliding, skel, fps)
     assert _contact_speed(fixed, skel, contacts, fps) < 0.05
@@ -68,7 +69,7 @@ def test_omg_export_clean_contacts(tmp_path):
     t = np.arange(len(clip)) / fps
     drift = np.stack([0.04 * np.sin(2 * np.pi * 3 * t), 0 * t, 0.04 * np.cos(2 * np.pi * 3 * t)], -1)
     np.save(tmp_path / "walk.joints.npy", (clip.positions + drift[:, None]).astype(np.float32))
-    main(["export", str(tmp_path / "walk.joints.npy"), "--fps", "20", "--no-preview", "--clean-contacts"])
+    main(["export", str(tmp_path / "walk.joints.npy"), "--fps", "20", "--no_preview", "--clean_contacts"])
     bvh = read_bvh(tmp_path / "walk.bvh")
     exported = bvh.positions()[:, [bvh.names.index(n) for n in clip.skeleton.names]]  # BVH lists joints depth-first
     assert _contact_speed(exported, clip.skeleton, contacts, fps) < 0.05

@@ -6,9 +6,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from omg.errors import UsageError
+from omg.lit.base import checkpoint_each
 from omg.models.controlnet import MoCBlock, MoCConfig, MotionControlNet
 from omg.models.dit import DiTConfig, MotionDiT
-from omg.text import HashTextEncoder, TextFeatures
+from omg.text import HashTextEncoder
 
 D_TEXT = 24
 SMALL_MOC = dict(d_c=32, num_experts=4, text_dim=D_TEXT)
@@ -97,7 +98,7 @@ def test_init_equals_frozen_model_exactly(wiring):
         assert torch.equal(net.forward_uncond(x, t, mask), expected)
         # Stronger than the output: every residual is exactly 0.
         h, c, mod, rope = base.embed(x, t)
-        control = net.controller(h, mod, rope, mask, tokens, text_mask, eot)
+        control = net.controller(h, mod, rope, mask, net.text_terms(tokens, text_mask, eot))
         for i in range(len(base.blocks)):
             r = control(i, h)
             assert torch.equal(r, torch.zeros_like(r))
@@ -174,9 +175,9 @@ def test_activation_checkpointing_gives_same_gradients(wiring):
     grads = []
     for ckpt in (False, True):
         torch.manual_seed(0)
-        net = MotionControlNet(
-            frozen_base(activation_checkpointing=ckpt), MoCConfig(**SMALL_MOC, wiring=wiring)
-        )
+        net = MotionControlNet(frozen_base(), MoCConfig(**SMALL_MOC, wiring=wiring))
+        if ckpt:  # what ControlNetModule.configure_model applies
+            checkpoint_each([*net.base.blocks, *net.copy_blocks.values(), *net.mocs.values()])
         randomize_zeros(net).train()
         net(x, t, tokens, text_mask, eot, mask).square().mean().backward()
         grads.append(torch.cat([p.grad.flatten() for p in net.trainable_parameters()]))
@@ -232,6 +233,10 @@ def reference_moc(moc: MoCBlock, h, tokens, text_mask, eot, mask, token_masks=Tr
 TINY_MOC = dict(d_c=8, num_experts=3, expert_hidden=10, gate_hidden=6, text_dim=12)
 
 
+def run_moc(moc: MoCBlock, h, tokens, text_mask, eot_emb, mask):
+    return moc(h, moc.text_terms(tokens, text_mask, eot_emb), mask)
+
+
 def random_moc(**overrides) -> MoCBlock:
     torch.manual_seed(0)
     moc = randomize_zeros(MoCBlock(16, MoCConfig(**{**TINY_MOC, **overrides})), std=0.3).double()
@@ -253,11 +258,11 @@ def test_moc_matches_loop_reference():
     moc = random_moc()
     h, tokens, text_mask, eot, mask = moc_inputs()
     B = h.shape[0]
-    out = moc(h, tokens, text_mask, tokens[torch.arange(B), eot], mask)
+    out = moc(h, moc.text_terms(tokens, text_mask, tokens[torch.arange(B), eot]), mask)
     ref_out, ref_attn, ref_masks, ref_omega = reference_moc(moc, h, tokens, text_mask, eot, mask)
     torch.testing.assert_close(out, ref_out, rtol=1e-10, atol=1e-10)  # every frame, padded too
 
-    f, attn = moc.attend(moc.down(h), tokens, text_mask)
+    f, attn = moc.attend(moc.down(h), moc.text_terms(tokens, text_mask, tokens[:, 0]))
     masks = moc.token_masks(attn, text_mask, mask)
     omega = moc.gates(tokens) * text_mask[..., None]
     torch.testing.assert_close(attn, ref_attn, rtol=1e-12, atol=1e-12)
@@ -274,11 +279,11 @@ def test_ablation_without_token_masks_is_the_moc_with_m_1():
     ablated.load_state_dict(full.state_dict())
     h, tokens, text_mask, eot, mask = moc_inputs()
     eot_emb = tokens[torch.arange(len(eot)), eot]
-    out = ablated(h, tokens, text_mask, eot_emb, mask)
+    out = run_moc(ablated, h, tokens, text_mask, eot_emb, mask)
     ref = reference_moc(full, h, tokens, text_mask, eot, mask, token_masks=False)[0]
     torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-10)
-    assert not torch.allclose(out, full(h, tokens, text_mask, eot_emb, mask), atol=1e-3)
-    _, attn = ablated.attend(ablated.down(h), tokens, text_mask)
+    assert not torch.allclose(out, run_moc(full, h, tokens, text_mask, eot_emb, mask), atol=1e-3)
+    _, attn = ablated.attend(ablated.down(h), ablated.text_terms(tokens, text_mask, tokens[:, 0]))
     assert torch.equal(ablated.token_masks(attn, text_mask, mask), text_mask[:, None].double().expand_as(attn))
 
 
@@ -291,7 +296,7 @@ def test_ablation_single_ffn():
     assert ablated.ffn[0].weight.shape == (10, 8) and ablated.ffn[2].weight.shape == (8, 10)
     ablated.load_state_dict({k: v for k, v in full.state_dict().items() if k in keys}, strict=False)
     h, tokens, text_mask, eot, mask = moc_inputs()
-    out = ablated(h, tokens, text_mask, tokens[torch.arange(len(eot)), eot], mask)
+    out = run_moc(ablated, h, tokens, text_mask, tokens[torch.arange(len(eot)), eot], mask)
     for b in range(h.shape[0]):  # one sample at a time, real tokens and real frames only
         e = tokens[b, text_mask[b]]
         f = ablated.down(h[b])
@@ -311,9 +316,10 @@ def test_moc_is_nan_free_without_real_tokens_or_frames():
     tokens, _, eot = text_batch([3, 3], D=12)
     text_mask = torch.tensor([[False] * 3, [True] * 3])
     mask = torch.tensor([[True] * 5, [False] * 5])
-    out = moc(h, tokens, text_mask, tokens[:, 0], mask)
+    text = moc.text_terms(tokens, text_mask, tokens[:, 0])
+    out = moc(h, text, mask)
     assert torch.isfinite(out).all()
-    _, attn = moc.attend(moc.down(h), tokens, text_mask)
+    _, attn = moc.attend(moc.down(h), text)
     assert torch.equal(attn[0], torch.zeros(5, 3)) and torch.isfinite(attn).all()
     # No real token: no attention, no residual; the block adds only W_up's bias.
     torch.testing.assert_close(out[0], moc.up.bias.expand(5, -1))
@@ -336,11 +342,11 @@ def reference_fig3(net: MotionControlNet, x, t, tokens, text_mask, eot, mask):
     reference), and they are added to the frozen layer's output h_{l+1}."""
     base = net.base
     h, c, mod, rope = base.embed(x, t)
-    for l, frozen in enumerate(base.blocks):
+    for layer, frozen in enumerate(base.blocks):
         h_next = frozen(h, mod, rope, mask)
-        if str(l) in net.mocs:
-            g = net.copy_blocks[str(l)](h, mod, rope, mask)
-            h_next = h_next + reference_moc(net.mocs[str(l)], g, tokens, text_mask, eot, mask)[0]
+        if str(layer) in net.mocs:
+            g = net.copy_blocks[str(layer)](h, mod, rope, mask)
+            h_next = h_next + reference_moc(net.mocs[str(layer)], g, tokens, text_mask, eot, mask)[0]
         h = h_next
     return base.final_layer(h, c)
 
@@ -349,11 +355,11 @@ def reference_parallel_stream(net: MotionControlNet, x, t, tokens, text_mask, eo
     base = net.base
     h, c, mod, rope = base.embed(x, t)
     h_c = h
-    for l, frozen in enumerate(base.blocks):
-        h_c = net.copy_blocks[str(l)](h_c, mod, rope, mask)
-        if str(l) in net.mocs:
-            h_c = h_c + reference_moc(net.mocs[str(l)], h_c, tokens, text_mask, eot, mask)[0]
-        h = frozen(h, mod, rope, mask) + net.zero_projs[l](h_c)
+    for layer, frozen in enumerate(base.blocks):
+        h_c = net.copy_blocks[str(layer)](h_c, mod, rope, mask)
+        if str(layer) in net.mocs:
+            h_c = h_c + reference_moc(net.mocs[str(layer)], h_c, tokens, text_mask, eot, mask)[0]
+        h = frozen(h, mod, rope, mask) + net.zero_projs[layer](h_c)
     return base.final_layer(h, c)
 
 
@@ -377,7 +383,7 @@ def test_controlnet_matches_loop_reference(wiring, layers):
         assert not torch.allclose(out, net.forward_uncond(x, t, mask), atol=1e-3)
         if wiring == "per_layer":  # a layer without a controller adds nothing
             h, _, mod, rope = net.base.embed(x, t)
-            control = net.controller(h, mod, rope, mask, tokens, text_mask, eot)
+            control = net.controller(h, mod, rope, mask, net.text_terms(tokens, text_mask, eot))
             skipped = [i for i in range(4) if str(i) not in net.mocs]
             assert all(control(i, h) is None for i in skipped)
 
@@ -392,8 +398,8 @@ def test_layers_choose_where_controllers_sit():
     tokens, text_mask, eot = text_batch([3])
     with torch.no_grad():
         h0, c, mod, rope = parallel.base.embed(x, t)
-        a = parallel.controller(h0, mod, rope, None, tokens, text_mask, eot)
-        b = parallel.controller(h0, mod, rope, None, tokens + 1, text_mask, eot)
+        a = parallel.controller(h0, mod, rope, None, parallel.text_terms(tokens, text_mask, eot))
+        b = parallel.controller(h0, mod, rope, None, parallel.text_terms(tokens + 1, text_mask, eot))
         ra, rb = [a(i, h0) for i in range(4)], [b(i, h0) for i in range(4)]
     # The parallel stream's copy before the first controller is a text-independent path.
     assert torch.equal(ra[0], rb[0]) and not torch.equal(ra[0], torch.zeros_like(ra[0]))
@@ -430,13 +436,31 @@ def test_forward_guided_is_the_cfg_mix(wiring, with_mask):
         uncond = net.forward_uncond(x, t, mask)
         assert not torch.allclose(cond, uncond, atol=1e-3)
         for s in (0.0, 1.0, 4.5):  # s = 0: exactly uncond, s = 1: exactly cond
-            guided = net.forward_guided(x, t, tokens, text_mask, eot, s, mask)
+            guided = net.forward_guided(x, t, net.text_terms(tokens, text_mask, eot), s, mask)
             torch.testing.assert_close(guided, (1 - s) * uncond + s * cond, rtol=1e-5, atol=1e-5)
         s = torch.tensor([0.0, 1.0, 4.5])[:, None, None]  # one scale per sample
-        guided = net.forward_guided(x, t, tokens, text_mask, eot, s.flatten(), mask)
+        guided = net.forward_guided(x, t, net.text_terms(tokens, text_mask, eot), s.flatten(), mask)
         torch.testing.assert_close(guided, (1 - s) * uncond + s * cond, rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(guided[0], uncond[0], rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(guided[1], cond[1], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("wiring", WIRINGS)
+def test_text_terms_folded_once_give_the_per_step_output(wiring):
+    """Sampling computes the text-only terms once (ω·b1, ω·b2 folded in): the same D_c as the
+    training path, which leaves those products to the experts."""
+    net = trained_like(wiring=wiring)
+    x, t = motion_batch(3, 9)
+    tokens, text_mask, eot = text_batch([4, 1, 3])
+    mask = frame_mask([9, 5, 7], 9)
+    with torch.no_grad():
+        folded = net.text_terms(tokens, text_mask, eot, fold_biases=True)
+        assert all(terms.omega_b1 is not None and terms.omega_b2 is not None for terms in folded.values())
+        assert all(terms.omega_b1 is None for terms in net.text_terms(tokens, text_mask, eot).values())
+        for s in (1.0, 4.5):
+            torch.testing.assert_close(net.forward_guided(x, t, folded, s, mask),
+                                       net.forward_guided(x, t, net.text_terms(tokens, text_mask, eot), s, mask),
+                                       rtol=1e-6, atol=1e-6)
 
 
 def test_forward_guided_shares_work():
@@ -455,7 +479,7 @@ def test_forward_guided_shares_work():
         moc.register_forward_hook(record("moc"))
     x, t = motion_batch(2, 7)
     with torch.no_grad():
-        net.forward_guided(x, t, *text_batch([3, 2]), 3.0)
+        net.forward_guided(x, t, net.text_terms(*text_batch([3, 2])), 3.0)
     expected = [("embed", 2)] + [("frozen", 4)] * 4 + [("copy", 2)] * 2 + [("moc", 2)] * 2
     assert sorted(calls) == sorted(expected)
 
@@ -517,7 +541,7 @@ def test_trimmed_tokens_give_the_same_outputs():
             net, x = net.to(dtype), x.to(dtype)
             for run, gain in (  # guidance s = 4.5 scales D_c's differences by s
                 (lambda f: net(x, t, f.tokens.to(dtype), f.mask, f.eot, mask), 1.0),
-                (lambda f: net.forward_guided(x, t, f.tokens.to(dtype), f.mask, f.eot, 4.5, mask), 4.5),
+                (lambda f: net.forward_guided(x, t, net.text_terms(f.tokens.to(dtype), f.mask, f.eot), 4.5, mask), 4.5),
             ):
                 torch.testing.assert_close(run(trimmed), run(padded), rtol=tol, atol=tol * gain)
 

@@ -28,7 +28,8 @@ def _data(**kw):
 
 def _fit(module, data, steps, root):
     trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root, gradient_clip_val=1.0)
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=root,
+                        gradient_clip_val=1.0)
     trainer.fit(module, data)
     return trainer
 
@@ -63,7 +64,8 @@ def test_starts_as_the_frozen_model_and_trains_only_the_controlnet(pretrained, t
     controlnet_before = {k: v.clone() for k, v in module.controlnet.state_dict().items() if not k.startswith("base.")}
     _fit(module, _data(), 4, tmp_path)
     assert all(torch.equal(module.model.state_dict()[k], v) for k, v in frozen.items())
-    changed = [k for k, v in module.controlnet.state_dict().items() if k in controlnet_before and not torch.equal(controlnet_before[k], v)]
+    changed = [k for k, v in module.controlnet.state_dict().items()
+               if k in controlnet_before and not torch.equal(controlnet_before[k], v)]
     assert any(".up." in k for k in changed) and any("moc" in k or "blocks" in k for k in changed)
 
 
@@ -81,8 +83,8 @@ def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
 
     only_u = ddim(lambda x, t: module.controlnet.forward_uncond(x, t))
     only_c = ddim(lambda x, t: module.controlnet(x, t, text.tokens, text.mask, text.eot))
-    s0 = module.generate(texts, frames, steps=8, seed=7, scale=0.0, use_ema=False)
-    s1 = module.generate(texts, frames, steps=8, seed=7, scale=1.0, use_ema=False)
+    s0 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=0.0, use_ema=False)
+    s1 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=1.0, use_ema=False)
     torch.testing.assert_close(s0, module.denormalize(only_u), rtol=0, atol=1e-5)
     torch.testing.assert_close(s1, module.denormalize(only_c), rtol=0, atol=1e-5)
     assert not torch.allclose(only_u, only_c, atol=1e-3)
@@ -103,12 +105,13 @@ def test_generate_from_text(finetuned, tmp_path, capsys):
 
     prompts = tmp_path / "prompts.txt"
     prompts.write_text("a person jumps in place\n\n")
-    main(["generate", "a person walks forward", "--prompts-file", str(prompts), "--ckpt", str(finetuned),
-          "--length", "2", "--num-samples", "2", "--steps", "5", "--seed", "3", "--out", str(tmp_path / "out")])
+    main(["generate", "a person walks forward", "--prompts_file", str(prompts), "--ckpt", str(finetuned),
+          "--length", "2", "--num_samples", "2", "--steps", "5", "--seed", "3", "--out", str(tmp_path / "out")])
     settings = json.loads((tmp_path / "out/generation.json").read_text())
     assert settings["prompts"] == ["a person walks forward", "a person jumps in place"]
     assert settings["guidance_scale"] == 4.5 and settings["seed"] == 3 and settings["frames"] == 40
-    assert [s["prompt"] for s in settings["samples"]] == ["a person walks forward"] * 2 + ["a person jumps in place"] * 2
+    assert ([s["prompt"] for s in settings["samples"]]
+            == ["a person walks forward"] * 2 + ["a person jumps in place"] * 2)
     for i in range(4):
         joints = np.load(tmp_path / f"out/sample_{i:03d}.joints.npy")
         assert joints.shape == (40, 22, 3)
@@ -117,10 +120,23 @@ def test_generate_from_text(finetuned, tmp_path, capsys):
     from PIL import Image
 
     assert Image.open(tmp_path / "out/preview.gif").n_frames > 1
+    assert settings["sampler"] == "ddim"
+
+    # the fast sampler, end to end; --unconditional on a ControlNet samples its frozen prior
+    main(["generate", "a person walks forward", "--ckpt", str(finetuned), "--length", "2", "--num_samples", "1",
+          "--sampler", "dpmpp", "--steps", "20", "--no_preview", "--out", str(tmp_path / "fast")])
+    fast = json.loads((tmp_path / "fast/generation.json").read_text())
+    assert fast["sampler"] == "dpmpp" and fast["steps"] == 20
+    assert np.isfinite(np.load(tmp_path / "fast/sample_000.joints.npy")).all()
+    main(["generate", "--unconditional", "--ckpt", str(finetuned), "--length", "2", "--num_samples", "1",
+          "--steps", "3", "--no_preview", "--out", str(tmp_path / "prior")])
+    assert json.loads((tmp_path / "prior/generation.json").read_text())["guidance_scale"] is None
 
     for argv, message in (
+        (["generate", "a person waves", "--ckpt", str(finetuned), "--sampler", "plms"], "unknown sampler 'plms'"),
         (["generate", "  ", "--ckpt", str(finetuned)], "prompt 1 is empty"),
-        (["generate", "a person waves", "--ckpt", str(finetuned), "--length", "99"], "--length must be in"),
+        (["generate", "a person waves", "--ckpt", str(finetuned), "--length", "99"],
+         "length: expected a number of seconds in (0, 60]"),
         (["generate", "--ckpt", str(finetuned)], "give prompts"),
     ):
         with pytest.raises(SystemExit) as e:
@@ -141,7 +157,7 @@ def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
     decode = get_representation("humanml3d263", "smpl22").decode
     travel, bob = {}, {}
     for prompt in ("a person walks forward", "a person jumps in place"):
-        pelvis = torch.cat([decode(module.generate([prompt] * 6, frames=60, steps=20, seed=seed))[:, :, 0]
+        pelvis = torch.cat([decode(module.sample([prompt] * 6, [60] * 6, steps=20, seed=seed))[:, :, 0]
                             for seed in range(3)])  # (18, T, 3)
         travel[prompt] = (pelvis[:, -1, [0, 2]] - pelvis[:, 0, [0, 2]]).norm(dim=-1)  # (18,) metres
         bob[prompt] = pelvis[..., 1].std(dim=1)  # (18,) root height std, metres

@@ -60,7 +60,9 @@ def test_batches_are_padded_masked_windows_of_the_clips(toy_shards):
 
 
 def test_stream_is_deterministic_for_a_seed(toy_shards):
-    ids = lambda seed: [b["id"] for b in _epoch(_datamodule(toy_shards, seed=seed).train_dataloader())]
+    def ids(seed):
+        return [b["id"] for b in _epoch(_datamodule(toy_shards, seed=seed).train_dataloader())]
+
     assert ids(3) == ids(3)
     assert ids(3) != ids(4)
 
@@ -167,7 +169,8 @@ def test_missing_shards_and_bad_settings_are_usage_errors(tmp_path):
 
 def test_url_patterns_and_validation_set(toy_shards):
     pattern = str(toy_shards / "shard-{000000..000007}.tar")
-    dm = MotionDataModule(pattern, val=str(toy_shards), batch_size=8, max_len=30, min_len=10, batches_per_epoch=2, num_workers=0)
+    dm = MotionDataModule(pattern, val=str(toy_shards), batch_size=8, max_len=30, min_len=10, batches_per_epoch=2,
+                          num_workers=0)
     assert dm.feature_dim == 66 and dm.skeleton == "smpl22" and dm.fps == 20.0
     assert len(_epoch(dm.train_dataloader())) == 2
     val = _epoch(dm.val_dataloader())
@@ -186,7 +189,8 @@ def _rank_main(rank, world, port, shards, start_method, out):
     dist.init_process_group("gloo", rank=rank, world_size=world)
     torch.set_num_threads(1)
     dm = _datamodule(shards, batches_per_epoch=5, num_workers=2)
-    dm.trainer = SimpleNamespace(global_rank=rank, world_size=world, current_epoch=0, lightning_module=None)  # what Lightning's trainer tells the datamodule
+    # what Lightning's trainer tells the datamodule
+    dm.trainer = SimpleNamespace(global_rank=rank, world_size=world, current_epoch=0, lightning_module=None)
     base = dm.train_dataloader()
     loader = StreamLoader(base.dataset, num_workers=2, collate_fn=base.collate_fn, multiprocessing_context=start_method)
     ids = [i for batch in loader for i in batch["id"]]
@@ -204,7 +208,10 @@ def test_two_ranks_read_disjoint_shards_and_equal_batch_counts(tmp_path):
     mp.spawn(_rank_main, args=(2, _free_port(), str(shards), "fork", str(out)), nprocs=2, join=True)
     r0, r1 = torch.load(out)
     assert r0["batches"] == r1["batches"] == 5
-    shard_of = lambda clip_id: int(clip_id.split(".")[1]) // 5
+
+    def shard_of(clip_id):
+        return int(clip_id.split(".")[1]) // 5
+
     assert {shard_of(i) for i in r0["ids"]} <= {0, 2, 4, 6}
     assert {shard_of(i) for i in r1["ids"]} <= {1, 3, 5, 7}
     assert not set(r0["ids"]) & set(r1["ids"])

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from omg.diffusion import Diffusion, cosine_alphas_cumprod, guided
+from omg.diffusion import Diffusion, cosine_alphas_cumprod
 from omg.errors import UsageError
 
 
@@ -131,21 +131,6 @@ def test_ddim_determinism(diffusion):
     # eta=0 draws only the initial noise, so fixing it fixes the sample.
     torch.manual_seed(3)
     assert torch.equal(run(0, 0.0), run(0, 0.0))
-
-
-def test_guided_interpolates_denoisers():
-    x, t = torch.randn(2, 4, 3), torch.tensor([10, 20])
-
-    def uncond(x_t, t):
-        return x_t * 2
-
-    def cond(x_t, t):
-        return x_t - 1
-
-    assert torch.equal(guided(uncond, cond, 0.0)(x, t), uncond(x, t))
-    assert torch.equal(guided(uncond, cond, 1.0)(x, t), cond(x, t))
-    u, c = uncond(x, t), cond(x, t)
-    torch.testing.assert_close(guided(uncond, cond, 3.0)(x, t), u + 3 * (c - u))
 
 
 def test_ddim_rejects_bad_steps(diffusion):

@@ -112,35 +112,61 @@ def test_padding_invariance():
     assert torch.isfinite(out).all()
 
 
-def test_block_residuals_and_manual_block_loop():
+def test_residual_fn_and_manual_block_loop():
     torch.manual_seed(0)
     model = randomized(MotionDiT(DiTConfig.from_name("mini", n_layers=3)))
     x, t = torch.randn(2, 10, 263), torch.tensor([1, 700])
     mask = torch.arange(10)[None] < torch.tensor([[10], [6]])
     res = [None, torch.randn(2, 10, model.config.d_model), None]
 
-    torch.testing.assert_close(model(x, t, mask, [None, None, None]), model(x, t, mask))
     h, c, mod, rope = model.embed(x, t)  # what a ControlNet driving the frozen blocks does
-    for i in range(len(model.blocks)):
-        h = model.run_block(i, h, mod, rope, mask)
+    torch.testing.assert_close(model.forward_embedded(h, c, mod, rope, mask, lambda i, h_i: None), model(x, t, mask))
+    inputs = []
+
+    def residual(i, h_i):
+        inputs.append(h_i)
+        return res[i]
+
+    out = model.forward_embedded(h, c, mod, rope, mask, residual)
+    for i, block in enumerate(model.blocks):
+        torch.testing.assert_close(inputs[i], h)  # residual_fn sees block i's input
+        h = block(h, mod, rope, mask)
         if res[i] is not None:
             h = h + res[i]
-    torch.testing.assert_close(model.final_layer(h, c), model(x, t, mask, res))
-    assert not torch.allclose(model(x, t, mask, res), model(x, t, mask))
-    with pytest.raises(ValueError, match="3 blocks"):
-        model(x, t, mask, res[:2])
+    torch.testing.assert_close(model.final_layer(h, c), out)
+    assert not torch.allclose(out, model(x, t, mask))
 
 
-def test_activation_checkpointing_gives_same_gradients():
+def saved_for_backward(fn) -> int:
+    """How many tensors autograd keeps for backward while ``fn()`` runs."""
+    count = [0]
+
+    def pack(tensor):
+        count[0] += 1
+        return tensor
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+        fn()
+    return count[0]
+
+
+def test_activation_checkpointing_from_outside_gives_same_gradients_with_less_kept():
+    from omg.lit.base import checkpoint_each
+
     x, t = torch.randn(2, 8, 263), torch.tensor([5, 50])
-    grads = []
+    grads, kept = [], []
     for ckpt in (False, True):
         torch.manual_seed(0)
-        model = randomized(MotionDiT(DiTConfig.from_name("mini", activation_checkpointing=ckpt)))
+        model = randomized(MotionDiT(DiTConfig.from_name("mini")))
+        if ckpt:
+            checkpoint_each(model.blocks)
+        names = [n for n, _ in model.named_parameters()]
         model.train()
-        model(x, t).square().mean().backward()
+        kept.append(saved_for_backward(lambda: model(x, t).square().mean().backward()))
         grads.append(torch.cat([p.grad.flatten() for p in model.parameters()]))
+        assert names == [n for n, _ in MotionDiT(DiTConfig.from_name("mini")).named_parameters()]  # names unchanged
     torch.testing.assert_close(grads[0], grads[1])
+    assert kept[1] < kept[0] / 2
 
 
 def test_flops_match_flop_counter():

@@ -13,15 +13,15 @@ import pytest
 import torch
 
 from conftest import REPO
-from omg.data.commands import build
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.data.shards import Manifest
 from omg.data.windows import Collate, WindowSampler
 from omg.errors import UsageError
-from omg.lit.evaluator import EvaluatorModule
+from omg.lit.evaluator import EvaluatorModule, load_evaluator
+from omg.losses import info_nce
 from omg.metrics import RPrecision
-from omg.models.evaluator import TextMotionEvaluator, info_nce, load_evaluator, same_pairs
-from omg.registry import MODELS
+from omg.models.evaluator import TextMotionEvaluator, same_pairs
+from omg.tools.shards import build
 
 MINI = REPO / "shards/mini/human263"
 ANIMAL = REPO / "shards/mini/animal_maa"
@@ -151,7 +151,7 @@ def test_load_evaluator_round_trip(trained, held_out, tmp_path):
         loaded = load_evaluator(path)
         assert isinstance(loaded, TextMotionEvaluator) and not loaded.training
         assert not any(p.requires_grad for p in loaded.parameters())
-        assert loaded.spec == {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263}
+        assert loaded.spec == trained["module"].evaluator.spec and loaded.spec.fps == 20.0
         with torch.no_grad():
             torch.testing.assert_close(loaded.encode_motion(motion, mask), want_m)
             torch.testing.assert_close(loaded.encode_text(texts), want_t)
@@ -207,14 +207,14 @@ def test_paraphrases_with_the_same_labels_are_not_negatives():
 def test_batches_carry_each_clips_labels(toy_shards):
     from omg.data.datamodule import MotionDataModule
 
-    batch = next(iter(MotionDataModule(str(toy_shards), batch_size=4, num_workers=0, batches_per_epoch=1).train_dataloader()))
+    batch = next(iter(MotionDataModule(str(toy_shards), batch_size=4, num_workers=0,
+                                       batches_per_epoch=1).train_dataloader()))
     assert batch["labels"] == [{}] * 4  # toy clips carry no labels; bandai1 takes carry {content, style}
 
 
 def test_any_skeleton_animals_train_and_registry(tmp_path):
-    assert MODELS.get("contrastive") is TextMotionEvaluator
     data = _data(ANIMAL, batch_size=8, max_len=60, min_len=40)
-    assert data.spec["skeleton"] == "smal35" and data.spec["representation"] == "maa"
+    assert data.spec.skeleton == "smal35" and data.spec.representation == "maa"
     module = EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1}, lr=1e-3, warmup_steps=1,
                              spec=data.spec)
     before = {k: v.clone() for k, v in module.evaluator.motion_encoder.state_dict().items()}
@@ -257,9 +257,9 @@ def _gru(prefix: str, inp: int, hidden: int) -> dict:
 
 
 def _head(hidden: int, out: int) -> dict:
-    return {"output_net.0.weight": (hidden, 2 * hidden), "output_net.0.bias": (hidden,), "output_net.1.weight": (hidden,),
-            "output_net.1.bias": (hidden,), "output_net.3.weight": (out, hidden), "output_net.3.bias": (out,),
-            "hidden": (2, 1, hidden)}
+    return {"output_net.0.weight": (hidden, 2 * hidden), "output_net.0.bias": (hidden,),
+            "output_net.1.weight": (hidden,), "output_net.1.bias": (hidden,), "output_net.3.weight": (out, hidden),
+            "output_net.3.bias": (out,), "hidden": (2, 1, hidden)}
 
 
 OFFICIAL_SHAPES = {
@@ -317,8 +317,8 @@ def test_t2m_loads_official_keys_strictly_and_encodes(t2m_files):
     assert text.shape == (3, 512)
     torch.testing.assert_close(ev.encode_text(texts[::-1]), text.flip(0))
     # a HumanML3D text-file line is read through its tokens
-    torch.testing.assert_close(ev.encode_text(["a person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0"]),
-                               text[:1])
+    torch.testing.assert_close(
+        ev.encode_text(["a person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0"]), text[:1])
 
 
 def test_t2m_matches_a_direct_recomputation(t2m_files):
@@ -329,7 +329,8 @@ def test_t2m_matches_a_direct_recomputation(t2m_files):
     ev = load_t2m_evaluator(t2m_files["ckpt"], t2m_files["glove"], t2m_files["meta"])
     s = t2m_files["state"]
 
-    # movement encoder: conv (k4 s2 p1) -> leaky relu -> conv -> leaky relu -> linear, on normalised features w/o contacts
+    # movement encoder: conv (k4 s2 p1) -> leaky relu -> conv -> leaky relu -> linear,
+    # on normalised features w/o contacts
     x = torch.randn(2, 16, 263)
     m = s["movement_encoder"]
     z = (x - ev.mean) / ev.std
@@ -364,7 +365,8 @@ def test_t2m_word_vectorizer_and_caption_fallback(t2m_files):
     assert vec.shape == (300,) and pos.argmax() == POS_enumerator["Body_VIP"]
     vec, pos = wv["zebra/NOUN"]  # unknown: unk vector, OTHER
     assert np.array_equal(vec, wv.word2vec["unk"]) and pos.argmax() == POS_enumerator["OTHER"]
-    assert wv["his/PRON"][1].argmax() == POS_enumerator["PRON"] and wv["zebra/PRON"][1].argmax() == POS_enumerator["OTHER"]
+    assert (wv["his/PRON"][1].argmax() == POS_enumerator["PRON"]
+            and wv["zebra/PRON"][1].argmax() == POS_enumerator["OTHER"])
     assert wv["a/DET"][1].argmax() == POS_enumerator["DET"]
 
     tokens, n = process_tokens([f"w{i}/NOUN" for i in range(25)])

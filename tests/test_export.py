@@ -125,7 +125,7 @@ def test_cli_export(tmp_path, capsys):
 
 def test_cli_export_into_another_folder(tmp_path):
     np.save(tmp_path / "walk.joints.npy", SMPL22.rest_positions()[None].repeat(3, 0))
-    cli_main(["export", str(tmp_path / "walk.joints.npy"), "--out", str(tmp_path / "exported"), "--no-preview"])
+    cli_main(["export", str(tmp_path / "walk.joints.npy"), "--out", str(tmp_path / "exported"), "--no_preview"])
     assert (tmp_path / "exported" / "walk.bvh").is_file() and not (tmp_path / "walk.bvh").exists()
 
 
@@ -136,7 +136,7 @@ def test_cli_export_features(tmp_path):
     features, _ = representation.encode(next(synth_clips(1, 0, seed=0, fps=20)))
     path = tmp_path / "walk.features.npy"
     np.save(path, features)
-    cli_main(["export", str(path), "--representation", "humanml3d263", "--no-preview", "--scale", "100"])
+    cli_main(["export", str(path), "--representation", "humanml3d263", "--no_preview", "--scale", "100"])
     expected = representation.decode(torch.from_numpy(features)).numpy()
     np.testing.assert_allclose(_read_positions(tmp_path / "walk.bvh", SMPL22), expected, atol=1e-3)
     assert not (tmp_path / "walk.gif").exists()
@@ -150,7 +150,7 @@ def test_cli_export_rejects_bad_files(tmp_path, capsys, array, reason):
     _generated_dir(tmp_path)
     np.save(tmp_path / "sample_002.joints.npy", array)
     with pytest.raises(SystemExit) as e:
-        cli_main(["export", str(tmp_path), "--no-preview"])
+        cli_main(["export", str(tmp_path), "--no_preview"])
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "sample_002.joints.npy" in err and reason in err and len(err.strip().splitlines()) == 1

@@ -41,19 +41,20 @@ def test_fine_tuning_data_at_another_rate_is_refused(prior_30fps, tmp_path):
     from omg.lit.controlnet import ControlNetModule
 
     data_20 = MotionDataModule(str(shards_at(tmp_path / "s20", 20.0)))
-    with pytest.raises(UsageError, match=r"20 fps but the pretrained model at 30 fps: rebuild the shards .*--fps 30"):
+    with pytest.raises(UsageError,
+                       match=r"the pretrained model and the fine-tuning shards differ: fps 30.0 vs 20.0 .*--fps 30"):
         ControlNetModule(pretrained=str(prior_30fps), text_encoder="hash", spec=data_20.spec)
     data_30 = MotionDataModule(str(shards_at(tmp_path / "s30", 30.0)))
     module = ControlNetModule(pretrained=str(prior_30fps), text_encoder="hash", spec=data_30.spec)
-    assert module.spec["fps"] == module.data_spec["fps"] == 30.0
+    assert module.spec.fps == module.data_spec.fps == 30.0
 
 
 def test_generated_bvh_is_at_the_training_rate(prior_30fps, tmp_path):
     from omg.cli import main
 
     out = tmp_path / "gen"
-    main(["generate", "--unconditional", "--ckpt", str(prior_30fps), "--num-samples", "1", "--length", "1",
-          "--steps", "2", "--no-preview", "--out", str(out)])
+    main(["generate", "--unconditional", "--ckpt", str(prior_30fps), "--num_samples", "1", "--length", "1",
+          "--steps", "2", "--no_preview", "--out", str(out)])
     bvh = (out / "sample_000.bvh").read_text()
     frame_time = float(bvh.split("Frame Time:")[1].split()[0])
     frames = int(bvh.split("Frames:")[1].split()[0])

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import JointPositions, walking_clip
 from scipy.spatial.transform import Rotation
 
+from conftest import JointPositions, walking_clip
 from omg.cli import main
 from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar
 from omg.errors import UsageError
@@ -27,7 +27,8 @@ def _split(items):
 
 
 def _samples(shard_dir: Path) -> dict[str, dict]:
-    return {s["meta"]["id"]: s for path in Manifest.load(shard_dir).shard_paths for s in map(decode_sample, iter_tar(path))}
+    return {s["meta"]["id"]: s
+            for path in Manifest.load(shard_dir).shard_paths for s in map(decode_sample, iter_tar(path))}
 
 
 # ---------------------------------------------------------------- humanml3d
@@ -99,7 +100,8 @@ def test_humanml3d_crops_tokens_and_skips(hml_root):
 
     assert clips["000003"].features is None and clips["000003"].positions.shape == (81, 22, 3)
     assert clips["000004"].positions.shape == (80, 22, 3)  # decoded from the features (recover_from_ric)
-    np.testing.assert_allclose(clips["000004"].positions, H263.decode(torch.from_numpy(clips["000004"].features)).numpy())
+    np.testing.assert_allclose(clips["000004"].positions,
+                               H263.decode(torch.from_numpy(clips["000004"].features)).numpy())
     assert "007975" not in clips and "000001@0.1-1" not in clips
     assert any(e.startswith("humanml3d NaN or inf in motion") and "007975.npy" in e for e in errors)
     assert any(e.startswith("humanml3d unreadable file") and "000005.npy" in e for e in errors)
@@ -110,7 +112,7 @@ def test_humanml3d_split_and_options(hml_root):
     clips, _ = _split(_hml(hml_root, split="test"))
     assert list(clips) == ["000006"]
     assert "000006" not in _split(_hml(hml_root, split="train"))[0]
-    with pytest.raises(UsageError, match="split='nope'"):
+    with pytest.raises(UsageError, match="option.split 'nope'"):
         _hml(hml_root, split="nope")
     with pytest.raises(UsageError, match="val.txt"):
         _hml(hml_root, split="val")
@@ -124,7 +126,7 @@ def test_humanml3d_split_and_options(hml_root):
 def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
     out = tmp_path / "shards"
     main(["shards", "build", "--source", "humanml3d", "--input", str(hml_root), "--out", str(out),
-          "--fps", "20", "--option", "split=train"])
+          "--fps", "20", "--option.split", "train"])
     assert "skipped 3" in capsys.readouterr().out
     manifest = Manifest.load(out)
     # the published normalisation, verbatim
@@ -135,7 +137,8 @@ def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
                                         "humanml3d length outside [40, 200) frames"}
     samples = _samples(out)
     assert set(samples) == {"000001", "000001@0.5-3", "000002", "000003", "000004"}
-    np.testing.assert_array_equal(samples["000001@0.5-3"]["motion"], np.load(hml_root / "new_joint_vecs" / "000001.npy")[10:60])
+    np.testing.assert_array_equal(samples["000001@0.5-3"]["motion"],
+                                  np.load(hml_root / "new_joint_vecs" / "000001.npy")[10:60])
     assert samples["000001@0.5-3"]["meta"]["labels"]["tokens"][0][0] == "a/DET"
     assert samples["000002"]["texts"] == ["a person walks"]
     # 000003 has positions only: encoded here, as HumanML3D would have
@@ -167,8 +170,10 @@ def _animal_motion(seed: int, frames: int, offsets: np.ndarray) -> tuple[np.ndar
     """A rigid SMAL-35 motion in omg's convention, and the same motion as an OmniMotionGPT
     MAA file (T, 36, 6): HumanML3D-style IK, each bone's swing composed along its chain."""
     rng = np.random.default_rng(seed)
-    axis_angle = 0.3 * rng.standard_normal((frames, 35, 3)) + 0.05 * np.arange(frames)[:, None, None] * rng.standard_normal(3)
-    local = torch.from_numpy(Rotation.from_rotvec(axis_angle.reshape(-1, 3)).as_quat()[:, [3, 0, 1, 2]].reshape(frames, 35, 4))
+    axis_angle = (0.3 * rng.standard_normal((frames, 35, 3))
+                  + 0.05 * np.arange(frames)[:, None, None] * rng.standard_normal(3))
+    local = torch.from_numpy(
+        Rotation.from_rotvec(axis_angle.reshape(-1, 3)).as_quat()[:, [3, 0, 1, 2]].reshape(frames, 35, 4))
     root = torch.from_numpy(np.cumsum(0.02 * rng.standard_normal((frames, 3)), 0) + [0, 0.5, 0])
     P = SMAL35.forward_kinematics(local, root, torch.from_numpy(offsets))  # (T, 35, 3)
     off = torch.from_numpy(offsets)
@@ -226,7 +231,8 @@ def test_animalml3d_layout_and_offsets(animal_root):
     expected = np.load(animal_root / "expected_deer1_RunFast.npy")
     np.testing.assert_allclose(clip.positions, expected, atol=1e-5)  # OmniMotionGPT's chain FK
     # the re-solved local rotations give the same positions through omg's FK, and through maa
-    fk = SMAL35.forward_kinematics(torch.from_numpy(clip.rotations).double(), torch.from_numpy(clip.positions[:, 0]).double(),
+    fk = SMAL35.forward_kinematics(torch.from_numpy(clip.rotations).double(),
+                                   torch.from_numpy(clip.positions[:, 0]).double(),
                                    torch.from_numpy(clip.offsets).double())
     np.testing.assert_allclose(fk.numpy(), expected, atol=1e-4)
     maa = get_representation("maa", SMAL35)
@@ -334,7 +340,8 @@ def test_amass_resampling_and_gendered_models(amass_root):
     clips, _ = _split(_amass(amass_root, fps=30.0, body_model=folder))
     with np.load(amass_root / "data" / "CMU" / "01" / "01_02_poses.npz") as f:
         # female has no model in the folder: the neutral one is used
-        expected = _reference_joints(dict(np.load(amass_root / "models/smplh/neutral/model.npz")), f["poses"], f["trans"], f["betas"])
+        expected = _reference_joints(dict(np.load(amass_root / "models/smplh/neutral/model.npz")), f["poses"],
+                                     f["trans"], f["betas"])
     clip = clips["CMU/01/01_02_poses"]  # 50 frames at 100 fps -> 0.49 s -> 15 frames at 30 fps
     assert clip.positions.shape == (15, 22, 3) and clip.labels["gender"] == "female"
     t = np.arange(15) / 30 * 100  # source frame of each output frame
@@ -344,7 +351,7 @@ def test_amass_resampling_and_gendered_models(amass_root):
 
 
 def test_amass_body_model_errors(amass_root, tmp_path):
-    with pytest.raises(UsageError, match=r"--option body_model=PATH"):
+    with pytest.raises(UsageError, match=r"--option.body_model PATH"):
         _amass(amass_root)
     (tmp_path / "model.pkl").write_bytes(b"\x80\x02}q\x00.")
     with pytest.raises(UsageError, match="chumpy.*npz"):
@@ -357,7 +364,7 @@ def test_amass_body_model_errors(amass_root, tmp_path):
 def test_amass_shards_count_skips(amass_root, tmp_path):
     out = tmp_path / "amass"
     main(["shards", "build", "--source", "amass", "--input", str(amass_root / "data"), "--out", str(out), "--fps", "20",
-          "--option", f"body_model={amass_root / 'models' / 'smplh'}"])
+          "--option.body_model", str(amass_root / "models" / "smplh")])
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["num_clips"] == 2 and manifest["stats_origin"] == "measured"
     assert manifest["skipped"] == {"amass missing keys": 1, "amass unreadable file": 1}

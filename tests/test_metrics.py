@@ -16,12 +16,12 @@ from scipy.ndimage import uniform_filter1d
 from omg.metrics import (
     FID,
     FIDOOD,
-    MMDist,
     MPJPE,
     CLIPScore,
     Diversity,
     FootSkating,
     IntraFID,
+    MMDist,
     MultiModality,
     OneNNA,
     RPrecision,
@@ -374,8 +374,7 @@ def test_two_gloo_ranks_equal_one_process(tmp_path):
 
 
 def test_label_accuracy_is_the_nearest_captions_label():
-    from omg.evaluation import Outputs
-    from omg.metrics import LabelAccuracy
+    from omg.metrics import EvalBatch, LabelAccuracy
 
     # three captions of two contents; motions sit next to a caption of their own content or not
     captions = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]], dtype=torch.float64)
@@ -384,14 +383,14 @@ def test_label_accuracy_is_the_nearest_captions_label():
     labels = [{"content": content[i], "style": "old"} for i in (0, 1, 2, 0, 2)]
     gen = torch.tensor([[1.0, 0.0], [0.5, 0.5], [0.0, 9.0], [0.0, 8.0], [9.0, 1.0]], dtype=torch.float64)
     metric = LabelAccuracy(label="content", labels={"content": ["bow", "walk"], "style": ["old"]})
-    metric.eval_update(Outputs(text=text, gen=gen, real=text, labels=labels))
+    metric.eval_update(EvalBatch(text=text, gen=gen, real=text, labels=labels))
     out = metric.compute()
     # row 1 (walk) is nearest caption 0 (walk): a hit though not its own caption; row 3 (walk) is nearest bow
     assert out["label_accuracy"].item() == pytest.approx(3 / 5)
     assert out["label_accuracy/walk"].item() == pytest.approx(2 / 3)
     assert out["label_accuracy/bow"].item() == pytest.approx(1 / 2)
     real = LabelAccuracy(labels={"content": ["bow", "walk"]})
-    real.eval_update(Outputs(text=text, gen=gen, real=text, labels=labels), real=True)
+    real.eval_update(EvalBatch(text=text, gen=gen, real=text, labels=labels), real=True)
     assert real.compute()["label_accuracy"].item() == 1.0
     with pytest.raises(Exception, match="no clip of the evaluation set has a 'content' label"):
         LabelAccuracy(labels={})

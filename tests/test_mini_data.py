@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from conftest import REPO
-from omg.data.commands import MINI_SETS
 from omg.data.shards import Manifest, decode_sample, iter_tar, validate
+from omg.tools.shards import MINI_SETS
 
 MINI = REPO / "shards" / "mini"
 
@@ -21,13 +21,14 @@ def test_committed_mini_data_is_valid_and_split():
         for split in ("train", "val"):
             manifest, good, problems = validate(MINI / subdir / split)
             assert not problems and good == manifest["num_clips"] > 0
-            assert (manifest["skeleton"], manifest["representation"], manifest["fps"]) == (skeleton, representation, 20.0)
+            assert ((manifest["skeleton"], manifest["representation"], manifest["fps"])
+                    == (skeleton, representation, 20.0))
             ids[split] = set(_samples(MINI / subdir / split))
         assert not ids["train"] & ids["val"]
 
 
 def test_committed_mini_data_matches_the_generator(tmp_path):
-    from omg.data.commands import shards_main
+    from omg.tools.shards import main as shards_main
 
     shards_main(["synth", "--out", str(tmp_path)])
     for subdir, *_ in MINI_SETS:
@@ -35,5 +36,6 @@ def test_committed_mini_data_matches_the_generator(tmp_path):
             committed, fresh = _samples(MINI / subdir / split), _samples(tmp_path / subdir / split)
             assert committed.keys() == fresh.keys()
             for key, sample in committed.items():
-                assert sample["texts"] == fresh[key]["texts"] and sample["meta"]["labels"] == fresh[key]["meta"]["labels"]
+                assert (sample["texts"] == fresh[key]["texts"]
+                        and sample["meta"]["labels"] == fresh[key]["meta"]["labels"])
                 np.testing.assert_allclose(sample["motion"], fresh[key]["motion"], atol=1e-4)

@@ -15,14 +15,35 @@ import torch
 
 from conftest import REPO
 from omg.data.datamodule import MotionDataModule
-from omg.lit.pretrain import PretrainModule, warmup_cosine
+from omg.lit.base import warmup_cosine
+from omg.lit.pretrain import PretrainModule
 
 TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
 
 
+def test_activation_checkpointing_is_applied_once_by_configure_model(h263_shards):
+    """The module switch checkpoints the blocks when the Trainer configures the model (again at
+    every stage), with the same gradients and the same parameter names."""
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=4, max_len=40, min_len=40, num_workers=0)
+    batch = next(iter(dm.train_dataloader()))
+    grads, names = [], []
+    for switch in (False, True):
+        torch.manual_seed(0)
+        module = PretrainModule(flavor="mini", dit=TINY, spec=dm.spec, ema_decay=0, activation_checkpointing=switch)
+        module.configure_model()
+        module.configure_model()  # fit, then test: no error, applied once
+        module._noise_gen = torch.Generator().manual_seed(1)
+        module.diffusion_losses(batch)["loss"].backward()
+        grads.append(torch.cat([p.grad.flatten() for p in module.model.parameters()]))
+        names.append(list(module.state_dict()))
+    torch.testing.assert_close(grads[0], grads[1])
+    assert names[0] == names[1]
+
+
 def test_loss_falls_on_a_fixed_batch_and_samples_are_finite(h263_shards):
     torch.manual_seed(0)
-    dm = MotionDataModule(str(h263_shards / "train"), batch_size=8, max_len=40, min_len=40, num_workers=0, shuffle_buffer=8)
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=8, max_len=40, min_len=40, num_workers=0,
+                          shuffle_buffer=8)
     batch = next(iter(dm.train_dataloader()))
     module = PretrainModule(flavor="mini", spec=dm.spec, ema_decay=0)
     optimizer = torch.optim.AdamW(module.parameters(), lr=1e-3)
@@ -44,7 +65,7 @@ def test_loss_falls_on_a_fixed_batch_and_samples_are_finite(h263_shards):
     assert after["loss"] < 0.3 * before["loss"], (before, after)
     assert after["simple"] < before["simple"]
 
-    motion = module.sample(num=2, frames=37, steps=10)
+    motion = module.sample(None, [37, 37], steps=10)
     assert motion.shape == (2, 37, 263) and torch.isfinite(motion).all()
     positions = module.representation.decode(motion)
     assert positions.shape == (2, 37, 22, 3) and torch.isfinite(positions).all()
@@ -127,7 +148,10 @@ def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
     assert a["ema"]["updates"] == b["ema"]["updates"] == steps
     for name, value in a["ema"]["shadow"].items():
         torch.testing.assert_close(b["ema"]["shadow"][name], value, rtol=0, atol=1e-6)
-    loops = lambda c: c["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+
+    def loops(c):
+        return c["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+
     assert loops(a) == loops(b)  # the same data stream position
     for name, value in a["state_dict"].items():
         torch.testing.assert_close(b["state_dict"][name], value, rtol=0, atol=1e-6)
@@ -136,8 +160,8 @@ def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
 def test_generate_unconditional_writes_reproducible_motions(whole_run, tmp_path, capsys):
     from omg.cli import main
 
-    args = ["generate", "--unconditional", "--ckpt", str(whole_run / "checkpoints/last.ckpt"), "--num-samples", "3",
-            "--length", "1.5", "--steps", "5", "--batch-size", "2"]
+    args = ["generate", "--unconditional", "--ckpt", str(whole_run / "checkpoints/last.ckpt"), "--num_samples", "3",
+            "--length", "1.5", "--steps", "5", "--batch_size", "2"]
     main([*args, "--out", str(tmp_path / "a")])
     main([*args, "--out", str(tmp_path / "b")])
     settings = json.loads((tmp_path / "a/generation.json").read_text())
@@ -159,7 +183,8 @@ def test_generate_unconditional_writes_reproducible_motions(whole_run, tmp_path,
 
 def test_trains_with_weights_cast_to_bf16(h263_shards):
     """DeepSpeed's bf16 mode casts the module and the batch to bf16 and runs without autocast."""
-    dm = MotionDataModule(str(h263_shards / "train"), batch_size=4, max_len=30, min_len=30, num_workers=0, shuffle_buffer=4)
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=4, max_len=30, min_len=30, num_workers=0,
+                          shuffle_buffer=4)
     batch = next(iter(dm.train_dataloader()))
     batch["motion"] = batch["motion"].to(torch.bfloat16)
     module = PretrainModule(flavor="mini", dit=TINY, spec=dm.spec).to(torch.bfloat16)
@@ -167,4 +192,4 @@ def test_trains_with_weights_cast_to_bf16(h263_shards):
     assert all(torch.isfinite(v) for v in losses.values())
     losses["loss"].backward()
     assert module.model.input_proj.weight.grad.dtype == torch.bfloat16
-    assert module.sample(num=1, frames=12, steps=3).dtype == torch.bfloat16
+    assert module.sample(None, [12], steps=3).dtype == torch.bfloat16

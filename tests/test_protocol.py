@@ -11,8 +11,17 @@ import torch
 from conftest import REPO
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.errors import UsageError
-from omg.evaluation import (EvalSettings, _my_batches, evaluate, markdown_table, parse_metrics, prompt_set, protocol,
-                            summarize, write_report)
+from omg.evaluation import (
+    EvalSettings,
+    _my_batches,
+    evaluate,
+    markdown_table,
+    parse_metrics,
+    prompt_set,
+    protocol,
+    summarize,
+    write_report,
+)
 from omg.models.evaluator import TextMotionEvaluator
 
 MINI = REPO / "shards/mini/human263"
@@ -91,7 +100,9 @@ def test_one_pass_is_deterministic_and_a_perfect_generator_matches_the_data(setu
         gen = torch.Generator().manual_seed(seed)
         return torch.tensor(data.manifest.mean) + 0.1 * torch.randn(len(texts), int(lengths.max()), 263, generator=gen)
 
-    run = lambda seed: evaluate(noisy, evaluator, prompts, metrics, seed=seed, settings=settings, spec=data.spec)
+    def run(seed):
+        return evaluate(noisy, evaluator, prompts, metrics, seed=seed, settings=settings, spec=data.spec)
+
     first = run(0)
     assert first == run(0) and first != run(1)
     assert {"fid", "r_precision/top3", "mm_dist", "diversity", "multimodality", "foot_skating", "intra_fid/human",

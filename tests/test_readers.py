@@ -212,7 +212,8 @@ def test_resample_exact_at_integer_ratios(shared_motion):
     bandai = read_bvh(next((shared_motion / "human/bandai1").glob("*.bvh")))  # 30 fps
     up = bandai.resample(60)
     assert len(up) == 2 * len(bandai) - 1
-    assert np.array_equal(up.rotations[::2], bandai.rotations) and np.array_equal(up.translations[::2], bandai.translations)
+    assert (np.array_equal(up.rotations[::2], bandai.rotations)
+            and np.array_equal(up.translations[::2], bandai.translations))
     # odd frames: halfway along the shorter arc, translations the mean
     a, mid, b = bandai.rotations[:-1], up.rotations[1::2], bandai.rotations[1:]
     np.testing.assert_allclose(_angle(a, mid), _angle(mid, b), atol=1e-6)

@@ -27,7 +27,7 @@ SEEDS = 3
 def shards(tmp_path_factory):
     if not (BANDAI / "manifest.json").exists():
         pytest.skip(f"Bandai-Namco dataset 1 not found at {BANDAI} (the shared/ folder beside the checkout)")
-    from omg.data.commands import build
+    from omg.tools.shards import build
 
     root = tmp_path_factory.mktemp("bandai_subset")
     clips = [c for c in json.loads((BANDAI / "manifest.json").read_text())["clips"]
@@ -75,7 +75,7 @@ def test_held_out_prompts_give_walking_backward_and_bowing(shards, tmp_path):
     assert set(prompts.values()) == {t for s in held_out for t in s["texts"]}
     back, height = {}, {}
     for name, prompt in prompts.items():
-        root = torch.stack([decode(module.generate([prompt] * 4, frames=60, steps=20, seed=seed))[:, :, 0]
+        root = torch.stack([decode(module.sample([prompt] * 4, [60] * 4, steps=20, seed=seed))[:, :, 0]
                             for seed in range(SEEDS)])  # (seeds, 4, T, 3); frame 0 faces +Z
         back[name] = -(root[:, :, -1, 2] - root[:, :, 0, 2])  # (seeds, 4) metres moved backward
         height[name] = root[..., 1].amin(dim=-1)  # (seeds, 4) lowest root height

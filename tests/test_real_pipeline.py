@@ -16,7 +16,7 @@ from omg.skeleton import SMPL22
 def test_real_clips_to_shards_to_training_to_bvh(shared_motion, tmp_path):
     shards = tmp_path / "real"
     main(["shards", "build", "--source", "bvh-dir", "--input", str(shared_motion), "--out", str(shards),
-          "--skeleton", "smpl22", "--representation", "humanml3d263", "--fps", "20", "--val-fraction", "0.1"])
+          "--skeleton", "smpl22", "--representation", "humanml3d263", "--fps", "20", "--val_fraction", "0.1"])
     counts = [json.loads((shards / s / "manifest.json").read_text())["num_clips"] for s in ("train", "val")]
     assert sum(counts) == 75 and min(counts) > 0
 
@@ -30,8 +30,8 @@ def test_real_clips_to_shards_to_training_to_bvh(shared_motion, tmp_path):
     assert ckpt.exists() and (root / "version_0/config.yaml").exists()
 
     out = tmp_path / "gen"
-    main(["generate", "--unconditional", "--ckpt", str(ckpt), "--num-samples", "1", "--length", "2", "--steps", "4",
-          "--no-preview", "--out", str(out)])
+    main(["generate", "--unconditional", "--ckpt", str(ckpt), "--num_samples", "1", "--length", "2", "--steps", "4",
+          "--no_preview", "--out", str(out)])
     joints = np.load(out / "sample_000.joints.npy")
     bvh = read_bvh(out / "sample_000.bvh")
     assert bvh.num_joints == 22 and len(bvh) == len(joints) == 40 and bvh.fps == 20.0

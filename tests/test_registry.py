@@ -161,11 +161,12 @@ def test_resolve():
 
 
 def test_all_holds_the_seven_registries():
-    expected = ["skeletons", "representations", "text_encoders", "data_sources", "models", "metrics", "callbacks"]
+    # domain components only: Lightning objects (modules, callbacks) are named by class_path
+    expected = ["skeletons", "representations", "text_encoders", "data_sources", "metrics", "samplers", "joint_maps"]
     assert list(ALL) == expected
     assert all(isinstance(r, Registry) for r in ALL.values())
     assert len({id(r) for r in ALL.values()}) == 7
-    assert ALL["skeletons"] is registry.SKELETONS and ALL["callbacks"] is registry.CALLBACKS
+    assert ALL["skeletons"] is registry.SKELETONS and ALL["joint_maps"] is registry.JOINT_MAPS
     for title in ALL:
         assert title.upper() in registry.__all__ and getattr(registry, title.upper()) is ALL[title]
 
@@ -232,22 +233,23 @@ def test_module_plugin_is_imported_and_registers(plugins, tmp_path, monkeypatch)
 
     module = "omg_test_plugin_widgets"
     (tmp_path / f"{module}.py").write_text(textwrap.dedent("""
-        from omg.registry import MODELS
+        from omg.registry import TEXT_ENCODERS
 
-        @MODELS.register("test-plugin-model")
-        class PluginModel:
-            '''A model from a plugin.'''
+        @TEXT_ENCODERS.register("test-plugin-encoder")
+        class PluginEncoder:
+            '''A text encoder from a plugin.'''
     """))
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(registry.MODELS, "_entries", dict(registry.MODELS._entries))  # undone after the test
+    # undone after the test
+    monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))
     monkeypatch.delitem(sys.modules, module, raising=False)
     plugins(FakeEntryPoint("widgets", module, lambda: importlib.import_module(module)))
 
-    assert "test-plugin-model" not in registry.MODELS
+    assert "test-plugin-encoder" not in registry.TEXT_ENCODERS
     assert load_plugins() == ["widgets"]
     assert module in sys.modules
-    assert registry.MODELS.get("test-plugin-model").__name__ == "PluginModel"
-    assert registry.MODELS.describe("test-plugin-model") == "A model from a plugin."
+    assert registry.TEXT_ENCODERS.get("test-plugin-encoder").__name__ == "PluginEncoder"
+    assert registry.TEXT_ENCODERS.describe("test-plugin-encoder") == "A text encoder from a plugin."
     monkeypatch.delitem(sys.modules, module)
 
 

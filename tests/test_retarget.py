@@ -15,9 +15,9 @@ from conftest import TINY_BVH
 from omg.errors import UsageError
 from omg.io.read import read_motion
 from omg.io.rig import RigMotion
-from omg.retarget import BUILTIN_MAPS, detect_joint_map, foot_contacts, retarget
+from omg.kinematics import ground_contacts
+from omg.retarget import detect_joint_map, get_joint_map, retarget
 from omg.rotations import quat_mul
-
 
 
 def _read(root: Path, entry: dict) -> RigMotion:
@@ -58,7 +58,7 @@ def test_every_real_clip_retargets(retargeted):
         fk = skel.forward_kinematics(torch.from_numpy(clip.rotations), torch.from_numpy(P[:, 0]), offsets)
         np.testing.assert_allclose(fk.numpy(), P, atol=1e-4)
         # feet in contact rest on the floor
-        contact = foot_contacts(P, skel, clip.fps)
+        contact = ground_contacts(torch.from_numpy(P).double(), skel.feet, clip.fps).numpy()
         low = np.where(contact, P[:, list(skel.feet), 1], np.inf).min(1)
         if np.isfinite(low).sum() >= 3:
             assert abs(np.median(low[np.isfinite(low)])) < 0.02, (entry["id"], np.median(low[np.isfinite(low)]))
@@ -116,13 +116,13 @@ def _renamed_bvh(src: Path, dst: Path, rename: dict) -> None:
 def test_user_yaml_map(shared_motion, tmp_path):
     """A rig with unknown names maps through a YAML file, exactly as the built-in map does."""
     src = sorted((shared_motion / "human/bandai1").glob("*walk_normal*.bvh"))[0]
-    rename = {name: f"my_{name}" for name in set(BUILTIN_MAPS["bandai"].joints.values())}
+    rename = {name: f"my_{name}" for name in set(get_joint_map("bandai").joints.values())}
     _renamed_bvh(src, tmp_path / "renamed.bvh", rename)
     renamed = read_motion(tmp_path / "renamed.bvh")
     assert "my_Hips" in renamed.names
     with pytest.raises(UsageError, match="lacks joints"):
         retarget(renamed, "smpl22")
-    joints = {t: rename[s] for t, s in BUILTIN_MAPS["bandai"].joints.items()}
+    joints = {t: rename[s] for t, s in get_joint_map("bandai").joints.items()}
     lines = ["target: smpl22", "joints:"] + [f"  {t}: {s}" for t, s in joints.items()]
     (tmp_path / "map.yaml").write_text("\n".join(lines) + "\n")
     mine = retarget(renamed, "smpl22", joint_map=tmp_path / "map.yaml", fps=20)
@@ -147,7 +147,8 @@ def test_z_up_source_and_height(shared_motion):
     rot = motion.rotations.copy()
     rot[:, 0] = quat_mul(turn.expand(len(motion), 4), torch.from_numpy(rot[:, 0])).numpy()
     trans = motion.translations.copy()
-    trans[:, 0] = trans[:, 0] @ np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=np.float64)  # (x, y, z) -> (x, -z, y)
+    # (x, y, z) -> (x, -z, y)
+    trans[:, 0] = trans[:, 0] @ np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=np.float64)
     z_up = replace(motion, rotations=rot, translations=trans)
     head, toes = motion.names.index("Head"), motion.names.index("Toes_L")
     assert np.median(z_up.positions()[:, head, 2] - z_up.positions()[:, toes, 2]) > 1.0  # Z up indeed

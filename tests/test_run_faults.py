@@ -72,7 +72,8 @@ def test_sigterm_saves_a_checkpoint_exits_nonzero_and_resumes_exactly(h263_shard
     resumed = write_config(tmp_path / "resumed.yaml", shards, tmp_path / "stopped")
     with caplog.at_level("INFO"):
         main(["fit", "--config", resumed, "--ckpt_path", "last"])
-    assert "Restoring states from the checkpoint path at " + str(tmp_path / "stopped" / "ckpt" / "interrupted.ckpt") in caplog.text
+    assert ("Restoring states from the checkpoint path at " + str(tmp_path / "stopped" / "ckpt" / "interrupted.ckpt")
+            in caplog.text)
     a = torch.load(tmp_path / "full" / "ckpt" / "last.ckpt", weights_only=False)
     b = torch.load(tmp_path / "stopped" / "ckpt" / "last.ckpt", weights_only=False)
     assert a["global_step"] == b["global_step"] == 8
@@ -108,9 +109,8 @@ def test_too_many_bad_samples_in_a_worker_is_one_line(h263_shards, tmp_path, cap
     import shutil
     import tarfile
 
-    from test_shards import _rewrite_member
-
     from omg.data.shards import Manifest
+    from test_shards import _rewrite_member
 
     shards = tmp_path / "s"
     shutil.copytree(h263_shards / "train", shards)

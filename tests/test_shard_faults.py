@@ -166,7 +166,8 @@ def test_tar_cut_inside_a_member(shards, capsys):
 
     code, out, err = inspect(shards, capsys)
     assert code == 1
-    assert "BAD shard-000004.tar: readable check failed: unreadable after 1 sample (ReadError: unexpected end of data); truncated: " in out
+    assert ("BAD shard-000004.tar: readable check failed: "
+            "unreadable after 1 sample (ReadError: unexpected end of data); truncated: " in out)
     _assert_one_error_line(err, "1 of 8 shards failed verification", "shard-000004.tar", "readable")
 
 
@@ -178,7 +179,8 @@ def test_inspect_reports_a_header_boundary_cut_and_a_missing_shard(shards, capsy
     assert code == 1
     assert "BAD shard-000001.tar: samples check failed: truncated: 2 of 5 samples" in out
     assert "BAD shard-000006.tar: file check failed: no such file" in out
-    assert "6 of 8 shards verified against the manifest, 2 failed (shard-000001.tar: samples, shard-000006.tar: file)" in out
+    assert ("6 of 8 shards verified against the manifest, 2 failed "
+            "(shard-000001.tar: samples, shard-000006.tar: file)" in out)
     _assert_one_error_line(err, "2 of 8 shards failed verification", "shard-000001.tar")
 
 

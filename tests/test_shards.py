@@ -20,7 +20,8 @@ def test_written_shards_hold_every_clip_with_manifest_stats(tmp_path):
     out = write_toy_shards(tmp_path / "s", num_clips=23, max_clips=5)
     m = Manifest.load(out)
     assert m["schema_version"] == SCHEMA_VERSION
-    assert (m["num_clips"], m["num_shards"], m["representation"], m["skeleton"], m["fps"]) == (23, 5, "test-positions", "smpl22", 20.0)
+    assert ((m["num_clips"], m["num_shards"], m["representation"], m["skeleton"], m["fps"])
+            == (23, 5, "test-positions", "smpl22", 20.0))
     clips = [toy_clip(i) for i in range(23)]
     frames = np.concatenate([c.positions.reshape(len(c), -1) for c in clips]).astype(np.float64)
     assert m["num_frames"] == len(frames)
@@ -29,7 +30,8 @@ def test_written_shards_hold_every_clip_with_manifest_stats(tmp_path):
     samples = [s for p in m.shard_paths for s in iter_tar(p)]
     assert [s["__key__"] for s in samples] == [f"clip_{i:04d}" for i in range(23)]  # dots removed
     first = samples[0]
-    np.testing.assert_array_equal(np.load(io.BytesIO(first["motion.npy"])), clips[0].positions.reshape(len(clips[0]), -1))
+    np.testing.assert_array_equal(np.load(io.BytesIO(first["motion.npy"])),
+                                  clips[0].positions.reshape(len(clips[0]), -1))
     meta = json.loads(first["meta.json"])
     assert meta["id"] == "clip.0000" and meta["skeleton"] == "smpl22" and meta["category"] == "human"
     assert json.loads(first["texts.json"]) == ["caption 0"]
@@ -37,7 +39,8 @@ def test_written_shards_hold_every_clip_with_manifest_stats(tmp_path):
     # per shard the manifest records what a reader checks: sample count, byte size, sha256
     for entry, path in zip(m["shards"], m.shard_paths):
         data = path.read_bytes()
-        assert m.expected(path) == {"samples": entry["clips"], "size": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+        assert m.expected(path) == {"samples": entry["clips"], "size": len(data),
+                                    "sha256": hashlib.sha256(data).hexdigest()}
         assert len(list(iter_tar(path, **m.expected(path), whole=True))) == entry["clips"]
     assert [e["clips"] for e in m["shards"]] == [5, 5, 5, 5, 3]
 
@@ -84,12 +87,14 @@ def test_interrupted_build_resumes_without_redoing_finished_shards(tmp_path):
     assert consumed[0] == 0 and len(consumed) == 30  # the source is replayed, but finished clips are not re-encoded
     for name in (f"shard-{i:06d}.tar" for i in range(8)):
         assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
-    assert json.loads((out / MANIFEST).read_text())["mean"] == json.loads((tmp_path / "whole" / MANIFEST).read_text())["mean"]
+    assert (json.loads((out / MANIFEST).read_text())["mean"]
+            == json.loads((tmp_path / "whole" / MANIFEST).read_text())["mean"])
 
 
 def test_resume_with_other_settings_is_refused(tmp_path):
     with pytest.raises(Interrupt):
-        ShardWriter(tmp_path, JointPositions(SMPL22), 20.0, max_clips=2, log=lambda m: None).write(_source(10, crash_at=5))
+        ShardWriter(tmp_path, JointPositions(SMPL22), 20.0, max_clips=2,
+                    log=lambda m: None).write(_source(10, crash_at=5))
     with pytest.raises(Exception, match="unfinished build"):
         ShardWriter(tmp_path, JointPositions(SMPL22), 30.0, max_clips=2, log=lambda m: None).write(_source(10))
 
@@ -117,7 +122,7 @@ def test_validate_names_bad_samples_by_shard_and_key(toy_shards):
 
 
 def test_inspect_command_exit_codes(toy_shards, capsys):
-    from omg.data.commands import shards_main
+    from omg.tools.shards import main as shards_main
 
     shards_main(["inspect", str(toy_shards)])
     out = capsys.readouterr().out

@@ -47,7 +47,8 @@ def test_registered_and_built_by_name():
     assert build_text_encoder(encoder) is encoder
     with pytest.raises(UsageError, match="cannot apply"):
         build_text_encoder(encoder, dim=8)
-    with pytest.raises(UsageError, match="unknown text encoder .bert.; known text encoders: clip-vit-l-14, hash, minilm"):
+    with pytest.raises(UsageError,
+                       match="unknown text encoder .bert.; known text encoders: clip-vit-l-14, hash, minilm"):
         build_text_encoder("bert")
 
 
@@ -217,7 +218,8 @@ def test_clip_checkpoint_layouts_and_bad_files(tmp_path):
     source = tower()
     # a CustomTextCLIP-style checkpoint: the tower under "text.", other weights beside it
     custom = {f"text.{k}": v for k, v in source.state_dict().items()}
-    save_file({**custom, "visual.proj": torch.zeros(2), "logit_scale": torch.ones([])}, str(tmp_path / "custom.safetensors"))
+    save_file({**custom, "visual.proj": torch.zeros(2), "logit_scale": torch.ones([])},
+              str(tmp_path / "custom.safetensors"))
     loaded = tower()
     _load_tower(loaded, str(tmp_path / "custom.safetensors"))
     assert all(torch.equal(v, source.state_dict()[k]) for k, v in loaded.state_dict().items())

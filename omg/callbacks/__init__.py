@@ -1,6 +1,6 @@
-"""Lightning callbacks, registered in ``omg.registry.CALLBACKS``: generation metrics
-(``EvalCallback``) and previews (``RenderCallback``). Both sample through the model's
-``sample_for_eval(texts, lengths, seed, steps=, guidance=, use_ema=)`` and write into the run's
+"""Lightning callbacks, named in configs by ``class_path`` like every Lightning object:
+generation metrics (``EvalCallback``) and previews (``RenderCallback``). Both sample through the
+model's ``sample(texts, lengths, steps=, guidance=, seed=, use_ema=)`` and write into the run's
 versioned directory (``run_dir``). In a config::
 
     trainer:

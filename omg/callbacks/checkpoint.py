@@ -6,7 +6,7 @@ whole file to ``tempfile.mkstemp()`` (the system temp folder, often another file
 moves it onto the checkpoint's name: across filesystems that move is a copy, so a kill during it
 leaves a truncated ``last.ckpt``, and a kill before it leaves a nameless ``/tmp/tmpXXXXXXXX`` that
 nothing ever cleans. ``AtomicCheckpointIO`` writes ``.<name>.<pid>.tmp.ckpt`` in the checkpoint's
-own folder (``omg.data.shards.atomic_path``: fsync, then an atomic rename), so ``last.ckpt`` is
+own folder (``omg.files.atomic_path``: fsync, then an atomic rename), so ``last.ckpt`` is
 always the old file or the whole new one, and a leftover temporary file has a name that says
 whose it is. ``remove_stale_temp_files`` deletes those (and those of omg's other atomic writes:
 shards, manifests, eval.json) whose writer process is gone. ``omg fit|validate|test|predict``
@@ -27,9 +27,9 @@ from lightning.fabric.utilities.cloud_io import get_filesystem
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from omg.data.shards import atomic_path
+from omg.files import atomic_path
 
-# omg.data.shards.atomic_path's temporary name for <stem><suffix>: .<stem>.<pid>.tmp<suffix>
+# omg.files.atomic_path's temporary name for <stem><suffix>: .<stem>.<pid>.tmp<suffix>
 TEMP_NAME = re.compile(r"^\.(?P<stem>.+)\.(?P<pid>\d+)\.tmp(?P<suffix>\.[^.]*)?$")
 
 

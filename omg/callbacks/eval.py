@@ -13,9 +13,19 @@ from torch import Tensor, nn
 
 from omg.callbacks.run import log_scalars, run_dir, sampling
 from omg.errors import UsageError
-from omg.evaluation import (EvalSettings, PromptSet, build_evaluator, check_evaluator_spec, evaluate, markdown_table,
-                            parse_metrics, prompt_set, protocol, write_report)
-from omg.registry import CALLBACKS
+from omg.evaluation import (
+    EvalSettings,
+    PromptSet,
+    build_evaluator,
+    check_evaluator_spec,
+    evaluate,
+    markdown_table,
+    parse_metrics,
+    prompt_set,
+    protocol,
+    write_report,
+)
+from omg.registry import SAMPLERS
 
 
 def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
@@ -26,13 +36,17 @@ def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
     return data.val_clips().samples, data
 
 
-def check_sampler(module: L.LightningModule, key: str) -> None:
-    if not callable(getattr(module, "sample_for_eval", None)):
-        raise UsageError(f"{key} needs a generative model with sample_for_eval(texts, lengths, seed); "
-                         f"{type(module).__name__} has none")
+def check_generative(module: L.LightningModule, key: str) -> None:
+    if not callable(getattr(module, "sample", None)):
+        raise UsageError(f"{key} needs a generative model with sample(texts, lengths, *, steps, guidance, seed, "
+                         f"use_ema); {type(module).__name__} has none")
 
 
-@CALLBACKS.register("eval")
+def conditioning(module: L.LightningModule, texts: list[str]) -> list[str] | None:
+    """What ``sample`` gets as texts: the captions for a text-conditional model, None otherwise."""
+    return list(texts) if getattr(module, "text_conditional", False) else None
+
+
 class EvalCallback(Callback):
     """Generation metrics from a frozen text–motion evaluator.
 
@@ -52,7 +66,8 @@ class EvalCallback(Callback):
         replications: passes of the test protocol (T2M/MDM: 20).
         mm_prompts, mm_repeats: MultiModality generates each of the first mm_prompts prompts
             mm_repeats times (T2M: 100 × 30).
-        steps, guidance, use_ema: sampling settings passed to the model's ``sample_for_eval``
+        steps, guidance, use_ema, sampler: sampling settings passed to the model's ``sample``
+            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler)
             (guidance None: the model's own guidance_scale).
         batch_size: prompts generated at once on each rank.
         seed: seeds the prompt sets and the sampling; a run is deterministic for a seed.
@@ -71,6 +86,7 @@ class EvalCallback(Callback):
         steps: int = 200,
         guidance: float | None = None,
         use_ema: bool = True,
+        sampler: str = "ddim",
         batch_size: int = 64,
         seed: int = 0,
         reference: bool = True,
@@ -86,7 +102,8 @@ class EvalCallback(Callback):
         self.evaluator_spec = evaluator
         self.metrics = parse_metrics(metrics, key=f"{key}.metrics")
         self.num_prompts, self.every_n_steps, self.replications = num_prompts, every_n_steps, replications
-        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema}
+        SAMPLERS.get(sampler)  # an unknown name fails here, not after training
+        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
         self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
                                      reference=reference)
         self.seed = seed
@@ -96,7 +113,7 @@ class EvalCallback(Callback):
         self._last_step = -1
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        check_sampler(pl_module, "EvalCallback")
+        check_generative(pl_module, "EvalCallback")
         if self.evaluator is None:
             self.evaluator = build_evaluator(self.evaluator_spec, key="EvalCallback.evaluator")
         self._samples, data = eval_samples(trainer, "EvalCallback")
@@ -123,7 +140,7 @@ class EvalCallback(Callback):
             self._fixed = prompts
 
         def generate(texts: list[str], lengths: Tensor, seed: int) -> Tensor:
-            return module.sample_for_eval(texts, lengths, seed, **self.sampling)
+            return module.sample(conditioning(module, texts), lengths, seed=seed, **self.sampling)
 
         with sampling(module), trainer.precision_plugin.forward_context():
             return evaluate(generate, self.evaluator, prompts, self.metrics, seed=self.seed, replication=replication,

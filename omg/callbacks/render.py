@@ -11,14 +11,13 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 
-from omg.callbacks.eval import check_sampler
+from omg.callbacks.eval import check_generative, conditioning
 from omg.callbacks.run import run_dir, sampling
 from omg.errors import UsageError
 from omg.io.render import render_gif
-from omg.registry import CALLBACKS
+from omg.registry import SAMPLERS
 
 
-@CALLBACKS.register("render")
 class RenderCallback(Callback):
     """Every ``every_n_steps`` steps, one GIF per prompt with ``num_samples`` samples side by side
     (``renders/step_<N>/prompt_<i>.gif`` in the run directory), also logged as wandb videos or
@@ -32,7 +31,8 @@ class RenderCallback(Callback):
         num_samples: samples per prompt, side by side.
         seconds: length of each sample.
         every_n_steps: render every this many optimizer steps; also once at the end of fit.
-        steps, guidance, use_ema: sampling settings passed to ``sample_for_eval``.
+        steps, guidance, use_ema, sampler: sampling settings passed to the model's ``sample``
+            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler).
         seed: the sampling seed.
         max_frames, dpi: GIF size (frames are subsampled to at most max_frames).
     """
@@ -47,23 +47,25 @@ class RenderCallback(Callback):
         steps: int = 50,
         guidance: float | None = None,
         use_ema: bool = True,
+        sampler: str = "ddim",
         seed: int = 0,
         max_frames: int = 60,
         dpi: int = 60,
     ):
         if every_n_steps < 1 or num_samples < 1 or num_prompts < 1 or seconds <= 0 or steps < 1:
-            raise UsageError("RenderCallback.every_n_steps, num_samples, num_prompts, steps must be >= 1 and seconds > 0; "
-                             f"got {every_n_steps}, {num_samples}, {num_prompts}, {steps}, {seconds}")
+            raise UsageError("RenderCallback.every_n_steps, num_samples, num_prompts, steps must be >= 1 "
+                             f"and seconds > 0; got {every_n_steps}, {num_samples}, {num_prompts}, {steps}, {seconds}")
         if prompts is not None and (not prompts or not all(isinstance(p, str) and p.strip() for p in prompts)):
             raise UsageError(f"RenderCallback.prompts must be a non-empty list of non-empty captions, got {prompts!r}")
         self.prompts, self.num_prompts, self.num_samples, self.seconds = prompts, num_prompts, num_samples, seconds
         self.every_n_steps, self.seed = every_n_steps, seed
-        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema}
+        SAMPLERS.get(sampler)  # an unknown name fails here, not after training
+        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
         self.max_frames, self.dpi = max_frames, dpi
         self._last_step = -1
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        check_sampler(pl_module, "RenderCallback")
+        check_generative(pl_module, "RenderCallback")
         self.spec = trainer.datamodule.spec if trainer.datamodule is not None else pl_module.spec
         if not getattr(pl_module, "text_conditional", False):
             self._texts = [""] * self.num_prompts
@@ -91,10 +93,11 @@ class RenderCallback(Callback):
         if step == self._last_step or not trainer.is_global_zero:
             return []
         self._last_step = step
-        frames = max(2, round(self.seconds * self.spec["fps"]))
+        frames = max(2, round(self.seconds * self.spec.fps))
         texts = [t for t in self._texts for _ in range(self.num_samples)]
         with sampling(pl_module):
-            features = pl_module.sample_for_eval(texts, torch.full((len(texts),), frames), self.seed, **self.sampling)
+            features = pl_module.sample(conditioning(pl_module, texts), torch.full((len(texts),), frames),
+                                        seed=self.seed, **self.sampling)
             joints = pl_module.representation.decode(features.float()).cpu().numpy()  # (P·S, T, J, 3)
         directory.mkdir(parents=True, exist_ok=True)
         paths = []
@@ -102,10 +105,10 @@ class RenderCallback(Callback):
             panels = joints[i * self.num_samples:(i + 1) * self.num_samples]
             titles = [f"{text} ({k + 1})" if text else f"sample {i * self.num_samples + k + 1}"
                       for k in range(self.num_samples)]
-            paths.append(render_gif(directory / f"prompt_{i:02d}.gif", list(panels), self.spec["skeleton"],
-                                    self.spec["fps"], titles=titles, max_frames=self.max_frames, dpi=self.dpi))
+            paths.append(render_gif(directory / f"prompt_{i:02d}.gif", list(panels), self.spec.skeleton,
+                                    self.spec.fps, titles=titles, max_frames=self.max_frames, dpi=self.dpi))
         for logger in trainer.loggers:
-            log_gifs(logger, paths, self._texts, step, self.spec["fps"])
+            log_gifs(logger, paths, self._texts, step, self.spec.fps)
         return paths
 
 

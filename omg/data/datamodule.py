@@ -20,7 +20,6 @@ epoch up to that point and goes on with the same batches it would have seen.
 from __future__ import annotations
 
 import logging
-import warnings
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -31,11 +30,9 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
 from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, pick_text
 from omg.errors import UsageError
+from omg.motion import DataSpec
 
 log = logging.getLogger(__name__)
-# Lightning warns that an IterableDataset's length may be wrong with several workers; ours
-# splits every epoch exactly among the workers, so the length is exact.
-warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined.*")
 
 
 class TooManyBadSamples(RuntimeError):
@@ -65,15 +62,14 @@ def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest, dict[str
             urls = list(braceexpand.braceexpand(s))
             first = urls[0]
             if "://" not in first and not first.startswith("pipe:") and not Path(first).exists():
-                raise UsageError(f"shards {s!r}: no such directory or file; build them with `omg shards build` or `omg shards synth`")
+                raise UsageError(f"shards {s!r}: no such directory or file; "
+                                 "build them with `omg shards build` or `omg shards synth`")
             m = Manifest.load(Path(first.split("://")[-1]).parent)
         checks.update({url: m.expected(url) for url in urls})
         manifests.append(m)
     first = manifests[0]
     for m in manifests[1:]:
-        for key in ("representation", "skeleton", "fps", "feature_dim"):
-            if m[key] != first[key]:
-                raise UsageError(f"shard sets disagree on {key}: {first.dir} has {first[key]}, {m.dir} has {m[key]}")
+        first.spec().check_compatible(m.spec(), f"shard set {first.dir}", f"shard set {m.dir}")
     return sorted(checks), first, checks
 
 
@@ -95,7 +91,7 @@ def rank_shards(urls: list[str], rank: int, world_size: int) -> list[str]:
     if len(urls) < world_size:
         raise UsageError(
             f"{len(urls)} shards cannot be split disjointly across {world_size} ranks; "
-            "rebuild with a smaller shard size (--max-clips) so there are at least as many shards as ranks"
+            "rebuild with a smaller shard size (--max_clips) so there are at least as many shards as ranks"
         )
     return urls[rank::world_size]
 
@@ -372,7 +368,7 @@ class MotionDataModule(L.LightningDataModule):
         return self.manifest["fps"]
 
     @property
-    def spec(self) -> dict:
+    def spec(self) -> DataSpec:
         return self.manifest.spec()
 
     @property

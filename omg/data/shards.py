@@ -12,8 +12,9 @@ is one clip stored under a key without dots:
 Shards are written under a temporary name and renamed when complete, so a shard file that
 exists is whole. The manifest records each shard's sample count, byte size and sha256;
 ``iter_tar`` checks a shard against them as it reads (``ShardError`` names the shard and the
-failed check) and ``check_shards`` (``omg shards inspect``) checks a whole set. ``build-state.json`` records the finished shards with the source position
-and feature statistics they cover; an interrupted build resumes after the last of them.
+failed check) and ``check_shards`` (``omg shards inspect``) checks a whole set.
+``build-state.json`` records the finished shards with the source position and feature
+statistics they cover; an interrupted build resumes after the last of them.
 """
 
 from __future__ import annotations
@@ -21,10 +22,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
 import tarfile
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -32,7 +31,8 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from omg.errors import UsageError
-from omg.motion import Clip, Representation
+from omg.files import atomic_write, npy_bytes, write_json
+from omg.motion import Clip, DataSpec, Representation
 
 SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
@@ -41,42 +41,9 @@ SHARD_PATTERN = "shard-{:06d}.tar"
 META_KEYS = ("id", "representation", "skeleton", "fps", "source", "labels", "category")
 
 
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """A temporary path beside ``path`` to write to; renamed over ``path`` when the block ends
-    without error, so readers see the old file or the whole new one, never a part.
-
-    The temporary name keeps the suffix (writers such as Pillow choose the format by it).
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
-        yield tmp
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
-def write_json(path: Path, obj) -> None:
-    atomic_write(path, (json.dumps(obj, indent=1) + "\n").encode())
-
-
 def sample_key(clip_id: str) -> str:
     """WebDataset splits keys at the first dot, so ids become dot-free keys."""
     return re.sub(r"[^A-Za-z0-9_\-]", "_", clip_id)
-
-
-def npy_bytes(array: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, array, allow_pickle=False)
-    return buf.getvalue()
 
 
 def encode_sample(clip: Clip, representation: Representation) -> tuple[str, dict[str, bytes], np.ndarray]:
@@ -410,7 +377,8 @@ def _manifest_problem(data) -> str | None:
             return f"shard {name}: 'sha256' must be 64 lowercase hex digits, got {sha!r}"
     if "num_shards" in data and data["num_shards"] != len(shards):
         return f"'num_shards' is {data['num_shards']} but {len(shards)} shards are listed"
-    if "num_clips" in data and all("clips" in s for s in shards) and data["num_clips"] != sum(s["clips"] for s in shards):
+    if ("num_clips" in data and all("clips" in s for s in shards)
+            and data["num_clips"] != sum(s["clips"] for s in shards)):
         return f"'num_clips' is {data['num_clips']} but the shards hold {sum(s['clips'] for s in shards)} clips"
     return None
 
@@ -433,8 +401,10 @@ class Manifest:
     def load(cls, shard_dir: str | Path) -> Manifest:
         path = Path(shard_dir) / MANIFEST
         if not path.exists():
-            hint = " (an unfinished build: run the same build command again)" if (path.parent / BUILD_STATE).exists() else ""
-            raise UsageError(f"no {MANIFEST} in {path.parent}{hint}; build shards with `omg shards build` or `omg shards synth`")
+            hint = (" (an unfinished build: run the same build command again)"
+                    if (path.parent / BUILD_STATE).exists() else "")
+            raise UsageError(f"no {MANIFEST} in {path.parent}{hint}; "
+                             "build shards with `omg shards build` or `omg shards synth`")
         try:
             data = json.loads(path.read_bytes())
         except OSError as e:
@@ -442,7 +412,8 @@ class Manifest:
         except UnicodeDecodeError:
             raise UsageError(f"{path}: not a text file (invalid UTF-8); rebuild the shards") from None
         except json.JSONDecodeError as e:
-            raise UsageError(f"{path}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno}); rebuild the shards") from None
+            raise UsageError(f"{path}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno}); "
+                             "rebuild the shards") from None
         if problem := _manifest_problem(data):
             hint = "" if "schema version" in problem else "; rebuild the shards"
             raise UsageError(f"{path}: invalid manifest: {problem}{hint}")
@@ -480,9 +451,9 @@ class Manifest:
     def __getitem__(self, key: str):
         return self.data[key]
 
-    def spec(self) -> dict:
+    def spec(self) -> DataSpec:
         """What a model needs to know about its data, stored in its checkpoint."""
-        return {k: self.data[k] for k in ("representation", "skeleton", "fps", "feature_dim", "mean", "std")}
+        return DataSpec.coerce(self.data, f"{self.dir / MANIFEST}")
 
     def summary(self) -> str:
         d = self.data
@@ -607,9 +578,11 @@ def _byte_errors(url: str, reader: _CheckedReader, sha256: str | None, size: int
     if size is not None and reader.count != size:
         errors.append(_size_error(url, reader.count, size))
     if not reader.compressed and (reader.count < len(_END_OF_ARCHIVE) or reader.tail != _END_OF_ARCHIVE):
-        errors.append(ShardError(url, "end-of-archive", f"no end-of-archive blocks: the tar is cut after {reader.count} bytes"))
+        errors.append(ShardError(url, "end-of-archive",
+                                 f"no end-of-archive blocks: the tar is cut after {reader.count} bytes"))
     elif early_end:
-        errors.append(ShardError(url, "end-of-archive", "data after an early end of the archive (a damaged member header?)"))
+        errors.append(ShardError(url, "end-of-archive",
+                                 "data after an early end of the archive (a damaged member header?)"))
     if sha256 is not None and reader.hash is not None and (digest := reader.hash.hexdigest()) != sha256:
         errors.append(ShardError(url, "sha256", f"sha256 {digest[:12]}… of its {reader.count} bytes does not match "
                                                 f"the manifest's {sha256[:12]}… (garbled or replaced)"))
@@ -662,9 +635,11 @@ def _read_shard(url: str, sha256: str | None = None, samples: int | None = None,
             except StopIteration:
                 break
             except Exception as e:  # noqa: BLE001 - any failure to parse the tar names the shard
-                reason = f"unreadable after {count} sample{'' if count == 1 else 's'} ({type(e).__name__}: {_first_arg(e)})"
+                reason = (f"unreadable after {count} sample{'' if count == 1 else 's'} "
+                          f"({type(e).__name__}: {_first_arg(e)})")
                 source.drain()
-                if notes := [err.reason for err in _byte_errors(url, source, sha256, size) if err.check != "end-of-archive"]:
+                if notes := [err.reason for err in _byte_errors(url, source, sha256, size)
+                             if err.check != "end-of-archive"]:
                     reason += "; " + "; ".join(notes)
                 raise ShardError(url, "readable", reason) from None
             count += 1

@@ -18,15 +18,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-
-
-def length_mask(lengths, frames: int | None = None, device: torch.device | str | None = None) -> torch.Tensor:
-    """(B,) frame counts -> (B, frames) bool, True on each row's first lengths[b] frames;
-    ``frames`` defaults to the longest."""
-    lengths = torch.as_tensor(lengths, device=device)
-    frames = int(lengths.max()) if frames is None else frames
-    return torch.arange(frames, device=lengths.device)[None, :] < lengths[:, None]
-
+from omg.motion import length_mask
 
 CLIP_MODES = ("windows", "whole")
 
@@ -39,7 +31,8 @@ class WindowSampler:
 
     def __post_init__(self):
         if not 1 <= self.min_len <= self.max_len:
-            raise UsageError(f"windows need 1 <= min_len <= max_len, got min_len={self.min_len}, max_len={self.max_len}")
+            raise UsageError("windows need 1 <= min_len <= max_len, "
+                             f"got min_len={self.min_len}, max_len={self.max_len}")
         if self.mode not in CLIP_MODES:
             raise UsageError(f"data.clips must be one of {', '.join(CLIP_MODES)}, got {self.mode!r}")
 

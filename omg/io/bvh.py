@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omg.data.shards import atomic_write
 from omg.errors import UsageError
+from omg.files import atomic_write
 from omg.io.rig import RigMotion
 from omg.rotations import euler_to_quat, quat_to_euler
 from omg.skeleton import Skeleton, get_skeleton

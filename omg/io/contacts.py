@@ -12,10 +12,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from omg.retarget import foot_contacts
+from omg.kinematics import ground_contacts
 from omg.skeleton import Skeleton, get_skeleton
 
-CLEANUP_SPEED = 1.0  # m/s: retargeting's contact rule, but a low foot this slow counts as planted (generated feet slide fast)
+# m/s: retargeting's ground-contact rule (omg.kinematics.ground_contacts), but a low foot this slow counts as
+# planted (generated feet slide fast)
+CLEANUP_SPEED = 1.0
 
 
 def _segments(flags: torch.Tensor) -> list[tuple[int, int]]:
@@ -70,7 +72,7 @@ def clean_foot_contacts(
         return pos.numpy().astype(np.float32)
     feet = list(skel.feet)
     height = pos[:, feet, 1]  # (T, F)
-    contact = torch.from_numpy(foot_contacts(pos, skel, fps, max_speed))  # (T, F)
+    contact = ground_contacts(pos, skel.feet, fps, max_speed=max_speed)  # (T, F)
     for group in _foot_groups(skel):
         cols = [feet.index(j) for j in group]
         lowest = group[int(height[:, cols].mean(0).argmin())]

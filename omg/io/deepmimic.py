@@ -91,13 +91,16 @@ def read_character(path: str | Path) -> tuple[list[str], list[int], np.ndarray, 
             attach = [float(joint.get(f"Attach{a}", 0.0)) for a in "XYZ"]
             theta = [float(joint.get(f"AttachTheta{a}", 0.0)) for a in "XYZ"]
         except (KeyError, TypeError, ValueError) as e:
-            raise DeepMimicError(f"{path}: joint {j} lacks or garbles {e} (needs Name, Type, Parent, AttachX/Y/Z)") from None
+            raise DeepMimicError(f"{path}: joint {j} lacks or garbles {e} "
+                                 "(needs Name, Type, Parent, AttachX/Y/Z)") from None
         if kind not in DOFS:
             raise DeepMimicError(f"{path}: joint {name!r} has type {kind!r}; supported: {', '.join(DOFS)}")
         if (j == 0) != (parent == -1) or parent >= j:
-            raise DeepMimicError(f"{path}: joint {name!r} has parent {parent}; joints must follow their parents, root first")
+            raise DeepMimicError(f"{path}: joint {name!r} has parent {parent}; "
+                                 "joints must follow their parents, root first")
         if any(abs(t) > 1e-9 for t in theta):
-            raise DeepMimicError(f"{path}: joint {name!r} has a rotated attachment (AttachTheta), which is not supported")
+            raise DeepMimicError(f"{path}: joint {name!r} has a rotated attachment (AttachTheta), "
+                                 "which is not supported")
         names.append(name)
         parents.append(parent)
         offsets.append([0.0, 0.0, 0.0] if j == 0 else attach)

@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.animation import PillowWriter
 from matplotlib.figure import Figure
 
-from omg.data.shards import atomic_path
+from omg.files import atomic_path
 from omg.skeleton import Skeleton, get_skeleton
 
 PANEL_INCHES = (3.0, 3.3)  # width, height of one motion's panel

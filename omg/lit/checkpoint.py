@@ -44,9 +44,8 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from omg.cli import COMMANDS, ToolParser
-from omg.data.shards import atomic_path
 from omg.errors import UsageError
+from omg.files import atomic_path
 from omg.lit.pretrain import PretrainModule
 
 PathLike = str | os.PathLike
@@ -129,11 +128,13 @@ def _check_zip(path: Path) -> None:
                     raise CorruptCheckpoint(f"{path} is corrupt: the bytes of its entry {info.filename} do not match "
                                             "their checksum (zeroed or overwritten); use another checkpoint")
     except zipfile.BadZipFile as e:
-        raise CorruptCheckpoint(f"{path} is corrupt: {e} (a truncated or damaged file); use another checkpoint") from None
+        raise CorruptCheckpoint(f"{path} is corrupt: {e} (a truncated or damaged file); "
+                                "use another checkpoint") from None
 
 
 def _refusal(path: Path, error: Exception) -> str:
-    found = re.search(r"GLOBAL ([\w.]+)", str(error)) or re.search(r"(?:function|object|got) (<[^>]+>|[\w.]+)", str(error))
+    found = (re.search(r"GLOBAL ([\w.]+)", str(error))
+             or re.search(r"(?:function|object|got) (<[^>]+>|[\w.]+)", str(error)))
     what = f" ({found.group(1)})" if found else ""
     return (f"{path} holds pickled Python objects{what} that a checkpoint does not contain, and unpickling them could "
             "run code: refused (checkpoints are read with torch.load(weights_only=True)); load only checkpoints "
@@ -509,14 +510,3 @@ def resume_candidate(last: Iterable[PathLike], directories: Iterable[PathLike],
         return candidate, header
     raise UsageError(f"--ckpt_path last: {problem}; and no other checkpoint in {', '.join(map(str, directories))} "
                      "reads; pass a checkpoint with --ckpt_path PATH, or leave it out to start afresh")
-
-
-def main(argv: list[str]) -> None:
-    parser = ToolParser(prog="omg convert-ckpt", description=COMMANDS["convert-ckpt"][1])
-    parser.add_argument("src", help="a DeepSpeed checkpoint directory, a Lightning .ckpt or a converted .safetensors")
-    parser.add_argument("dst", help="the .safetensors file to write")
-    parser.add_argument("--ema", action="store_true", help="write the EMA weights instead of the trained ones")
-    args = parser.parse_args(argv)
-    s = convert(args.src, args.dst, ema=args.ema)
-    print(f"wrote {s['path']}: {s['parameters'] / 1e6:.2f}M parameters, {'EMA' if s['ema_weights'] else 'trained'} "
-          f"fp32 weights, {s['bytes'] / 2**20:.1f} MiB ({s['module_class']})")

@@ -8,21 +8,18 @@ frozen model D_u and the ControlNet D_c: x̂0 = (1 − s)·D_u + s·D_c.
 
 from __future__ import annotations
 
-import warnings
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from omg.diffusion import Denoiser
 from omg.errors import UsageError
-from omg.data.windows import length_mask
-from omg.lit.pretrain import MotionDiffusionModule, PretrainModule, check_spec
+from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
 from omg.models.controlnet import MoCConfig, MotionControlNet
+from omg.motion import DataSpec
 from omg.text import TextFeatures, build_text_encoder
-
-MATCHING = ("representation", "skeleton", "feature_dim")
-# the frozen DiT and the text encoder stay in eval mode on purpose
-warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode at the start of training.*")
 
 
 class ControlNetModule(MotionDiffusionModule):
@@ -38,12 +35,16 @@ class ControlNetModule(MotionDiffusionModule):
         eot_drop: probability of replacing the end-of-text token with the empty text's (OMG: 0.5).
         guidance_scale: s in (1 − s)·D_u + s·D_c when sampling (OMG: 4.5).
         lr, weight_decay, warmup_steps: AdamW and schedule (OMG: 3e-5, 1e-5, 1K warm-up, cosine).
+        vel_weight, foot_weight, ema_decay: as for ``PretrainModule``.
+        activation_checkpointing: recompute the activations of the frozen blocks, their trainable
+            copies and the MoC blocks in backward; applied by ``configure_model``.
         base: the pretrained model's flavor, DiT overrides and spec; filled from ``pretrained``
             and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
     """
 
     text_conditional = True
+    frozen_prefixes = ("text_encoder.",)  # rebuilt from its own weights, never saved with ours
     clip_sampling = "whole"  # a caption describes its whole clip (HumanML3D: up to 196 frames)
 
     def __init__(
@@ -61,8 +62,9 @@ class ControlNetModule(MotionDiffusionModule):
         vel_weight: float = 30.0,
         foot_weight: float = 30.0,
         ema_decay: float = 0.9999,
+        activation_checkpointing: bool = False,
         base: dict[str, Any] | None = None,
-        spec: dict | None = None,
+        spec: DataSpec | dict | None = None,
     ):
         pretrained_weights = None
         if base is None:
@@ -71,41 +73,34 @@ class ControlNetModule(MotionDiffusionModule):
             base, pretrained_weights = _read_pretrained(pretrained)
         if not 0.0 <= eot_drop <= 1.0:
             raise UsageError(f"model.eot_drop must be in [0, 1], got {eot_drop}")
-        super().__init__(base["flavor"], base["dit"], lr, weight_decay, warmup_steps, "uniform", base["spec"])
+        super().__init__(base["flavor"], base["dit"], base["spec"], lr=lr, weight_decay=weight_decay, betas=betas,
+                         warmup_steps=warmup_steps, vel_weight=vel_weight, foot_weight=foot_weight,
+                         ema_decay=ema_decay, loss_weighting="uniform",
+                         activation_checkpointing=activation_checkpointing)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
+        self.eot_drop, self.guidance_scale = eot_drop, guidance_scale
         if pretrained_weights is not None:
             self.model.load_state_dict(pretrained_weights)
         self.model.requires_grad_(False)
         self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
         self.controlnet = MotionControlNet(self.model, MoCConfig(text_dim=self.text_encoder.dim, **(moc or {})))
-        self.data_spec = check_spec(spec) if spec is not None else None
+        self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:
-            if mismatch := [k for k in MATCHING if self.data_spec[k] != self.spec[k]]:
-                raise UsageError(f"the fine-tuning data and the pretrained model differ in {', '.join(mismatch)}: "
-                                 f"{ {k: self.data_spec[k] for k in mismatch} } vs { {k: self.spec[k] for k in mismatch} }")
-            if (data_fps := self.data_spec["fps"]) != (prior_fps := self.spec["fps"]):
-                # a motion prior learns velocities per frame: fine-tuning it at another rate, or
-                # generating at its rate from clips of another, would change what every frame means
-                raise UsageError(f"the fine-tuning shards are at {data_fps:g} fps but the pretrained model at {prior_fps:g} "
-                                 f"fps: rebuild the shards with `omg shards build ... --fps {prior_fps:g}`, or pretrain "
-                                 f"on shards at {data_fps:g} fps")
-            self.register_buffer("data_mean", torch.tensor(self.data_spec["mean"]), persistent=False)
-            self.register_buffer("data_std", torch.tensor(self.data_spec["std"]), persistent=False)
+            # a motion prior learns velocities per frame: fine-tuning it at another rate, or
+            # generating at its rate from clips of another, would change what every frame means
+            self.spec.check_compatible(self.data_spec, "the pretrained model", "the fine-tuning shards",
+                                       hint="rebuild the shards to match the pretrained model (`omg shards build "
+                                            f"... --fps {self.spec.fps:g}`), or pretrain on shards like these")
+            self.register_buffer("data_mean", torch.tensor(self.data_spec.mean), persistent=False)
+            self.register_buffer("data_std", torch.tensor(self.data_spec.std), persistent=False)
 
     def trainable_module(self) -> torch.nn.Module:
         return self.controlnet
 
-    def state_dict(self, *args, **kwargs):
-        # the text encoder is rebuilt from its own weights, never saved with ours
-        state = super().state_dict(*args, **kwargs)
-        return {k: v for k, v in state.items() if not k.startswith("text_encoder.")}
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        missing, unexpected = super().load_state_dict(state_dict, strict=False, assign=assign)
-        missing = [k for k in missing if not k.startswith("text_encoder.")]
-        if strict and (missing or unexpected):
-            raise RuntimeError(f"checkpoint does not fit ControlNetModule: missing {missing[:5]}, unexpected {unexpected[:5]}")
-        return missing, unexpected
+    def checkpointed_blocks(self) -> list[torch.nn.Module]:
+        # gradients reach the controllers through the frozen blocks too, so theirs are recomputed as well
+        c = self.controlnet
+        return [*self.model.blocks, *c.copy_blocks.values(), *c.mocs.values()]
 
     # -- text ----------------------------------------------------------------------------
     def encode_text(self, texts: list[str], drop_eot: Tensor | None = None) -> TextFeatures:
@@ -129,7 +124,7 @@ class ControlNetModule(MotionDiffusionModule):
             x = self.normalize(x * self.data_std.to(x.dtype) + self.data_mean.to(x.dtype)) * mask[..., None]
         drop = None
         if self.training:
-            drop = torch.rand(len(batch["text"]), generator=self.noise_generator(), device=self.device) < self.hparams.eot_drop
+            drop = torch.rand(len(batch["text"]), generator=self.noise_generator(), device=self.device) < self.eot_drop
         return {**batch, "motion": x, "text_features": self.encode_text(batch["text"], drop)}
 
     def denoise(self, x_t: Tensor, t: Tensor, mask: Tensor | None, batch: dict) -> Tensor:
@@ -137,30 +132,15 @@ class ControlNetModule(MotionDiffusionModule):
         return self.controlnet(x_t, t, text.tokens.to(x_t.dtype), text.mask, text.eot, mask)
 
     # -- sampling ------------------------------------------------------------------------
-    @torch.no_grad()
-    def generate(self, texts: list[str], frames: int, steps: int = 200, seed: int = 0,
-                 scale: float | None = None, use_ema: bool = True) -> Tensor:
-        """Guided DDIM samples for ``texts``, un-normalised features (len(texts), frames, D)."""
-        return self.ddim(self._guided(texts, scale, None), len(texts), frames, steps, seed, use_ema)
-
-    @torch.no_grad()
-    def sample_for_eval(self, texts: list[str], lengths: Tensor, seed: int, steps: int = 200,
-                        guidance: float | None = None, use_ema: bool = True) -> Tensor:
-        """The evaluation hook (omg.callbacks.EvalCallback): guided samples, one per text at its own
-        length (masked), (B, max(lengths), D) un-normalised; ``guidance`` defaults to guidance_scale."""
-        mask = length_mask(lengths, device=self.device)
-        return self.ddim(self._guided(texts, guidance, mask), len(texts), mask.shape[1], steps, seed, use_ema, mask)
-
-    def _guided(self, texts: list[str], scale: float | None, mask: Tensor | None):
-        """The ``denoise(dtype)`` factory of ``ddim`` for classifier-free-style guided sampling."""
-        scale = self.hparams.guidance_scale if scale is None else scale
-        text = self.encode_text(texts)
-
-        def denoise(dtype: torch.dtype):
-            tokens = text.tokens.to(dtype)
-            return lambda x, t: self.controlnet.forward_guided(x, t, tokens, text.mask, text.eot, scale, mask)
-
-        return denoise
+    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
+        """(1 − s)·D_u + s·D_c for ``texts`` (s = ``guidance``, default ``guidance_scale``); the
+        frozen prior D_u alone for texts=None. The text is encoded once, not at every step."""
+        if texts is None:
+            return super().denoiser(texts, mask, guidance)
+        scale = self.guidance_scale if guidance is None else guidance
+        text = self.encode_text(list(texts))
+        terms = self.controlnet.text_terms(text.tokens, text.mask, text.eot, fold_biases=True)  # once, not per step
+        return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask)
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:

@@ -9,24 +9,23 @@ R-precision top-1/2/3 in pools of ``r_precision_pool`` and MM-Dist with ``omg.me
 
 from __future__ import annotations
 
-import warnings
+from pathlib import Path
 from typing import Any
 
-import lightning as L
 import torch
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.pretrain import check_spec, warmup_cosine
+from omg.lit.base import OmgModule
+from omg.lit.checkpoint import load_module
+from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
-from omg.models.evaluator import EvaluatorConfig, TextMotionEvaluator, info_nce, load_evaluator, same_pairs
-
-# the frozen text backbone stays in eval mode on purpose
-warnings.filterwarnings("ignore", message=r".*module\(s\) in eval mode at the start of training.*")
+from omg.models.evaluator import EvaluatorConfig, TextMotionEvaluator, same_pairs
+from omg.motion import DataSpec
 
 
-class EvaluatorModule(L.LightningModule):
+class EvaluatorModule(OmgModule):
     """Contrastive text–motion evaluator on any shard set with captions.
 
     Args:
@@ -41,6 +40,7 @@ class EvaluatorModule(L.LightningModule):
     """
 
     clip_sampling = "whole"  # a caption describes its whole clip (omg.data.windows)
+    frozen_prefixes = ("evaluator.text_encoder.",)  # the backbone is rebuilt from its own weights
 
     def __init__(
         self,
@@ -53,30 +53,21 @@ class EvaluatorModule(L.LightningModule):
         betas: tuple[float, float] = (0.9, 0.999),
         warmup_steps: int = 500,
         r_precision_pool: int = 32,
-        spec: dict | None = None,
+        spec: DataSpec | dict | None = None,
     ):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or r_precision_pool < 3:
             raise UsageError("model.lr must be > 0, model.weight_decay and model.warmup_steps >= 0 and "
-                             f"model.r_precision_pool >= 3; got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
+                             "model.r_precision_pool >= 3; "
+                             f"got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
         self.save_hyperparameters()
+        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         config = EvaluatorConfig.from_name(flavor, **(evaluator or {}))
-        self.evaluator = TextMotionEvaluator(check_spec(spec), text_encoder, text_encoder_args, config)
+        self.evaluator = TextMotionEvaluator(DataSpec.coerce(spec), text_encoder, text_encoder_args, config)
+        self.spec = self.evaluator.spec
         self.val_r_precision = RPrecision(pool_size=r_precision_pool, top_k=3)
         self.val_mm_dist = MMDist()
         self._warned_small_val = False
-
-    # the backbone is rebuilt from its own weights, never saved with ours
-    def state_dict(self, *args, **kwargs):
-        state = super().state_dict(*args, **kwargs)
-        return {k: v for k, v in state.items() if not k.startswith("evaluator.text_encoder.")}
-
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        missing, unexpected = super().load_state_dict(state_dict, strict=False, assign=assign)
-        missing = [k for k in missing if not k.startswith("evaluator.text_encoder.")]
-        if strict and (missing or unexpected):
-            raise RuntimeError(f"checkpoint does not fit EvaluatorModule: missing {missing[:5]}, unexpected {unexpected[:5]}")
-        return missing, unexpected
 
     # -- steps ---------------------------------------------------------------------------
     def embed(self, batch: dict) -> tuple[Tensor, Tensor, Tensor] | None:
@@ -134,20 +125,21 @@ class EvaluatorModule(L.LightningModule):
         self.val_mm_dist.reset()
 
     # -- optimisation --------------------------------------------------------------------
-    def configure_optimizers(self):
-        h = self.hparams
+    def optimizer_groups(self) -> list[dict]:
         decay, no_decay = [], []
         for name, p in self.evaluator.named_parameters():
             if p.requires_grad:  # the frozen backbone is left out
                 (decay if p.ndim >= 2 and not name.endswith("cls") else no_decay).append(p)
-        optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": h.weight_decay},
-                                       {"params": no_decay, "weight_decay": 0.0}], lr=h.lr, betas=tuple(h.betas))
-        total = int(self.trainer.estimated_stepping_batches)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(h.warmup_steps, total))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        return [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
 
-    def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
+
+def load_evaluator(path: str | Path, map_location: str | torch.device = "cpu"):
+    """A trained contrastive evaluator (``omg.models.evaluator.TextMotionEvaluator``): an
+    ``EvaluatorModule`` Lightning checkpoint (or the safetensors file ``omg convert-ckpt`` made
+    from one), frozen, in eval mode, on ``map_location``. The text backbone is rebuilt from its
+    own weights (named in the checkpoint's hyper-parameters)."""
+    module = load_module(path, default_class=EvaluatorModule, map_location=map_location, expect=EvaluatorModule)
+    return module.evaluator.to(map_location).eval().requires_grad_(False)
 
 
 __all__ = ["EvaluatorModule", "load_evaluator"]

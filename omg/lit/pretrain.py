@@ -9,109 +9,72 @@ velocities of x̂0 and x0, and L_foot penalises the velocity of feet that are in
 from __future__ import annotations
 
 import logging
-import math
 import time
+from collections.abc import Sequence
 from contextlib import nullcontext
-from typing import Any, Callable
+from typing import Any
 
-import lightning as L
 import torch
 from torch import Tensor
 
-from omg.diffusion import Diffusion
-from omg.data.windows import length_mask
+from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
+from omg.lit.base import OmgModule, checkpoint_each
 from omg.lit.ema import EMA
+from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
-from omg.motion import Representation, get_representation
-from omg.motion.humanml3d263 import FOOT_CONTACT_SPEED
+from omg.motion import DataSpec, get_representation, length_mask
+from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
 
 log = logging.getLogger(__name__)
-SPEC_KEYS = ("representation", "skeleton", "fps", "feature_dim", "mean", "std")
 
 
-def check_spec(spec: dict | None) -> dict:
-    if spec is None:
-        raise UsageError("the model needs its data spec (representation, stats): `omg fit` links it from the data; "
-                         "in Python pass spec=MotionDataModule(...).spec")
-    if missing := [k for k in SPEC_KEYS if k not in spec]:
-        raise UsageError(f"model spec lacks {', '.join(missing)}")
-    return spec
-
-
-def contact_from_positions(positions: Tensor, feet: tuple[int, ...], fps: float) -> Tensor:
-    """(B, T, J, 3) -> (B, T-1, F) 1 where a foot moves slower than HumanML3D's contact speed
-    (0.002 m² per 20-fps frame, ≈ 0.89 m/s), the same speed at any fps."""
-    step = positions[:, 1:, list(feet)] - positions[:, :-1, list(feet)]  # (B, T-1, F, 3)
-    speed = step.norm(dim=-1) * fps
-    return (speed < FOOT_CONTACT_SPEED).float()
-
-
-class GeometricLoss:
-    """Velocity and foot-contact losses on decoded joint positions (shared by stage 1 and 2)."""
-
-    def __init__(self, representation: Representation, fps: float):
-        self.rep, self.fps = representation, fps
-
-    def __call__(self, x0_hat: Tensor, x0: Tensor, mask: Tensor, offsets: Tensor | None) -> tuple[Tensor, Tensor]:
-        """x0_hat, x0: (B, T, D) un-normalised features; mask (B, T). Returns (L_vel, L_foot)."""
-        with torch.autocast(x0.device.type, enabled=False):
-            pos_hat = self.rep.decode(x0_hat.float(), offsets)  # (B, T, J, 3)
-            pos = self.rep.decode(x0.float(), offsets)
-            vel_hat = pos_hat[:, 1:] - pos_hat[:, :-1]  # (B, T-1, J, 3)
-            vel = pos[:, 1:] - pos[:, :-1]
-            pair = (mask[:, 1:] & mask[:, :-1]).float()  # (B, T-1) both frames real
-            frames = pair.sum().clamp(min=1)
-            l_vel = ((vel_hat - vel).pow(2).mean(dim=(-1, -2)) * pair).sum() / frames
-
-            feet = self.rep.skeleton.feet
-            contact = self.rep.foot_contacts(x0.float())  # (B, T, F) or None
-            contact = (contact[:, :-1] > 0.5).float() if contact is not None else contact_from_positions(pos, feet, self.fps)
-            foot_vel = vel_hat[:, :, list(feet)]  # (B, T-1, F, 3)
-            l_foot = ((foot_vel.pow(2).sum(-1) * contact).mean(-1) * pair).sum() / frames
-        return l_vel, l_foot
-
-
-def warmup_cosine(warmup_steps: int, total_steps: int):
-    """LR multiplier: linear warm-up to 1, then cosine decay to 0 at ``total_steps``."""
-
-    def factor(step: int) -> float:
-        if step < warmup_steps:
-            return (step + 1) / warmup_steps
-        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-        return 0.5 * (1.0 + math.cos(math.pi * progress))
-
-    return factor
-
-
-class MotionDiffusionModule(L.LightningModule):
+class MotionDiffusionModule(OmgModule):
     """What the diffusion stages share: the x̂0-predicting MotionDiT, its losses, optimizer and
-    schedule, the weight EMA and sampling. Subclasses save their own hyper-parameters."""
+    schedule, the weight EMA and sampling (``sample``). Subclasses save their own
+    hyper-parameters and say what they train (``trainable_module``) and how they denoise."""
 
-    text_conditional = False  # whether sample_for_eval follows its texts
+    text_conditional = False  # whether ``sample`` follows texts
     clip_sampling = "windows"  # what data.clips=auto cuts from clips (omg.data.windows)
 
-    def __init__(self, flavor: str, dit: dict[str, Any] | None, lr: float, weight_decay: float, warmup_steps: int,
-                 loss_weighting: str, spec: dict | None):
+    def __init__(self, flavor: str, dit: dict[str, Any] | None, spec: DataSpec | dict | None, *, lr: float,
+                 weight_decay: float, betas: tuple[float, float], warmup_steps: int, vel_weight: float,
+                 foot_weight: float, ema_decay: float, loss_weighting: str, activation_checkpointing: bool):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
-            raise UsageError(f"model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; got {lr}, {weight_decay}, {warmup_steps}")
-        self.spec = check_spec(spec)
+            raise UsageError("model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; "
+                             f"got {lr}, {weight_decay}, {warmup_steps}")
+        self.spec = DataSpec.coerce(spec)
         fields = set(DiTConfig.__dataclass_fields__) - {"name", "input_dim"}
         if unknown := set(dit or {}) - fields:
-            raise UsageError(f"unknown model.dit field(s) {sorted(unknown)}; DiTConfig fields: {', '.join(sorted(fields))}")
-        self.config = DiTConfig.from_name(flavor, input_dim=spec["feature_dim"], **(dit or {}))
+            raise UsageError(f"unknown model.dit field(s) {sorted(unknown)}; "
+                             f"DiTConfig fields: {', '.join(sorted(fields))}")
+        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
+        self.vel_weight, self.foot_weight, self.ema_decay = vel_weight, foot_weight, ema_decay
+        self.activation_checkpointing, self._blocks_checkpointed = activation_checkpointing, False
+        self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **(dit or {}))
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
-        self.representation = get_representation(spec["representation"], get_skeleton(spec["skeleton"]))
-        self.geometric_loss = GeometricLoss(self.representation, spec["fps"])
-        self.register_buffer("mean", torch.tensor(spec["mean"], dtype=torch.float32), persistent=False)
-        self.register_buffer("std", torch.tensor(spec["std"], dtype=torch.float32), persistent=False)
+        self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))
+        self.geometric_loss = GeometricLoss(self.representation, self.spec.fps)
+        self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
+        self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
         self.ema: EMA | None = None
         self._noise_gen: torch.Generator | None = None
         self._noise_state: Tensor | None = None  # restored from a checkpoint
         self._last_batch_time: float | None = None
+
+    def configure_model(self) -> None:
+        """Activation checkpointing, applied to the blocks from outside the model code (once:
+        Lightning configures the model again for every stage)."""
+        if self.activation_checkpointing and not self._blocks_checkpointed:
+            checkpoint_each(self.checkpointed_blocks())
+            self._blocks_checkpointed = True
+
+    def checkpointed_blocks(self) -> list[torch.nn.Module]:
+        """The modules whose activations ``activation_checkpointing`` recomputes in backward."""
+        return list(self.model.blocks)
 
     # -- features ------------------------------------------------------------------------
     def denormalize(self, x: Tensor) -> Tensor:
@@ -153,8 +116,8 @@ class MotionDiffusionModule(L.LightningModule):
         mask = batch["mask"]
         simple = self.diffusion.loss(x0_hat, x0, t, mask)
         vel, foot = self.geometric_loss(self.denormalize(x0_hat), self.denormalize(x0), mask, batch.get("offsets"))
-        h = self.hparams
-        return {"loss": simple + h.vel_weight * vel + h.foot_weight * foot, "simple": simple, "vel": vel, "foot": foot}
+        return {"loss": simple + self.vel_weight * vel + self.foot_weight * foot,
+                "simple": simple, "vel": vel, "foot": foot}
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         losses = self.diffusion_losses(batch)
@@ -190,18 +153,13 @@ class MotionDiffusionModule(L.LightningModule):
     def trainable_module(self) -> torch.nn.Module:
         return self.model
 
-    def configure_optimizers(self):
-        h = self.hparams
-        params = [p for p in self.trainable_module().parameters() if p.requires_grad]
-        optimizer = torch.optim.AdamW(params, lr=h.lr, weight_decay=h.weight_decay, betas=tuple(h.betas))
-        total = int(self.trainer.estimated_stepping_batches)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(h.warmup_steps, total))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+    def optimizer_groups(self) -> list[dict]:
+        return [{"params": [p for p in self.trainable_module().parameters() if p.requires_grad]}]
 
     # -- EMA -----------------------------------------------------------------------------
     def on_fit_start(self) -> None:
-        if self.hparams.ema_decay > 0 and self.ema is None:
-            self.ema = EMA(self.trainable_module(), self.hparams.ema_decay)
+        if self.ema_decay > 0 and self.ema is None:
+            self.ema = EMA(self.trainable_module(), self.ema_decay)
 
     def optimizer_step(self, *args, **kwargs) -> None:
         super().optimizer_step(*args, **kwargs)
@@ -213,8 +171,7 @@ class MotionDiffusionModule(L.LightningModule):
             self.ema.update(self.trainable_module())
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        # which class to rebuild, also for checkpoints written outside LightningCLI
-        checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
+        super().on_save_checkpoint(checkpoint)
         if self.ema is not None:
             checkpoint["ema"] = self.ema.state_dict()
         checkpoint["noise_rng"] = self._gather_noise_states()
@@ -239,40 +196,43 @@ class MotionDiffusionModule(L.LightningModule):
             else:
                 log.warning("this checkpoint holds the noise RNG of %d ranks; rank %d starts a fresh one, so "
                             "the run does not repeat the uninterrupted one exactly", len(states), rank)
-        if "ema" in checkpoint and self.hparams.ema_decay > 0:
-            self.ema = EMA(self.trainable_module(), self.hparams.ema_decay)
+        if "ema" in checkpoint and self.ema_decay > 0:
+            self.ema = EMA(self.trainable_module(), self.ema_decay)
             self.ema.load_state_dict(checkpoint["ema"])
 
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
-    def ddim(self, denoise: Callable[[torch.dtype], Callable], num: int, frames: int, steps: int, seed: int,
-             use_ema: bool, mask: Tensor | None = None) -> Tensor:
-        """DDIM samples, un-normalised features (num, frames, D), with the EMA weights swapped in
-        when asked; ``denoise(dtype)`` makes the (x_t, t) -> x̂0 callable for the weights' dtype
-        (closing over ``mask`` (num, frames), which keeps padded frames at zero, when given)."""
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
+               guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim") -> Tensor:
+        """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
+        generated at its own length (frames beyond it are padding, to be ignored).
+
+        ``texts`` (B captions) condition a text-conditional module, guided with scale
+        ``guidance`` (default: the module's); None samples the unconditional motion prior.
+        ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler, heun) run for
+        ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
+        initial noise.
+        """
+        if texts is not None and not self.text_conditional:
+            raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
+        mask = length_mask(lengths, device=self.device)  # (B, T) real frames
+        if texts is not None and len(texts) != len(mask):
+            raise ValueError(f"{len(texts)} texts for {len(mask)} lengths")
+        solver = SAMPLERS.get(sampler)
         gen = torch.Generator(device=self.device).manual_seed(seed)
         trained = self.trainable_module()
+        was_training = self.training
         with self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext():
-            trained.eval()
+            self.eval()
             dtype = next(self.model.parameters()).dtype
-            x = self.diffusion.ddim_sample(denoise(dtype), (num, frames, self.config.input_dim), steps=steps,
-                                           generator=gen, device=self.device, dtype=dtype, mask=mask)
+            x = solver(self.diffusion, self.denoiser(texts, mask, guidance), (*mask.shape, self.config.input_dim),
+                       steps=steps, generator=gen, device=self.device, dtype=dtype, mask=mask)
+        self.train(was_training)
         return self.denormalize(x)
 
-    def sample(self, num: int, frames: int, steps: int = 200, seed: int = 0, use_ema: bool = True) -> Tensor:
-        """Unconditional DDIM samples of the DiT, un-normalised features (num, frames, D)."""
-        self.model.eval()
-        return self.ddim(lambda dtype: self.model, num, frames, steps, seed, use_ema)
-
-    def sample_for_eval(self, texts: list[str], lengths: Tensor, seed: int, steps: int = 200,
-                        guidance: float | None = None, use_ema: bool = True) -> Tensor:
-        """The evaluation hook (omg.callbacks.EvalCallback): one motion per text with its own length,
-        (B, max(lengths), D) un-normalised, padding ignored. Stage 1 is unconditional, so the texts
-        and ``guidance`` are ignored; each sample is generated at its length (masked), not cropped."""
-        self.model.eval()
-        mask = length_mask(lengths, device=self.device)
-        return self.ddim(lambda dtype: lambda x, t: self.model(x, t, mask), len(texts), mask.shape[1], steps, seed,
-                         use_ema, mask)
+    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
+        """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
+        return lambda x, t: self.model(x, t, mask)
 
 
 class PretrainModule(MotionDiffusionModule):
@@ -280,12 +240,14 @@ class PretrainModule(MotionDiffusionModule):
 
     Args:
         flavor: DiT size preset: mini, base, large, huge or giant.
-        dit: DiTConfig fields to override, e.g. ``{n_layers: 4, activation_checkpointing: true}``.
+        dit: DiTConfig fields to override, e.g. ``{n_layers: 4}``.
         lr, weight_decay, betas: AdamW settings (OMG: 1e-4, 0).
         warmup_steps: linear LR warm-up, then cosine decay over the run's optimizer steps.
         vel_weight, foot_weight: weights of L_vel and L_foot (OMG/MDM: 30 each).
         ema_decay: decay of the fp32 weight EMA kept in checkpoints (0 disables it).
         loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
+        activation_checkpointing: recompute each block's activations in backward (less memory,
+            about a third more compute); applied by ``configure_model``.
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
     """
 
@@ -301,7 +263,10 @@ class PretrainModule(MotionDiffusionModule):
         foot_weight: float = 30.0,
         ema_decay: float = 0.9999,
         loss_weighting: str = "uniform",
-        spec: dict | None = None,
+        activation_checkpointing: bool = False,
+        spec: DataSpec | dict | None = None,
     ):
-        super().__init__(flavor, dit, lr, weight_decay, warmup_steps, loss_weighting, spec)
+        super().__init__(flavor, dit, spec, lr=lr, weight_decay=weight_decay, betas=betas, warmup_steps=warmup_steps,
+                         vel_weight=vel_weight, foot_weight=foot_weight, ema_decay=ema_decay,
+                         loss_weighting=loss_weighting, activation_checkpointing=activation_checkpointing)
         self.save_hyperparameters()

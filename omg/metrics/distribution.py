@@ -15,6 +15,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from omg.errors import UsageError
+from omg.metrics.base import EvalBatch, GenerationMetric
 from omg.registry import METRICS
 
 
@@ -85,8 +86,12 @@ class _GaussianStats(Metric):
 
 
 @METRICS.register("fid")
-class FID(_GaussianStats):
+class FID(GenerationMetric, _GaussianStats):
     """Fréchet distance between Gaussians fitted to real and generated evaluator features."""
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.real, real=True)
+        self.update(batch.gen, real=False)
 
     def update(self, features: Tensor, real: bool) -> None:
         """features: (N, F) evaluator embeddings of real (``real=True``) or generated motions."""
@@ -106,12 +111,15 @@ class FID(_GaussianStats):
 class FIDOOD(FID):
     """FID of motions generated from out-of-distribution prompts against the whole real set.
 
-    Same maths as FID; a separate name so that both can be logged side by side.
+    Same maths as FID; a separate name so that both can be logged side by side. Its real set is
+    not the prompts' own motions, so a prompt-set pass cannot feed it.
     """
+
+    from_prompts = False
 
 
 @METRICS.register("intra_fid")
-class IntraFID(_GaussianStats):
+class IntraFID(GenerationMetric, _GaussianStats):
     """FID within each category label, averaged over the categories present in both sets.
 
     ``compute()`` returns ``{"intra_fid": mean, "intra_fid/<category>": fid, ...}``; a category with
@@ -131,6 +139,10 @@ class IntraFID(_GaussianStats):
             raise ValueError(f"labels must lie in 0..{len(self.categories) - 1}, got {labels.unique().tolist()}")
         self._accumulate(features, labels, real)
 
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.real, batch.category, real=True)
+        self.update(batch.gen, batch.category, real=False)
+
     def compute(self) -> dict[str, Tensor]:
         per_category = torch.stack([self._frechet(g) for g in range(len(self.categories))])
         if per_category.isnan().all():
@@ -141,7 +153,7 @@ class IntraFID(_GaussianStats):
 
 
 @METRICS.register("one_nna")
-class OneNNA(Metric):
+class OneNNA(GenerationMetric, Metric):
     """1-nearest-neighbour accuracy two-sample test over real ∪ generated features.
 
     Each sample is classified by the set of its nearest other sample (leave-one-out, Euclidean).
@@ -162,6 +174,10 @@ class OneNNA(Metric):
     def update(self, features: Tensor, real: bool) -> None:
         """features: (N, F) evaluator embeddings of real (``real=True``) or generated motions."""
         (self.real if real else self.gen).append(features.detach().double())
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.real, real=True)
+        self.update(batch.gen, real=False)
 
     def compute(self) -> Tensor:
         real, gen = dim_zero_cat(self.real), dim_zero_cat(self.gen)

@@ -12,6 +12,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from omg.errors import UsageError
+from omg.metrics.base import EvalBatch, GenerationMetric
 from omg.registry import METRICS
 
 
@@ -22,7 +23,7 @@ def _pair_indices(n: int, num_pairs: int, generator: torch.Generator) -> tuple[T
 
 
 @METRICS.register("diversity")
-class Diversity(Metric):
+class Diversity(GenerationMetric, Metric):
     """Mean distance between ``num_pairs`` (300) random pairs of motion features of the whole set."""
 
     is_differentiable = False
@@ -38,6 +39,11 @@ class Diversity(Metric):
         """features: (N, F) evaluator embeddings of motions."""
         self.features.append(features.detach().double())
 
+    reference = True
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.motion(real))
+
     def compute(self) -> Tensor:
         x = dim_zero_cat(self.features)
         if len(x) < self.num_pairs:
@@ -49,7 +55,7 @@ class Diversity(Metric):
 
 
 @METRICS.register("multimodality")
-class MultiModality(Metric):
+class MultiModality(GenerationMetric, Metric):
     """Mean distance between pairs of motions generated from the same text, averaged over texts.
 
     Per text (grouped by ``text_ids``, in ascending id order) ``min(num_pairs, n)`` pairs are drawn
@@ -73,6 +79,12 @@ class MultiModality(Metric):
             raise ValueError(f"expected text_ids of shape ({len(features)},), got {tuple(text_ids.shape)}")
         self.features.append(features.detach().double())
         self.text_ids.append(text_ids.detach().long())
+
+    repeated = True
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        if batch.mm is not None and len(batch.mm):
+            self.update(batch.mm, batch.mm_ids)
 
     def compute(self) -> Tensor:
         x, ids = dim_zero_cat(self.features), dim_zero_cat(self.text_ids)

@@ -10,7 +10,7 @@ from torch import Tensor
 from torchmetrics import Metric
 
 from omg.errors import UsageError
-from omg.metrics.base import RunningMean
+from omg.metrics.base import EvalBatch, GenerationMetric, RunningMean
 from omg.registry import METRICS
 from omg.skeleton import Skeleton, get_skeleton
 
@@ -41,7 +41,7 @@ class MPJPE(RunningMean):
 
 
 @METRICS.register("foot_skating")
-class FootSkating(Metric):
+class FootSkating(GenerationMetric, Metric):
     """Foot-skating ratio, the GMD definition (Karunratanakul et al. 2023, also used for MDM/OmniControl).
 
     Per frame transition t → t+1 and foot joint: the foot is in contact when its height is below
@@ -102,6 +102,12 @@ class FootSkating(Metric):
         clips = transitions > 0
         self.total += (skating.sum(1)[clips].double() / transitions[clips]).sum()
         self.count += clips.sum()
+
+    reference = True
+    needs_joints = True
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.joints(real), batch.mask)
 
     def compute(self) -> Tensor:
         return self.total / self.count

@@ -13,7 +13,7 @@ from torchmetrics import Metric
 from torchmetrics.utilities import dim_zero_cat
 
 from omg.errors import UsageError
-from omg.metrics.base import RunningMean
+from omg.metrics.base import EvalBatch, GenerationMetric, RunningMean
 from omg.registry import METRICS
 
 
@@ -25,8 +25,17 @@ def _check_pairs(text: Tensor, motion: Tensor) -> None:
         )
 
 
+class TextMotionPairs(GenerationMetric):
+    """Fed each text with the motion made from it (or, for the reference row, its real motion)."""
+
+    reference = True
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.text, batch.motion(real))
+
+
 @METRICS.register("r_precision")
-class RPrecision(Metric):
+class RPrecision(TextMotionPairs, Metric):
     """Text→motion retrieval top-k accuracy in pools of 32 (the HumanML3D protocol).
 
     The samples are shuffled with a seeded permutation and cut into pools of ``pool_size``
@@ -73,7 +82,7 @@ class RPrecision(Metric):
 
 
 @METRICS.register("mm_dist")
-class MMDist(RunningMean):
+class MMDist(TextMotionPairs, RunningMean):
     """Multimodal distance: mean Euclidean distance between matched text and motion features."""
 
     higher_is_better = False
@@ -85,7 +94,7 @@ class MMDist(RunningMean):
 
 
 @METRICS.register("clip_score")
-class CLIPScore(RunningMean):
+class CLIPScore(TextMotionPairs, RunningMean):
     """Mean cosine similarity between text and motion features in the text-aligned space.
 
     Plain cosine in [-1, 1]: no ×100 scaling and no clamping at 0.
@@ -100,7 +109,7 @@ class CLIPScore(RunningMean):
 
 
 @METRICS.register("label_accuracy")
-class LabelAccuracy(Metric):
+class LabelAccuracy(GenerationMetric, Metric):
     """How often the evaluator recognises a motion's class: each motion's nearest caption (among
     the distinct captions of the pass, Euclidean in the evaluator's space) carries the same value
     of the clip label ``label`` (e.g. a take's ``content``: walk, bow, ...) as the motion's own.
@@ -137,9 +146,10 @@ class LabelAccuracy(Metric):
             self.motion.append(motion_features[keep].detach().double())
             self.klass.append(torch.tensor([index[str(labels[i][self.label])] for i in rows], device=keep.device))
 
-    def eval_update(self, out, real: bool = False) -> None:
-        """The evaluation's hook (omg.evaluation.update_metric)."""
-        self.update(out.text, out.real if real else out.gen, out.labels or [])
+    reference = True
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.text, batch.motion(real), batch.labels or [])
 
     def compute(self) -> dict[str, Tensor]:
         text, motion, klass = dim_zero_cat(self.text), dim_zero_cat(self.motion), dim_zero_cat(self.klass)

@@ -68,6 +68,26 @@ EXPERTS = ("moc", "single_ffn")
 ResidualFn = Callable[[int, Tensor], "Tensor | None"]
 
 
+@dataclass(frozen=True)
+class MoCText:
+    """Everything a MoC block computes from the caption alone, once per caption rather than
+    once per denoising step (``MoCBlock.text_terms``): keys and values of the cross-attention,
+    the AdaIN scale and shift from the EOT token, and the gate weights ω with their products
+    with the expert biases. Fields of the single-FFN ablation's unused parts are None."""
+
+    text_mask: Tensor  # (B, L) bool, True = real token
+    keys: Tensor  # (B, L, d_c)  e W_k
+    values: Tensor  # (B, L, d_c)  e W_v
+    scale: Tensor  # (B, 1, d_c)  a(e_eot)
+    shift: Tensor  # (B, 1, d_c)  b(e_eot)
+    omega: Tensor | None = None  # (B, L, K)  softmax(G(e_i))
+    omega_b1: Tensor | None = None  # (B, L, H)  Σ_k ω_ik b1_k
+    omega_b2: Tensor | None = None  # (B, L, d_c)  Σ_k ω_ik b2_k
+
+
+ControlText = dict[str, MoCText]  # per controlled layer (str index): MotionControlNet.text_terms
+
+
 @dataclass
 class MoCConfig:
     """The controller's size and, as switches, the paper's ablations (Sec. 4.4).
@@ -216,21 +236,37 @@ class MoCBlock(nn.Module):
                 nn.init.zeros_(layer.weight)
                 nn.init.zeros_(layer.bias)
 
-    def attend(self, f: Tensor, tokens: Tensor, text_mask: Tensor) -> tuple[Tensor, Tensor]:
-        """f (B, T, d_c), tokens (B, L, D_text) -> (f + A V (B, T, d_c), A (B, T, L)).
+    def text_terms(self, tokens: Tensor, text_mask: Tensor, eot_emb: Tensor, fold_biases: bool = False) -> MoCText:
+        """What this block needs of a caption: tokens (B, L, D_text), text_mask (B, L) bool,
+        eot_emb (B, D_text) -> ``MoCText`` (computed once, used at every step).
+
+        ``fold_biases`` also computes ω·b1 and ω·b2 here (sampling). Training leaves them to
+        ``experts``, where they are used: ω then receives its four gradient terms in the same
+        order as when nothing is hoisted, so training rounds exactly as before."""
+        scale, shift = self.eot_affine(eot_emb)[:, None, :].chunk(2, dim=-1)  # each (B, 1, c)
+        text = MoCText(text_mask, self.k(tokens), self.v(tokens), scale, shift)
+        if self.config.experts == "single_ffn":
+            return text
+        omega = self.gates(tokens)  # (B, L, K)
+        if not fold_biases:
+            return MoCText(text_mask, text.keys, text.values, scale, shift, omega)
+        return MoCText(text_mask, text.keys, text.values, scale, shift, omega, omega @ self.b1, omega @ self.b2)
+
+    def attend(self, f: Tensor, text: MoCText) -> tuple[Tensor, Tensor]:
+        """f (B, T, d_c) -> (f + A V (B, T, d_c), A (B, T, L)).
 
         A is 0 at padded tokens; a caption with no real token gets A = 0 (f passes unchanged).
         """
-        q, k, v = self.q(f), self.k(tokens), self.v(tokens)  # (B, T, c), (B, L, c), (B, L, c)
+        q, k, v = self.q(f), text.keys, text.values  # (B, T, c), (B, L, c), (B, L, c)
         scores = q @ k.transpose(1, 2) / math.sqrt(q.shape[-1])  # (B, T, L)
-        real = text_mask[:, None, :]  # (B, 1, L)
+        real = text.text_mask[:, None, :]  # (B, 1, L)
         # A finite fill (not -inf) keeps rows without any real token NaN-free; it underflows to
         # exactly 0 next to a real token, and the product with `real` zeroes those rows.
         scores = scores.masked_fill(~real, torch.finfo(scores.dtype).min)
         attn = scores.softmax(dim=-1) * real  # (B, T, L)
         return f + attn @ v, attn
 
-    def adain(self, f: Tensor, eot_emb: Tensor, mask: Tensor | None) -> Tensor:
+    def adain(self, f: Tensor, text: MoCText, mask: Tensor | None) -> Tensor:
         """Normalise f (B, T, d_c) over real frames per channel; scale/shift from the EOT token."""
         if mask is None:
             mean = f.mean(dim=1, keepdim=True)  # (B, 1, c)
@@ -240,8 +276,7 @@ class MoCBlock(nn.Module):
             n = m.sum(dim=1, keepdim=True).clamp_min(1)  # (B, 1, 1)
             mean = (f * m).sum(dim=1, keepdim=True) / n  # (B, 1, c)
             var = ((f - mean).square() * m).sum(dim=1, keepdim=True) / n
-        scale, shift = self.eot_affine(eot_emb)[:, None, :].chunk(2, dim=-1)  # each (B, 1, c)
-        return (f - mean) * torch.rsqrt(var + ADAIN_EPS) * (1 + scale) + shift
+        return (f - mean) * torch.rsqrt(var + ADAIN_EPS) * (1 + text.scale) + text.shift
 
     def gates(self, tokens: Tensor) -> Tensor:
         """ω = softmax(G(e_i)): expert weights per token, (B, L, K)."""
@@ -259,10 +294,10 @@ class MoCBlock(nn.Module):
         gamma, beta = self.config.gamma, self.config.beta
         return torch.sigmoid(gamma * (attn - beta * peak)) * text_mask[:, None, :]
 
-    def experts(self, f: Tensor, omega: Tensor, masks: Tensor) -> Tensor:
+    def experts(self, f: Tensor, text: MoCText, masks: Tensor) -> Tensor:
         """Σ_i M_i ⊙ FFN_i(f) (B, T, d_c), FFN_i with parameters blended by ω_i.
 
-        f (B, T, d_c), omega (B, L, K), masks (B, T, L). Blending is linear, so the blended
+        f (B, T, d_c), text.omega (B, L, K) with ω·b1, ω·b2, masks (B, T, L). Blending is linear, so the blended
         weights are never built: layer 1 runs every expert once per frame and mixes the
         pre-activations per token; layer 2 folds M and ω into one (K, L) mix per frame before a
         single matmul with the stacked W2:
@@ -276,31 +311,25 @@ class MoCBlock(nn.Module):
         B, T, c = f.shape
         K, _, H = self.w1.shape
         u = (f @ self.w1.permute(1, 0, 2).reshape(c, K * H)).view(B, T, K, H)  # f W1_k
-        pre = omega[:, None] @ u + (omega @ self.b1)[:, None]  # (B, T, L, H)
+        omega = text.omega
+        # (B, T, L, H): ω·b1 is made after ω·u, as without hoisting (see text_terms)
+        pre = omega[:, None] @ u + (omega @ self.b1 if text.omega_b1 is None else text.omega_b1)[:, None]
         g = F.gelu(pre)  # (B, T, L, H)
         mix = (masks[..., None] * omega[:, None]).transpose(-1, -2)  # (B, T, K, L) = M_ti ω_ik
         z = mix @ g  # (B, T, K, H)
-        bias = masks @ (omega @ self.b2)  # (B, T, c)
+        bias = masks @ (omega @ self.b2 if text.omega_b2 is None else text.omega_b2)  # (B, T, c)
         return z.reshape(B, T, K * H) @ self.w2.reshape(K * H, c) + bias  # (B, T, c)
 
-    def forward(
-        self,
-        h: Tensor,
-        tokens: Tensor,
-        text_mask: Tensor,
-        eot_emb: Tensor,
-        mask: Tensor | None = None,
-    ) -> Tensor:
-        """h (B, T, d) the block copy's output, tokens (B, L, D_text), text_mask (B, L) bool,
-        eot_emb (B, D_text), mask (B, T) bool real frames -> residual (B, T, d)."""
+    def forward(self, h: Tensor, text: MoCText, mask: Tensor | None = None) -> Tensor:
+        """h (B, T, d) the block copy's output, ``text_terms`` of the caption, mask (B, T) bool
+        real frames -> residual (B, T, d)."""
         f = self.down(h)  # (B, T, c)
-        f, attn = self.attend(f, tokens, text_mask)  # (B, T, c), (B, T, L)
-        f = self.adain(f, eot_emb, mask)  # (B, T, c)
+        f, attn = self.attend(f, text)  # (B, T, c), (B, T, L)
+        f = self.adain(f, text, mask)  # (B, T, c)
         if self.config.experts == "single_ffn":
             return self.up(self.ffn(f))  # (B, T, d)
-        omega = self.gates(tokens)  # (B, L, K)
-        masks = self.token_masks(attn, text_mask, mask)  # (B, T, L)
-        return self.up(self.experts(f, omega, masks))  # (B, T, d)
+        masks = self.token_masks(attn, text.text_mask, mask)  # (B, T, L)
+        return self.up(self.experts(f, text, masks))  # (B, T, d)
 
 
 class MotionControlNet(nn.Module):
@@ -356,11 +385,11 @@ class MotionControlNet(nn.Module):
 
     # -- pieces ---------------------------------------------------------------------------
 
-    def _prepare_text(
-        self, tokens: Tensor, text_mask: Tensor, eot: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Zero the padded tokens (whatever they hold), follow the weights' dtype, pick the EOT
-        embedding: -> tokens (B, L, D_text), text_mask (B, L) bool, eot_emb (B, D_text)."""
+    def text_terms(self, tokens: Tensor, text_mask: Tensor, eot: Tensor, fold_biases: bool = False) -> ControlText:
+        """Every controller's ``MoCText`` for a caption batch: tokens (B, L, D_text), text_mask
+        (B, L) bool, eot (B,) long. What depends only on the text is computed here, once: a
+        sampler passes the result (``fold_biases=True``, see ``MoCBlock.text_terms``) to
+        ``forward_guided`` at every step."""
         if tokens.shape[-1] != self.config.text_dim:
             raise UsageError(
                 f"text tokens have width {tokens.shape[-1]} but MoCConfig.text_dim="
@@ -368,54 +397,44 @@ class MotionControlNet(nn.Module):
             )
         text_mask = text_mask.bool()
         dtype = next(iter(self.mocs.values())).k.weight.dtype
-        tokens = tokens.masked_fill(~text_mask[..., None], 0).to(dtype)  # (B, L, D_text)
+        tokens = tokens.masked_fill(~text_mask[..., None], 0).to(dtype)  # (B, L, D_text): padding zeroed
         eot_emb = tokens[torch.arange(tokens.shape[0], device=tokens.device), eot]  # (B, D_text)
-        return tokens, text_mask, eot_emb
+        return {i: moc.text_terms(tokens, text_mask, eot_emb, fold_biases) for i, moc in self.mocs.items()}
 
     def _layer_residual(
-        self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: tuple
+        self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText
     ) -> Tensor:
         """Per-layer wiring: MoC_i(copy_i(h_i)) (B, T, d) from block i's input h_i (B, T, d)."""
-        return self.mocs[str(i)](self.copy_blocks[str(i)](h, mod, rope, mask), *text, mask)
+        return self.mocs[str(i)](self.copy_blocks[str(i)](h, mod, rope, mask), text[str(i)], mask)
 
     def _stream_layer(
-        self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: tuple
+        self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText
     ) -> Tensor:
         """Parallel-stream wiring: the copy stream's next state (B, T, d)."""
         h = self.copy_blocks[str(i)](h, mod, rope, mask)
         if str(i) in self.mocs:
-            h = h + self.mocs[str(i)](h, *text, mask)
+            h = h + self.mocs[str(i)](h, text[str(i)], mask)
         return h
 
-    def controller(
-        self,
-        h0: Tensor,
-        mod: Tensor,
-        rope: Rope,
-        mask: Tensor | None,
-        tokens: Tensor,
-        text_mask: Tensor,
-        eot: Tensor,
-    ) -> ResidualFn:
+    def controller(self, h0: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText) -> ResidualFn:
         """The ``residual_fn(i, h_i)`` that ``MotionDiT.forward_embedded`` calls after block i:
         block i's residual (B, T, d) from its input h_i (B, T, d), or None for a layer without
         a controller. h0, mod, rope come from ``base.embed`` (h0 only feeds the parallel
-        stream, whose function keeps the stream's state and must be called for i = 0, 1, ...)."""
-        text = self._prepare_text(tokens, text_mask, eot)
-        run = self.base.checkpointed
+        stream, whose function keeps the stream's state and must be called for i = 0, 1, ...);
+        ``text`` from ``text_terms``."""
         if self.config.wiring == "per_layer":
 
             def residual(i: int, h: Tensor) -> Tensor | None:
                 if str(i) not in self.mocs:
                     return None
-                return run(self._layer_residual, i, h, mod, rope, mask, text)
+                return self._layer_residual(i, h, mod, rope, mask, text)
 
             return residual
 
         stream = [h0]
 
         def stream_residual(i: int, h: Tensor) -> Tensor:
-            stream[0] = run(self._stream_layer, i, stream[0], mod, rope, mask, text)
+            stream[0] = self._stream_layer(i, stream[0], mod, rope, mask, text)
             return self.zero_projs[i](stream[0])
 
         return stream_residual
@@ -434,7 +453,7 @@ class MotionControlNet(nn.Module):
         """D_c: x (B, T, D_in) noisy motion, t (B,), text_tokens (B, L, D_text), text_mask
         (B, L) bool, eot (B,) long, mask (B, T) bool real frames -> x̂0 (B, T, D_in)."""
         h0, c, mod, rope = self.base.embed(x, t)
-        control = self.controller(h0, mod, rope, mask, text_tokens, text_mask, eot)
+        control = self.controller(h0, mod, rope, mask, self.text_terms(text_tokens, text_mask, eot))
         return self.base.forward_embedded(h0, c, mod, rope, mask, control)
 
     def forward_uncond(self, x: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -442,16 +461,11 @@ class MotionControlNet(nn.Module):
         return self.base(x, t, mask)
 
     def forward_guided(
-        self,
-        x: Tensor,
-        t: Tensor,
-        text_tokens: Tensor,
-        text_mask: Tensor,
-        eot: Tensor,
-        scale: float | Tensor,
-        mask: Tensor | None = None,
+        self, x: Tensor, t: Tensor, text: ControlText, scale: float | Tensor, mask: Tensor | None = None
     ) -> Tensor:
-        """(1 − s)·D_u + s·D_c (B, T, D_in); scale s is a number or one per sample (B,).
+        """(1 − s)·D_u + s·D_c (B, T, D_in) for the caption terms ``text = text_terms(tokens,
+        text_mask, eot)``, computed once per caption by the sampler; scale s is a number or one
+        per sample (B,).
 
         One embed on B rows, then one pass over the doubled batch [x; x] (2B rows): the frozen
         blocks run on all rows, each controller on the conditional half's main stream
@@ -459,7 +473,7 @@ class MotionControlNet(nn.Module):
         """
         B = x.shape[0]
         h0, c, mod, rope = self.base.embed(x, t)
-        control = self.controller(h0, mod, rope, mask, text_tokens, text_mask, eot)
+        control = self.controller(h0, mod, rope, mask, text)
 
         def residual(i: int, h: Tensor) -> Tensor | None:  # h (2B, T, d) = [uncond; cond]
             r = control(i, h[B:])  # (B, T, d)

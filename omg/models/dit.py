@@ -14,8 +14,9 @@ The feed-forward is GEGLU: fc1 d -> 2·ffn (value, gate), gelu(gate)·value, fc2
 
 For the Motion ControlNet, ``embed`` returns what the blocks and the final layer take and
 ``forward_embedded`` runs the block loop and the final layer from there, asking an optional
-``residual_fn(i, h_i)`` after every block for a residual to add to that block's output;
-``checkpointed`` is the activation checkpointing the blocks use, for the ControlNet's own layers.
+``residual_fn(i, h_i)`` after every block for a residual to add to that block's output.
+Activation checkpointing is not the model's business: the training module applies it to the
+blocks from outside (``omg.lit.base.checkpoint_each``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from typing import Any, Callable
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torch.utils.checkpoint import checkpoint
 
 from omg.errors import UsageError
 
@@ -44,9 +44,7 @@ class DiTConfig:
     mlp_ratio: float = 2.0  # GEGLU hidden width = mlp_ratio * d_model
     rope_base: float = 10000.0
     freq_embed_dim: int = 256  # sinusoidal timestep features fed to the timestep MLP
-    max_len: int = 300  # documentation only (OMG windows: 300 frames at 30 fps); RoPE has no limit
     dropout: float = 0.0
-    activation_checkpointing: bool = False
 
     def __post_init__(self) -> None:
         if self.n_heads is None:
@@ -267,18 +265,6 @@ class MotionDiT(nn.Module):
         rope = rotary_embedding(positions, self.config.head_dim, self.config.rope_base)
         return h, c, mod, rope
 
-    def checkpointed(self, fn: Callable[..., Tensor], *args: Any) -> Tensor:
-        """fn(*args), recomputed in backward instead of keeping its activations when activation
-        checkpointing is on and autograd records (training, or a frozen model that gradients
-        still flow through, as under a ControlNet)."""
-        if self.config.activation_checkpointing and torch.is_grad_enabled():
-            return checkpoint(fn, *args, use_reentrant=False)
-        return fn(*args)
-
-    def run_block(self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None) -> Tensor:
-        """Block i on h (B, T, d) with mod (B, 6d) from ``embed``; checkpointed as above."""
-        return self.checkpointed(self.blocks[i], h, mod, rope, mask)
-
     def forward_embedded(
         self,
         h: Tensor,
@@ -293,30 +279,14 @@ class MotionDiT(nn.Module):
         ``residual_fn(i, h_i)``, if given, is called with block i's input h_i (B, T, d) and
         may return a residual (B, T, d) to add to block i's output (ControlNet), or None.
         """
-        for i in range(len(self.blocks)):
-            h_next = self.run_block(i, h, mod, rope, mask)  # (B, T, d)
+        for i, block in enumerate(self.blocks):
+            h_next = block(h, mod, rope, mask)  # (B, T, d)
             r = None if residual_fn is None else residual_fn(i, h)
             h = h_next if r is None else h_next + r
         return self.final_layer(h, c)  # (B, T, D_in)
 
-    def forward(
-        self,
-        x: Tensor,
-        t: Tensor,
-        mask: Tensor | None = None,
-        block_residuals: list[Tensor | None] | None = None,
-    ) -> Tensor:
+    def forward(self, x: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
         """x: (B, T, D_in) noisy motion; t: (B,) steps; mask: (B, T) bool, True = real frame.
-
-        block_residuals[i] (B, T, d), if given, is added to block i's output (fixed residuals;
-        ``forward_embedded`` takes residuals computed from each block's input).
-        Outputs at padded frames are unconstrained; callers mask them.
-        """
-        if block_residuals is not None and len(block_residuals) != len(self.blocks):
-            raise ValueError(
-                f"block_residuals has {len(block_residuals)} entries; the model has "
-                f"{len(self.blocks)} blocks (use None for blocks without a residual)"
-            )
+        Outputs at padded frames are unconstrained; callers mask them."""
         h, c, mod, rope = self.embed(x, t)
-        residual_fn = None if block_residuals is None else (lambda i, _h: block_residuals[i])
-        return self.forward_embedded(h, c, mod, rope, mask, residual_fn)
+        return self.forward_embedded(h, c, mod, rope, mask)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, Sequence
 
 import torch
@@ -29,10 +28,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omg.errors import UsageError
-from omg.registry import MODELS
+from omg.motion import DataSpec
 from omg.text import TextEncoder, build_text_encoder
-
-SPEC_KEYS = ("representation", "skeleton", "fps", "feature_dim")
 
 
 @dataclass
@@ -118,7 +115,8 @@ class SequenceEncoder(nn.Module):
         d, self.patch = config.d_model, patch
         # motion patches get a small MLP (features are heterogeneous: velocities, rotations, contacts);
         # text tokens are already a learned embedding, a Linear suffices
-        self.inp = nn.Sequential(nn.Linear(patch * in_dim, d), nn.GELU(), nn.Linear(d, d)) if patch > 1 else nn.Linear(in_dim, d)
+        self.inp = (nn.Sequential(nn.Linear(patch * in_dim, d), nn.GELU(), nn.Linear(d, d)) if patch > 1
+                    else nn.Linear(in_dim, d))
         self.cls = nn.Parameter(torch.zeros(1, 1, d))
         self.blocks = nn.ModuleList(Block(d, config.n_heads, config.mlp_ratio, config.dropout) for _ in range(n_layers))
         self.norm = nn.LayerNorm(d)
@@ -152,16 +150,14 @@ class TextMotionEvaluator(nn.Module):
         config: an ``EvaluatorConfig`` (or a flavor name).
     """
 
-    def __init__(self, spec: dict, text_encoder: str | TextEncoder = "minilm",
+    def __init__(self, spec: DataSpec | dict, text_encoder: str | TextEncoder = "minilm",
                  text_encoder_args: dict[str, Any] | None = None, config: EvaluatorConfig | str = "base") -> None:
         super().__init__()
-        if missing := [k for k in (*SPEC_KEYS, "mean", "std") if k not in spec]:
-            raise UsageError(f"evaluator spec lacks {', '.join(missing)}; pass MotionDataModule(...).spec")
+        self.spec = DataSpec.coerce(spec, "the evaluator")
         self.config = EvaluatorConfig.from_name(config) if isinstance(config, str) else config
-        self.spec = {k: spec[k] for k in SPEC_KEYS}
-        D = int(spec["feature_dim"])
-        self.register_buffer("mean", torch.as_tensor(spec["mean"], dtype=torch.float32).reshape(D))
-        self.register_buffer("std", torch.as_tensor(spec["std"], dtype=torch.float32).reshape(D))
+        D = self.spec.feature_dim
+        self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32))
+        self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32))
         self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
         self.text_encoder.requires_grad_(False)  # frozen backbone: only the head below learns
         c = self.config
@@ -182,7 +178,7 @@ class TextMotionEvaluator(nn.Module):
     def encode_normalized_motion(self, motion: Tensor, mask: Tensor) -> Tensor:
         """(B, T, D) features already normalised with this evaluator's stats, (B, T) bool -> (B, E) unit."""
         if motion.ndim != 3 or motion.shape[-1] != self.mean.shape[0]:
-            raise ValueError(f"expected motion (B, T, {self.mean.shape[0]}) of {self.spec['representation']}, "
+            raise ValueError(f"expected motion (B, T, {self.mean.shape[0]}) of {self.spec.representation}, "
                              f"got {tuple(motion.shape)}")
         mask = mask.to(motion.device, torch.bool)
         if not mask.any(1).all():
@@ -210,20 +206,6 @@ class TextMotionEvaluator(nn.Module):
         return scale * text_emb.float() @ motion_emb.float().T
 
 
-def info_nce(logits: Tensor, same: Tensor | None = None) -> Tensor:
-    """Symmetric InfoNCE over (B, B) text×motion logits whose diagonal holds the positives.
-
-    ``same`` (B, B) bool marks off-diagonal pairs that are not negatives (a duplicate caption,
-    another window of the same clip): they are removed from both softmaxes, so that two equal
-    texts are never pushed apart from each other's motion.
-    """
-    if same is not None:
-        off = same & ~torch.eye(len(logits), dtype=torch.bool, device=logits.device)
-        logits = logits.masked_fill(off, float("-inf"))
-    target = torch.arange(len(logits), device=logits.device)
-    return 0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target))
-
-
 def same_pairs(texts: Sequence[str], ids: Sequence[str] | None = None, labels: Sequence[dict] | None = None) -> Tensor:
     """(B, B) bool: True where two batch rows share their caption (case/space-insensitive), clip
     id, or labels (two takes labelled {content: walk, style: old} are the same motion class
@@ -246,23 +228,4 @@ def same_pairs(texts: Sequence[str], ids: Sequence[str] | None = None, labels: S
     return same
 
 
-MODELS.register("contrastive", TextMotionEvaluator)
-
-
-def load_evaluator(path: str | Path, map_location: str | torch.device = "cpu") -> TextMotionEvaluator:
-    """A trained contrastive evaluator: an ``EvaluatorModule`` Lightning checkpoint (or the
-    safetensors file ``omg convert-ckpt`` made from one), frozen, in eval mode, on ``map_location``.
-
-    The text backbone is rebuilt from its own weights (named in the checkpoint's
-    hyper-parameters); the HumanML3D T2M evaluator loads through ``omg.models.t2m.load_t2m_evaluator``.
-    """
-    from omg.lit.checkpoint import load_module  # Lightning only here: model code stays plain torch
-    from omg.lit.evaluator import EvaluatorModule
-
-    module = load_module(path, default_class=EvaluatorModule, map_location=map_location, expect=EvaluatorModule)
-    evaluator = module.evaluator.to(map_location).eval()
-    evaluator.requires_grad_(False)
-    return evaluator
-
-
-__all__ = ["EvaluatorConfig", "FLAVORS", "TextMotionEvaluator", "info_nce", "load_evaluator", "same_pairs"]
+__all__ = ["EvaluatorConfig", "FLAVORS", "TextMotionEvaluator", "same_pairs"]

@@ -35,8 +35,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pack_padded_sequence
 
-from omg.data.windows import length_mask
 from omg.errors import UsageError
+from omg.motion import length_mask
 
 # -- utils/word_vectorizer.py (official values) ----------------------------------------------
 
@@ -104,7 +104,8 @@ class WordVectorizer:
             raise UsageError(f"glove_dir={str(glove_dir)!r}: {files[2].name} has no row for {missing[0]!r}")
         self.word2vec = {w: vectors[self.word2idx[w]] for w in words}
         if "unk" not in self.word2vec:
-            raise UsageError(f"glove_dir={str(glove_dir)!r}: the vocabulary has no 'unk' word; not HumanML3D's GloVe files")
+            raise UsageError(f"glove_dir={str(glove_dir)!r}: the vocabulary has no 'unk' word; "
+                             "not HumanML3D's GloVe files")
 
     def _get_pos_ohot(self, pos: str) -> np.ndarray:
         pos_vec = np.zeros(len(POS_enumerator))
@@ -422,9 +423,11 @@ def _read_mean_std(mean_std_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
             try:
                 return np.load(d / mean_name, allow_pickle=False), np.load(d / std_name, allow_pickle=False)
             except ValueError as e:  # an object array (pickled objects) or not an .npy file
-                raise UsageError(f"mean_std_dir={str(d)!r}: {mean_name}/{std_name} are not plain array files ({e})") from None
-    raise UsageError(f"mean_std_dir={str(d)!r} holds neither mean.npy/std.npy nor t2m_mean.npy/t2m_std.npy: pass the "
-                     "folder of the evaluator's normalisation (text2motion's checkpoints/t2m/<model>/meta, or MDM's dataset/)")
+                raise UsageError(f"mean_std_dir={str(d)!r}: {mean_name}/{std_name} "
+                                 f"are not plain array files ({e})") from None
+    raise UsageError(f"mean_std_dir={str(d)!r} holds neither mean.npy/std.npy nor t2m_mean.npy/t2m_std.npy: "
+                     "pass the folder of the evaluator's normalisation "
+                     "(text2motion's checkpoints/t2m/<model>/meta, or MDM's dataset/)")
 
 
 def load_t2m_evaluator(checkpoint: str | Path, glove_dir: str | Path, mean_std_dir: str | Path,
@@ -445,7 +448,8 @@ def load_t2m_evaluator(checkpoint: str | Path, glove_dir: str | Path, mean_std_d
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - not a torch file, or pickled objects a weights-only load refuses
-        raise UsageError(f"checkpoint={str(path)!r} is not a loadable T2M checkpoint ({type(e).__name__}: {e})") from None
+        raise UsageError(f"checkpoint={str(path)!r} is not a loadable T2M checkpoint "
+                         f"({type(e).__name__}: {e})") from None
     if not isinstance(state, dict):
         raise UsageError(f"checkpoint={str(path)!r} holds a {type(state).__name__}, not text2motion's checkpoint dict")
     evaluator = T2MEvaluator(vectorizer, mean, std)

@@ -96,3 +96,11 @@ class Representation(ABC):
         The default floors the std so that constant features do not blow up.
         """
         return mean.astype(np.float32), np.maximum(std, 1e-4).astype(np.float32)
+
+
+def length_mask(lengths, frames: int | None = None, device: torch.device | str | None = None) -> torch.Tensor:
+    """(B,) frame counts -> (B, frames) bool, True on each row's first lengths[b] frames;
+    ``frames`` defaults to the longest."""
+    lengths = torch.as_tensor(lengths, device=device)
+    frames = int(lengths.max()) if frames is None else frames
+    return torch.arange(frames, device=lengths.device)[None, :] < lengths[:, None]

@@ -36,13 +36,12 @@ bone of its kinematic chain (the root for the first bone of each chain).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from omg.errors import UsageError
+from omg.kinematics import foot_contacts
 from omg.motion.base import Clip, Representation
 from omg.registry import REPRESENTATIONS
 from omg.rotations import (
@@ -68,18 +67,10 @@ FACE_JOINTS = (2, 1, 17, 16)  # right hip, left hip, right shoulder, left should
 FEET_LEFT, FEET_RIGHT = (7, 10), (8, 11)
 LEG_JOINTS = (5, 8)  # right knee, right ankle: their bones set the scale of the root trajectory
 # HumanML3D's constants are per 20-fps frame; as a speed and a time they mean the same at any fps
-# (and give HumanML3D's own values at 20 fps):
+# (and give HumanML3D's own values at 20 fps). Its foot-contact rule (FOOT_THRESHOLD, 0.002 m² per
+# 20-fps frame, i.e. FOOT_CONTACT_SPEED) is omg.kinematics.foot_contacts.
 HUMANML3D_FPS = 20.0
-FOOT_THRESHOLD = 0.002  # squared displacement per 20-fps frame (m^2) under which a foot is in contact
-FOOT_CONTACT_SPEED = math.sqrt(FOOT_THRESHOLD) * HUMANML3D_FPS  # ≈ 0.894 m/s
 HEADING_SIGMA = 20.0  # frames at 20 fps: the heading is smoothed over about a second
-
-
-def foot_contacts(joints: torch.Tensor, fps: float) -> torch.Tensor:
-    """(T, J, 3) positions of the four foot joints' skeleton -> (T-1, 4) bool: feet slower than
-    HumanML3D's contact speed (0.002 m² per 20-fps frame) between frames t and t+1."""
-    step = joints[1:, list(FEET_LEFT + FEET_RIGHT)] - joints[:-1, list(FEET_LEFT + FEET_RIGHT)]
-    return step.square().sum(-1) < (FOOT_CONTACT_SPEED / fps) ** 2
 # feature groups whose std is averaged (cal_mean_variance); the root and contact groups
 # are the ones T2M's loaders divide by feat_bias
 GROUPS = ((0, 1), (1, 3), (3, 4), (4, 67), (67, 193), (193, 259), (259, 263))
@@ -191,7 +182,7 @@ class HumanML3D263(Representation):
         yaw_velocity = quat_mul(heading[1:], quat_conjugate(heading[:-1]))[:, 2].clamp(-1, 1).asin()
         ric = quat_apply(heading[:, None], joints - joints[:, :1] * _XZ)  # (T, 22, 3)
         local_velocity = quat_apply(heading[:-1, None], joints[1:] - joints[:-1])  # (T-1, 22, 3)
-        contacts = foot_contacts(joints, clip.fps)  # (T-1, 4)
+        contacts = foot_contacts(joints, FEET_LEFT + FEET_RIGHT, clip.fps)  # (T-1, 4)
         features = torch.cat(
             [
                 yaw_velocity[:, None],

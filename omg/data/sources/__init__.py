@@ -6,8 +6,4 @@ A source may return ``omg.data.shards.SourceItems`` instead of a bare iterator, 
 set-level facts along (a dataset's published mean/std).
 """
 
-from omg.data.sources import synth  # noqa: F401
-from omg.data.sources import humanml3d  # noqa: F401
-from omg.data.sources import animalml3d  # noqa: F401
-from omg.data.sources import amass  # noqa: F401
-from omg.data.sources import bvh_dir  # noqa: F401
+from omg.data.sources import amass, animalml3d, bvh_dir, humanml3d, synth  # noqa: F401

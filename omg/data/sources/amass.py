@@ -57,7 +57,7 @@ class BodyModel:
             raise UsageError(
                 f"body model {path} is a .pkl, which needs chumpy to read; convert it to .npz "
                 "(np.savez with v_template, shapedirs, J_regressor, kintree_table) and pass "
-                "--option body_model=PATH.npz"
+                "--option.body_model PATH.npz"
             )
         try:
             with np.load(path, allow_pickle=False) as f:
@@ -152,16 +152,17 @@ def _read_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps
 
 
 @DATA_SOURCES.register("amass")
-def amass_source(input: str | None, skeleton: Skeleton, fps: float, body_model: str | None = None) -> Iterator[Clip | Exception]:
+def amass_source(input: str | None, skeleton: Skeleton, fps: float,
+                 body_model: str | None = None) -> Iterator[Clip | Exception]:
     """Unlabeled smpl22 clips from AMASS .npz files; see the module docstring."""
     if not input or not Path(input).is_dir():
         raise UsageError(f"amass: --input must be a folder of AMASS .npz files, got {input!r}")
     if not body_model:
-        raise UsageError("amass needs an SMPL/SMPL-H body model: --option body_model=PATH "
+        raise UsageError("amass needs an SMPL/SMPL-H body model: --option.body_model PATH "
                          "(a model.npz, or a folder with male/ female/ neutral/model.npz)")
     model_path = Path(body_model)
     if not model_path.exists():
-        raise UsageError(f"amass: --option body_model={body_model}: no such file or folder")
+        raise UsageError(f"amass: --option.body_model {body_model}: no such file or folder")
     if model_path.is_file():
         BodyModel.load(model_path)  # fail now, not on the first clip
     if list(skeleton.parents) != SMPL22_PARENTS:

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.kinematics import kabsch
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.rotations import matrix_to_quat, sixd_to_matrix
@@ -120,9 +121,7 @@ def local_rotations(skeleton: Skeleton, bone_rot: np.ndarray, offsets: np.ndarra
         else:
             rest = offsets[kids]  # (K, 3)
             bones = np.einsum("tkij,kj->tki", bone_rot[:, kids], rest)  # (T, K, 3)
-            U, _, Vt = np.linalg.svd(np.einsum("tki,kj->tij", bones, rest))  # H = sum v u^T
-            U[..., :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]  # a rotation, not a reflection
-            glob[:, a] = U @ Vt
+            glob[:, a] = kabsch(torch.from_numpy(rest), torch.from_numpy(bones)).numpy()
     local = glob.copy()
     for a in range(1, J):
         local[:, a] = np.swapaxes(glob[:, skeleton.parents[a]], -1, -2) @ glob[:, a]
@@ -163,7 +162,8 @@ def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_
     if not np.isfinite(motion).all():
         raise ValueError(f"animalml3d NaN or inf in motion: {path}")
     if len(motion) < min_frames or (max_frames and len(motion) >= max_frames):
-        raise ValueError(f"animalml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: {path} has {len(motion)}")
+        raise ValueError(f"animalml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: "
+                         f"{path} has {len(motion)}")
     texts = _captions(root, name)
     offsets = load_offsets(root / "animals_maa_offsets" / animal / "offset.pkl")
     positions, bone_rot = chain_fk(motion[:, :J], motion[:, J, :3], offsets, skeleton.chains)
@@ -194,13 +194,14 @@ def animalml3d_source(
     """Captioned SMAL-35 animal clips of AnimalML3D; see the module docstring."""
     motions = Path(input or "") / "animals_maa_motions"
     if not input or not motions.is_dir():
-        raise UsageError(f"animalml3d: --input must be the AnimalML3D folder holding animals_maa_motions/, got {input!r}")
+        raise UsageError("animalml3d: --input must be the AnimalML3D folder holding animals_maa_motions/, "
+                         f"got {input!r}")
     if list(skeleton.parents) != list(SMAL35.parents):
         raise UsageError(f"animalml3d motion is on smal35, not {skeleton.name!r}; use --skeleton smal35")
     if abs(fps - FPS) > 1e-6:
         raise UsageError(f"animalml3d motion is at {FPS:g} fps; use --fps {FPS:g}")
     if split not in ("train", "test", "all"):
-        raise UsageError(f"animalml3d: --option split={split!r}; choose train, test or all")
+        raise UsageError(f"animalml3d: --option.split {split!r}; choose train, test or all")
     paths = sorted(motions.glob("*.npy"))
     animals = sorted({p.stem.split("_")[0] for p in paths})
     if test_animals is None:
@@ -208,7 +209,8 @@ def animalml3d_source(
     else:
         test = set(test_animals.split(",") if isinstance(test_animals, str) else map(str, test_animals))
         if unknown := sorted(test - set(animals)):
-            raise UsageError(f"animalml3d: test_animals {unknown} are not in {motions}; identities: {', '.join(animals)}")
+            raise UsageError(f"animalml3d: test_animals {unknown} are not in {motions}; "
+                             f"identities: {', '.join(animals)}")
     keep = {"all": set(animals), "test": test, "train": set(animals) - test}[split]
 
     def items() -> Iterator[Clip | Exception]:

@@ -109,8 +109,9 @@ def _import(entry: dict, folder: Path, skeleton: Skeleton, fps: float, joint_map
     labels = entry.get("labels")
     try:
         return retarget(
-            motion, skeleton, joint_map, fps=fps, height=height, id=str(entry["id"]), texts=list(entry.get("texts") or []),
-            labels=labels if isinstance(labels, dict) else {}, category=domain, source=str(path),
+            motion, skeleton, joint_map, fps=fps, height=height, id=str(entry["id"]),
+            texts=list(entry.get("texts") or []), labels=labels if isinstance(labels, dict) else {}, category=domain,
+            source=str(path),
         )  # fmt: skip
     except UsageError as e:
         raise SkippedClip(f"unmappable rig: {e}") from None
@@ -134,7 +135,8 @@ def bvh_dir_source(
 
         jmap = get_joint_map(joint_map)
         if jmap.target != skeleton.name:
-            raise UsageError(f"joint map {jmap.name!r} maps onto {jmap.target!r}, but the build targets {skeleton.name!r}")
+            raise UsageError(f"joint map {jmap.name!r} maps onto {jmap.target!r}, "
+                             f"but the build targets {skeleton.name!r}")
     manifest = folder / "manifest.json"
     if manifest.exists():
         try:

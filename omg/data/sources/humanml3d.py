@@ -59,13 +59,13 @@ def parse_caption_line(line: str) -> tuple[str, list[str], float, float]:
 
 def _split_ids(root: Path, split: str) -> list[str]:
     if split not in SPLITS:
-        raise UsageError(f"humanml3d: --option split={split!r}; choose from {', '.join(SPLITS)}")
+        raise UsageError(f"humanml3d: --option.split {split!r}; choose from {', '.join(SPLITS)}")
     if split == "all":
         ids = {p.stem for d in ("new_joint_vecs", "new_joints") for p in (root / d).glob("*.npy")}
         return sorted(ids)
     path = root / f"{split}.txt"
     if not path.exists():
-        raise UsageError(f"humanml3d: split file {path} not found; use --option split=all to read every clip")
+        raise UsageError(f"humanml3d: split file {path} not found; use --option.split all to read every clip")
     return [line.strip() for line in path.read_text().splitlines() if line.strip()]
 
 
@@ -76,13 +76,15 @@ def _load(path: Path, shape: tuple) -> np.ndarray:
     except Exception as e:  # noqa: BLE001 - any unreadable file is one counted skip
         raise ValueError(f"humanml3d unreadable file: {path} ({type(e).__name__}: {e})") from None
     if array.ndim != len(shape) + 1 or array.shape[1:] != shape:
-        raise ValueError(f"humanml3d wrong array shape: {path} is {array.shape}, expected (T, {', '.join(map(str, shape))})")
+        raise ValueError(f"humanml3d wrong array shape: {path} is {array.shape}, "
+                         f"expected (T, {', '.join(map(str, shape))})")
     if not np.isfinite(array).all():
         raise ValueError(f"humanml3d NaN or inf in motion: {path}")
     return array.astype(np.float32)
 
 
-def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int, max_frames: int) -> Iterator[Clip | Exception]:
+def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int,
+                max_frames: int) -> Iterator[Clip | Exception]:
     vec_path, joint_path = root / "new_joint_vecs" / f"{name}.npy", root / "new_joints" / f"{name}.npy"
     text_path = root / "texts" / f"{name}.txt"
     try:
@@ -111,7 +113,8 @@ def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int, max_
 
     # as in HumanML3D's loader, the whole motion must pass the length filter, sub-clips too
     if bad_length(frames):
-        yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: {motion_path} has {frames}")
+        yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: "
+                         f"{motion_path} has {frames}")
         return
     for (start, end), captions in sorted(spans.items()):
         whole = start == 0.0 and end == 0.0
@@ -155,7 +158,8 @@ def humanml3d_source(
 ) -> SourceItems:
     """Clips (and sub-clips per captioned span) of a HumanML3D folder; see the module docstring."""
     if not input or not Path(input).is_dir():
-        raise UsageError(f"humanml3d: --input must be a HumanML3D folder (with new_joint_vecs/ and texts/), got {input!r}")
+        raise UsageError("humanml3d: --input must be a HumanML3D folder (with new_joint_vecs/ and texts/), "
+                         f"got {input!r}")
     if skeleton.name != "smpl22":
         raise UsageError(f"humanml3d motion is on smpl22, not {skeleton.name!r}; use --skeleton smpl22")
     if abs(fps - FPS) > 1e-6:

@@ -11,7 +11,8 @@ from omg.skeleton import Skeleton
 
 
 @DATA_SOURCES.register("synth")
-def synth_source(input: str | None, skeleton: Skeleton, fps: float, num_clips: int = 100, seed: int = 0) -> Iterator[Clip]:
+def synth_source(input: str | None, skeleton: Skeleton, fps: float, num_clips: int = 100,
+                 seed: int = 0) -> Iterator[Clip]:
     """Procedural humans (smpl22) or quadrupeds (smal35) with template captions, deterministic by seed."""
     from omg.data.synth import synth_clips
 

@@ -1,31 +1,39 @@
-"""``omg shards build|synth|inspect``."""
+"""``omg shards build|synth|inspect``: motion from a registered data source into WebDataset shard
+sets (``build``), the procedural mini data (``synth``), and a set's summary and validation
+(``inspect``). ``build`` is also the library function the commands and tests call."""
 
 from __future__ import annotations
 
-import argparse
-from collections import Counter
 import hashlib
 import inspect
 import math
-import shlex
 import sys
 import types
 import typing
+from collections import Counter
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 import numpy as np
-import yaml
 
-from omg.cli import (ToolParser, check_output_dir, nonneg_float, nonneg_int, positive_float, positive_int,
-                     read_text, removing_created, seed_int)
 from omg.data.shards import ShardWriter, check_shards
 from omg.errors import UsageError
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import get_skeleton
+from omg.tools.args import (
+    Fraction,
+    NonNegativeInt,
+    PositiveFiniteFloat,
+    PositiveInt,
+    Seed,
+    number_type,
+    run_subcommands,
+)
+from omg.tools.common import check_output_dir, removing_created
 
 MAX_FPS = 1000.0
+Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of frames per second in (0, {MAX_FPS:g}]")
 
 # What `omg shards synth` builds by default: the embedded mini data in shards/mini.
 # (subdirectory, skeleton, representation, clips)
@@ -99,19 +107,19 @@ def build(
     if not _is_number(fps) or not 0 < fps <= MAX_FPS:
         raise UsageError(f"--fps must be a number in (0, {MAX_FPS:g}], got {fps!r}")
     if not _is_number(val_fraction) or not 0.0 <= val_fraction < 1.0:
-        raise UsageError(f"--val-fraction must be in [0, 1), got {val_fraction!r}")
+        raise UsageError(f"--val_fraction must be in [0, 1), got {val_fraction!r}")
     if not _is_number(max_clips) or isinstance(max_clips, float) or max_clips < 1:
-        raise UsageError(f"--max-clips must be a positive integer, got {max_clips!r}")
+        raise UsageError(f"--max_clips must be a positive integer, got {max_clips!r}")
     if not _is_number(max_mb) or max_mb * 2**20 < 1:
-        raise UsageError(f"--max-mb must be a positive number of megabytes (at least 1 byte), got {max_mb!r}")
+        raise UsageError(f"--max_mb must be a positive number of megabytes (at least 1 byte), got {max_mb!r}")
     open_source = DATA_SOURCES.get(source)
     options = _check_options(source, open_source, options or {})
     rep = get_representation(representation, get_skeleton(skeleton))
     out = check_output_dir(out)
     if not _is_number(shuffle_buffer) or isinstance(shuffle_buffer, float) or shuffle_buffer < 0:
-        raise UsageError(f"--shuffle-buffer must be an integer >= 0, got {shuffle_buffer!r}")
+        raise UsageError(f"--shuffle_buffer must be an integer >= 0, got {shuffle_buffer!r}")
     if val_where and val_fraction > 0:
-        raise UsageError("give --val-fraction (a random split) or --val-where (a split by label), not both")
+        raise UsageError("give --val_fraction (a random split) or --val_where (a split by label), not both")
     splits = {"train": False, "val": True} if val_fraction > 0 or val_where else {"": False}
     summaries = []
     try:
@@ -126,7 +134,7 @@ def build(
                                      stats=stats)
                 summaries.append(writer.write(items))
     except UnicodeDecodeError as e:  # a text file an option names (a YAML joint map, ...) in another encoding
-        named = [f"--option {k}={v}" for k, v in options.items() if isinstance(v, str) and not _is_utf8_file(v)]
+        named = [f"--option.{k} {v}" for k, v in options.items() if isinstance(v, str) and not _is_utf8_file(v)]
         which = f"{named[0]}: not a UTF-8 text file" if named else "a file is not UTF-8 text"
         raise UsageError(f"{which} ({e.reason} at offset {e.start}); save it as UTF-8") from None
     return summaries
@@ -152,7 +160,7 @@ _KINDS = {int: "an integer", float: "a number", str: "a string", bool: "true or 
 
 
 def _check_options(name: str, source, options: dict) -> dict:
-    """``--option`` keys against the source's parameters, values against their annotations.
+    """``--option.KEY`` keys against the source's parameters, values against their annotations.
 
     Numbers must be finite and >= 0: source options that are numbers count clips or frames, or
     are seeds and sizes."""
@@ -168,18 +176,19 @@ def _check_options(name: str, source, options: dict) -> dict:
     known = [k for k, p in params.items() if k not in RESERVED_OPTIONS and p.kind is not inspect.Parameter.VAR_KEYWORD]
     for key, value in options.items():
         if not isinstance(key, str) or not key.isidentifier():
-            raise UsageError(f"--option {key}={value}: the key must be a name such as num_clips")
+            raise UsageError(f"--option.{key} {value}: the key must be a name such as num_clips")
         if key in RESERVED_OPTIONS:
-            raise UsageError(f"--option {key}=...: give it as {RESERVED_OPTIONS[key]}")
+            raise UsageError(f"--option.{key}: give it as {RESERVED_OPTIONS[key]}")
         if key not in params and not open_ended:
-            raise UsageError(f"--option {key}: the {name} source has no such option; "
+            raise UsageError(f"--option.{key}: the {name} source has no such option; "
                              f"its options: {', '.join(known) or 'none'}")
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and not (math.isfinite(value) and value >= 0):
-            raise UsageError(f"--option {key}={value}: expected a finite number >= 0")
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if number and not (math.isfinite(value) and value >= 0):
+            raise UsageError(f"--option.{key} {value}: expected a finite number >= 0")
         allowed = _allowed_types(hints.get(key))
         if allowed and not _fits(value, allowed):
             kinds = " or ".join(dict.fromkeys(_KINDS[t] for t in allowed))
-            raise UsageError(f"--option {key}={value!r}: the {name} source expects {kinds}")
+            raise UsageError(f"--option.{key} {value!r}: the {name} source expects {kinds}")
     return options
 
 
@@ -202,120 +211,96 @@ def _fits(value, allowed: tuple[type, ...]) -> bool:
     return isinstance(value, tuple(t for t in allowed if t is not int))
 
 
-def _parse_options(pairs: list[str]) -> dict:
-    options = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise UsageError(f"--option {pair!r} must look like key=value")
-        try:
-            options[key.strip().replace("-", "_")] = yaml.safe_load(value)
-        except yaml.YAMLError as e:
-            raise UsageError(f"--option {pair!r}: the value is not valid YAML ({str(e).splitlines()[0]})") from None
-    return options
+def shards_build(
+    source: str,
+    out: Path,
+    input: str | None = None,
+    representation: str = "humanml3d263",
+    skeleton: str = "smpl22",
+    fps: Fps = 30.0,
+    val_fraction: Fraction = 0.0,
+    max_clips: PositiveInt = 1000,
+    max_mb: PositiveFiniteFloat = 256.0,
+    val_where: dict[str, Any] | None = None,
+    shuffle_buffer: NonNegativeInt = 1000,
+    seed: Seed = 0,
+    option: dict[str, Any] | None = None,
+    command: str = "omg shards build",
+) -> list:
+    """Import motion from a registered data source into shards.
 
+    With --val_fraction or --val_where the clips go to out/train and out/val.
 
-def _config_value(config: str, key: str, action: argparse.Action, value):
-    """A value of ``omg shards build --config FILE`` checked as its command-line flag would be."""
-    if action.dest == "option":
-        if value is None:
-            return []
-        if isinstance(value, dict):
-            return value
-        if isinstance(value, list) and all(isinstance(v, str) for v in value):
-            return _parse_options(value)
-        raise UsageError(f"{config}: {key!r} must be a mapping of source options, got {value!r}")
-    if action.dest == "val_where":
-        if isinstance(value, dict) and all(isinstance(v, (str, list)) for v in value.values()):
-            return _parse_val_where([f"{k}={v if isinstance(v, str) else ','.join(map(str, v))}" for k, v in value.items()])
-        raise UsageError(f"{config}: {key!r} must map labels to values, e.g. {{style: [old, proud]}}, got {value!r}")
-    if value is None:
-        return None
-    if action.type is None:
-        if not isinstance(value, str):
-            raise UsageError(f"{config}: {key!r} must be a string, got {value!r}")
-        return value
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        raise UsageError(f"{config}: {key!r} must be a number, got {value!r}")
-    try:
-        return action.type(str(value))
-    except (argparse.ArgumentTypeError, TypeError, ValueError) as e:
-        reason = str(e) if isinstance(e, argparse.ArgumentTypeError) else f"invalid value {value!r}"
-        raise UsageError(f"{config}: {key!r}: {reason}") from None
+    Args:
+        source: the registered data source (omg plugins lists them)
+        out: output directory
+        input: the source's input (a directory or file), if it takes one
+        representation: the motion representation the shards store
+        skeleton: the skeleton the motion is retargeted to
+        fps: frames per second
+        val_fraction: put this share of clips in out/val, the rest in out/train
+        max_clips: clips per shard at most
+        max_mb: megabytes per shard at most
+        val_where: put the clips whose label LABEL is one of the values in out/val (a split by take; every
+            label must match), e.g. --val_where.style old,proud (or a list [old, proud])
+        shuffle_buffer: write clips in a seeded random order through a buffer of this many clips (0: input order)
+        seed: seed of the clip order
+        option: options passed to the source, e.g. --option.num_clips 100 (or a mapping {num_clips: 100})
+        command: the command line, recorded in the manifest
 
-
-def _build_main(argv: list[str]) -> None:
-    p = ToolParser(prog="omg shards build", description="Import motion from a registered data source into shards.")
-    p.add_argument("--config", help="YAML file with any of the options below (command-line values win)")
-    p.add_argument("--source", help=f"data source name ({', '.join(DATA_SOURCES.names())})")
-    p.add_argument("--input", help="the source's input (a directory or file), if it takes one")
-    p.add_argument("--out", help="output directory")
-    p.add_argument("--representation", default="humanml3d263")
-    p.add_argument("--skeleton", default="smpl22")
-    p.add_argument("--fps", type=positive_float, default=30.0, help=f"frames per second, at most {MAX_FPS:g}")
-    p.add_argument("--val-fraction", type=nonneg_float, default=0.0, help="put this share of clips in out/val, the rest in out/train")
-    p.add_argument("--max-clips", type=positive_int, default=1000, help="clips per shard at most")
-    p.add_argument("--max-mb", type=positive_float, default=256.0, help="megabytes per shard at most")
-    p.add_argument("--val-where", action="append", default=[], metavar="LABEL=V1,V2",
-                   help="put the clips whose label LABEL is one of the values in out/val (a split by take; repeatable: all must match)")
-    p.add_argument("--shuffle-buffer", type=nonneg_int, default=1000,
-                   help="write clips in a seeded random order through a buffer of this many clips (0: input order)")
-    p.add_argument("--seed", type=seed_int, default=0, help="seed of the clip order")
-    p.add_argument("--option", action="append", default=[], help="key=value passed to the source (repeatable)")
-    args = p.parse_args(argv)
-    if args.config:
-        try:
-            config = yaml.safe_load(read_text(args.config, "--config"))
-        except yaml.YAMLError as e:
-            raise UsageError(f"--config {args.config}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if not isinstance(config, dict):
-            raise UsageError(f"--config {args.config}: not a YAML mapping file")
-        actions = {a.dest: a for a in p._actions if a.dest not in ("help", "config")}
-        for key, value in config.items():
-            dest = str(key).replace("-", "_")
-            if dest not in actions:
-                raise UsageError(f"{args.config}: unknown key {key!r}; known keys: {', '.join(sorted(actions))}")
-            if getattr(args, dest) == p.get_default(dest):
-                setattr(args, dest, _config_value(args.config, key, actions[dest], value))
-    for required in ("source", "out"):
-        if not getattr(args, required):
-            raise UsageError(f"omg shards build: --{required} is required")
-    options = args.option if isinstance(args.option, dict) else _parse_options(args.option)
-    command = "omg shards build " + shlex.join(argv)
-    val_where = args.val_where if isinstance(args.val_where, dict) else _parse_val_where(args.val_where)
-    for summary in build(args.source, args.out, args.representation, args.skeleton, args.fps, args.input,
-                         args.val_fraction, args.max_clips, args.max_mb, options, command, log=print,
-                         val_where=val_where, shuffle_buffer=args.shuffle_buffer, seed=args.seed):
+    Returns:
+        The build summaries, one per split.
+    """
+    summaries = build(source, out, representation, skeleton, fps, input, val_fraction, max_clips, max_mb, option,
+                      command, log=print, val_where=_val_where(val_where), shuffle_buffer=shuffle_buffer, seed=seed)
+    for summary in summaries:
         print(summary)
+    return summaries
 
 
-def _parse_val_where(pairs: list[str]) -> dict[str, list[str]]:
+def _val_where(val_where: dict[str, Any] | None) -> dict[str, list[str]]:
+    """``--val_where`` as LABEL -> values (labels compare as text); a value given as text may list
+    several, comma-separated."""
     where = {}
-    for pair in pairs:
-        key, sep, values = pair.partition("=")
-        if not sep or not key.strip() or not values.strip():
-            raise UsageError(f"--val-where {pair!r}: expected LABEL=VALUE[,VALUE...], e.g. style=old,proud")
-        where[key.strip()] = [v.strip() for v in values.split(",") if v.strip()]
+    for key, values in (val_where or {}).items():
+        if isinstance(values, dict):
+            raise UsageError(f"--val_where.{key}: expected a value or a list of values, got {values!r}")
+        values = values.split(",") if isinstance(values, str) else values if isinstance(values, list) else [values]
+        where[key] = [str(v).strip() for v in values if str(v).strip()]
+        if not where[key]:
+            raise UsageError(f"--val_where.{key}: give the label values that go to out/val, "
+                             f"e.g. --val_where.{key} old,proud")
     return where
 
 
-def _synth_main(argv: list[str]) -> None:
-    p = ToolParser(prog="omg shards synth", description="Procedural labeled motion (humans on smpl22, quadrupeds on smal35) "
-                   "into shard sets: the embedded mini data.")
-    p.add_argument("--out", default="shards/mini")
-    p.add_argument("--scale", type=positive_float, default=1.0, help="multiply every set's clip count")
-    p.add_argument("--seed", type=seed_int, default=0)
-    p.add_argument("--fps", type=positive_float, default=20.0, help=f"frames per second, at most {MAX_FPS:g}")
-    p.add_argument("--val-fraction", type=nonneg_float, default=0.15)
-    p.add_argument("--max-clips", type=positive_int, default=32, help="clips per shard at most")
-    args = p.parse_args(argv)
-    command = "omg shards synth " + shlex.join(argv)
-    out = check_output_dir(args.out)
+def shards_synth(
+    out: Path = Path("shards/mini"),
+    scale: PositiveFiniteFloat = 1.0,
+    seed: Seed = 0,
+    fps: Fps = 20.0,
+    val_fraction: Fraction = 0.15,
+    max_clips: PositiveInt = 32,
+    command: str = "omg shards synth",
+) -> None:
+    """Generate the procedural mini dataset into shards.
+
+    Labeled humans on smpl22 and quadrupeds on smal35: the embedded mini data in shards/mini.
+
+    Args:
+        out: output directory (one shard set per subfolder)
+        scale: multiply every set's clip count
+        seed: seed of the motion and captions
+        fps: frames per second
+        val_fraction: put this share of clips in the val split
+        max_clips: clips per shard at most
+        command: the command line, recorded in the manifests
+    """
+    out = check_output_dir(out)
     with removing_created(*(out / subdir for subdir, *_ in MINI_SETS)):  # a failed set removes the ones before it
         for subdir, skeleton, representation, clips in MINI_SETS:
-            options = {"num_clips": max(1, round(clips * args.scale)), "seed": args.seed}
-            for summary in build("synth", out / subdir, representation, skeleton, args.fps,
-                                 val_fraction=args.val_fraction, max_clips=args.max_clips, options=options, command=command):
+            options = {"num_clips": max(1, round(clips * scale)), "seed": seed}
+            for summary in build("synth", out / subdir, representation, skeleton, fps,
+                                 val_fraction=val_fraction, max_clips=max_clips, options=options, command=command):
                 print(summary)
 
 
@@ -349,20 +334,23 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
     if not parts:
         return "no captions or labels to report a batch composition for"
     return (f"a batch of {batch_size} through a shuffle buffer of {shuffle_buffer} holds on average: "
-            f"{', '.join(parts)}{'; raise data.shuffle_buffer (or rebuild with --shuffle-buffer)' if unfair else ''}")
+            f"{', '.join(parts)}{'; raise data.shuffle_buffer (or rebuild with --shuffle_buffer)' if unfair else ''}")
 
 
-def _inspect_main(argv: list[str]) -> None:
-    p = ToolParser(prog="omg shards inspect", description="Summarise a shard set, check every shard against its "
-                   "manifest (file, size, sample count, end-of-archive, sha256) and validate every sample. "
-                   "Exits 1 when a shard or sample is bad, 2 when a manifest is missing or invalid.")
-    p.add_argument("dirs", nargs="+", help="shard directories (with manifest.json)")
-    p.add_argument("--batch-size", type=positive_int, default=16, help="batch size of the batch-composition report")
-    p.add_argument("--shuffle-buffer", type=positive_int, default=1000,
-                   help="the training stream's shuffle buffer (data.shuffle_buffer) for that report")
-    args = p.parse_args(argv)
+def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer: PositiveInt = 1000) -> None:
+    """Summarise shard sets and validate every sample.
+
+    Checks every shard against its manifest (file, size, sample count, end-of-archive, sha256)
+    and validates every sample. Exits 1 when a shard or sample is bad, 2 when a manifest is
+    missing or invalid.
+
+    Args:
+        dirs: shard directories (with manifest.json)
+        batch_size: batch size of the batch-composition report
+        shuffle_buffer: the training stream's shuffle buffer (data.shuffle_buffer) for that report
+    """
     failures = []
-    for d in args.dirs:
+    for d in dirs:
         result = check_shards(d)
         print(result.manifest.summary())
         for problem in result.problems:
@@ -376,7 +364,7 @@ def _inspect_main(argv: list[str]) -> None:
         bad_samples = sum(len(s.problems) for s in result.shards)
         print(f"{line}; {result.good} valid samples, {len(result.problems)} problems")
         if not result.failed and result.good:
-            print("  " + batch_composition(d, args.batch_size, args.shuffle_buffer))
+            print("  " + batch_composition(d, batch_size, shuffle_buffer))
         if result.failed or bad_samples:
             what = [f"{len(result.failed)} of {n} shards failed verification"] if result.failed else []
             what += [f"{bad_samples} bad samples"] if bad_samples else []
@@ -389,18 +377,12 @@ def _inspect_main(argv: list[str]) -> None:
         raise SystemExit(1)
 
 
-def shards_main(argv: list[str]) -> None:
-    commands = {"build": _build_main, "synth": _synth_main, "inspect": _inspect_main}
-    if not argv or argv[0] in ("-h", "--help"):
-        print("usage: omg shards {build,synth,inspect} [options]\n\n"
-              "  build    import motion from a registered data source into shards\n"
-              "  synth    generate the procedural mini dataset into shards\n"
-              "  inspect  summarise shard sets and validate every sample")
-        return
-    if argv[0] not in commands:
-        raise UsageError(f"unknown shards command {argv[0]!r}; choose from {', '.join(commands)}")
-    commands[argv[0]](argv[1:])
+COMMANDS = {
+    "build": (shards_build, {}),
+    "synth": (shards_synth, {}),
+    "inspect": (shards_inspect, {"positional": "dirs", "nargs": "+"}),
+}
 
 
-if __name__ == "__main__":
-    shards_main(sys.argv[1:])
+def main(argv: list[str]) -> None:
+    run_subcommands("omg shards", "Build, synthesise and inspect WebDataset motion shards.", COMMANDS, argv)

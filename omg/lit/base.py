@@ -1,0 +1,85 @@
+"""What every omg LightningModule shares: the optimizer and its schedule, weights it does not
+own (frozen text backbones, rebuilt from their own files) kept out of its checkpoints, the class
+recorded in them, and activation checkpointing applied from outside the model code."""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Iterable
+
+import lightning as L
+import torch
+from torch import nn
+from torch.distributed._composable import checkpoint as checkpoint_activations
+
+from omg.motion import DataSpec
+
+
+def warmup_cosine(warmup_steps: int, total_steps: int):
+    """LR multiplier: linear warm-up to 1, then cosine decay to 0 at ``total_steps``."""
+
+    def factor(step: int) -> float:
+        if step < warmup_steps:
+            return (step + 1) / warmup_steps
+        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
+        return 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return factor
+
+
+def checkpoint_each(modules: Iterable[nn.Module]) -> None:
+    """Recompute each module's activations in backward instead of keeping them (torch's
+    composable ``checkpoint``: parameter names and checkpoints stay as they are)."""
+    for module in modules:
+        checkpoint_activations(module)
+
+
+class OmgModule(L.LightningModule):
+    """Base of omg's LightningModules.
+
+    Subclasses list in ``frozen_prefixes`` the state-dict prefixes of submodules built from their
+    own weight files (a text backbone): those are neither saved nor expected on load. They give
+    their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
+    and ``warmup_steps``; the schedule is linear warm-up then cosine decay over the run.
+    """
+
+    frozen_prefixes: tuple[str, ...] = ()
+    lr: float
+    betas: tuple[float, float]
+    weight_decay: float
+    warmup_steps: int
+
+    def save_hyperparameters(self, *args, frame=None, **kwargs) -> None:
+        super().save_hyperparameters(*args, frame=frame or inspect.currentframe().f_back, **kwargs)
+        if isinstance(spec := self.hparams.get("spec"), DataSpec):
+            # plain types (checkpoints load weights-only, loggers write YAML); a second call updates
+            # both the hyper-parameters and the initial copy that loggers record
+            super().save_hyperparameters({"spec": spec.to_dict()})
+
+    def state_dict(self, *args, **kwargs):
+        state = super().state_dict(*args, **kwargs)
+        return {k: v for k, v in state.items() if not k.startswith(self.frozen_prefixes)}
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        missing, unexpected = super().load_state_dict(state_dict, strict=False, assign=assign)
+        missing = [k for k in missing if not k.startswith(self.frozen_prefixes)]
+        if strict and (missing or unexpected):
+            raise RuntimeError(f"checkpoint does not fit {type(self).__name__}: missing {missing[:5]}, "
+                               f"unexpected {unexpected[:5]}")
+        return missing, unexpected
+
+    def optimizer_groups(self) -> list[dict]:
+        """AdamW parameter groups; by default every trainable parameter with ``weight_decay``."""
+        return [{"params": [p for p in self.parameters() if p.requires_grad]}]
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.AdamW(self.optimizer_groups(), lr=self.lr, weight_decay=self.weight_decay,
+                                      betas=tuple(self.betas))
+        total = int(self.trainer.estimated_stepping_batches)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(self.warmup_steps, total))
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # which class to rebuild, also for checkpoints written outside LightningCLI
+        checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"

@@ -1,0 +1,191 @@
+"""``omg export``: BVH files (and GIF previews) of motions: joint positions solved to local
+rotations by IK (``omg.io.export``), or features decoded by their representation first.
+
+A folder written by ``omg generate`` brings its settings (generation.json: skeleton, frame rate,
+representation and the prompts, which become the previews' captions).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from omg.errors import UsageError
+from omg.io.export import EULER_ORDERS, export_motion
+from omg.skeleton import Skeleton, get_skeleton
+from omg.tools.args import PositiveFiniteFloat, run
+from omg.tools.common import check_output_dir, read_text
+
+DEFAULT_FPS = 20.0
+DEFAULT_SKELETON = "smpl22"
+EulerOrder = Literal[EULER_ORDERS]  # type: ignore[valid-type]
+
+
+def export(
+    inputs: list[Path],
+    *,
+    skeleton: str | None = None,
+    fps: PositiveFiniteFloat | None = None,
+    representation: str | None = None,
+    order: EulerOrder = "ZXY",
+    scale: PositiveFiniteFloat = 1.0,
+    preview: bool = True,
+    out: Path | None = None,
+    clean_contacts: bool = False,
+) -> list[dict]:
+    """Write BVH files (and GIF previews) of generated motions.
+
+    Every input is read and checked before anything is written; a failed export leaves none of
+    the files it created.
+
+    Args:
+        inputs: directories (of *.joints.npy, else *.features.npy) or .npy files
+        skeleton: skeleton name (default: generation.json's, else smpl22)
+        fps: frames per second (default: generation.json's, else 20)
+        representation: decode *.features.npy with this representation (e.g. humanml3d263)
+        order: Euler order of the BVH rotation channels
+        scale: BVH units per metre (100 for centimetres)
+        preview: write a GIF preview beside each BVH file
+        out: write the files into this folder (default: beside each input)
+        clean_contacts: pin planted feet (removes foot skating) before IK
+
+    Returns:
+        What was written per input (``export_motion``'s reports).
+    """
+    if representation is not None:
+        from omg.registry import REPRESENTATIONS
+
+        REPRESENTATIONS.get(representation)  # an unknown name is a UsageError naming the known ones
+    if skeleton is not None:
+        get_skeleton(skeleton)
+    out = check_output_dir(out) if out else None
+    jobs = []  # every file is read and checked before anything is written
+    for path in [f for spec in inputs for f in _inputs(spec)]:
+        settings = _settings(path.parent)
+        skel = get_skeleton(skeleton or settings.get("skeleton") or DEFAULT_SKELETON)
+        positions = _load_positions(path, skel, representation or settings.get("representation"))
+        stem = path.with_name(re.sub(r"(\.joints|\.features)?\.npy$", "", path.name))
+        if out:
+            stem = out / stem.name
+        rate = fps or settings.get("fps") or DEFAULT_FPS
+        jobs.append((path, stem, positions, skel, rate, _prompt(settings, stem.name)))
+    extensions = ("bvh", "gif") if preview else ("bvh",)
+    targets = [stem.with_name(f"{stem.name}.{ext}") for _, stem, *_ in jobs for ext in extensions]
+    for target in targets:
+        if target.is_dir():
+            raise UsageError(f"{target}: a folder is in the way of the output file; move it or export elsewhere")
+        if target.parent.exists() and not os.access(target.parent, os.W_OK | os.X_OK):
+            raise UsageError(f"{target.parent}: not writable; copy the motions to a folder you can write to")
+    if len({t for t in targets}) < len(targets):
+        raise UsageError("two inputs have the same name and would be written to the same --out file; export them apart")
+    new = [t for t in targets if not t.exists()]
+    created = out is not None and not out.exists()
+    reports = []
+    try:
+        if created:
+            out.mkdir(parents=True)
+        for path, stem, positions, skel, rate, texts in jobs:
+            start = time.perf_counter()
+            report = export_motion(stem, positions, skel, rate, texts, preview, order, scale, clean_contacts)
+            reports.append(report)
+            written = ", ".join(Path(report[k]).name for k in ("bvh", "gif") if k in report)
+            print(f"{path}: {written} ({report['frames']} frames at {rate:g} fps, IK error "
+                  f"{report['ik_error_m'] * 1000:.3f} mm, {time.perf_counter() - start:.1f} s)")  # fmt: skip
+    except Exception:  # a failed export leaves none of the files it created
+        for target in new:
+            target.unlink(missing_ok=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    return reports
+
+
+def _inputs(spec: str) -> list[Path]:
+    path = Path(spec)
+    if path.is_dir():
+        files = sorted(path.glob("*.joints.npy")) or sorted(path.glob("*.features.npy"))
+        if not files:
+            raise UsageError(f"{path}: no *.joints.npy or *.features.npy files to export")
+        return files
+    if not path.is_file() or path.suffix != ".npy":
+        raise UsageError(f"{path}: not a directory or an existing .npy file")
+    return [path]
+
+
+def _settings(directory: Path) -> dict:
+    """``omg generate``'s generation.json beside the motions, checked; {} when there is none."""
+    path = directory / "generation.json"
+    if not path.exists() and not path.is_symlink():
+        return {}
+    try:
+        settings = json.loads(read_text(path, "settings file"))
+    except json.JSONDecodeError as e:
+        raise UsageError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(settings, dict):
+        raise UsageError(f"{path}: expected a JSON object (omg generate's settings), "
+                         f"got a JSON {type(settings).__name__}")
+    for key in ("skeleton", "representation"):
+        if settings.get(key) is not None and not isinstance(settings[key], str):
+            raise UsageError(f"{path}: {key!r} must be a name, got {settings[key]!r}")
+    fps = settings.get("fps")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float))
+                            or not math.isfinite(fps) or fps <= 0):
+        raise UsageError(f"{path}: 'fps' must be a positive number, got {fps!r}; or pass --fps")
+    prompts = settings.get("prompts")
+    if prompts is not None and not (isinstance(prompts, list) and all(isinstance(p, str) for p in prompts)):
+        raise UsageError(f"{path}: 'prompts' must be a list of strings, got {prompts!r}")
+    num = settings.get("num_samples")
+    if num is not None and (isinstance(num, bool) or not isinstance(num, int) or num < 1):
+        raise UsageError(f"{path}: 'num_samples' must be a positive integer, got {num!r}")
+    return settings
+
+
+def _prompt(settings: dict, stem: str) -> list[str]:
+    """``omg generate`` writes ``num_samples`` motions per prompt, named sample_NNN in order."""
+    prompts, match = settings.get("prompts") or [], re.fullmatch(r"sample_(\d+)", stem)
+    if not prompts or not match:
+        return []
+    index = int(match.group(1)) // max(int(settings.get("num_samples", 1)), 1)
+    return [prompts[index]] if index < len(prompts) else []
+
+
+def _load_positions(path: Path, skeleton: Skeleton, representation: str | None) -> np.ndarray:
+    """(T, J, 3) joint positions from a joints file, or decoded from a features file."""
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise UsageError(f"{path}: cannot read as a .npy array ({e})") from None
+    if not np.issubdtype(array.dtype, np.number):
+        raise UsageError(f"{path}: expected a numeric array, got dtype {array.dtype}")
+    if not np.isfinite(array).all():
+        raise UsageError(f"{path}: contains NaN or inf values")
+    J = skeleton.num_joints
+    if path.name.endswith(".features.npy"):
+        from omg.motion import get_representation
+
+        if representation is None:
+            raise UsageError(f"{path}: a features file needs --representation (e.g. humanml3d263)")
+        try:
+            rep = get_representation(representation, skeleton)
+        except UsageError as e:
+            raise UsageError(f"{path}: {e}") from None
+        if array.ndim != 2 or array.shape[1] != rep.dim or len(array) < 1:
+            raise UsageError(f"{path}: expected features (T, {rep.dim}) for {rep.name}, got shape {array.shape}")
+        return rep.decode(torch.from_numpy(array.astype(np.float32))).numpy()
+    if array.ndim != 3 or array.shape[1:] != (J, 3) or len(array) < 1:
+        raise UsageError(
+            f"{path}: expected joint positions (T, {J}, 3) for skeleton {skeleton.name!r}, got shape {array.shape}"
+        )
+    return array.astype(np.float32)
+
+
+def main(argv: list[str]) -> None:
+    run(export, argv, "omg export", positional="inputs", nargs="+")
