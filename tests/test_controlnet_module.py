@@ -144,6 +144,32 @@ def test_generate_from_text(finetuned, tmp_path, capsys):
         assert e.value.code == 2 and message in capsys.readouterr().err
 
 
+def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
+    """`omg bench quality`: the evaluation protocol at every (sampler, steps), a CSV and a plot."""
+    import csv
+
+    from omg.cli import main
+    from omg.lit.evaluator import EvaluatorModule
+
+    torch.manual_seed(0)
+    evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data().spec)  # untrained: the plumbing
+    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
+                "module_class": "omg.lit.evaluator.EvaluatorModule"}, tmp_path / "evaluator.ckpt")
+    main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),
+          "--val", str(MINI / "val"), "--max_len", "60", "--samplers", "[ddim, dpmpp]", "--steps", "[1, 3]",
+          "--replications", "2", "--num_prompts", "8", "--batch_size", "8", "--out", str(tmp_path / "q")])
+    rows = list(csv.DictReader(open(tmp_path / "q/quality.csv")))
+    assert [(r["sampler"], int(r["steps"])) for r in rows] == [("ddim", 1), ("ddim", 3), ("dpmpp", 1), ("dpmpp", 3)]
+    assert all(float(r["s_per_motion"]) > 0 and np.isfinite(float(r["fid_mean"])) for r in rows)
+    # one step: both samplers return the model's x0 of the same noise, so the same motions and metrics
+    assert float(rows[0]["fid_mean"]) == pytest.approx(float(rows[2]["fid_mean"]), rel=1e-4)
+    assert (tmp_path / "q/quality.png").stat().st_size > 0
+    with pytest.raises(SystemExit):
+        main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),
+              "--val", str(MINI / "val"), "--samplers", "[plms]"])
+    assert "unknown sampler 'plms'" in capsys.readouterr().err
+
+
 def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
     """A few minutes of fine-tuning on the mini data: "walks forward" travels, "jumps in place"
     stays put and bobs up and down (a sanity check of the whole stage, not a quality claim).

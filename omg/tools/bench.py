@@ -561,6 +561,8 @@ def bench_quality(
 
 def plot_quality(rows: list[dict], path: Path, command: str) -> None:
     """FID and R-precision top-3 against steps and against seconds per motion, one line per sampler."""
+    import textwrap
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -580,7 +582,7 @@ def plot_quality(rows: list[dict], path: Path, command: str) -> None:
                 ax.set_ylabel(key.replace("/", " "))
                 ax.grid(True, alpha=0.3)
     axes[0][0].legend()
-    fig.suptitle(command, fontsize=8)
+    fig.suptitle("\n".join(textwrap.wrap(command, 160)), fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100)
