@@ -116,6 +116,15 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     assert not torch.allclose(module.sample(texts, full, seed=1, steps=4, guidance=2.0), prior, atol=1e-3)
     assert module.text_conditional and not PretrainModule.text_conditional
 
+    # bf16 autocast: the network's matmuls in bf16, the sample in float32 and close to the float32 one
+    dtypes = []
+    module.controlnet.base.input_proj.register_forward_hook(lambda m, args, out: dtypes.append(out.dtype))
+    mixed = module.sample(texts, full, seed=1, steps=4, autocast=torch.bfloat16)
+    reference = module.sample(texts, full, seed=1, steps=4)
+    assert dtypes[0] == torch.bfloat16 and dtypes[-1] == torch.float32
+    assert mixed.dtype == torch.float32 and torch.isfinite(mixed).all()
+    assert (mixed - reference).abs().max() < 0.05 * reference.abs().max()
+
     # what depends only on the text runs once per sample() call, what depends on the motion at every step
     calls = {"k": 0, "gate": 0, "eot_affine": 0, "q": 0}
     for moc in module.controlnet.mocs.values():

@@ -203,15 +203,17 @@ class MotionDiffusionModule(OmgModule):
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
     def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
-               guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim") -> Tensor:
+               guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
+               autocast: torch.dtype | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
         generated at its own length (frames beyond it are padding, to be ignored).
 
         ``texts`` (B captions) condition a text-conditional module, guided with scale
         ``guidance`` (default: the module's); None samples the unconditional motion prior.
-        ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler, heun) run for
+        ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
         ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
-        initial noise.
+        initial noise. ``autocast`` (e.g. ``torch.bfloat16``) runs the network under autocast
+        (matmuls and attention in that dtype, the sampler's update in the weights' dtype).
         """
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
@@ -225,14 +227,27 @@ class MotionDiffusionModule(OmgModule):
         with self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext():
             self.eval()
             dtype = next(self.model.parameters()).dtype
-            x = solver(self.diffusion, self.denoiser(texts, mask, guidance), (*mask.shape, self.config.input_dim),
-                       steps=steps, generator=gen, device=self.device, dtype=dtype, mask=mask)
+            denoise = self.denoiser(texts, mask, guidance)
+            if autocast is not None:
+                denoise = autocasting(denoise, self.device.type, autocast)
+            x = solver(self.diffusion, denoise, (*mask.shape, self.config.input_dim), steps=steps, generator=gen,
+                       device=self.device, dtype=dtype, mask=mask)
         self.train(was_training)
         return self.denormalize(x)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
         return lambda x, t: self.model(x, t, mask)
+
+
+def autocasting(denoise: Denoiser, device_type: str, dtype: torch.dtype) -> Denoiser:
+    """``denoise`` run under autocast to ``dtype``, its x̂0 returned in the sampler's dtype."""
+
+    def mixed(x: Tensor, t: Tensor) -> Tensor:
+        with torch.autocast(device_type, dtype=dtype):
+            return denoise(x, t).to(x.dtype)
+
+    return mixed
 
 
 class PretrainModule(MotionDiffusionModule):

@@ -344,7 +344,7 @@ def bench_sample(
     sampler: str = "ddim",
     batch_sizes: tuple[PositiveInt, ...] = (1, 8, 32),
     text_encoder: str = "hash",
-    precision: Literal["fp32", "bf16"] | None = None,
+    precision: Literal["fp32", "bf16-mixed", "bf16"] | None = None,
     token_steps: NonNegativeInt = 0,
     command: str = "omg bench sample",
 ) -> None:
@@ -357,7 +357,8 @@ def bench_sample(
         sampler: a registered sampler (ddim, dpmpp, euler)
         batch_sizes: the batch sizes to try, a list such as [1, 8, 32]
         text_encoder: the registered text encoder; it runs once per batch, and hash keeps it out of the timing
-        precision: fp32 or bf16 (default: bf16 on a GPU, else fp32)
+        precision: fp32; bf16-mixed (fp32 weights, the network under bf16 autocast, as omg generate
+            --autocast bf16); or bf16 (weights cast to bf16). Default: bf16-mixed on a GPU, else fp32
         token_steps: also time this many single guided denoiser steps at the first batch size: text tokens
             padded to CLIP's 77 vs trimmed to the longest caption, and the text-only work (MoC keys, values,
             gates, AdaIN) done at every step vs once per caption (0: skip; with --steps 0: only this)
@@ -376,14 +377,15 @@ def bench_sample(
                          "token padding")
     TEXT_ENCODERS.get(text_encoder)  # an unknown name is a UsageError naming the known ones
     SAMPLERS.get(sampler)
-    precision = precision or ("bf16" if torch.cuda.is_available() else "fp32")
+    precision = precision or ("bf16-mixed" if torch.cuda.is_available() else "fp32")
+    autocast = torch.bfloat16 if precision == "bf16-mixed" else None
 
     spec = unnormalised_spec(263, fps=20.0)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     module = ControlNetModule(base={"flavor": flavor, "dit": None, "spec": spec}, text_encoder=text_encoder)
     module = module.to(device, torch.bfloat16 if precision == "bf16" else torch.float32).eval()
     if token_steps:
-        bench_guided_step(module, flavor, precision, frames, batch_sizes[0], token_steps, device, command)
+        bench_guided_step(module, flavor, precision, frames, batch_sizes[0], token_steps, device, command, autocast)
         if steps == 0:
             return
     print("| flavor | device | precision | sampler | steps | batch | s per batch | s per motion "
@@ -391,12 +393,12 @@ def bench_sample(
           "|---|---|---|---|---|---|---|---|---|---|")
     for batch in batch_sizes:
         prompts = ["a person walks forward and waves"] * batch
-        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler)  # warm-up
+        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast)  # warm-up
         if device == "cuda":
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         start = time.perf_counter()
-        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler)
+        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast)
         if device == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start
@@ -411,7 +413,7 @@ CAPTIONS = ["a person walks forward and waves", "a man jumps in place twice",
 
 
 def bench_guided_step(module, flavor: str, precision: str, frames: int, batch: int, token_steps: int, device: str,
-                      command: str, context: int = 77) -> None:
+                      command: str, autocast=None, context: int = 77) -> None:
     """ms per guided denoiser step (one D_u + D_c pass): the captions' tokens padded to CLIP's
     77-token context vs trimmed to the longest caption of the batch, and the text-only work of the
     MoC blocks (``MotionControlNet.text_terms``) redone at every step vs done once per caption, as
@@ -435,7 +437,7 @@ def bench_guided_step(module, flavor: str, precision: str, frames: int, batch: i
         return lambda: net.forward_guided(x, t, terms, scale)
 
     def ms_per_step(step) -> float:
-        with torch.no_grad():
+        with torch.no_grad(), torch.autocast(device, dtype=autocast or torch.float32, enabled=autocast is not None):
             step()  # warm-up
             if device == "cuda":
                 torch.cuda.synchronize()

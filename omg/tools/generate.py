@@ -10,6 +10,7 @@ in metres, Y up, and ``sample_NNN.bvh`` (rotations solved by IK on the model's s
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -20,6 +21,7 @@ from omg.registry import SAMPLERS
 from omg.tools.args import FiniteFloat, PositiveInt, Seed, number_type, run
 from omg.tools.common import check_output_dir, read_text, removing_created
 
+AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
 MAX_SECONDS = 60.0
 MAX_PREVIEW = 6
 Seconds = number_type("Seconds", float, [(">", 0.0), ("<=", MAX_SECONDS)],
@@ -44,6 +46,7 @@ def generate(
     preview_count: PositiveInt = MAX_PREVIEW,
     clean_contacts: bool = False,
     device: str | None = None,
+    autocast: Literal["bf16", "fp16"] | None = None,
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
@@ -69,6 +72,8 @@ def generate(
         preview_count: motions shown side by side in preview.gif
         clean_contacts: pin planted feet in the BVH files (removes foot skating)
         device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
+        autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
+            update stays in float32)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
@@ -113,6 +118,7 @@ def generate(
         "fps": fps,
         "steps": steps,
         "sampler": sampler,
+        "autocast": autocast,
         "guidance_scale": (guidance if guidance is not None else module.guidance_scale) if prompts
         else None,
         "seed": seed,
@@ -127,8 +133,8 @@ def generate(
         with removing_created(out):
             out.mkdir(parents=True, exist_ok=True)
             settings["samples"], previews = _generate(module, prompts, jobs, frames, fps, out, steps=steps,
-                                                      sampler=sampler, guidance=guidance, seed=seed,
-                                                      batch_size=batch_size,
+                                                      sampler=sampler, autocast=AUTOCAST.get(autocast),
+                                                      guidance=guidance, seed=seed, batch_size=batch_size,
                                                       clean_contacts=clean_contacts, ckpt=ckpt)
             write_json(out / "generation.json", settings)
             if preview:  # the first motions side by side with their captions
@@ -190,8 +196,8 @@ def resolve_device(name: str) -> torch.device:
 
 
 def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, out: Path, *, steps: int,
-              sampler: str, guidance: float | None, seed: int, batch_size: int, clean_contacts: bool,
-              ckpt: Path) -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
+              sampler: str, autocast: torch.dtype | None, guidance: float | None, seed: int, batch_size: int,
+              clean_contacts: bool, ckpt: Path) -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
     """Sample the jobs batch by batch and write each motion's files; the records of the motions, and
     the motions with their captions for the preview."""
     from omg.io.export import export_motion
@@ -201,8 +207,9 @@ def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, o
         batch = jobs[start : start + batch_size]
         batch_seed = seed + start
         texts = [p for p, _ in batch] if prompts else None  # None: the unconditional motion prior
+        # (n, T, D); use_ema=False: load_module has already put the EMA weights in
         features = module.sample(texts, [frames] * len(batch), steps=steps, sampler=sampler, guidance=guidance,
-                                 seed=batch_seed, use_ema=False)  # (n, T, D); the EMA is already loaded
+                                 seed=batch_seed, use_ema=False, autocast=autocast)
         if not torch.isfinite(features).all():
             scale = f" or --guidance {guidance:g} too large" if prompts and guidance is not None else ""
             raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt}){scale}")
