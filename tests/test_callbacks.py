@@ -124,6 +124,8 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     assert dtypes[0] == torch.bfloat16 and dtypes[-1] == torch.float32
     assert mixed.dtype == torch.float32 and torch.isfinite(mixed).all()
     assert (mixed - reference).abs().max() < 0.05 * reference.abs().max()
+    # torch.compile: the same sample, compiled once for these shapes
+    torch.testing.assert_close(module.sample(texts, full, seed=1, steps=4, compile=True), reference, rtol=0, atol=1e-4)
 
     # what depends only on the text runs once per sample() call, what depends on the motion at every step
     calls = {"k": 0, "gate": 0, "eot_affine": 0, "q": 0}

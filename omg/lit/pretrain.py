@@ -204,7 +204,7 @@ class MotionDiffusionModule(OmgModule):
     @torch.no_grad()
     def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
                guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
-               autocast: torch.dtype | None = None) -> Tensor:
+               autocast: torch.dtype | None = None, compile: bool = False) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
         generated at its own length (frames beyond it are padding, to be ignored).
 
@@ -213,7 +213,8 @@ class MotionDiffusionModule(OmgModule):
         ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
         ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
         initial noise. ``autocast`` (e.g. ``torch.bfloat16``) runs the network under autocast
-        (matmuls and attention in that dtype, the sampler's update in the weights' dtype).
+        (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
+        ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
         """
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
@@ -230,6 +231,8 @@ class MotionDiffusionModule(OmgModule):
             denoise = self.denoiser(texts, mask, guidance)
             if autocast is not None:
                 denoise = autocasting(denoise, self.device.type, autocast)
+            if compile:
+                denoise = torch.compile(denoise)
             x = solver(self.diffusion, denoise, (*mask.shape, self.config.input_dim), steps=steps, generator=gen,
                        device=self.device, dtype=dtype, mask=mask)
         self.train(was_training)

@@ -346,6 +346,7 @@ def bench_sample(
     text_encoder: str = "hash",
     precision: Literal["fp32", "bf16-mixed", "bf16"] | None = None,
     token_steps: NonNegativeInt = 0,
+    compile: bool = False,
     command: str = "omg bench sample",
 ) -> None:
     """Seconds per motion of guided sampling (frozen DiT + ControlNet).
@@ -362,6 +363,7 @@ def bench_sample(
         token_steps: also time this many single guided denoiser steps at the first batch size: text tokens
             padded to CLIP's 77 vs trimmed to the longest caption, and the text-only work (MoC keys, values,
             gates, AdaIN) done at every step vs once per caption (0: skip; with --steps 0: only this)
+        compile: sample through torch.compile (compiled during the warm-up, not timed)
         command: the command line, printed with the results
     """
     import torch
@@ -393,12 +395,13 @@ def bench_sample(
           "|---|---|---|---|---|---|---|---|---|---|")
     for batch in batch_sizes:
         prompts = ["a person walks forward and waves"] * batch
-        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast)  # warm-up
+        # warm-up (and compilation): the same shapes as the timed run
+        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast, compile=compile)
         if device == "cuda":
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         start = time.perf_counter()
-        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast)
+        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast, compile=compile)
         if device == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start

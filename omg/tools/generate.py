@@ -47,6 +47,7 @@ def generate(
     clean_contacts: bool = False,
     device: str | None = None,
     autocast: Literal["bf16", "fp16"] | None = None,
+    compile: bool = False,
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
@@ -74,6 +75,7 @@ def generate(
         device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
+        compile: run the network through torch.compile (a one-off compilation, then faster steps)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
@@ -119,6 +121,7 @@ def generate(
         "steps": steps,
         "sampler": sampler,
         "autocast": autocast,
+        "compile": compile,
         "guidance_scale": (guidance if guidance is not None else module.guidance_scale) if prompts
         else None,
         "seed": seed,
@@ -133,7 +136,7 @@ def generate(
         with removing_created(out):
             out.mkdir(parents=True, exist_ok=True)
             settings["samples"], previews = _generate(module, prompts, jobs, frames, fps, out, steps=steps,
-                                                      sampler=sampler, autocast=AUTOCAST.get(autocast),
+                                                      sampler=sampler, autocast=AUTOCAST.get(autocast), compile=compile,
                                                       guidance=guidance, seed=seed, batch_size=batch_size,
                                                       clean_contacts=clean_contacts, ckpt=ckpt)
             write_json(out / "generation.json", settings)
@@ -196,7 +199,8 @@ def resolve_device(name: str) -> torch.device:
 
 
 def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, out: Path, *, steps: int,
-              sampler: str, autocast: torch.dtype | None, guidance: float | None, seed: int, batch_size: int,
+              sampler: str, autocast: torch.dtype | None, compile: bool, guidance: float | None, seed: int,
+              batch_size: int,
               clean_contacts: bool, ckpt: Path) -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
     """Sample the jobs batch by batch and write each motion's files; the records of the motions, and
     the motions with their captions for the preview."""
@@ -209,7 +213,7 @@ def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, o
         texts = [p for p, _ in batch] if prompts else None  # None: the unconditional motion prior
         # (n, T, D); use_ema=False: load_module has already put the EMA weights in
         features = module.sample(texts, [frames] * len(batch), steps=steps, sampler=sampler, guidance=guidance,
-                                 seed=batch_seed, use_ema=False, autocast=autocast)
+                                 seed=batch_seed, use_ema=False, autocast=autocast, compile=compile)
         if not torch.isfinite(features).all():
             scale = f" or --guidance {guidance:g} too large" if prompts and guidance is not None else ""
             raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt}){scale}")
