@@ -53,6 +53,9 @@ def _scheduler_loop(scheduler, diffusion: Diffusion, denoise: Denoiser, shape, s
         device = mask.device
     keep = None if mask is None else mask[..., None].to(device=device, dtype=dtype)  # (B, T, 1)
     scheduler.set_timesteps(steps, device=device)
+    # the step index then counts up from 0: diffusers would otherwise find it by comparing device
+    # tensors (a host synchronisation); no other read of a device value happens in the loop
+    scheduler.set_begin_index(0)
     noise = torch.randn(shape, generator=generator, device=device, dtype=dtype)  # the same x_T as ddim
     x = noise * scheduler.init_noise_sigma
     for t in scheduler.timesteps:

@@ -89,3 +89,17 @@ def test_padded_frames_stay_zero(diffusion, name):
     mask = torch.arange(8)[None] < torch.tensor([[8], [5], [2]])
     out = run(name, diffusion, gaussian_denoiser(diffusion), steps=6, mask=mask)
     assert torch.equal(out[~mask], torch.zeros_like(out[~mask])) and out[mask].abs().min() > 0
+
+
+@pytest.mark.parametrize("name", ["dpmpp", "euler"])
+def test_diffusers_loop_never_looks_its_step_up_on_the_device(diffusion, name, monkeypatch):
+    """diffusers finds its step index by comparing device tensors (a host synchronisation on a
+    GPU) unless told where it begins: the loop tells it, so the lookup never runs."""
+    import diffusers
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the step index was looked up")
+
+    for cls in (diffusers.DPMSolverMultistepScheduler, diffusers.EulerDiscreteScheduler):
+        monkeypatch.setattr(cls, "index_for_timestep", refuse)
+    assert torch.isfinite(run(name, diffusion, gaussian_denoiser(diffusion), steps=8)).all()
