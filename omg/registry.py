@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib
 import inspect
 from importlib.metadata import entry_points
+from pathlib import Path, PurePath
 from typing import Any, Iterator, TypeVar
 
 from omg.errors import UsageError
@@ -87,6 +88,12 @@ class Registry:
 
     def describe(self, name: str) -> str:
         obj = self.get(name)
+        if isinstance(obj, PurePath):  # a data file (joint maps): its first comment line, or its path
+            try:
+                first = Path(obj).read_text().splitlines()[0]
+            except (OSError, IndexError, UnicodeDecodeError):
+                first = ""
+            return first.lstrip("# ").strip() if first.startswith("#") else str(obj)
         doc = inspect.getdoc(obj) or ""
         return doc.splitlines()[0] if doc else _where(obj)
 

@@ -167,6 +167,8 @@ def test_all_holds_the_seven_registries():
     assert all(isinstance(r, Registry) for r in ALL.values())
     assert len({id(r) for r in ALL.values()}) == 7
     assert ALL["skeletons"] is registry.SKELETONS and ALL["joint_maps"] is registry.JOINT_MAPS
+    # a data-file entry is described by its first comment line (`omg plugins`)
+    assert registry.JOINT_MAPS.describe("bandai") == "Bandai-Namco Research Motion dataset BVH rig"
     for title in ALL:
         assert title.upper() in registry.__all__ and getattr(registry, title.upper()) is ALL[title]
 
