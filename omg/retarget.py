@@ -11,7 +11,8 @@ A joint map says which source joint each target joint sits on. It is a YAML file
       ...
 
 The built-in maps are such files in ``omg/joint_maps/`` (the Bandai-Namco BVH rig, CMU's rigs:
-cgspeed BVH in both namings and ASF/AMC, the DeepMimic humanoid -> smpl22; the MANN dog BVH
+cgspeed BVH in both namings and ASF/AMC, LaFAN1, 100STYLE, Mixamo-named rigs (``mixamorig:*``),
+the DeepMimic humanoid -> smpl22; the MANN dog BVH
 and the DeepMimic dog -> smal35), registered in ``omg.registry.JOINT_MAPS`` by name; a plugin
 registers its own the same way (``JOINT_MAPS.register("my_rig", path_or_JointMap)``). Without
 a map, the registered one whose source joints are all present is picked.
