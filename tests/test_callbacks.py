@@ -127,6 +127,13 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     # torch.compile: the same sample, compiled once for these shapes
     torch.testing.assert_close(module.sample(texts, full, seed=1, steps=4, compile=True), reference, rtol=0, atol=1e-4)
 
+    # sample() switches to eval mode and gives every submodule its own mode back (the frozen prior stays in eval)
+    module.train()
+    modes = {name: m.training for name, m in module.named_modules()}
+    module.sample(texts, full, seed=1, steps=2)
+    assert {name: m.training for name, m in module.named_modules()} == modes and not module.controlnet.base.training
+    module.eval()
+
     # what depends only on the text runs once per sample() call, what depends on the motion at every step
     calls = {"k": 0, "gate": 0, "eot_affine": 0, "q": 0}
     for moc in module.controlnet.mocs.values():

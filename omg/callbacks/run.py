@@ -15,6 +15,8 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from omg.lit.base import modes_restored
+
 
 def run_dir(trainer: L.Trainer) -> Path:
     """The versioned directory of this run: the CSV/TensorBoard logger's ``version_N``, the
@@ -43,14 +45,9 @@ def log_scalars(trainer: L.Trainer, values: dict[str, float]) -> None:
 def sampling(module: L.LightningModule) -> Iterator[None]:
     """Sample from ``module`` mid-training: every submodule's train/eval mode and the global RNG
     states are restored afterwards, so training goes on exactly as without the callback."""
-    modes = {m: m.training for m in module.modules()}
     devices = [module.device] if module.device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices), torch.no_grad():
-        try:
-            yield
-        finally:
-            for m, training in modes.items():
-                m.train(training)
+    with torch.random.fork_rng(devices=devices), torch.no_grad(), modes_restored(module):
+        yield
 
 
 class InterruptCheckpoint(Callback):

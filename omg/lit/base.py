@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 
 import lightning as L
 import torch
@@ -33,6 +34,18 @@ def checkpoint_each(modules: Iterable[nn.Module]) -> None:
     composable ``checkpoint``: parameter names and checkpoints stay as they are)."""
     for module in modules:
         checkpoint_activations(module)
+
+
+@contextmanager
+def modes_restored(module: nn.Module) -> Iterator[None]:
+    """Every submodule's train/eval mode as it was when the block began, whatever the block set
+    (frozen parts stay in eval mode, a training run goes on in train mode)."""
+    modes = {m: m.training for m in module.modules()}
+    try:
+        yield
+    finally:
+        for m, training in modes.items():
+            m.train(training)
 
 
 class OmgModule(L.LightningModule):

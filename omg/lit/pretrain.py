@@ -19,7 +19,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, checkpoint_each
+from omg.lit.base import OmgModule, checkpoint_each, modes_restored
 from omg.lit.ema import EMA
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
@@ -224,8 +224,8 @@ class MotionDiffusionModule(OmgModule):
         solver = SAMPLERS.get(sampler)
         gen = torch.Generator(device=self.device).manual_seed(seed)
         trained = self.trainable_module()
-        was_training = self.training
-        with self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext():
+        weights = self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext()
+        with modes_restored(self), weights:
             self.eval()
             dtype = next(self.model.parameters()).dtype
             denoise = self.denoiser(texts, mask, guidance)
@@ -235,7 +235,6 @@ class MotionDiffusionModule(OmgModule):
                 denoise = torch.compile(denoise)
             x = solver(self.diffusion, denoise, (*mask.shape, self.config.input_dim), steps=steps, generator=gen,
                        device=self.device, dtype=dtype, mask=mask)
-        self.train(was_training)
         return self.denormalize(x)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:

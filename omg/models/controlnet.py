@@ -51,7 +51,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import torch
@@ -249,8 +249,8 @@ class MoCBlock(nn.Module):
             return text
         omega = self.gates(tokens)  # (B, L, K)
         if not fold_biases:
-            return MoCText(text_mask, text.keys, text.values, scale, shift, omega)
-        return MoCText(text_mask, text.keys, text.values, scale, shift, omega, omega @ self.b1, omega @ self.b2)
+            return replace(text, omega=omega)
+        return replace(text, omega=omega, omega_b1=omega @ self.b1, omega_b2=omega @ self.b2)
 
     def attend(self, f: Tensor, text: MoCText) -> tuple[Tensor, Tensor]:
         """f (B, T, d_c) -> (f + A V (B, T, d_c), A (B, T, L)).

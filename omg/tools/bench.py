@@ -539,7 +539,7 @@ def bench_quality(
                 return motion
 
             runs = [evaluate(generate, model, prompt_set(samples, num_prompts, seed + r, windows), metrics, seed=seed,
-                             replication=r, spec=data.spec, settings=None) for r in range(replications)]
+                             replication=r, spec=data.spec) for r in range(replications)]
             summary = summarize(runs)
             row = {"sampler": name, "steps": n, "s_per_motion": seconds / motions}
             for key in ("fid", "r_precision/top1", "r_precision/top3"):
