@@ -314,6 +314,9 @@ class ShardWriter:
             "mean": mean.tolist(),
             "std": std.tolist(),
             "stats_origin": "source" if self.stats else "measured",
+            # the raw per-feature sums behind a measured mean/std: sets (merged parts, mixtures)
+            # pool these, since a finalized std (e.g. humanml3d263's group average) cannot be pooled
+            "sums": stats.to_json(),
             "command": self.command,
         }
         write_json(self.out_dir / MANIFEST, manifest)
@@ -353,6 +356,12 @@ def _manifest_problem(data) -> str | None:
             return f"{key!r} has {len(values)} values, 'feature_dim' is {data['feature_dim']}"
         if not np.isfinite(values).all() or (key == "std" and min(values) <= 0):
             return f"{key!r} must be {'positive and ' if key == 'std' else ''}finite"
+    if "sums" in data:
+        sums = data["sums"]
+        if not (isinstance(sums, dict) and _is_int(sums.get("count")) and sums["count"] >= 0
+                and all(isinstance(sums.get(k), list) and len(sums[k]) == data["feature_dim"]
+                        and all(_is_number(v) for v in sums[k]) for k in ("total", "total_sq"))):
+            return "'sums' must be {count, total, total_sq} with 'feature_dim' values each"
     for key in ("num_clips", "num_frames", "num_shards"):
         if key in data and (not _is_int(data[key]) or data[key] < 0):
             return f"{key!r} must be a non-negative integer, got {data[key]!r}"
@@ -447,6 +456,12 @@ class Manifest:
     @property
     def std(self) -> np.ndarray:
         return np.asarray(self.data["std"], dtype=np.float32)
+
+    @property
+    def sums(self) -> FeatureStats | None:
+        """The raw per-feature sums of the set's frames (None in manifests written before omg
+        recorded them): what pooled statistics of several sets are computed from."""
+        return FeatureStats.from_json(self.data["sums"]) if "sums" in self.data else None
 
     def __getitem__(self, key: str):
         return self.data[key]
