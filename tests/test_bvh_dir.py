@@ -10,6 +10,7 @@ import pytest
 
 from conftest import TINY_BVH
 from omg.cli import main
+from omg.data.shards import resolved
 from omg.data.sources.bvh_dir import SkippedClip, bvh_dir_source
 from omg.errors import UsageError
 from omg.motion import Clip
@@ -69,7 +70,7 @@ def folder(shared_motion, tmp_path) -> Path:
 
 def _run(folder: Path, skeleton=SMPL22, **options) -> tuple[dict[str, Clip], list[str]]:
     clips, errors = {}, []
-    for item in bvh_dir_source(str(folder), skeleton, 20.0, **options):
+    for item in resolved(bvh_dir_source(str(folder), skeleton, 20.0, **options)):  # read the lazy items
         if isinstance(item, Clip):
             clips[item.id] = item
         elif item is not None:

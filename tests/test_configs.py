@@ -21,6 +21,19 @@ FAKE_SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 30.0
              "mean": [0.0] * 263, "std": [1.0] * 263}
 
 
+QUATVEL_SPEC = {"representation": "quatvel", "skeleton": "smal35", "fps": 20.0, "feature_dim": 245,
+                "mean": [0.0] * 245, "std": [1.0] * 245}
+# a habit prior config's run directory -> the stage-1 config whose checkpoint it reads
+PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
+                "runs/mini_habit_prior": REPO / "configs/mini/habit_vqvae.yaml",
+                "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml"}
+
+
+def maa_spec(skeleton: str, dim: int) -> dict:
+    return {"representation": "maa", "skeleton": skeleton, "fps": 20.0, "feature_dim": dim, "mean": [0.0] * dim,
+            "std": [1.0] * dim}
+
+
 def parse(path: Path):
     parser = LightningArgumentParser(exit_on_error=False)
     parser.add_argument("--config", action=ActionConfigFile)
@@ -28,7 +41,9 @@ def parse(path: Path):
     parser.add_lightning_class_args(L.Trainer, "trainer")
     parser.add_lightning_class_args(L.LightningModule, "model", subclass_mode=True)
     parser.add_lightning_class_args(MotionDataModule, "data")
-    return parser.parse_args(["--config", str(path)])
+    # a data-only config (configs/data/) follows a model config, as `omg fit --config A --config B` composes them
+    model = ["--config", str(REPO / "configs/pretrain_base.yaml")] if path.parent.name == "data" else []
+    return parser.parse_args([*model, "--config", str(path)])
 
 
 def build_model_on_meta(cfg, flavor: str = "mini"):
@@ -37,6 +52,17 @@ def build_model_on_meta(cfg, flavor: str = "mini"):
     init = {**cfg.model.init_args.as_dict(), "spec": FAKE_SPEC}
     if cls_name == "ControlNetModule":  # no pretrained checkpoint or CLIP weights here: describe the base, hash text
         init.update(base={"flavor": flavor, "dit": None, "spec": FAKE_SPEC}, text_encoder="hash", text_encoder_args={})
+    if cls_name == "OmniMotionModule":  # maa on both skeletons; no shards or CLIP weights here: hash text
+        init.update(spec=maa_spec("smal35", 216), human_spec=maa_spec("smpl22", 138), text_encoder="hash",
+                    text_encoder_args={})
+    if cls_name == "HabitVQModule":  # habit transfer reads quatvel on SMAL-35
+        init["spec"] = QUATVEL_SPEC
+    if cls_name == "HabitPriorModule":  # its VQ-VAE checkpoint is not here: the flows of the matching stage-1 config
+        from omg.models.habit import CategoryFlows
+
+        vq = build_model_on_meta(parse(PRIOR_STAGE1[cfg.trainer.default_root_dir]))
+        with torch.device("meta"):
+            return CategoryFlows(len(vq.categories), vq.config)
     with torch.device("meta"):
         return cls(**init)
 

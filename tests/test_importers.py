@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import JointPositions, walking_clip
 from omg.cli import main
-from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar
+from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar, resolved
 from omg.errors import UsageError
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
@@ -319,7 +319,7 @@ def amass_root(tmp_path_factory) -> Path:
 
 
 def _amass(root, fps=20.0, **options):
-    return DATA_SOURCES.get("amass")(input=str(root / "data"), skeleton=SMPL22, fps=fps, **options)
+    return resolved(DATA_SOURCES.get("amass")(input=str(root / "data"), skeleton=SMPL22, fps=fps, **options))
 
 
 def test_amass_joints_match_independent_fk(amass_root):

@@ -15,18 +15,26 @@ The recipe that is safe under DDP:
 The stream is a pure function of (seed, rank, worker, epoch), and the loader is stateful:
 Lightning saves its (epoch, batches) position in checkpoints, and a resumed run replays the
 epoch up to that point and goes on with the same batches it would have seen.
+
+``data.train`` may be a weighted mixture of shard sets (``omg.data.mixture``): each rank splits
+every set's shards, and each sample is drawn from set k with probability share_k from that
+set's own shuffle buffer; the set draws are part of the same seeded stream, so the mixture's
+position is the loader's (epoch, batches) position, saved with the sets, their shares and the
+samples drawn from each in the epoch. Its normalisation is pooled from the sets (``spec``).
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
-from typing import Callable, Iterator
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
 
 import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
+from omg.data.mixture import load_mixture
 from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
 from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, pick_text
 from omg.errors import UsageError
@@ -39,38 +47,19 @@ class TooManyBadSamples(RuntimeError):
     pass
 
 
-def resolve_shards(spec: str | list[str]) -> tuple[list[str], Manifest, dict[str, dict]]:
-    """Shard directories or URL patterns -> (sorted shard urls, the manifest of the set, and by
-    url what its manifest records about each shard: the ``iter_tar`` keyword arguments that
-    verify it as it is read).
+def resolve_shards(spec, what: str = "data.train") -> tuple[list[str], Manifest, dict[str, dict]]:
+    """Shard sets (directories, URL patterns, set URLs, or ``{path, weight}`` entries, whose weights
+    are ignored here) -> (sorted shard urls, the first set's manifest, and by url what its manifest
+    records about each shard: the ``iter_tar`` keyword arguments that verify it as it is read).
 
     A directory lists its shards in its manifest; a pattern such as
     ``/data/h3d/shard-{000000..000127}.tar`` is brace-expanded and its manifest is read from
-    the directory of the first shard.
+    the directory of the first shard; see ``omg.data.mixture`` for URLs.
     """
-    import braceexpand
-
-    specs = [spec] if isinstance(spec, str) else list(spec)
-    if not specs:
-        raise UsageError("no shards given: set data.train to a shard directory or URL pattern")
-    checks, manifests = {}, []
-    for s in specs:
-        if Path(s).is_dir():
-            m = Manifest.load(s)
-            urls = [str(p) for p in m.shard_paths]
-        else:
-            urls = list(braceexpand.braceexpand(s))
-            first = urls[0]
-            if "://" not in first and not first.startswith("pipe:") and not Path(first).exists():
-                raise UsageError(f"shards {s!r}: no such directory or file; "
-                                 "build them with `omg shards build` or `omg shards synth`")
-            m = Manifest.load(Path(first.split("://")[-1]).parent)
-        checks.update({url: m.expected(url) for url in urls})
-        manifests.append(m)
-    first = manifests[0]
-    for m in manifests[1:]:
-        first.spec().check_compatible(m.spec(), f"shard set {first.dir}", f"shard set {m.dir}")
-    return sorted(checks), first, checks
+    if not spec:
+        raise UsageError(f"no shards given: set {what} to a shard directory or URL pattern")
+    mixture = load_mixture(spec, what)
+    return mixture.urls, mixture.manifest, mixture.checks
 
 
 def read_shard(url: str, expected: dict | None) -> Iterator[dict[str, bytes]]:
@@ -86,11 +75,11 @@ def shard_problem(error: Exception) -> str:
     return f"unreadable ({type(error).__name__}: {error})"
 
 
-def rank_shards(urls: list[str], rank: int, world_size: int) -> list[str]:
+def rank_shards(urls: list[str], rank: int, world_size: int, name: str = "") -> list[str]:
     """Rank r's disjoint share of the shards (every world_size-th, starting at r)."""
     if len(urls) < world_size:
         raise UsageError(
-            f"{len(urls)} shards cannot be split disjointly across {world_size} ranks; "
+            f"{len(urls)} shards{f' of {name}' if name else ''} cannot be split disjointly across {world_size} ranks; "
             "rebuild with a smaller shard size (--max_clips) so there are at least as many shards as ranks"
         )
     return urls[rank::world_size]
@@ -101,6 +90,17 @@ def worker_share(total: int, worker: int, num_workers: int) -> int:
     return total // num_workers + (worker < total % num_workers)
 
 
+@dataclass(frozen=True)
+class StreamSet:
+    """One shard set of a mixed stream: this rank's shards of it, its share of the samples, and
+    its mean clip length (for ``WindowSampler.visits``)."""
+
+    urls: list[str]
+    share: float = 1.0
+    mean_frames: float | None = None
+    name: str = ""
+
+
 class MotionStream(IterableDataset):
     """Endless resampled shards -> shuffle buffer -> training samples cut by ``windows``.
 
@@ -109,6 +109,12 @@ class MotionStream(IterableDataset):
     ``mean_frames`` (the set's mean clip length), a clip read from a shard stays in the buffer
     for as many windows as ``WindowSampler.visits`` gives it, so long takes contribute in
     proportion to their frames and their windows are spread over many batches.
+
+    ``sets`` (a mixture; ``urls`` and ``mean_frames`` then unused): each sample comes from set k
+    with probability ``share`` k, drawn from the same seeded generator, out of the set's own
+    shuffle buffer of ``ceil(share * shuffle_buffer)`` samples: a sample then waits in its buffer
+    about as many draws as in a single set's, and the buffers together hold ``shuffle_buffer``.
+    Mixed samples carry ``shard_set``, the index of their set.
     """
 
     def __init__(
@@ -124,7 +130,11 @@ class MotionStream(IterableDataset):
         max_bad_fraction: float = 0.01,
         mean_frames: float | None = None,
         checks: dict[str, dict] | None = None,
+        sets: list[StreamSet] | None = None,
     ):
+        self.sets = sets or [StreamSet(urls, 1.0, mean_frames)]
+        if sets:
+            urls = [url for s in sets for url in s.urls]
         self.urls, self.rank, self.checks = urls, rank, checks or {}
         self.batches, self.batch_size = batches, batch_size
         self.windows, self.feature_dim = windows, feature_dim
@@ -135,11 +145,13 @@ class MotionStream(IterableDataset):
     def __len__(self) -> int:
         return self.batches * self.batch_size
 
-    def _samples(self, rng: np.random.Generator) -> Iterator[dict]:
-        """Decoded samples from shards drawn at random, forever; bad ones are counted and skipped."""
+    def _samples(self, rng: np.random.Generator, urls: list[str] | None = None) -> Iterator[dict]:
+        """Decoded samples from shards drawn at random from ``urls`` (all the stream's by default),
+        forever; bad ones are counted and skipped."""
+        urls = self.urls if urls is None else urls
         seen = bad = 0
         while True:
-            url = self.urls[int(rng.integers(len(self.urls)))]
+            url = urls[int(rng.integers(len(urls)))]
             expected = self.checks.get(url)
             try:
                 for raw in read_shard(url, expected):
@@ -172,13 +184,30 @@ class MotionStream(IterableDataset):
         rng = np.random.default_rng([self.seed, self.rank, worker, self.epoch])
         to_yield = worker_share(self.batches, worker, num_workers) * self.batch_size
         to_skip = worker_share(self.skip_batches, worker, num_workers) * self.batch_size
-        buffer: list[list] = []  # [sample, samples it still yields]
-        samples = self._samples(rng)
+        single = len(self.sets) == 1
+        sources = [self._set_items(rng, index, single) for index in range(len(self.sets))]
+        bounds = np.cumsum([s.share for s in self.sets])
+        bounds /= bounds[-1]
         produced = 0
         while produced < to_yield:
-            while len(buffer) < self.shuffle_buffer:
+            k = 0 if single else min(int(np.searchsorted(bounds, rng.random(), side="right")), len(bounds) - 1)
+            item = next(sources[k])
+            produced += 1
+            if produced > to_skip:
+                yield item
+
+    def _set_items(self, rng: np.random.Generator, index: int, single: bool) -> Iterator[dict]:
+        """Training items of set ``index``, forever: its samples through its shuffle buffer, each
+        kept for as many windows as it visits."""
+        stream_set = self.sets[index]
+        # a single set reads through self._samples(rng): the stream of omg before mixtures, draw for draw
+        samples = self._samples(rng) if single else self._samples(rng, stream_set.urls)
+        size = self.shuffle_buffer if single else max(1, math.ceil(stream_set.share * self.shuffle_buffer))
+        buffer: list[list] = []  # [sample, samples it still yields]
+        while True:
+            while len(buffer) < size:
                 sample = next(samples)
-                if visits := self.windows.visits(len(sample["motion"]), self.mean_frames, rng):
+                if visits := self.windows.visits(len(sample["motion"]), stream_set.mean_frames, rng):
                     buffer.append([sample, visits])
             i = int(rng.integers(len(buffer)))
             entry = buffer[i]
@@ -188,27 +217,32 @@ class MotionStream(IterableDataset):
                 buffer.pop()
             sample = entry[0]
             start, length = self.windows(len(sample["motion"]), rng)
-            text = pick_text(sample["texts"], rng)
-            produced += 1
-            if produced > to_skip:
-                yield make_item(sample, start, length, text)
+            item = make_item(sample, start, length, pick_text(sample["texts"], rng))
+            if not single:
+                item["shard_set"] = index
+            yield item
 
 
 class StreamLoader(DataLoader):
     """A DataLoader over a ``MotionStream`` that knows its position in the stream.
 
-    The position is (epoch, batches yielded in it). The epoch is the trainer's (``epoch_fn``):
+    The position is (epoch, batches yielded in it), and for a mixture the sets, their shares and
+    the samples drawn from each in the epoch (``mixture``). The epoch is the trainer's (``epoch_fn``):
     Lightning ends epochs by batch count and never runs the iterator dry, so a count of
     exhausted iterators would replay epoch 0 forever. Without a trainer each ``iter()`` is the
     next epoch. Lightning saves ``state_dict()`` in checkpoints and calls ``load_state_dict()``
     on resume: the saved epoch's remaining batches are then yielded, and nothing is skipped when
     the trainer resumes into a later epoch (a checkpoint written at an epoch's last batch).
+    A mixture that differs from the saved one (sets or shares changed) cannot continue exactly:
+    a warning says so and the new mixture's stream goes on from the saved position.
     """
 
     def __init__(self, dataset: MotionStream, epoch_fn: Callable[[], int] | None = None, **kwargs):
         super().__init__(dataset, batch_size=dataset.batch_size, **kwargs)
         self.epoch_fn = epoch_fn
         self.epoch, self.batches_done = -1, 0  # nothing yielded yet
+        self.mixed = len(dataset.sets) > 1
+        self.drawn = [0] * len(dataset.sets)  # samples from each set in this epoch
         self._resume: dict | None = None
 
     def __len__(self) -> int:
@@ -217,23 +251,52 @@ class StreamLoader(DataLoader):
     def __iter__(self):
         epoch = self.epoch_fn() if self.epoch_fn is not None else self.epoch + 1
         resume, self._resume = self._resume, None
-        skip = resume["batches_done"] if resume is not None and resume["epoch"] == epoch else 0
+        resumed = resume is not None and resume["epoch"] == epoch
+        skip = resume["batches_done"] if resumed else 0
         self.epoch, self.batches_done = epoch, skip
+        self.drawn = list(resume["drawn"]) if resumed and resume.get("drawn") else [0] * len(self.dataset.sets)
         self.dataset.epoch, self.dataset.skip_batches = epoch, skip
         for batch in super().__iter__():
             self.batches_done += 1
+            if self.mixed:
+                for k in batch["shard_set"].tolist():
+                    self.drawn[k] += 1
             yield batch
 
+    def mixture_state(self) -> dict:
+        sets = self.dataset.sets
+        return {"sets": [s.name for s in sets], "shares": [s.share for s in sets], "drawn": list(self.drawn)}
+
     def state_dict(self) -> dict:
-        return {"epoch": self.epoch, "batches_done": self.batches_done}
+        state = {"epoch": self.epoch, "batches_done": self.batches_done}
+        if self.mixed:
+            state["mixture"] = self.mixture_state()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         epoch, done = int(state["epoch"]), int(state["batches_done"])
+        drawn = None
+        saved, mine = state.get("mixture"), self.mixture_state() if self.mixed else None
+        if saved is not None or mine is not None:
+            same = (saved is not None and mine is not None and saved["sets"] == mine["sets"]
+                    and np.allclose(saved["shares"], mine["shares"], rtol=0, atol=1e-12))
+            if same:
+                drawn = [int(n) for n in saved["drawn"]]
+            else:
+                log.warning("data.train is not the mixture the checkpoint was trained on (%s, now %s): the stream "
+                            "cannot continue exactly; the new one goes on from epoch %d, batch %d",
+                            _mixture_text(saved), _mixture_text(mine), epoch, done)
         if done >= self.dataset.batches:  # that epoch is complete: resume at the next one's start
-            epoch, done = epoch + 1, 0
-        self._resume = {"epoch": epoch, "batches_done": done}
+            epoch, done, drawn = epoch + 1, 0, None
+        self._resume = {"epoch": epoch, "batches_done": done, "drawn": drawn}
         if self.epoch_fn is None:
             self.epoch = epoch - 1
+
+
+def _mixture_text(state: dict | None) -> str:
+    if state is None:
+        return "a single set"
+    return ", ".join(f"{name} {100 * share:.1f}%" for name, share in zip(state["sets"], state["shares"]))
 
 
 class ClipDataset(Dataset):
@@ -286,8 +349,11 @@ class MotionDataModule(L.LightningDataModule):
     """Motion shards -> batches of ``motion`` (B, T, D) normalised, ``mask`` (B, T), ``text``.
 
     Args:
-        train: shard directory, URL pattern (``/data/shard-{000000..000099}.tar``) or a list; not
-            needed by ``omg validate`` and ``omg test``, which read ``val``.
+        train: a shard set: a directory, a URL pattern (``/data/shard-{000000..000099}.tar``), a
+            directory URL (``s3://bucket/sets/amass``) or a manifest URL
+            (``pipe:cat /data/amass/manifest.json``); or a list of sets, mixed in proportion to
+            their frames; or a weighted mixture, a list of ``{path: SET, weight: W}``
+            (``omg.data.mixture``). Not needed by ``omg validate`` and ``omg test``, which read ``val``.
         val: the same for validation (a small set: it is loaded into memory), or None.
         batch_size: samples per batch on each rank.
         max_len / min_len: sample length bounds in frames (OMG pretraining: windows of up to 300
@@ -298,7 +364,8 @@ class MotionDataModule(L.LightningDataModule):
             model asks for (its ``clip_sampling`` attribute; ``windows`` when it names none).
         batches_per_epoch: batches each rank yields per training epoch.
         shuffle_buffer: samples held by each worker to shuffle within.
-        normalize: standardise features with the manifest's mean/std.
+        normalize: standardise features with the data's mean/std (``spec``: the manifest's, or a
+            mixture's pooled statistics).
         max_bad_fraction: stop when more than this fraction of the samples a worker read were bad.
         timeout: seconds a data worker may take for one batch before the run stops with an error
             (0: wait forever); a stalled worker never hangs a run.
@@ -308,8 +375,8 @@ class MotionDataModule(L.LightningDataModule):
 
     def __init__(
         self,
-        train: str | list[str] | None = None,
-        val: str | list[str] | None = None,
+        train: str | list[str | dict[str, Any]] | None = None,
+        val: str | list[str | dict[str, Any]] | None = None,
         batch_size: int = 32,
         max_len: int = 300,
         min_len: int = 40,
@@ -338,16 +405,21 @@ class MotionDataModule(L.LightningDataModule):
             raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
                              "is enough for `omg validate` and `omg test`)")
         self.train_urls, self.val_urls, self.shard_checks, manifest = [], [], {}, None
+        self.mixture = None
         if train:
-            self.train_urls, manifest, self.shard_checks = resolve_shards(train)
+            self.mixture = load_mixture(train, "data.train")
+            self.train_urls, manifest, self.shard_checks = self.mixture.urls, self.mixture.manifest, self.mixture.checks
         if val:
-            self.val_urls, val_manifest, val_checks = resolve_shards(val)
+            self.val_urls, val_manifest, val_checks = resolve_shards(val, "data.val")
             self.shard_checks = {**self.shard_checks, **val_checks}
             manifest = manifest or val_manifest
-        self.manifest = manifest  # the training set's; the validation set's when there is none
+        self.manifest = manifest  # the (first) training set's; the validation set's when there is none
+        # a mixture's pooled statistics; models store this spec, and generation denormalises with it
+        self._spec = self.mixture.spec() if self.mixture is not None else manifest.spec()
         if not verify_shards:
             self.shard_checks = {}
-        mean, std = (self.manifest.mean, self.manifest.std) if normalize else (None, None)
+        mean, std = (np.asarray(self._spec.mean, np.float32), np.asarray(self._spec.std, np.float32)) \
+            if normalize else (None, None)
         self.collate = Collate(mean, std)
 
     # what models need to know about the data
@@ -369,7 +441,7 @@ class MotionDataModule(L.LightningDataModule):
 
     @property
     def spec(self) -> DataSpec:
-        return self.manifest.spec()
+        return self._spec
 
     @property
     def windows(self) -> WindowSampler:
@@ -390,6 +462,11 @@ class MotionDataModule(L.LightningDataModule):
         h = self.hparams
         rank, world = self._rank_world()
         manifest = self.manifest
+        mixture = self.mixture
+        sets = None
+        if len(mixture.sets) > 1:
+            sets = [StreamSet(rank_shards(s.urls, rank, world, s.location), share, s.mean_frames, s.location)
+                    for s, share in zip(mixture.sets, mixture.shares)]
         stream = MotionStream(
             rank_shards(self.train_urls, rank, world),
             rank=rank,
@@ -402,6 +479,7 @@ class MotionDataModule(L.LightningDataModule):
             max_bad_fraction=h.max_bad_fraction,
             checks=self.shard_checks,
             mean_frames=manifest["num_frames"] / max(1, manifest["num_clips"]),
+            sets=sets,
         )
         trainer = self.trainer
         return StreamLoader(stream, epoch_fn=(lambda: trainer.current_epoch) if trainer is not None else None,

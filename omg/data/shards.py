@@ -15,6 +15,11 @@ exists is whole. The manifest records each shard's sample count, byte size and s
 failed check) and ``check_shards`` (``omg shards inspect``) checks a whole set.
 ``build-state.json`` records the finished shards with the source position and feature
 statistics they cover; an interrupted build resumes after the last of them.
+
+``write_shards`` reads a source once for all its splits, in one process or several
+(``LazyItem``: a source item read where the build gets to it), with output independent of the
+number; ``merge_shard_sets`` joins the sets built from parts of a source into one, its
+statistics pooled from the parts' raw sums.
 """
 
 from __future__ import annotations
@@ -22,16 +27,19 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import pickle
 import re
+import sys
 import tarfile
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from omg.errors import UsageError
-from omg.files import atomic_write, npy_bytes, write_json
+from omg.files import atomic_path, atomic_write, npy_bytes, write_json
 from omg.motion import Clip, DataSpec, Representation
 
 SCHEMA_VERSION = 1
@@ -165,6 +173,256 @@ class BuildSummary:
         )
 
 
+@dataclass(frozen=True)
+class LazyItem:
+    """A source item that is read when the build gets to it, possibly in a worker process.
+
+    ``load(*args)`` returns a ``Clip``, ``None`` (nothing to import, e.g. a clip of another
+    domain) or an exception (a bad item: counted as skipped); an exception it raises stops the
+    build. With ``--workers`` the item travels to another process: ``load`` must be a
+    module-level function and ``args`` picklable. Sources that list their files and yield one
+    ``LazyItem`` per file are read in parallel; sources that yield clips are read in order by the
+    main process and only encoded in parallel.
+    """
+
+    load: Callable[..., Clip | Exception | None]
+    args: tuple = ()
+
+    def __call__(self) -> Clip | Exception | None:
+        return self.load(*self.args)
+
+
+def resolved(items: Iterable) -> Iterator[Clip | Exception | None]:
+    """A source's items with every ``LazyItem`` read: clips, exceptions and Nones."""
+    for item in items:
+        yield item() if isinstance(item, LazyItem) else item
+
+
+@dataclass
+class EncodedClip:
+    """One clip, read and encoded: what ``ShardWriter.add`` stores (``error``: why it cannot be)."""
+
+    id: str
+    labels: dict
+    key: str = ""
+    files: dict[str, bytes] = field(default_factory=dict)
+    stats: FeatureStats | None = None  # the sums over the clip's frames
+    error: Exception | None = None
+
+
+def encode_item(item, representation: Representation, fps: float) -> EncodedClip | Exception | None:
+    """Read (a ``LazyItem``) and encode one source item; a bad clip comes back with its error."""
+    if isinstance(item, LazyItem):
+        item = item()
+    if item is None or isinstance(item, Exception):
+        return item
+    try:
+        if abs(item.fps - fps) > 1e-6:
+            raise ValueError(f"clip {item.id!r} is at {item.fps} fps, the shard set at {fps}")
+        key, files, features = encode_sample(item, representation)
+    except (ValueError, OSError) as e:
+        return EncodedClip(item.id, dict(item.labels), error=e)
+    stats = FeatureStats()
+    stats.add(features)
+    return EncodedClip(item.id, dict(item.labels), key, files, stats)
+
+
+def _helper(representation: Representation, fps: float, tasks, results, index: int) -> None:
+    """A helper process of a build: reads and encodes the items it is sent, one at a time."""
+    import signal
+
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    torch.set_num_threads(1)  # N workers on N cores: one thread each
+    results.put(pickle.dumps((index, 0, None, None)))  # ready for an item
+    while True:
+        try:
+            position, item = tasks.recv()
+        except (EOFError, OSError):  # the main process is gone (killed): so is the build
+            return
+        try:
+            message = (index, position, encode_item(item, representation, fps), None)
+        except Exception as e:  # noqa: BLE001 - raised by a source: it stops the build, in the main process
+            message = (index, position, None, e)
+        try:
+            payload = pickle.dumps(message)
+        except Exception as e:  # noqa: BLE001 - what cannot travel back would leave the build waiting for it
+            payload = pickle.dumps((index, position, None, RuntimeError(
+                f"source item {position}: its result cannot be sent between processes ({type(e).__name__}: {e})")))
+        results.put(payload)
+
+
+def _encoded(items: Iterable, start: int, representation: Representation, fps: float,
+             workers: int) -> Iterator[tuple[int, EncodedClip | Exception | None]]:
+    """(position, encoded item) for the items after position ``start``, in the items' order.
+
+    ``workers`` > 1: this process and ``workers - 1`` helper processes (spawned: nothing of this
+    process's threads is inherited) read and encode. A helper is sent an item only when it is
+    idle; this process reads the oldest item nobody has taken whenever the oldest result is
+    not ready, so the build goes on while the helpers start. At most a few items per worker
+    are held, and results come back in order: the same shards as with one worker."""
+    if workers <= 1:
+        for position, item in enumerate(items, start=1):
+            if position > start:
+                yield position, encode_item(item, representation, fps)
+        return
+    import multiprocessing
+    import queue
+    from collections import deque
+
+    context = multiprocessing.get_context("spawn")
+    results = context.Queue()
+    helpers, pipes = [], []
+    for index in range(workers - 1):
+        receive, send = context.Pipe(duplex=False)
+        process = context.Process(target=_helper, args=(representation, fps, receive, results, index), daemon=True)
+        process.start()
+        helpers.append(process)
+        pipes.append(send)
+    pending = ((position, item) for position, item in enumerate(items, start=1) if position > start)
+    window: deque[list] = deque()  # [position, item, state]: state "todo", "busy" or (result,); oldest first
+    idle: list[int] = []
+    exhausted = False
+
+    def take(payload: bytes) -> None:
+        index, position, result, error = pickle.loads(payload)
+        if error is not None:
+            raise error
+        idle.append(index)
+        if position:
+            entry = next(e for e in window if e[0] == position)
+            entry[2] = (result,)
+
+    try:
+        while True:
+            while not exhausted and len(window) < 4 * workers:
+                nxt = next(pending, None)
+                if nxt is None:
+                    exhausted = True
+                    break
+                work = isinstance(nxt[1], (LazyItem, Clip))
+                window.append([nxt[0], nxt[1], "todo" if work else (nxt[1],)])
+            if not window:
+                return
+            while True:  # what the helpers have done
+                try:
+                    take(results.get_nowait())
+                except queue.Empty:
+                    break
+            for entry in window:  # idle helpers take the oldest items nobody has taken
+                if not idle:
+                    break
+                if entry[2] == "todo":
+                    entry[2] = "busy"
+                    pipes[idle.pop()].send((entry[0], entry[1]))
+            oldest = window[0]
+            if isinstance(oldest[2], tuple):
+                window.popleft()
+                yield oldest[0], oldest[2][0]
+                continue
+            entry = next((e for e in window if e[2] == "todo"), None)
+            if entry is not None:  # read it here rather than wait
+                entry[2] = (encode_item(entry[1], representation, fps),)
+                continue
+            try:
+                take(results.get(timeout=5.0))
+            except queue.Empty:
+                if dead := [i for i, h in enumerate(helpers) if not h.is_alive()]:
+                    raise RuntimeError(f"helper process {dead[0]} of the build died (out of memory?); run the "
+                                       "same command again to resume, with fewer --workers") from None
+    finally:  # every result is in (or the build failed): no helper holds anything worth waiting for
+        for process in helpers:
+            process.terminate()
+        for process in helpers:
+            process.join(timeout=10.0)
+        results.close()
+
+
+class BuildProgress:
+    """A line on stderr every ``interval`` seconds while a build runs: items read (of how many,
+    where the source knows), clips written, items skipped, the rate and the time left."""
+
+    def __init__(self, total: int | None = None, interval: float = 5.0, stream=None, label: str = "build"):
+        self.total, self.interval, self.label = total, interval, label
+        self.stream = stream if stream is not None else sys.stderr
+        self.read = self.clips = self.skipped = 0
+        self.started = self.last = time.monotonic()
+        self.reported = False
+
+    def update(self, result) -> None:
+        self.read += 1
+        if isinstance(result, Exception) or (isinstance(result, EncodedClip) and result.error is not None):
+            self.skipped += 1
+        elif result is not None:
+            self.clips += 1
+        if time.monotonic() - self.last >= self.interval:
+            self.report()
+
+    def line(self) -> str:
+        elapsed = max(time.monotonic() - self.started, 1e-9)
+        rate = self.read / elapsed
+        of = f" of {self.total} ({100.0 * self.read / self.total:.0f}%)" if self.total else ""
+        left = ""
+        if self.total and rate > 0:
+            left = f", {_duration(max(self.total - self.read, 0) / rate)} left"
+        return (f"{self.label}: {self.read}{of} items read, {self.clips} clips, {self.skipped} skipped, "
+                f"{rate:.1f} items/s, {_duration(elapsed)} elapsed{left}")
+
+    def report(self) -> None:
+        self.last, self.reported = time.monotonic(), True
+        print(self.line(), file=self.stream, flush=True)
+
+    def finish(self) -> None:
+        """The final line, for a build that has shown progress (a short one has its summary alone)."""
+        if self.reported:
+            self.report()
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def write_shards(items: Iterable, writers: dict[str, ShardWriter], route: Callable[[EncodedClip], str] | None = None,
+                 workers: int = 1, progress: BuildProgress | None = None) -> list[BuildSummary]:
+    """Read and encode the items once and write each clip to the writer ``route`` names (the
+    first writer without a route; a failed item is counted by the first writer).
+
+    Each writer resumes after its own finished shards; the items before the earliest of them
+    are not read again. ``workers``: processes that read and encode (see ``_encoded``); the
+    shards are the same for any number."""
+    names = list(writers)
+    first = writers[names[0]]
+    if any(w.representation.name != first.representation.name or w.fps != first.fps for w in writers.values()):
+        raise ValueError("the writers of one build must share the representation and the frame rate")
+    import torch
+
+    start = min(writer.open() for writer in writers.values())
+    if progress is not None:
+        progress.read = start  # the items before were written by an earlier run
+        progress.started = time.monotonic()
+    # a clip's tensors are small: one intra-op thread per process, as in the workers (reading the
+    # real clips of ../shared/data/motion took 3-4x longer with two threads on a busy 2-core CPU)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for position, result in _encoded(items, start, first.representation, first.fps, workers):
+            target = None
+            if result is not None:
+                routed = isinstance(result, EncodedClip) and route is not None
+                target = route(result) if routed else names[0]
+            for name, writer in writers.items():
+                writer.add(position, result if name == target else None)
+            if progress is not None:
+                progress.update(result)
+    finally:
+        torch.set_num_threads(threads)
+    if progress is not None:
+        progress.finish()
+    return [writer.close() for writer in writers.values()]
+
+
 class ShardWriter:
     """Writes clips into shards of at most ``max_clips`` clips or ``max_bytes`` bytes.
 
@@ -172,6 +430,9 @@ class ShardWriter:
     how many source items each finished shard consumed, so a resumed build skips exactly
     those. Bad clips (the encoder raises ``ValueError``) are skipped and counted by reason.
     ``stats``: a fixed (mean, std) for the manifest instead of the one measured on the clips.
+
+    ``write(items)`` reads, encodes and writes in one go; ``write_shards`` drives one or more
+    writers through ``open`` / ``add`` / ``close`` (a train/val split in one pass, workers).
     """
 
     def __init__(
@@ -219,107 +480,204 @@ class ShardWriter:
             extra.unlink()
         return state
 
-    def write(self, items: Iterable[Clip | Exception | None]) -> BuildSummary:
-        """Consume the source: clips, exceptions for items that failed to load, and None for
-        items that belong to another split."""
+    def write(self, items: Iterable[Clip | LazyItem | Exception | None]) -> BuildSummary:
+        """Consume the source: clips (or ``LazyItem``s), exceptions for items that failed to
+        load, and None for items that belong to another split."""
+        done = self.open()
+        for position, item in enumerate(items, start=1):
+            self.add(position, None if position <= done else encode_item(item, self.representation, self.fps))
+        return self.close()
+
+    def open(self) -> int:
+        """Start or resume: returns the source position the finished shards cover."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for stale in self.out_dir.glob(".*.tmp*"):
             stale.unlink()
-        state = self._load_state()
+        self._state = state = self._load_state()
         state.update(representation=self.representation.name, fps=self.fps)
-        summary = BuildSummary(self.out_dir, resumed_shards=len(state["shards"]))
-        skipped: dict[str, int] = state["skipped"]
-        done_items = state["shards"][-1]["source_end"] if state["shards"] else 0
-        seen_keys = set(state.get("keys", []))
+        self._resumed = len(state["shards"])
+        self._done = state["shards"][-1]["source_end"] if state["shards"] else 0
+        self._seen = set(state.get("keys", []))
+        self._pending: list[tuple[str, dict[str, bytes]]] = []
+        self._pending_bytes, self._pending_stats = 0, FeatureStats()
+        self._position = self._done
+        return self._done
 
-        pending: list[tuple[str, dict[str, bytes]]] = []
-        pending_bytes, pending_stats = 0, FeatureStats()
-        position = 0
+    def add(self, position: int, result: EncodedClip | Exception | None) -> None:
+        """The source item at ``position`` (1-based, increasing): an encoded clip, the exception
+        of an item that failed, or None (nothing for this writer)."""
+        self._position = max(self._position, position)
+        if position <= self._done or result is None:
+            return
+        error = result if isinstance(result, Exception) else result.error
+        if error is None and result.key in self._seen:
+            error = ValueError(f"duplicate clip id {result.id!r}")
+        if error is not None:
+            reason = type(error).__name__ if not str(error) else str(error).split(":")[0][:60]
+            skipped = self._state["skipped"]
+            skipped[reason] = skipped.get(reason, 0) + 1
+            self.log(f"skipped source item {position}: {error}")
+            return
+        self._seen.add(result.key)
+        self._pending.append((result.key, result.files))
+        self._pending_bytes += sum(len(b) for b in result.files.values())
+        self._pending_stats.merge(result.stats)
+        if len(self._pending) >= self.max_clips or self._pending_bytes >= self.max_bytes:
+            self._flush()
 
-        def flush() -> None:
-            nonlocal pending, pending_bytes, pending_stats
-            index = len(state["shards"])
-            name = SHARD_PATTERN.format(index)
-            data = _tar_bytes(pending)
-            atomic_write(self.out_dir / name, data)
-            state["shards"].append(
-                {
-                    "name": name,
-                    "clips": len(pending),
-                    "frames": pending_stats.count,
-                    "bytes": len(data),
-                    "sha256": hashlib.sha256(data).hexdigest(),
-                    "source_end": position,
-                    "stats": pending_stats.to_json(),
-                }
-            )
-            state["keys"] = sorted(seen_keys)
-            write_json(self.out_dir / BUILD_STATE, state)
-            self.log(f"wrote {name}: {len(pending)} clips")
-            pending, pending_bytes, pending_stats = [], 0, FeatureStats()
+    def _flush(self) -> None:
+        state = self._state
+        name = SHARD_PATTERN.format(len(state["shards"]))
+        data = _tar_bytes(self._pending)
+        atomic_write(self.out_dir / name, data)
+        state["shards"].append(
+            {
+                "name": name,
+                "clips": len(self._pending),
+                "frames": self._pending_stats.count,
+                "bytes": len(data),
+                "sha256": hashlib.sha256(data).hexdigest(),
+                "source_end": self._position,
+                "stats": self._pending_stats.to_json(),
+            }
+        )
+        state["keys"] = sorted(self._seen)
+        write_json(self.out_dir / BUILD_STATE, state)
+        self.log(f"wrote {name}: {len(self._pending)} clips")
+        self._pending, self._pending_bytes, self._pending_stats = [], 0, FeatureStats()
 
-        for position, item in enumerate(items, start=1):
-            if position <= done_items or item is None:
-                continue
-            try:
-                if isinstance(item, Exception):
-                    raise item
-                if abs(item.fps - self.fps) > 1e-6:
-                    raise ValueError(f"clip {item.id!r} is at {item.fps} fps, the shard set at {self.fps}")
-                key, files, features = encode_sample(item, self.representation)
-                if key in seen_keys:
-                    raise ValueError(f"duplicate clip id {item.id!r}")
-            except (ValueError, OSError) as e:
-                reason = type(e).__name__ if not str(e) else str(e).split(":")[0][:60]
-                skipped[reason] = skipped.get(reason, 0) + 1
-                self.log(f"skipped source item {position}: {e}")
-                continue
-            seen_keys.add(key)
-            pending.append((key, files))
-            pending_bytes += sum(len(b) for b in files.values())
-            pending_stats.add(features)
-            if len(pending) >= self.max_clips or pending_bytes >= self.max_bytes:
-                flush()
-        if pending:
-            flush()
+    def close(self) -> BuildSummary:
+        """Write the last shard and the manifest; the build state goes."""
+        if self._pending:
+            self._flush()
+        state = self._state
         if not state["shards"]:
-            raise UsageError(f"no clip could be written to {self.out_dir} ({skipped or 'the source was empty'})")
-
+            raise UsageError(f"no clip could be written to {self.out_dir} "
+                             f"({state['skipped'] or 'the source was empty'})")
         self._write_manifest(state)
         (self.out_dir / BUILD_STATE).unlink()
-        summary.shards = len(state["shards"])
-        summary.clips = sum(s["clips"] for s in state["shards"])
-        summary.frames = sum(s["frames"] for s in state["shards"])
-        summary.skipped = skipped
-        return summary
+        return BuildSummary(
+            self.out_dir,
+            clips=sum(s["clips"] for s in state["shards"]),
+            frames=sum(s["frames"] for s in state["shards"]),
+            shards=len(state["shards"]),
+            resumed_shards=self._resumed,
+            skipped=state["skipped"],
+        )
 
     def _write_manifest(self, state: dict) -> None:
         stats = FeatureStats()
         for shard in state["shards"]:
             stats.merge(FeatureStats.from_json(shard["stats"]))
-        mean, std = self.stats or self.representation.finalize_stats(*stats.mean_std())
-        skeleton = self.representation.skeleton
-        manifest = {
-            "schema_version": SCHEMA_VERSION,
-            "representation": self.representation.name,
-            "feature_dim": self.representation.dim,
-            "skeleton": skeleton.name,
-            "skeleton_def": skeleton.to_dict(),
-            "fps": self.fps,
-            "num_clips": sum(s["clips"] for s in state["shards"]),
-            "num_frames": stats.count,
-            "num_shards": len(state["shards"]),
-            "skipped": state["skipped"],
-            "shards": [{k: s[k] for k in ("name", "clips", "frames", "bytes", "sha256")} for s in state["shards"]],
-            "mean": mean.tolist(),
-            "std": std.tolist(),
-            "stats_origin": "source" if self.stats else "measured",
-            # the raw per-feature sums behind a measured mean/std: sets (merged parts, mixtures)
-            # pool these, since a finalized std (e.g. humanml3d263's group average) cannot be pooled
-            "sums": stats.to_json(),
-            "command": self.command,
-        }
+        shards = [{k: s[k] for k in ("name", "clips", "frames", "bytes", "sha256")} for s in state["shards"]]
+        manifest = manifest_data(self.representation, self.fps, shards, stats, state["skipped"], self.command,
+                                 self.stats)
         write_json(self.out_dir / MANIFEST, manifest)
+
+
+def manifest_data(representation: Representation, fps: float, shards: list[dict], stats: FeatureStats,
+                  skipped: dict[str, int], command: str = "",
+                  fixed: tuple[np.ndarray, np.ndarray] | None = None, **extra) -> dict:
+    """A set's manifest: its shards, and the mean/std finalized once from the raw sums over all
+    its frames (or ``fixed``, a published normalisation)."""
+    mean, std = fixed or representation.finalize_stats(*stats.mean_std())
+    skeleton = representation.skeleton
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "representation": representation.name,
+        "feature_dim": representation.dim,
+        "skeleton": skeleton.name,
+        "skeleton_def": skeleton.to_dict(),
+        "fps": fps,
+        "num_clips": sum(s["clips"] for s in shards),
+        "num_frames": stats.count,
+        "num_shards": len(shards),
+        "skipped": skipped,
+        "shards": shards,
+        "mean": np.asarray(mean).tolist(),
+        "std": np.asarray(std).tolist(),
+        "stats_origin": "source" if fixed is not None else "measured",
+        # the raw per-feature sums behind a measured mean/std: sets (merged parts, mixtures)
+        # pool these, since a finalized std (e.g. humanml3d263's group average) cannot be pooled
+        "sums": stats.to_json(),
+        "command": command,
+        **extra,
+    }
+
+
+def merge_shard_sets(parts: list[str | Path], out: str | Path, command: str = "", link: bool = False,
+                     log=print) -> Manifest:
+    """Join finished shard sets (the parts of an array build) into one set at ``out``: their
+    shards in part order, renamed ``shard-NNNNNN.tar`` (bytes and sha256 unchanged), counts
+    summed and the statistics pooled from the parts' raw sums, finalized once.
+
+    Parts must agree on representation, feature size, skeleton and frame rate. Each shard is
+    copied and checked against its part's sha256 as it is copied (``link``: hard-linked, on
+    the same file system, and only its size checked)."""
+    import os
+
+    manifests = [Manifest.load(p) for p in parts]
+    if not manifests:
+        raise UsageError("give the part folders to merge")
+    first = manifests[0]
+    for m in manifests[1:]:
+        for key in ("representation", "feature_dim", "skeleton", "skeleton_def", "fps"):
+            if m.data.get(key) != first.data.get(key):
+                what = "its skeleton definition differs" if key == "skeleton_def" else (
+                    f"{key} {m.data.get(key)!r}, but {first.dir} has {first.data.get(key)!r}")
+                raise UsageError(f"cannot merge {m.dir}: {what}; parts must be built with the same settings")
+    if missing := [str(m.dir) for m in manifests if m.sums is None]:
+        raise UsageError(f"{missing[0]}: its manifest has no raw sums to pool statistics from; rebuild that part")
+    out = Path(out)
+    if out.exists() and (any(out.glob("shard-*.tar")) or (out / MANIFEST).exists()):
+        raise UsageError(f"--out {out}: already holds a shard set; choose an empty folder")
+    if any(out.resolve() == m.dir.resolve() for m in manifests):
+        raise UsageError(f"--out {out}: is one of the parts; choose another folder")
+    out.mkdir(parents=True, exist_ok=True)
+    shards, stats, skipped = [], FeatureStats(), {}
+    for m in manifests:
+        stats.merge(m.sums)
+        for reason, n in m.data.get("skipped", {}).items():
+            skipped[reason] = skipped.get(reason, 0) + n
+        for entry, path in zip(m["shards"], m.shard_paths):
+            name = SHARD_PATTERN.format(len(shards))
+            size = entry.get("bytes")
+            if link:
+                if size is not None and (found := path.stat().st_size) != size:
+                    raise UsageError(f"{path}: {found} bytes, its manifest says {size}; rebuild that part")
+                with atomic_path(out / name) as tmp:
+                    tmp.unlink(missing_ok=True)
+                    os.link(path, tmp)
+                digest = entry.get("sha256")
+            else:
+                with atomic_path(out / name) as tmp, open(path, "rb") as src, open(tmp, "wb") as dst:
+                    hasher = hashlib.sha256()
+                    while chunk := src.read(1 << 22):
+                        hasher.update(chunk)
+                        dst.write(chunk)
+                digest = hasher.hexdigest()
+                if entry.get("sha256") not in (None, digest):
+                    (out / name).unlink()
+                    raise UsageError(f"{path}: its sha256 does not match its manifest (garbled or replaced); "
+                                     "rebuild that part")
+                size = (out / name).stat().st_size
+            shards.append({"name": name, "clips": entry.get("clips", 0), "frames": entry.get("frames", 0),
+                           "bytes": size, "sha256": digest})
+    from omg.motion import get_representation
+    from omg.skeleton import get_skeleton
+
+    representation = get_representation(first["representation"], get_skeleton(first["skeleton"]))
+    fixed = None
+    if all(m.data.get("stats_origin") == "source" for m in manifests) and all(
+            m.data["mean"] == first.data["mean"] and m.data["std"] == first.data["std"] for m in manifests):
+        fixed = (first.mean, first.std)  # the published normalisation every part carries
+    manifest = manifest_data(representation, first["fps"], shards, stats, skipped, command, fixed,
+                             parts=[str(m.dir) for m in manifests])
+    manifest["skeleton_def"] = first["skeleton_def"]
+    write_json(out / MANIFEST, manifest)
+    log(f"merged {len(manifests)} parts into {out}: {manifest['num_clips']} clips, {stats.count} frames "
+        f"in {len(shards)} shards")
+    return Manifest.load(out)
 
 
 def _is_int(value) -> bool:
@@ -401,45 +759,85 @@ class Manifest:
     Per shard it records ``name`` and, in manifests written by ``ShardWriter``, ``clips``
     (samples), ``frames``, ``bytes`` (file size) and ``sha256`` (of the file); the last three
     are optional for readers: a check whose value is not recorded is not made.
+
+    ``url``: where a set on object storage or behind a ``pipe:`` command was fetched from (the
+    manifest's own URL); its shards are the same URL with the shard's name in place of
+    ``manifest.json`` (``shard_urls``). None for a set on a local disk.
     """
 
     path: Path
     data: dict
+    url: str | None = None
+    _by_name: dict | None = field(default=None, init=False, repr=False, compare=False)  # shard entries by name
 
     @classmethod
-    def load(cls, shard_dir: str | Path) -> Manifest:
-        path = Path(shard_dir) / MANIFEST
+    def load(cls, location: str | Path) -> Manifest:
+        """A set's manifest from a local directory (or its manifest.json) or a URL: a directory URL
+        (``s3://bucket/sets/amass``), a manifest URL (``gs://…/amass/manifest.json``) or a command
+        that prints the manifest (``pipe:cat /data/amass/manifest.json``)."""
+        local = _local_path(str(location))
+        if local is None:
+            return cls._fetch(manifest_url(str(location)))
+        path = local if local.name == MANIFEST and not local.is_dir() else local / MANIFEST
         if not path.exists():
             hint = (" (an unfinished build: run the same build command again)"
                     if (path.parent / BUILD_STATE).exists() else "")
             raise UsageError(f"no {MANIFEST} in {path.parent}{hint}; "
                              "build shards with `omg shards build` or `omg shards synth`")
         try:
-            data = json.loads(path.read_bytes())
+            data = path.read_bytes()
         except OSError as e:
             raise UsageError(f"{path}: cannot be read ({e.strerror or e})") from None
+        return cls(path, cls._parse(data, str(path)))
+
+    @classmethod
+    def _fetch(cls, url: str) -> Manifest:
+        try:
+            data = read_url(url)
+        except (OSError, ValueError) as e:
+            raise UsageError(f"{url}: the manifest cannot be fetched ({e})") from None
+        return cls(Path(MANIFEST), cls._parse(data, url), url)
+
+    @staticmethod
+    def _parse(raw: bytes, where: str) -> dict:
+        try:
+            data = json.loads(raw)
         except UnicodeDecodeError:
-            raise UsageError(f"{path}: not a text file (invalid UTF-8); rebuild the shards") from None
+            raise UsageError(f"{where}: not a text file (invalid UTF-8); rebuild the shards") from None
         except json.JSONDecodeError as e:
-            raise UsageError(f"{path}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno}); "
+            raise UsageError(f"{where}: not valid JSON ({e.msg} at line {e.lineno} column {e.colno}); "
                              "rebuild the shards") from None
         if problem := _manifest_problem(data):
             hint = "" if "schema version" in problem else "; rebuild the shards"
-            raise UsageError(f"{path}: invalid manifest: {problem}{hint}")
-        return cls(path, data)
+            raise UsageError(f"{where}: invalid manifest: {problem}{hint}")
+        return data
 
     @property
     def dir(self) -> Path:
         return self.path.parent
 
     @property
+    def location(self) -> str:
+        """The set as messages name it: its directory, or the URL its manifest came from."""
+        return self.url or str(self.dir)
+
+    @property
+    def shard_urls(self) -> list[str]:
+        """Every shard's path, or URL for a fetched set (what ``iter_tar`` opens)."""
+        if self.url is None:
+            return [str(p) for p in self.shard_paths]
+        return [sibling_url(self.url, MANIFEST, s["name"]) for s in self.data["shards"]]
+
+    @property
     def shard_paths(self) -> list[Path]:
         return [self.dir / s["name"] for s in self.data["shards"]]
 
     def entry(self, url: str | Path) -> dict | None:
-        """The manifest's entry for a shard path or URL (matched by file name), or None."""
-        name = str(url).rstrip("/").rsplit("/", 1)[-1]
-        return next((s for s in self.data["shards"] if s["name"] == name), None)
+        """The manifest's entry for a shard path or URL (matched by file name; in a ``pipe:``
+        command, by the last word that names a file), or None."""
+        if self._by_name is None:  # one dict, not a scan per shard: a set may have 10^4 shards
+            self._by_name = {s["name"]: s for s in self.data["shards"]}
+        return self._by_name.get(url_file_name(str(url)))
 
     def expected(self, url: str | Path) -> dict:
         """What the manifest records about one shard, as keyword arguments of ``iter_tar``:
@@ -468,7 +866,7 @@ class Manifest:
 
     def spec(self) -> DataSpec:
         """What a model needs to know about its data, stored in its checkpoint."""
-        return DataSpec.coerce(self.data, f"{self.dir / MANIFEST}")
+        return DataSpec.coerce(self.data, self.url or f"{self.dir / MANIFEST}")
 
     def summary(self) -> str:
         d = self.data
@@ -477,7 +875,7 @@ class Manifest:
         frames = d.get("num_frames", sum(s.get("frames", 0) for s in shards))
         hours = frames / d["fps"] / 3600
         return (
-            f"{self.dir}: {clips} clips, {frames} frames ({hours:.2f} h at {d['fps']} fps) "
+            f"{self.location}: {clips} clips, {frames} frames ({hours:.2f} h at {d['fps']} fps) "
             f"in {len(shards)} shards; representation {d['representation']} ({d['feature_dim']}-d) "
             f"on {d['skeleton']}; built by: {d.get('command') or 'unknown'}"
         )
@@ -567,11 +965,94 @@ class _CheckedReader:
 
 
 def _local_path(url: str) -> Path | None:
+    """The local file a shard or set location names, or None for a URL or a ``pipe:`` command."""
     if url.startswith("file://"):
         return Path(url[len("file://"):])
     if "://" in url or url.startswith("pipe:") or url == "-":
         return None
     return Path(url)
+
+
+def url_file_name(url: str) -> str:
+    """The file a path, URL or ``pipe:`` command reads: the last path component of its last word
+    that has one (``pipe:aws s3 cp s3://b/set/shard-000001.tar -`` -> ``shard-000001.tar``)."""
+    words = [w for w in url.rstrip("/").split() if "." in w.rsplit("/", 1)[-1]] or [url.rstrip("/")]
+    return words[-1].rsplit("/", 1)[-1]
+
+
+def sibling_url(url: str, name: str, new_name: str) -> str:
+    """``url`` with its last ``name`` replaced by ``new_name``: a set's manifest URL gives its shards'
+    URLs (``pipe:cat /d/manifest.json`` -> ``pipe:cat /d/shard-000000.tar``) and a shard's the manifest's."""
+    head, found, tail = url.rpartition(name)
+    if not found:
+        raise UsageError(f"{url}: cannot tell where {name} is in it; name the set by its directory URL "
+                         f"or by its {MANIFEST} URL")
+    return head + new_name + tail
+
+
+def manifest_url(location: str) -> str:
+    """The manifest URL of a set given by URL: a URL or command naming ``manifest.json`` is it; a
+    directory URL (``s3://bucket/sets/amass``) gets ``/manifest.json`` appended."""
+    if MANIFEST in location:
+        return location
+    if location.startswith("pipe:"):
+        raise UsageError(f"{location}: a pipe: set must print its {MANIFEST}, e.g. pipe:cat /data/set/{MANIFEST} "
+                         "(its shards are read by the same command with the shard's name in its place)")
+    return location.rstrip("/") + "/" + MANIFEST
+
+
+def _fsspec_opener(url: str):
+    """(fsspec's opener for ``url`` or None, what to install when that is None)."""
+    protocol = url.split("://", 1)[0]
+    try:
+        import fsspec
+        from fsspec.registry import known_implementations
+    except ImportError:
+        return None, f"pip install fsspec and its {protocol} backend"
+    if protocol not in known_implementations:
+        return None, f"fsspec knows no {protocol}:// protocol"
+    try:
+        fsspec.get_filesystem_class(protocol)
+    except ImportError:  # e.g. s3:// without s3fs
+        return None, known_implementations[protocol].get("err") or f"install fsspec's {protocol} backend"
+    return (lambda: fsspec.open(url, "rb").open()), ""
+
+
+def open_url(url: str):
+    """A binary stream of a local file, a ``pipe:`` command's output, or an object-store URL:
+    ``s3://``, ``gs://``, ``hf://``… through fsspec when it and the protocol's backend are installed,
+    else whatever ``webdataset.gopen`` knows (``http(s)://`` by curl, ``gs://`` by gsutil)."""
+    local = _local_path(url)
+    if local is not None:
+        return open(local, "rb")
+    if url.startswith("pipe:"):
+        from webdataset.gopen import gopen
+
+        return gopen(url)
+    opener, missing = _fsspec_opener(url)
+    if opener is not None:
+        return opener()
+    from webdataset.gopen import gopen, gopen_schemes
+
+    scheme = url.split("://", 1)[0]
+    if scheme not in gopen_schemes:
+        raise OSError(f"no reader for {scheme}:// URLs ({missing})")
+    return gopen(url)
+
+
+def read_url(url: str) -> bytes:
+    """All the bytes ``open_url`` gives; a ``pipe:`` command that fails raises ``OSError`` with the
+    last line it printed to stderr."""
+    if url.startswith("pipe:"):
+        import subprocess
+
+        done = subprocess.run(url[len("pipe:"):], shell=True, capture_output=True)
+        if done.returncode != 0:
+            said = done.stderr.decode(errors="replace").strip().splitlines()
+            raise OSError(f"the command exited with {done.returncode}" + (f": {said[-1]}" if said else ""))
+        return done.stdout
+    with open_url(url) as stream:
+        return stream.read()
 
 
 def _first_arg(e: Exception) -> str:
@@ -623,8 +1104,6 @@ def _tar_samples(stream, url: str) -> Iterator[dict[str, bytes]]:
 
 def _read_shard(url: str, sha256: str | None = None, samples: int | None = None, size: int | None = None,
                 whole: bool = False, precheck: bool = True) -> Iterator[dict[str, bytes]]:
-    import webdataset as wds
-
     local = _local_path(url)
     if local is not None:
         if not local.is_file():
@@ -632,7 +1111,7 @@ def _read_shard(url: str, sha256: str | None = None, samples: int | None = None,
         if precheck and size is not None and (found := local.stat().st_size) != size:
             raise _size_error(url, found, size)
     try:
-        raw = open(local, "rb") if local is not None else wds.gopen(url)
+        raw = open_url(url)
     except OSError as e:
         raise ShardError(url, "file", f"cannot be opened ({e.strerror or e})") from None
     source = _CheckedReader(raw, sha256 is not None)  # hashes, counts and keeps the tail of the file's bytes
@@ -677,7 +1156,8 @@ def iter_tar(path: str | Path, sha256: str | None = None, *, samples: int | None
              whole: bool = False) -> Iterator[dict[str, bytes]]:
     """Raw samples (``{"__key__", ext: bytes}``) of one tar, grouped by key like WebDataset.
 
-    ``path`` is a file or any URL ``webdataset.gopen`` opens. The expected values come from
+    ``path`` is a file or any URL ``open_url`` opens (``pipe:`` commands, object-store URLs
+    through fsspec, what ``webdataset.gopen`` opens). The expected values come from
     the manifest (``Manifest.expected(url)`` gives them as keyword arguments):
 
     - ``sha256``: the bytes are hashed as they are read;
@@ -773,18 +1253,18 @@ def check_shards(shard_dir: str | Path) -> ShardSetCheck:
     ``UsageError`` only for a missing or invalid manifest; every other fault is reported."""
     manifest = Manifest.load(shard_dir)
     results = []
-    for entry, path in zip(manifest["shards"], manifest.shard_paths):
-        expected = manifest.expected(path)
-        result = ShardCheck(path.name, checks=("file", "readable", "end-of-archive", *expected))
+    for entry, url in zip(manifest["shards"], manifest.shard_urls):
+        expected = manifest.expected(entry["name"])
+        result = ShardCheck(entry["name"], checks=("file", "readable", "end-of-archive", *expected))
         try:
             # streamed without the size pre-check: a bad shard's samples are still decoded and named
-            for raw in _read_shard(str(path), whole=False, precheck=False, **expected):
+            for raw in _read_shard(url, whole=False, precheck=False, **expected):
                 result.samples += 1
                 try:
                     decode_sample(raw, manifest["feature_dim"])
                     result.good += 1
                 except (ValueError, KeyError) as e:
-                    result.problems.append(f"{path.name} {raw.get('__key__')}: {e}")
+                    result.problems.append(f"{entry['name']} {raw.get('__key__')}: {e}")
         except ShardError as e:
             result.error = e
         results.append(result)

@@ -98,8 +98,8 @@ class Collate:
 
     Returns ``motion`` (B, T, D) normalised and zero at padding, ``mask`` (B, T) True on real
     frames, ``lengths`` (B,), ``text`` (list of B captions, "" when unlabeled), ``id``,
-    ``category``, ``labels`` (each clip's label dict, {} when it has none), and ``offsets``
-    (B, J, 3) when every clip carries them.
+    ``category``, ``labels`` (each clip's label dict, {} when it has none), ``offsets``
+    (B, J, 3) when every clip carries them, and ``shard_set`` (B,) for samples of a mixture.
     """
 
     def __init__(self, mean: np.ndarray | None = None, std: np.ndarray | None = None):
@@ -126,4 +126,6 @@ class Collate:
         }
         if all("offsets" in it for it in items):
             batch["offsets"] = torch.from_numpy(np.stack([it["offsets"] for it in items]))
+        if all("shard_set" in it for it in items):  # a mixture's samples: the index of each one's set
+            batch["shard_set"] = torch.tensor([it["shard_set"] for it in items])
         return batch

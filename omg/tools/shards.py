@@ -1,6 +1,7 @@
-"""``omg shards build|synth|inspect``: motion from a registered data source into WebDataset shard
-sets (``build``), the procedural mini data (``synth``), and a set's summary and validation
-(``inspect``). ``build`` is also the library function the commands and tests call."""
+"""``omg shards build|synth|merge|inspect``: motion from a registered data source into WebDataset shard
+sets (``build``), the procedural mini data (``synth``), the parts of an array build joined into
+one set (``merge``), and a set's summary and validation (``inspect``). ``build`` is also the
+library function the commands and tests call."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from omg.data.shards import ShardWriter, check_shards
+from omg.data.shards import BuildProgress, EncodedClip, ShardWriter, check_shards, merge_shard_sets, write_shards
 from omg.errors import UsageError
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
@@ -40,6 +41,8 @@ Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of fra
 MINI_SETS = (
     ("human263", "smpl22", "humanml3d263", 100),
     ("animal_maa", "smal35", "maa", 56),
+    ("human_maa", "smpl22", "maa", 100),  # OmniMotionGPT's human domain (configs/mini/omgpt.yaml)
+    ("animal_quatvel", "smal35", "quatvel", 112),  # habit transfer: 16 clips of each species, category = species
 )
 
 
@@ -49,19 +52,19 @@ def in_val_split(clip_id: str, val_fraction: float) -> bool:
     return h < val_fraction
 
 
-def in_val_labels(clip: Clip, val_where: dict[str, list[str]]) -> bool:
+def in_val_labels(clip: Clip | EncodedClip, val_where: dict[str, list[str]]) -> bool:
     """A split by take: the clip's labels match every ``key: [values]`` of ``val_where``."""
     return all(str(clip.labels.get(key)) in values for key, values in val_where.items())
 
 
-def _split(items: Iterable[Clip | Exception | None], want_val: bool, val_fraction: float,
-           val_where: dict[str, list[str]] | None) -> Iterator[Clip | Exception | None]:
-    for item in items:
-        if isinstance(item, Clip):
-            in_val = in_val_labels(item, val_where) if val_where else in_val_split(item.id, val_fraction)
-            yield item if in_val == want_val else None
-        else:  # a failed item is counted once, in the training split
-            yield None if want_val or item is None else item
+def in_part(items: Iterable, part: int, parts: int) -> Iterator:
+    """Part ``part`` of ``parts`` of a source's items: every ``parts``-th item from the ``part``-th
+    on, in the source's order (so a part of a folder sorted by name mixes its subfolders); the
+    parts together hold every item once. Items are picked before they are read (``LazyItem``), so
+    a part reads only its own files."""
+    for index, item in enumerate(items):
+        if index % parts == part:
+            yield item
 
 
 def shuffled(items: Iterable, buffer: int, seed: int) -> Iterator:
@@ -99,8 +102,17 @@ def build(
     val_where: dict[str, list[str]] | None = None,
     shuffle_buffer: int = 0,
     seed: int = 0,
+    workers: int = 1,
+    part: int = 0,
+    parts: int = 1,
+    progress: float | None = None,
 ) -> list:
     """Build a shard set (``out``, or ``out/train`` and ``out/val`` with a validation split).
+
+    The source is read once (both splits in one pass) by ``workers`` processes; the shards are
+    the same for any number of workers. ``part``/``parts``: build only every ``parts``-th source
+    item from the ``part``-th (``omg shards merge`` joins the parts). ``progress``: a progress
+    line on stderr every this many seconds (None: none).
 
     Every argument is checked before a folder is made; a build that fails removes the folders
     it created (an existing ``out`` stays, and with it the shards an interrupted build finished)."""
@@ -112,6 +124,13 @@ def build(
         raise UsageError(f"--max_clips must be a positive integer, got {max_clips!r}")
     if not _is_number(max_mb) or max_mb * 2**20 < 1:
         raise UsageError(f"--max_mb must be a positive number of megabytes (at least 1 byte), got {max_mb!r}")
+    if not all(_is_number(v) and not isinstance(v, float) for v in (workers, part, parts)) or workers < 1 or parts < 1:
+        raise UsageError(f"--workers and --parts must be integers >= 1, got {workers!r} and {parts!r}")
+    if not 0 <= part < parts:
+        raise UsageError(f"--part must be in [0, --parts), i.e. 0 to {parts - 1}, got {part!r}")
+    # plain numbers: the argument parser's checked subclasses of them do not travel to worker processes
+    fps, val_fraction, max_mb = float(fps), float(val_fraction), float(max_mb)
+    max_clips, workers, part, parts = int(max_clips), int(workers), int(part), int(parts)
     open_source = DATA_SOURCES.get(source)
     options = _check_options(source, open_source, options or {})
     rep = get_representation(representation, get_skeleton(skeleton))
@@ -120,24 +139,38 @@ def build(
         raise UsageError(f"--shuffle_buffer must be an integer >= 0, got {shuffle_buffer!r}")
     if val_where and val_fraction > 0:
         raise UsageError("give --val_fraction (a random split) or --val_where (a split by label), not both")
-    splits = {"train": False, "val": True} if val_fraction > 0 or val_where else {"": False}
-    summaries = []
+    splits = ["train", "val"] if val_fraction > 0 or val_where else [""]
+
+    def route(clip: EncodedClip) -> str:
+        in_val = in_val_labels(clip, val_where) if val_where else in_val_split(clip.id, val_fraction)
+        return "val" if in_val else "train"
+
     try:
         with removing_created(*(out / name for name in splits)):
-            for name, want_val in splits.items():
-                items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **options)
-                stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
-                items = shuffled(items, shuffle_buffer, seed)
-                if name:
-                    items = _split(items, want_val, val_fraction, val_where)
-                writer = ShardWriter(out / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
-                                     stats=stats)
-                summaries.append(writer.write(items))
+            items = open_source(input=input, skeleton=rep.skeleton, fps=fps, **options)
+            stats = getattr(items, "stats", {}).get(rep.name)  # a source's published normalisation (SourceItems)
+            total = _count(items)
+            if parts > 1:
+                items = in_part(items, part, parts)
+                total = None if total is None else len(range(part, total, parts))
+            items = shuffled(items, shuffle_buffer, seed)
+            writers = {name: ShardWriter(out / name, rep, fps, max_clips, int(max_mb * 2**20), command, log=log,
+                                         stats=stats) for name in splits}
+            meter = BuildProgress(total, progress, label=f"omg shards build {out}") if progress else None
+            return write_shards(items, writers, route if splits != [""] else None, workers, meter)
     except UnicodeDecodeError as e:  # a text file an option names (a YAML joint map, ...) in another encoding
         named = [f"--option.{k} {v}" for k, v in options.items() if isinstance(v, str) and not _is_utf8_file(v)]
         which = f"{named[0]}: not a UTF-8 text file" if named else "a file is not UTF-8 text"
         raise UsageError(f"{which} ({e.reason} at offset {e.start}); save it as UTF-8") from None
-    return summaries
+
+
+def _count(items) -> int | None:
+    """How many items a source holds, where it knows (a list of files), else None."""
+    inner = getattr(items, "items", items)  # SourceItems wraps them
+    try:
+        return len(inner)
+    except TypeError:
+        return None
 
 
 def _is_number(value) -> bool:
@@ -225,6 +258,10 @@ def shards_build(
     shuffle_buffer: NonNegativeInt = 1000,
     seed: Seed = 0,
     option: dict[str, Any] | None = None,
+    workers: PositiveInt = 1,
+    part: NonNegativeInt = 0,
+    parts: PositiveInt = 1,
+    progress: PositiveFiniteFloat = 5.0,
     command: str = "omg shards build",
 ) -> list:
     """Import motion from a registered data source into shards.
@@ -246,13 +283,20 @@ def shards_build(
         shuffle_buffer: write clips in a seeded random order through a buffer of this many clips (0: input order)
         seed: seed of the clip order
         option: options passed to the source, e.g. --option.num_clips 100 (or a mapping {num_clips: 100})
+        workers: processes that read, retarget and encode clips (the shards are the same for any number)
+        part: build this part of the source's items (0-based; for array jobs, with --parts)
+        parts: split the source's items into this many parts (every parts-th item from the part-th); join the
+            parts' outputs with omg shards merge
+        progress: print a progress line (items read, clips, skipped, rate, time left) to stderr every this many
+            seconds
         command: the command line, recorded in the manifest
 
     Returns:
         The build summaries, one per split.
     """
     summaries = build(source, out, representation, skeleton, fps, input, val_fraction, max_clips, max_mb, option,
-                      command, log=print, val_where=_val_where(val_where), shuffle_buffer=shuffle_buffer, seed=seed)
+                      command, log=print, val_where=_val_where(val_where), shuffle_buffer=shuffle_buffer, seed=seed,
+                      workers=workers, part=part, parts=parts, progress=progress)
     for summary in summaries:
         print(summary)
     return summaries
@@ -271,6 +315,46 @@ def _val_where(val_where: dict[str, Any] | None) -> dict[str, list[str]]:
             raise UsageError(f"--val_where.{key}: give the label values that go to out/val, "
                              f"e.g. --val_where.{key} old,proud")
     return where
+
+
+def merge(parts: list[str | Path], out: str | Path, command: str = "", link: bool = False, log=print) -> list:
+    """Join the outputs of ``build --part i --parts n``: each part a shard set, or a folder of
+    split sets (``train/``, ``val/``), joined split by split. Returns the merged manifests."""
+    parts = [Path(p) for p in parts]
+    if not parts:
+        raise UsageError("give the part folders to merge")
+    for p in parts:
+        if not p.is_dir():
+            raise UsageError(f"{p}: no such folder (a part built with omg shards build --part I --parts N)")
+    if (parts[0] / "manifest.json").exists() or (parts[0] / "build-state.json").exists():
+        splits = [""]
+    else:
+        splits = sorted(d.name for d in parts[0].iterdir() if (d / "manifest.json").exists()
+                        or (d / "build-state.json").exists())
+        if not splits:
+            raise UsageError(f"{parts[0]}: neither a shard set (manifest.json) nor a folder of them (train/, val/)")
+    out = check_output_dir(out)
+    with removing_created(*(Path(out) / s for s in splits)):
+        return [merge_shard_sets([p / s for p in parts], Path(out) / s, command, link=link, log=log) for s in splits]
+
+
+def shards_merge(parts: list[str], out: Path, link: bool = False, command: str = "omg shards merge") -> None:
+    """Join the parts of an array build into one shard set.
+
+    Each part is the --out of one omg shards build --part I --parts N (a set, or train/ and
+    val/ sets, merged split by split). Shards keep their bytes and sha256 and are renamed in
+    part order; clip and frame counts are summed and the mean/std are pooled from the parts'
+    raw sums. Parts must share representation, skeleton and frame rate.
+
+    Args:
+        parts: the part folders, in order
+        out: output directory
+        link: hard-link the shards instead of copying them (same file system; only their size is checked,
+            where a copy checks each shard's sha256 against its part's manifest)
+        command: the command line, recorded in the manifest
+    """
+    for manifest in merge(parts, out, command, link=link):
+        print(manifest.summary())
 
 
 def shards_synth(
@@ -337,20 +421,59 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
             f"{', '.join(parts)}{'; raise data.shuffle_buffer (or rebuild with --shuffle_buffer)' if unfair else ''}")
 
 
+def mixture_locations(arg: str) -> list[str]:
+    """The shard sets ``inspect`` checks for one argument: a set (directory or URL) is itself; a
+    mixture config (a YAML/JSON file with ``data.train``, or the list itself as YAML) prints each
+    set's clips, frames, hours and share of the samples, and gives its sets."""
+    from omg.data.mixture import load_mixture
+
+    where = ""  # the file a mixture comes from, for messages
+    if arg.lstrip().startswith(("[", "{")):
+        train = _yaml(arg, "the mixture")
+    elif arg.endswith((".yaml", ".yml")) and not Path(arg).exists():
+        raise UsageError(f"{arg}: no such mixture config")
+    elif arg.endswith((".yaml", ".yml", ".json")) and Path(arg).is_file():
+        where, config = f"{arg}: ", _yaml(Path(arg).read_text(encoding="utf-8"), arg)
+        data = config.get("data") if isinstance(config, dict) else None
+        train = data.get("train") if isinstance(data, dict) else config if isinstance(config, list) else None
+        if not train:
+            raise UsageError(f"{arg}: no data.train (a list of {{path: DIR_OR_URL, weight: W}}) in it")
+    else:
+        return [arg]
+    try:
+        mixture = load_mixture(train, "data.train")
+    except UsageError as e:
+        raise UsageError(f"{where}{e}") from None
+    for line in mixture.describe():
+        print(line)
+    return [s.manifest.location for s in mixture.sets]
+
+
+def _yaml(text: str, what: str):
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise UsageError(f"{what}: not valid YAML ({str(e).splitlines()[0]})") from None
+
+
 def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer: PositiveInt = 1000) -> None:
     """Summarise shard sets and validate every sample.
 
     Checks every shard against its manifest (file, size, sample count, end-of-archive, sha256)
     and validates every sample. Exits 1 when a shard or sample is bad, 2 when a manifest is
-    missing or invalid.
+    missing or invalid. A mixture config (a YAML with data.train, or the list itself) first
+    prints each set's clips, frames, hours and share of the samples.
 
     Args:
-        dirs: shard directories (with manifest.json)
+        dirs: shard sets (directories with manifest.json, or set URLs such as pipe:cat DIR/manifest.json)
+            or mixture configs
         batch_size: batch size of the batch-composition report
         shuffle_buffer: the training stream's shuffle buffer (data.shuffle_buffer) for that report
     """
     failures = []
-    for d in dirs:
+    for d in [location for arg in dirs for location in mixture_locations(arg)]:
         result = check_shards(d)
         print(result.manifest.summary())
         for problem in result.problems:
@@ -369,7 +492,7 @@ def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer
             what = [f"{len(result.failed)} of {n} shards failed verification"] if result.failed else []
             what += [f"{bad_samples} bad samples"] if bad_samples else []
             first = result.problems[0]
-            failures.append(f"{result.manifest.dir}: {' and '.join(what)} (first: {first})")
+            failures.append(f"{result.manifest.location}: {' and '.join(what)} (first: {first})")
     if failures:
         sys.stdout.flush()
         for failure in failures:
@@ -381,8 +504,9 @@ COMMANDS = {
     "build": (shards_build, {}),
     "synth": (shards_synth, {}),
     "inspect": (shards_inspect, {"positional": "dirs", "nargs": "+"}),
+    "merge": (shards_merge, {"positional": "parts", "nargs": "+"}),
 }
 
 
 def main(argv: list[str]) -> None:
-    run_subcommands("omg shards", "Build, synthesise and inspect WebDataset motion shards.", COMMANDS, argv)
+    run_subcommands("omg shards", "Build, synthesise, merge and inspect WebDataset motion shards.", COMMANDS, argv)

@@ -6,4 +6,4 @@ A source may return ``omg.data.shards.SourceItems`` instead of a bare iterator, 
 set-level facts along (a dataset's published mean/std).
 """
 
-from omg.data.sources import amass, animalml3d, bvh_dir, humanml3d, synth  # noqa: F401
+from omg.data.sources import aistpp, amass, animalml3d, bvh_dir, humanml3d, motionx, synth  # noqa: F401

@@ -25,11 +25,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
 
+from omg.data.shards import LazyItem
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -153,7 +153,7 @@ def _read_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps
 
 @DATA_SOURCES.register("amass")
 def amass_source(input: str | None, skeleton: Skeleton, fps: float,
-                 body_model: str | None = None) -> Iterator[Clip | Exception]:
+                 body_model: str | None = None) -> list[LazyItem]:
     """Unlabeled smpl22 clips from AMASS .npz files; see the module docstring."""
     if not input or not Path(input).is_dir():
         raise UsageError(f"amass: --input must be a folder of AMASS .npz files, got {input!r}")
@@ -168,18 +168,14 @@ def amass_source(input: str | None, skeleton: Skeleton, fps: float,
     if list(skeleton.parents) != SMPL22_PARENTS:
         raise UsageError(f"amass gives smpl22 joints, not {skeleton.name!r}; use --skeleton smpl22")
     root = Path(input)
-    paths = sorted(root.rglob("*.npz"))
+    return [LazyItem(_load_clip, (root, path, model_path, skeleton, fps)) for path in sorted(root.rglob("*.npz"))]
 
-    def items() -> Iterator[Clip | Exception]:
-        for path in paths:
-            try:
-                clip = _read_clip(root, path, model_path, skeleton, fps)
-            except UsageError:  # a bad body model is the user's to fix, not a bad clip
-                raise
-            except ValueError as e:
-                yield e
-                continue
-            if clip is not None:
-                yield clip
 
-    return items()
+def _load_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps: float) -> Clip | Exception | None:
+    """One file, read when the build gets to it (in a helper process with --workers)."""
+    try:
+        return _read_clip(root, path, body_model, skeleton, fps)
+    except UsageError:  # a bad body model is the user's to fix, not a bad clip
+        raise
+    except ValueError as e:
+        return e

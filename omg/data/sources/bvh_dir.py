@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Iterator
 
+from omg.data.shards import LazyItem
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -125,7 +125,7 @@ def bvh_dir_source(
     joint_map: str | None = None,
     height: float | None = None,
     domain: str | list | None = None,
-) -> Iterator[Clip | Exception | None]:
+) -> list[LazyItem | Exception]:
     """Motion files of a folder (BVH, ASF/AMC, DeepMimic), retargeted onto ``skeleton`` at ``fps``."""
     if not input or not Path(input).is_dir():
         raise UsageError(f"the bvh-dir source needs --input FOLDER with motion files, got {input!r}")
@@ -151,15 +151,23 @@ def bvh_dir_source(
     return _items(entries, folder, skeleton, fps, joint_map, height, domain)
 
 
-def _items(entries, folder, skeleton, fps, joint_map, height, only) -> Iterator[Clip | Exception | None]:
+def _load(entry: dict, folder: Path, skeleton: Skeleton, fps: float, joint_map, height,
+          only) -> Clip | Exception | None:
+    try:
+        return _import(entry, folder, skeleton, fps, joint_map, height, only)
+    except SkippedClip as e:
+        return e
+
+
+def _items(entries, folder, skeleton, fps, joint_map, height, only) -> list[LazyItem | Exception]:
+    """One item per entry, read when the build gets to it (in a worker process with --workers)."""
     seen: set[str] = set()
+    items: list[LazyItem | Exception] = []
     for entry in entries:
         clip_id = str(entry["id"])
         if clip_id in seen:
-            yield SkippedClip(f"duplicate clip id: {folder / entry['path']}: id {clip_id!r} is already taken")
+            items.append(SkippedClip(f"duplicate clip id: {folder / entry['path']}: id {clip_id!r} is already taken"))
             continue
         seen.add(clip_id)
-        try:
-            yield _import(entry, folder, skeleton, fps, joint_map, height, only)
-        except SkippedClip as e:
-            yield e
+        items.append(LazyItem(_load, (entry, folder, skeleton, fps, joint_map, height, only)))
+    return items

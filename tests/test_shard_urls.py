@@ -1,0 +1,135 @@
+"""Shard sets behind URLs: ``pipe:`` commands and fsspec URLs, manifests fetched the same way,
+the manifest's integrity checks on streamed shards, and `omg fit` on a mixture read through a pipe."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+
+import numpy as np
+import pytest
+
+from conftest import write_toy_shards
+from omg.data.datamodule import MotionDataModule
+from omg.data.shards import Manifest, ShardError, iter_tar
+from omg.errors import UsageError
+
+
+def _dm(train, **kw):
+    defaults = dict(batch_size=4, max_len=30, min_len=10, batches_per_epoch=6, num_workers=0, shuffle_buffer=8)
+    return MotionDataModule(train, **{**defaults, **kw})
+
+
+def _ids(loader):
+    return [b["id"] for b in loader]
+
+
+def test_a_pipe_set_is_named_by_its_manifest_command(toy_shards):
+    m = Manifest.load(f"pipe:cat {toy_shards}/manifest.json")
+    assert m.location == f"pipe:cat {toy_shards}/manifest.json"
+    assert m.shard_urls == [f"pipe:cat {toy_shards}/shard-{i:06d}.tar" for i in range(8)]
+    assert m.expected(m.shard_urls[3]) == Manifest.load(toy_shards).expected(f"{toy_shards}/shard-000003.tar")
+    samples = list(iter_tar(m.shard_urls[0], **m.expected(m.shard_urls[0]), whole=True))
+    assert [s["__key__"] for s in samples] == [f"clip_{i:04d}" for i in range(5)]
+    # a command with arguments after the file name: the file name is replaced where it stands
+    m = Manifest.load(f"pipe:cat {toy_shards}/manifest.json -")
+    assert m.shard_urls[1] == f"pipe:cat {toy_shards}/shard-000001.tar -"
+    assert m.expected(m.shard_urls[1])["samples"] == 5
+
+
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_training_through_pipe_urls_reads_the_same_stream(toy_shards, num_workers):
+    local = _ids(_dm(str(toy_shards), num_workers=num_workers).train_dataloader())
+    piped = _dm(f"pipe:cat {toy_shards}/manifest.json", num_workers=num_workers)
+    assert piped.train_urls[0].startswith("pipe:cat ") and piped.spec == _dm(str(toy_shards)).spec
+    assert _ids(piped.train_dataloader()) == local
+    pattern = _dm(f"pipe:cat {toy_shards}/shard-{{000000..000007}}.tar", num_workers=num_workers)
+    assert all(pattern.shard_checks[url].keys() == {"sha256", "samples", "size"} for url in pattern.train_urls)
+    assert _ids(pattern.train_dataloader()) == local
+    assert _dm(str(toy_shards / "manifest.json")).train_urls == _dm(str(toy_shards)).train_urls  # a local manifest
+
+
+def test_streamed_shards_are_verified_against_the_manifest(tmp_path, caplog):
+    shards = write_toy_shards(tmp_path / "s", num_clips=30, max_clips=5)
+    first = shards / "shard-000000.tar"
+    data = bytearray(first.read_bytes())
+    data[-2000] ^= 0xFF  # garbled inside a payload: the tar still parses
+    first.write_bytes(bytes(data))
+    url = f"pipe:cat {shards}/manifest.json"
+    m = Manifest.load(url)
+    with pytest.raises(ShardError) as e:
+        list(iter_tar(m.shard_urls[0], **m.expected(m.shard_urls[0])))
+    assert e.value.check == "sha256" and e.value.shard == f"pipe:cat {first}"
+    cut = shards / "shard-000001.tar"
+    cut.write_bytes(cut.read_bytes()[:512 * (cut.stat().st_size // 1024)])  # half the shard
+    with pytest.raises(ShardError) as e:
+        list(iter_tar(m.shard_urls[1], **m.expected(m.shard_urls[1])))
+    assert e.value.shard == f"pipe:cat {cut}"
+    with caplog.at_level(logging.WARNING):
+        batches = list(_dm(url, batches_per_epoch=20, max_bad_fraction=0.5).train_dataloader())
+    seen = {int(i.split(".")[1]) for b in batches for i in b["id"]}
+    assert len(batches) == 20 and seen and not seen & set(range(10))  # nothing of the two bad shards
+    assert f"pipe:cat {first}" in caplog.text and "sha256" in caplog.text
+
+
+def test_a_directory_url_reads_through_fsspec(toy_shards):
+    fsspec = pytest.importorskip("fsspec")
+    memory = fsspec.filesystem("memory")
+    for path in toy_shards.iterdir():
+        memory.pipe(f"/sets/toy/{path.name}", path.read_bytes())
+    try:
+        dm = _dm("memory://sets/toy")
+        assert dm.train_urls[0] == "memory://sets/toy/shard-000000.tar"
+        assert _ids(dm.train_dataloader()) == _ids(_dm(str(toy_shards)).train_dataloader())
+        assert Manifest.load("memory://sets/toy/manifest.json").shard_urls == dm.train_urls
+    finally:
+        memory.rm("/sets", recursive=True)
+
+
+@pytest.mark.parametrize("url, error", [
+    ("pipe:cat /nonexistent/manifest.json", "pipe:cat /nonexistent/manifest.json: the manifest cannot be fetched "
+                                            r"\(the command exited with 1: cat: /nonexistent/manifest.json: No such"),
+    ("pipe:cat /nonexistent/set", "a pipe: set must print its manifest.json"),
+    ("nosuchscheme://bucket/set", "nosuchscheme://bucket/set/manifest.json: the manifest cannot be fetched "
+                                  r"\(no reader for nosuchscheme:// URLs"),
+])
+def test_unreadable_set_urls_are_one_line_errors(url, error):
+    with pytest.raises(UsageError, match=error) as e:
+        _dm(url)
+    assert "\n" not in str(e.value)
+
+
+def test_a_manifest_fetched_by_url_is_checked_like_a_local_one(toy_shards, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(toy_shards, broken)
+    (broken / "manifest.json").write_text('{"schema_version": 1}')
+    with pytest.raises(UsageError, match=f"pipe:cat {broken}/manifest.json: invalid manifest: missing keys"):
+        _dm(f"pipe:cat {broken}/manifest.json")
+
+
+def test_inspect_checks_a_set_behind_a_pipe(toy_shards, capsys):
+    from omg.tools.shards import shards_inspect
+
+    shards_inspect([f"pipe:cat {toy_shards}/manifest.json"])
+    out = capsys.readouterr().out
+    assert out.startswith(f"pipe:cat {toy_shards}/manifest.json: 40 clips")
+    assert "8 of 8 shards verified against the manifest; 40 valid samples, 0 problems" in out
+
+
+def test_fit_on_a_mixture_read_through_a_pipe_stores_the_pooled_stats(h263_shards, tmp_path):
+    """`omg fit` end to end: one set behind `pipe:cat`, one local; the checkpoint's spec (what
+    `omg generate` normalises with) holds the mixture's pooled statistics."""
+    from omg.cli import main
+    from omg.lit.checkpoint import load_module
+    from test_run_faults import write_config
+
+    train = [{"path": f"pipe:cat {h263_shards / 'train'}/manifest.json", "weight": 0.8},
+             {"path": str(h263_shards / "val"), "weight": 0.2}]
+    config = write_config(tmp_path / "mix.yaml", "unused", tmp_path / "run", max_steps=4, num_workers=1)
+    text = (tmp_path / "mix.yaml").read_text().replace("train: unused", "train: " + repr(train).replace("'", '"'))
+    (tmp_path / "mix.yaml").write_text(text)
+    main(["fit", "--config", config])
+    module = load_module(tmp_path / "run" / "ckpt" / "last.ckpt")
+    pooled = _dm(train).spec
+    single = _dm(str(h263_shards / "train")).spec
+    assert module.spec == pooled and not np.allclose(pooled.mean, single.mean)
