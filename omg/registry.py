@@ -103,7 +103,7 @@ class Registry:
 # import torchmetrics.
 SKELETONS = Registry("skeleton", ("omg.skeleton",))
 REPRESENTATIONS = Registry("representation", ("omg.motion",))
-TEXT_ENCODERS = Registry("text encoder", ("omg.text",))
+TEXT_ENCODERS = Registry("text encoder", ("omg.text", "omg.text.bge"))
 DATA_SOURCES = Registry("data source", ("omg.data.sources",))
 METRICS = Registry("metric", ("omg.metrics",))
 SAMPLERS = Registry("sampler", ("omg.samplers",))
