@@ -8,11 +8,13 @@ lists), so ``compute()`` gives the same result on every rank as one process seei
 from omg.metrics.base import EvalBatch, GenerationMetric
 from omg.metrics.distribution import FID, FIDOOD, IntraFID, OneNNA, frechet_distance
 from omg.metrics.diversity import Diversity, MultiModality
+from omg.metrics.habit import CrossCategoryFID
 from omg.metrics.joints import MPJPE, FootSkating
 from omg.metrics.text_motion import CLIPScore, LabelAccuracy, MMDist, RPrecision
 
 __all__ = [
     "CLIPScore",
+    "CrossCategoryFID",
     "Diversity",
     "EvalBatch",
     "FID",

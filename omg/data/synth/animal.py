@@ -15,7 +15,7 @@ Random draws happen in a fixed order, which the committed mini shards depend on.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -61,6 +61,7 @@ class GaitHabit:
     spine_sway: float = 0.0  # lateral spine wave (symmetric gaits)
     body_rock: float = 0.0  # nose-up pitch swing (bounding)
     high_point: float = 0.0  # bounding: stride fraction where the body is highest, back arched (the gathered flight)
+    tail_lift: float = 0.0  # tail carried this much higher (+) or lower than at rest while in this gait (rad)
 
 
 @dataclass(frozen=True)
@@ -96,8 +97,8 @@ QUADRUPED_GAITS = GaitHabits(
 class Animal:
     """A species: body proportions relative to the SMAL35 rest dog, carriage, gaits and what it does.
 
-    Every species shares ``QUADRUPED_GAITS`` for now; to give one its own habits, e.g.
-    ``gaits=replace(QUADRUPED_GAITS, trot=replace(QUADRUPED_GAITS.trot, duty_factor=0.5))``.
+    ``gaits`` are the species' own habits (``SPECIES_GAITS``), made from ``QUADRUPED_GAITS`` with
+    ``habits(...)``, e.g. ``habits(trot={"duty_factor": 0.5})``.
     """
 
     size: float  # overall scale
@@ -117,18 +118,87 @@ class Animal:
     stance_height: float = 0.97  # standing root height, in hip heights: legs not quite straight
 
 
+def habits(walk: dict | None = None, trot: dict | None = None, gallop: dict | None = None) -> GaitHabits:
+    """``QUADRUPED_GAITS`` with some fields of each gait replaced, e.g. ``habits(trot={"duty_factor": 0.5})``."""
+    return GaitHabits(*(replace(QUADRUPED_GAITS.of(name), **(fields or {}))
+                        for name, fields in (("walk", walk), ("trot", trot), ("gallop", gallop))))
+
+
+# Each species' gait habits, in the dimensionless units of ``GaitHabit`` (so that a difference here is
+# a habit, not a consequence of size: dynamic similarity already scales every species' speed and
+# timing by its hip height). The directions follow what is known of each species' locomotion:
+# - dog: the reference; trots readily, tail carried up and swinging, moderate head nod.
+# - cat: a long, low-slung, high-duty walk (cats keep three paws down for most of a stride), a
+#   smooth body with little bob or nod, the tail held high and nearly still; supple spine (gallop).
+# - fox: an economical, long-striding trot with a level back and head, the brush streamed
+#   out behind, little sway (the fox's "floating" trot).
+# - horse: the head-and-neck nod of the walk (two nods per stride), a trot with a marked vertical
+#   bounce and suspension (low duty factor), a rigid back, tail down and quiet, lifted in the gallop.
+# - cow: a slow, deliberate walk with a high duty factor, a large head bob and a rolling body sway
+#   from its wide barrel; rarely trots, and stiffly.
+# - deer: high-stepping (large paw lift), short stance in the trot, a bounding gallop with a high
+#   body bob; the tail flagged up when running.
+# - sheep: short, quick strides (high stride frequency, short stride length) with a bobbing head;
+#   the tail hangs.
+SPECIES_GAITS = {
+    "dog": QUADRUPED_GAITS,
+    "cat": habits(
+        walk={"stride_frequency": 0.26, "stride_length": 1.25, "duty_factor": 0.75, "body_bob": 0.004,
+              "head_nod": 0.02, "tail_swing": 0.04, "spine_sway": 0.07, "tail_lift": 0.25},
+        trot={"stride_frequency": 0.46, "duty_factor": 0.5, "body_bob": 0.012, "head_nod": 0.02, "tail_swing": 0.05,
+              "spine_sway": 0.06, "tail_lift": 0.2},
+        gallop={"body_bob": 0.07, "body_rock": 0.09, "head_nod": 0.05},
+    ),
+    "fox": habits(
+        walk={"stride_frequency": 0.28, "stride_length": 1.2, "head_nod": 0.03, "tail_swing": 0.05, "spine_sway": 0.02},
+        trot={"stride_frequency": 0.44, "stride_length": 2.0, "duty_factor": 0.4, "body_bob": 0.012, "head_nod": 0.02,
+              "tail_swing": 0.04, "spine_sway": 0.015, "tail_lift": 0.15},
+        gallop={"tail_swing": 0.08, "tail_lift": 0.2},
+    ),
+    "horse": habits(
+        walk={"stride_frequency": 0.28, "duty_factor": 0.63, "body_bob": 0.012, "head_nod": 0.2, "tail_swing": 0.06,
+              "spine_sway": 0.02, "paw_lift": 0.09},
+        trot={"stride_frequency": 0.52, "stride_length": 1.7, "duty_factor": 0.38, "body_bob": 0.045, "head_nod": 0.02,
+              "tail_swing": 0.04, "spine_sway": 0.01, "paw_lift": 0.18},
+        gallop={"head_nod": 0.18, "body_rock": 0.04, "tail_lift": 0.35},
+    ),
+    "cow": habits(
+        walk={"stride_frequency": 0.24, "stride_length": 0.95, "duty_factor": 0.75, "body_bob": 0.015, "head_nod": 0.16,
+              "tail_swing": 0.1, "spine_sway": 0.09, "paw_lift": 0.08},
+        trot={"stride_frequency": 0.42, "stride_length": 1.3, "duty_factor": 0.52, "body_bob": 0.03, "head_nod": 0.1,
+              "tail_swing": 0.12, "spine_sway": 0.07, "paw_lift": 0.1},
+    ),
+    "deer": habits(
+        walk={"stride_frequency": 0.3, "duty_factor": 0.62, "paw_lift": 0.2, "head_nod": 0.08, "tail_swing": 0.03,
+              "spine_sway": 0.02},
+        trot={"duty_factor": 0.38, "paw_lift": 0.26, "body_bob": 0.035, "head_nod": 0.04, "tail_swing": 0.03,
+              "spine_sway": 0.02, "tail_lift": 0.4},
+        gallop={"body_bob": 0.09, "body_rock": 0.08, "paw_lift": 0.3, "tail_lift": 0.8},
+    ),
+    "sheep": habits(
+        walk={"stride_frequency": 0.36, "stride_length": 0.85, "duty_factor": 0.7, "body_bob": 0.012, "head_nod": 0.12,
+              "tail_swing": 0.05, "spine_sway": 0.05},
+        trot={"stride_frequency": 0.6, "stride_length": 1.3, "duty_factor": 0.48, "body_bob": 0.03, "head_nod": 0.1,
+              "tail_swing": 0.05, "spine_sway": 0.04},
+        gallop={"stride_frequency": 0.7, "stride_length": 2.2},
+    ),
+}  # fmt: skip
+
 _HOOVED = ("walk", "trot", "gallop", "jump", "lie", "idle", "turn")
 ANIMALS = {  # size, legs, spine, neck, tail, tail_pitch, tail_curl, then by name
-    "dog": Animal(1.0, 1.0, 1.0, 1.0, 1.0, 0.35, 0.08, wags=True),
-    "cat": Animal(0.45, 0.9, 1.15, 0.8, 1.6, 0.9, 0.12, flex=0.35),
-    "fox": Animal(0.62, 0.9, 1.1, 0.9, 1.5, -0.15, 0.03, flex=0.3, wags=True),
-    "horse": Animal(2.4, 1.2, 1.0, 1.6, 1.1, -1.0, 0.05, width=1.15, flex=0.06, neck_pitch=0.35, actions=_HOOVED),
+    "dog": Animal(1.0, 1.0, 1.0, 1.0, 1.0, 0.35, 0.08, wags=True, gaits=SPECIES_GAITS["dog"]),
+    "cat": Animal(0.45, 0.9, 1.15, 0.8, 1.6, 0.9, 0.12, flex=0.35, gaits=SPECIES_GAITS["cat"]),
+    "fox": Animal(0.62, 0.9, 1.1, 0.9, 1.5, -0.15, 0.03, flex=0.3, wags=True, gaits=SPECIES_GAITS["fox"]),
+    "horse": Animal(2.4, 1.2, 1.0, 1.6, 1.1, -1.0, 0.05, width=1.15, flex=0.06, neck_pitch=0.35, actions=_HOOVED,
+                    gaits=SPECIES_GAITS["horse"]),
     "cow": Animal(
         2.0, 0.8, 1.35, 0.8, 1.1, -1.3, 0.02, width=1.35, flex=0.04, neck_pitch=0.6,
-        actions=("walk", "trot", "lie", "idle", "turn"),
+        actions=("walk", "trot", "lie", "idle", "turn"), gaits=SPECIES_GAITS["cow"],
     ),
-    "deer": Animal(1.6, 1.3, 0.95, 1.4, 0.35, 0.4, width=0.9, flex=0.12, neck_pitch=0.1, actions=_HOOVED),
-    "sheep": Animal(1.15, 0.75, 1.1, 0.8, 0.4, -0.7, width=1.2, flex=0.08, neck_pitch=0.4, actions=_HOOVED),
+    "deer": Animal(1.6, 1.3, 0.95, 1.4, 0.35, 0.4, width=0.9, flex=0.12, neck_pitch=0.1, actions=_HOOVED,
+                   gaits=SPECIES_GAITS["deer"]),
+    "sheep": Animal(1.15, 0.75, 1.1, 0.8, 0.4, -0.7, width=1.2, flex=0.08, neck_pitch=0.4, actions=_HOOVED,
+                    gaits=SPECIES_GAITS["sheep"]),
 }
 # pace -> (stride frequency factor, stride length factor)
 PACES = {"slow": (0.85, 0.75), "normal": (1.0, 1.0), "fast": (1.1, 1.2)}
@@ -318,6 +388,7 @@ def _sway(ctx: AnimalContext, channels: AnimalChannels, stride: _Stride) -> None
     """Body motion phased with the strides (see ``GaitHabit``)."""
     habit, hip_height = stride.habit, ctx.body.hip_height
     cycle = 2 * np.pi * stride.frequency_hz * channels.timeline.seconds  # (T,) rad
+    channels.tail += habit.tail_lift * channels.activity[channels.timeline.frames]  # the gait's tail carriage
     if habit.bounding:  # one bob per stride; back arched in the gathered flight
         from_high = cycle - 2 * np.pi * habit.high_point
         channels.height += habit.body_bob * hip_height * np.cos(from_high)

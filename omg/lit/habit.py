@@ -1,0 +1,363 @@
+"""Habit transfer training: the category-conditioned VQ-VAE (``HabitVQModule``, stage 1) and the
+per-category flow priors of the habit latent (``HabitPriorModule``, stage 2), on ``quatvel``
+shards whose clips carry their species as ``category``.
+
+Stage 1 loss (the paper's): smooth L1 on the normalised motion + α · smooth L1 on its velocity
+channels + β · commitment (the embedding term is the codebook's EMA update), plus
+``kl_weight`` · KL(q(z | m) || N(0, I)), which keeps each category's posterior in a region its
+flow can model. Stage 2 fits each category's flow to the frozen posterior by negative
+log-likelihood (change of variables). Transfer (``HabitVQModule.transfer``, ``omg transfer``):
+encode the source motion with the target category's habit latent (a sample of its prior) and
+text embedding, quantize, decode with the target's condition.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omg.errors import UsageError
+from omg.lit.base import OmgModule
+from omg.models.habit import CategoryFlows, CategoryHabitEncoders, HabitConfig, MotionVQVAE, Quantizer, gaussian_kl
+from omg.motion import DataSpec, get_representation
+from omg.skeleton import get_skeleton
+
+
+def step_lr(lr: float, lr_after: float, switch_fraction: float):
+    """LR multiplier: ``lr`` until ``switch_fraction`` of the run, then ``lr_after`` (the paper: 2e-4, then 1e-5
+    for the second half)."""
+
+    def schedule(total_steps: int):
+        switch = int(switch_fraction * total_steps)
+        return lambda step: 1.0 if step < switch else lr_after / lr
+
+    return schedule
+
+
+def masked_smooth_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Mean smooth L1 over the real frames: (B, T, F), (B, T, F), (B, T) -> ()."""
+    error = F.smooth_l1_loss(pred, target, reduction="none").mean(-1)  # (B, T)
+    return (error * mask).sum() / mask.sum().clamp_min(1)
+
+
+class HabitVQModule(OmgModule):
+    """Stage 1: the motion VQ-VAE conditioned on each category's habit latent and text embedding.
+
+    Args:
+        categories: the known categories (species names of the training clips' ``category``).
+        flavor: model size preset (``base``: the paper's T2M-GPT sizes; ``mini``, ``tiny`` for CPU runs).
+        habit: HabitConfig fields to override.
+        quantizer: ``soft`` (softmax sampling at ``temperature``, the paper's) or ``nearest``.
+        temperature: softmax temperature of soft sampling, on squared distances of the latents.
+        code_reset: restart dead codes at encoder outputs ("EMA-reset"); False: "EMA".
+        ema_decay: decay of the codebook's moving averages.
+        condition_decoder: also give the decoder the habit latent and text embedding. Off by default:
+            the paper gives them to the encoder only. A named deviation (the mini config uses it):
+            with the decoder conditioned too, the codes need not carry the category, which lets a
+            short run's target habit replace the source's.
+        alpha: weight of the velocity reconstruction term (paper: 0.5).
+        beta: commitment weight (paper: 0.02).
+        kl_weight: weight of KL(q(z | m) || N(0, I)) on the habit posterior.
+        text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
+            (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
+        species_file: a YAML of extra or overriding species descriptions (omg.text.species).
+        descriptions, category_embeddings: filled in when the module is first built (the descriptions
+            and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
+            needed to transfer to a known category).
+        lr, lr_after, lr_switch: AdamW lr until ``lr_switch`` of the run, then ``lr_after``.
+        weight_decay, betas, warmup_steps: AdamW and a linear warm-up.
+        spec: the data's representation (quatvel), skeleton, fps and stats; linked by ``omg fit``.
+    """
+
+    clip_sampling = "windows"  # fixed-length crops: data.min_len = data.max_len
+    frozen_prefixes = ()
+
+    def __init__(
+        self,
+        categories: list[str],
+        flavor: str = "base",
+        habit: dict[str, Any] | None = None,
+        quantizer: str = "soft",
+        temperature: float = 1.0,
+        code_reset: bool = True,
+        ema_decay: float = 0.99,
+        condition_decoder: bool = False,
+        alpha: float = 0.5,
+        beta: float = 0.02,
+        kl_weight: float = 1e-3,
+        text_encoder: str = "minilm",
+        text_encoder_args: dict[str, Any] | None = None,
+        species_file: str | None = None,
+        descriptions: dict[str, str] | None = None,
+        category_embeddings: list[list[float]] | None = None,
+        lr: float = 2e-4,
+        lr_after: float = 1e-5,
+        lr_switch: float = 0.5,
+        weight_decay: float = 0.0,
+        betas: tuple[float, float] = (0.9, 0.99),
+        warmup_steps: int = 0,
+        spec: DataSpec | dict | None = None,
+    ):
+        super().__init__()
+        if not categories or len(set(categories)) != len(categories):
+            raise UsageError(f"model.categories must list distinct category names, got {categories!r}")
+        if lr <= 0 or lr_after <= 0 or not 0 <= lr_switch <= 1 or weight_decay < 0 or warmup_steps < 0:
+            raise UsageError("model.lr and model.lr_after must be > 0, model.lr_switch in [0, 1], model.weight_decay "
+                             f"and model.warmup_steps >= 0; got {lr}, {lr_after}, {lr_switch}, {weight_decay}, "
+                             f"{warmup_steps}")
+        self.save_hyperparameters()
+        self.spec = DataSpec.coerce(spec)
+        if self.spec.representation != "quatvel":
+            raise UsageError(f"habit transfer trains on quatvel shards, got {self.spec.representation!r} "
+                             "(build them with --representation quatvel)")
+        self.categories = list(categories)
+        self.lr, self.lr_after, self.lr_switch = lr, lr_after, lr_switch
+        self.weight_decay, self.betas, self.warmup_steps = weight_decay, betas, warmup_steps
+        self.alpha, self.beta, self.kl_weight = alpha, beta, kl_weight
+        if category_embeddings is None:  # first build: describe and embed the categories once
+            descriptions, category_embeddings = embed_categories(self.categories, text_encoder, text_encoder_args,
+                                                                 species_file)
+            self.hparams["descriptions"], self.hparams["category_embeddings"] = descriptions, category_embeddings
+        if len(category_embeddings) != len(self.categories):
+            raise UsageError(f"{len(category_embeddings)} category embeddings for {len(self.categories)} categories")
+        self.descriptions = dict(descriptions or {})
+        self.register_buffer("category_text", torch.tensor(category_embeddings, dtype=torch.float32))  # (N, E)
+        self.config = HabitConfig.from_name(flavor, **(habit or {}))
+        D = self.spec.feature_dim
+        self.representation = get_representation("quatvel", get_skeleton(self.spec.skeleton))
+        self.num_joints = self.representation.skeleton.num_joints
+        quant = Quantizer(self.config.num_codes, self.config.code_dim, quantizer, temperature, ema_decay, code_reset)
+        self.vqvae = MotionVQVAE(D, self.category_text.shape[1], self.config, quant, condition_decoder)
+        self.habit_encoders = CategoryHabitEncoders(D, len(self.categories), self.config)
+        self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
+        self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
+        N, J, Z = len(self.categories), self.num_joints, self.config.habit_dim
+        # per category: the sums behind the mean bone offsets of its training clips (the target's
+        # proportions at transfer), and exponentially decayed sums behind the recent mean of its
+        # posterior means (a prior-free habit: the encoder's early outputs are forgotten)
+        self.register_buffer("offsets_sum", torch.zeros(N, J, 3, dtype=torch.float64))
+        self.register_buffer("offsets_count", torch.zeros(N, dtype=torch.float64))
+        self.register_buffer("habit_sum", torch.zeros(N, Z, dtype=torch.float64))
+        self.register_buffer("habit_count", torch.zeros(N, dtype=torch.float64))
+        self._generator: torch.Generator | None = None
+
+    # -- categories and features -------------------------------------------------------
+    @property
+    def row_label(self) -> str:
+        """The paper's table row this model is: EMA or EMA-reset."""
+        return "EMA-reset" if self.vqvae.quantizer.code_reset else "EMA"
+
+    def category_index(self, names: Sequence[str]) -> Tensor:
+        try:
+            return torch.tensor([self.categories.index(n) for n in names], device=self.device)
+        except ValueError:
+            unknown = sorted({n for n in names if n not in self.categories})
+            raise UsageError(f"clip categories {unknown} are not among model.categories {self.categories}: list every "
+                             "category of the training data") from None
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return (x - self.mean.to(x.dtype)) / self.std.to(x.dtype)
+
+    def denormalize(self, x: Tensor) -> Tensor:
+        return x * self.std.to(x.dtype) + self.mean.to(x.dtype)
+
+    def category_offsets(self, category: int) -> Tensor:
+        """(J, 3) mean bone offsets of the category's training clips (the skeleton's rest offsets when none)."""
+        count = float(self.offsets_count[category])
+        if count == 0:
+            return torch.as_tensor(self.representation.skeleton.rest_offsets, dtype=torch.float32, device=self.device)
+        return (self.offsets_sum[category] / count).float()
+
+    def mean_habit(self, category: int) -> Tensor:
+        """(Z,) the recent mean of the category's posterior means in training."""
+        return (self.habit_sum[category] / self.habit_count[category].clamp_min(1)).float()
+
+    def generator(self) -> torch.Generator:
+        if self._generator is None:
+            self._generator = torch.Generator(device="cpu")  # small draws: the CPU's, on any device
+            self._generator.manual_seed(torch.initial_seed() + self.global_rank)
+        return self._generator
+
+    # -- training ------------------------------------------------------------------------
+    def habit_posterior(self, motion: Tensor, mask: Tensor, category: Tensor) -> tuple[Tensor, Tensor]:
+        return self.habit_encoders(motion, mask, category)
+
+    def losses(self, batch: dict, generator: torch.Generator | None = None) -> tuple[dict[str, Tensor], Tensor, dict]:
+        motion, mask = batch["motion"], batch["mask"].float()  # (B, T, D) normalised, (B, T)
+        category = self.category_index(batch["category"])
+        mu, log_sigma = self.habit_posterior(motion, batch["mask"], category)
+        z = mu
+        if self.training:  # the reparameterised posterior sample
+            z = mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+        recon, _, terms = self.vqvae(motion, z, self.category_text[category], batch["mask"], generator)
+        v = self.num_joints * 4  # quatvel: quaternions first, then the joint velocities
+        motion_loss = masked_smooth_l1(recon, motion, mask)
+        velocity_loss = masked_smooth_l1(recon[..., v:], motion[..., v:], mask)
+        kl = gaussian_kl(mu, log_sigma).mean()
+        loss = motion_loss + self.alpha * velocity_loss + self.beta * terms["commitment"] + self.kl_weight * kl
+        out = {"loss": loss, "motion": motion_loss, "velocity": velocity_loss, "commitment": terms["commitment"],
+               "embedding": terms["embedding"], "kl": kl, "perplexity": terms["perplexity"]}
+        return out, recon, {"category": category, "mu": mu}
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        losses, _, extra = self.losses(batch, self.generator())
+        if not torch.isfinite(losses["loss"]):
+            raise FloatingPointError(f"non-finite loss at step {self.global_step}; lower model.lr or check the data")
+        self._accumulate(batch, extra["category"], extra["mu"])
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=len(batch["motion"]))
+        return losses["loss"]
+
+    habit_decay = 0.99  # per step, of the sums behind mean_habit
+
+    @torch.no_grad()
+    def _accumulate(self, batch: dict, category: Tensor, mu: Tensor) -> None:
+        ones = torch.ones(len(category), dtype=torch.float64, device=self.device)
+        self.habit_sum.mul_(self.habit_decay).index_add_(0, category, mu.detach().double())
+        self.habit_count.mul_(self.habit_decay).index_add_(0, category, ones)
+        if "offsets" in batch:
+            self.offsets_sum.index_add_(0, category, batch["offsets"].to(self.device).double())
+            self.offsets_count.index_add_(0, category, ones)
+
+    def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
+        losses, recon, extra = self.losses(batch)
+        n = len(batch["motion"])
+        self.log_dict({f"{stage}/{k}": v for k, v in losses.items()}, batch_size=n, sync_dist=True)
+        if "offsets" in batch:
+            real = self.representation.decode(self.denormalize(batch["motion"]), batch["offsets"])
+            pred = self.representation.decode(self.denormalize(recon), batch["offsets"])
+            error = (pred - real).norm(dim=-1).mean(-1)  # (B, T)
+            mask = batch["mask"].float()
+            self.log(f"{stage}/mpjpe", (error * mask).sum() / mask.sum(), batch_size=n, sync_dist=True)
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        self.validation_step(batch, batch_idx, stage="test")
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.AdamW(self.optimizer_groups(), lr=self.lr, weight_decay=self.weight_decay,
+                                      betas=tuple(self.betas))
+        total = int(self.trainer.estimated_stepping_batches)
+        after = step_lr(self.lr, self.lr_after, self.lr_switch)(total)
+        warmup = self.warmup_steps
+
+        def factor(step: int) -> float:
+            return after(step) * min(1.0, (step + 1) / warmup) if warmup else after(step)
+
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # -- transfer --------------------------------------------------------------------------
+    @torch.no_grad()
+    def transfer(self, motion: Tensor, target: int, z: Tensor, seed: int = 0, quantizer: str | None = None) -> Tensor:
+        """(B, T, D) un-normalised quatvel features -> the same motion with category ``target``'s habit
+        latents z (B, Z): encoded with the target's condition, quantized (sampled with ``seed``, or by
+        ``quantizer``), decoded. Returns (B, T, D) un-normalised."""
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        B, T, _ = motion.shape
+        text = self.category_text[torch.full((B,), target, device=self.device)]
+        x = self.vqvae.pad(self.normalize(motion.to(self.device)))
+        latents = self.vqvae.encode(x, z.to(self.device), text)  # (B, C, T')
+        C = latents.shape[1]
+        flat = latents.permute(0, 2, 1).reshape(-1, C)
+        indices = self.vqvae.quantizer.assign(flat, gen, quantizer)  # drawn on the CPU: the same on any device
+        codes = self.vqvae.quantizer.codebook[indices].reshape(B, -1, C).permute(0, 2, 1)
+        return self.denormalize(self.vqvae.decode(codes, z.to(self.device), text)[:, :T])
+
+
+def embed_categories(categories: list[str], text_encoder: str, text_encoder_args: dict | None,
+                     species_file: str | None) -> tuple[dict[str, str], list[list[float]]]:
+    """({category: description}, their sentence embeddings as lists) by the registered text encoder."""
+    from omg.text.base import build_text_encoder
+    from omg.text.species import SpeciesBook, sentence_embeddings
+
+    book = SpeciesBook.load(species_file)
+    descriptions = {name: book.description(name) for name in categories}
+    if torch.get_default_device().type == "meta":  # config tests build structure only
+        return descriptions, [[0.0] * 8 for _ in categories]
+    encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
+    with torch.device("cpu"):
+        embeddings = sentence_embeddings(encoder, [descriptions[n] for n in categories]).cpu()
+    return descriptions, embeddings.tolist()
+
+
+class HabitPriorModule(OmgModule):
+    """Stage 2: each known category's flow prior p(z), fitted by NLL to the frozen stage-1 habit posterior.
+
+    Args:
+        vq_ckpt: the HabitVQModule checkpoint (frozen; rebuilt from that file, not stored again).
+        posterior_sample: fit the flows to samples z ~ q(z | m) (True) or to the posterior means.
+        lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
+        spec: linked by ``omg fit`` from the data; must match the VQ-VAE's.
+    """
+
+    clip_sampling = "windows"
+    frozen_prefixes = ("vq.",)
+
+    def __init__(self, vq_ckpt: str, posterior_sample: bool = True, lr: float = 2e-4, weight_decay: float = 0.0,
+                 betas: tuple[float, float] = (0.9, 0.99), warmup_steps: int = 0, spec: DataSpec | dict | None = None):
+        super().__init__()
+        from omg.lit.checkpoint import load_module
+
+        if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
+            raise UsageError(f"model.lr must be > 0, weight_decay and warmup_steps >= 0; got {lr}, {weight_decay}, "
+                             f"{warmup_steps}")
+        if not Path(vq_ckpt).exists() and torch.get_default_device().type != "meta":
+            raise UsageError(f"model.vq_ckpt: no HabitVQModule checkpoint at {vq_ckpt}; train it first with "
+                             "`omg fit --config configs/mini/habit_vqvae.yaml`")
+        self.save_hyperparameters()
+        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
+        self.posterior_sample = posterior_sample
+        self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
+        self.vq.requires_grad_(False).eval()
+        self.spec = self.vq.spec
+        if spec is not None:
+            self.vq.spec.check_compatible(DataSpec.coerce(spec), f"the VQ-VAE {vq_ckpt}", "the data")
+        self.flows = CategoryFlows(len(self.vq.categories), self.vq.config)
+
+    @property
+    def categories(self) -> list[str]:
+        return self.vq.categories
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        self.vq.eval()  # frozen: the posterior's dropout stays off
+        return self
+
+    def nll(self, batch: dict, generator: torch.Generator | None = None) -> Tensor:
+        """Mean NLL per latent dimension of the batch's habit latents under their category's flow."""
+        category = self.vq.category_index(batch["category"])
+        with torch.no_grad():
+            mu, log_sigma = self.vq.habit_posterior(batch["motion"], batch["mask"], category)
+        z = mu
+        if self.posterior_sample and self.training:
+            z = mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+        return -self.flows.log_prob(z, category).mean() / z.shape[1]
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        loss = self.nll(batch, self.vq.generator())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite NLL at step {self.global_step}; lower model.lr")
+        self.log("train/nll", loss, prog_bar=True, batch_size=len(batch["motion"]))
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        self.log("val/nll", self.nll(batch), batch_size=len(batch["motion"]), sync_dist=True)
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        self.log("test/nll", self.nll(batch), batch_size=len(batch["motion"]), sync_dist=True)
+
+    def optimizer_groups(self) -> list[dict]:
+        return [{"params": list(self.flows.parameters())}]
+
+    @torch.no_grad()
+    def habit_latents(self, category: int, count: int, seed: int = 0, temperature: float = 1.0) -> Tensor:
+        """(count, Z) samples of the category's prior."""
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        return self.flows.sample(category, count, gen, temperature)
+
+
+__all__ = ["HabitPriorModule", "HabitVQModule", "embed_categories"]

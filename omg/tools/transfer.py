@@ -1,0 +1,181 @@
+"""``omg transfer``: move a quadruped motion onto another species, with that species' habits.
+
+The source (BVH, DeepMimic or ``.npy``) is retargeted onto SMAL-35 and encoded as ``quatvel``
+features; the habit VQ-VAE re-encodes it with the target category's habit latent (a sample of
+its flow prior, or without ``--prior_ckpt`` the mean of its posterior) and text embedding and
+decodes it. A target the model does not know is described by the species book (or by the text
+given) and replaced by the known category whose description is nearest (Euclidean, the paper's
+retrieval); the output says which and at what distance. Written to ``--out``:
+``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3) with the target category's
+mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions), ``source.joints.npy``,
+``preview.gif`` (source and result side by side) and ``transfer.json`` (every setting).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from omg.errors import UsageError
+from omg.files import atomic_write, npy_bytes, write_json
+from omg.tools.args import PositiveFiniteFloat, Seed, run
+from omg.tools.common import check_output_dir, removing_created
+
+
+def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """A motion file as the model's features: (features (T, D), source offsets (J, 3), root start (3,),
+    the source's category). ``.npy``: quatvel features (T, D) or SMAL-35 joint positions (T, J, 3) at
+    the model's frame rate; other files are read and retargeted onto the model's skeleton."""
+    from omg.io.export import positions_to_rotations
+    from omg.motion import Clip
+
+    skeleton, fps = module.representation.skeleton, module.spec.fps
+    if not path.is_file():
+        raise UsageError(f"SOURCE {path}: no such file")
+    if path.suffix.lower() == ".npy":
+        try:
+            array = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise UsageError(f"SOURCE {path}: not a readable .npy array ({e})") from None
+        J, D = skeleton.num_joints, module.spec.feature_dim
+        if array.ndim == 2 and array.shape[1] == D:
+            return (array.astype(np.float32), np.asarray(skeleton.rest_offsets, np.float32), np.zeros(3, np.float32),
+                    "")
+        if array.ndim == 3 and array.shape[1:] == (J, 3):
+            rotations, _, offsets = positions_to_rotations(skeleton, array)
+            clip = Clip(id=path.stem, skeleton=skeleton, fps=fps, positions=array.astype(np.float32),
+                        rotations=rotations, offsets=offsets)
+        else:
+            raise UsageError(f"SOURCE {path}: a .npy source holds quatvel features (T, {D}) or {skeleton.name} joint "
+                             f"positions (T, {J}, 3), got shape {array.shape}")
+    else:
+        from omg.io.read import read_motion
+        from omg.retarget import retarget
+
+        clip = retarget(read_motion(path), skeleton, joint_map=joint_map, fps=fps)
+    if len(clip.positions) < 2:
+        raise UsageError(f"SOURCE {path}: {len(clip.positions)} frame(s), need 2 or more")
+    features, meta = module.representation.encode(clip)
+    return (features, np.asarray(meta["offsets"], np.float32), np.asarray(meta["root_start"], np.float32),
+            clip.category or "")
+
+
+def resolve_target(module, to: str, species_file: Path | None) -> dict:
+    """The category whose habits are used: ``to`` itself when known, else the known category whose
+    description is nearest ``to``'s (a species of the book, or a description of 3 words or more)."""
+    from omg.text.species import SpeciesBook, nearest_category, species_key
+
+    if not to or not to.strip():
+        raise UsageError("--to is empty: give a species name (e.g. horse) or a description of the animal")
+    key = species_key(to) if len(to.split()) < 3 else to
+    if key in module.categories:
+        return {"target": to, "category": key, "retrieved": False, "distance": 0.0}
+    book = SpeciesBook.load(species_file)
+    description = book.describe(to)
+    from omg.text.base import build_text_encoder
+
+    hp = module.hparams
+    encoder = build_text_encoder(hp.get("text_encoder", "minilm"), **(hp.get("text_encoder_args") or {}))
+    known = {name: module.descriptions.get(name) or book.description(name) for name in module.categories}
+    name, distance = nearest_category(encoder, description, known)
+    return {"target": to, "description": description, "category": name, "retrieved": True, "distance": distance}
+
+
+def transfer(
+    source: Path,
+    *,
+    to: str,
+    ckpt: Path,
+    prior_ckpt: Path | None = None,
+    species_file: Path | None = None,
+    joint_map: str | None = None,
+    seed: Seed = 0,
+    temperature: PositiveFiniteFloat = 1.0,
+    quantizer: Literal["soft", "nearest"] | None = None,
+    preview: bool = True,
+    out: Path = Path("out/transfer"),
+    command: str = "",
+) -> dict:
+    """Transfer a quadruped motion onto another species with its habits.
+
+    Args:
+        source: a BVH, DeepMimic (.json/.txt) or .npy (quatvel features or SMAL-35 joint positions) motion
+        to: the target species: a known category (e.g. horse), a species of the species book, or a description
+        ckpt: the HabitVQModule checkpoint (stage 1)
+        prior_ckpt: the HabitPriorModule checkpoint (stage 2): the habit latent is a sample of the target's
+            flow prior; without it, the mean of the target's posterior
+        species_file: a YAML of extra species descriptions (name: description)
+        joint_map: the source rig's joint map (a registered name or a YAML file; default: detected)
+        seed: random seed (prior sample and soft quantization)
+        temperature: scale of the prior's base Gaussian
+        quantizer: soft or nearest (default: the checkpoint's)
+        preview: write preview.gif (source and transfer side by side)
+        out: output folder (created; files in it are overwritten)
+        command: the command line, recorded in transfer.json
+
+    Returns:
+        The settings written to transfer.json.
+    """
+    from omg.lit.checkpoint import load_module
+    from omg.lit.habit import HabitPriorModule, HabitVQModule
+
+    out = check_output_dir(out)
+    module = load_module(ckpt, default_class=HabitVQModule, expect=HabitVQModule)
+    prior = None
+    if prior_ckpt is not None:
+        prior = load_module(prior_ckpt, default_class=HabitPriorModule, expect=HabitPriorModule)
+        if prior.categories != module.categories:
+            raise UsageError(f"--prior_ckpt {prior_ckpt} was fitted for categories {prior.categories}, --ckpt {ckpt} "
+                             f"knows {module.categories}: fit the prior on this VQ-VAE")
+    features, source_offsets, root_start, source_category = read_source(Path(source), module, joint_map)
+    target = resolve_target(module, to, species_file)
+    k = module.categories.index(target["category"])
+    torch.manual_seed(seed)
+    if prior is not None:
+        z = prior.habit_latents(k, 1, seed=seed, temperature=temperature)
+    else:
+        z = module.mean_habit(k)[None]
+    result = module.transfer(torch.from_numpy(features)[None], k, z, seed=seed, quantizer=quantizer)[0]
+    if not torch.isfinite(result).all():
+        raise UsageError(f"the model produced NaN or inf motion: a diverged checkpoint ({ckpt})")
+    rep, fps = module.representation, module.spec.fps
+    offsets = module.category_offsets(k)
+    start = torch.from_numpy(root_start)
+    joints = rep.decode(result.float(), offsets, start).numpy().astype(np.float32)
+    source_joints = rep.decode(torch.from_numpy(features), torch.from_numpy(source_offsets), start).numpy()
+    settings = {
+        "command": command, "source": str(source), "source_category": source_category, "to": to,
+        "category": target["category"], "retrieved": target["retrieved"], "distance": target["distance"],
+        "description": target.get("description"), "ckpt": str(ckpt), "prior_ckpt": str(prior_ckpt) if prior_ckpt
+        else None, "habit": "prior sample" if prior is not None else "posterior mean", "seed": seed,
+        "temperature": temperature, "quantizer": quantizer or module.vqvae.quantizer.mode, "frames": len(joints),
+        "fps": fps, "skeleton": rep.skeleton.name, "representation": "quatvel",
+        "target_offsets": offsets.tolist(),
+    }
+    from omg.io.export import export_motion
+
+    with removing_created(out):
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write(out / "transfer.features.npy", npy_bytes(result.float().numpy()))
+        atomic_write(out / "transfer.joints.npy", npy_bytes(joints))
+        atomic_write(out / "source.joints.npy", npy_bytes(source_joints.astype(np.float32)))
+        settings["bvh"] = export_motion(out / "transfer", joints, rep.skeleton, fps, preview=False)["bvh"]
+        if preview:
+            from omg.io.render import render_gif
+
+            how = (f"{target['category']}'s habits (nearest known, distance {target['distance']:.3f})"
+                   if target["retrieved"] else f"{target['category']}'s habits")
+            render_gif(out / "preview.gif", [source_joints, joints], rep.skeleton, fps,
+                       titles=[f"source: {Path(source).name}", f"{to}: {how}"])
+        write_json(out / "transfer.json", settings)
+    via = (f" via the nearest known category {target['category']} (text distance {target['distance']:.3f})"
+           if target["retrieved"] else "")
+    print(f"transferred {Path(source).name} ({len(joints)} frames at {fps:g} fps) to {to}{via}: {out}")
+    return settings
+
+
+def main(argv: list[str]) -> None:
+    run(transfer, argv, "omg transfer", positional="source", nargs=None)

@@ -1,0 +1,314 @@
+"""Habit transfer: quantizer, EMA codebook and code reset, the flow prior, retrieval, a mini fit whose
+transfers carry the target's habits and keep the source's path, and `omg transfer` on a real dog clip."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO
+from omg.models.habit import CouplingFlow, Quantizer
+from omg.skeleton import SMAL35
+
+QUATVEL = REPO / "shards" / "mini" / "animal_quatvel"
+CATEGORIES = ["dog", "cat", "fox", "horse", "cow", "deer", "sheep"]
+
+
+# ----------------------------------------------------------------------------- the mini data's habits
+
+
+def test_synthetic_species_walk_with_their_own_habits():
+    """A horse nods its head in the walk far more than a dog; a cow keeps its paws down longer than a horse."""
+    from omg.data.synth import synth_clip
+
+    def walk(index, category):
+        clip, contacts = synth_clip("animal", index, fps=20.0)
+        assert (clip.category, clip.labels["action"]) == (category, "walk")
+        settled = slice(len(contacts) // 3, None)  # past a start from a standstill
+        neck_pitch = 2 * np.arcsin(clip.rotations[settled, 15, 1])  # the neck turns about x
+        return neck_pitch.std(), contacts[settled].mean()
+
+    (dog_nod, dog_duty), (horse_nod, horse_duty), (cow_nod, cow_duty) = walk(0, "dog"), walk(31, "horse"), walk(
+        11, "cow")
+    assert horse_nod > 2.5 * dog_nod and cow_nod > 2 * dog_nod
+    assert cow_duty > horse_duty + 0.08 and dog_duty > horse_duty
+
+
+# ----------------------------------------------------------------------------- quantizer
+
+
+def test_soft_sampling_at_low_temperature_is_the_nearest_code():
+    torch.manual_seed(0)
+    q = Quantizer(16, 4, mode="soft", temperature=1e-6)
+    q.codebook.copy_(torch.randn(16, 4))
+    x = torch.randn(200, 4)
+    nearest = torch.cdist(x, q.codebook).argmin(-1)
+    assert torch.equal(q.assign(x, torch.Generator().manual_seed(1)), nearest)
+    assert torch.equal(q.assign(x, mode="nearest"), nearest)
+    warm = Quantizer(16, 4, mode="soft", temperature=100.0)
+    warm.codebook.copy_(q.codebook)
+    assert not torch.equal(warm.assign(x, torch.Generator().manual_seed(1)), nearest)  # it does sample
+
+
+def _crafted(code_reset: bool) -> tuple[Quantizer, torch.Tensor, torch.Tensor]:
+    q = Quantizer(3, 2, mode="nearest", decay=0.5, code_reset=code_reset)
+    q.codebook.copy_(torch.tensor([[0.0, 0.0], [10.0, 10.0], [-5.0, 5.0]]))
+    q.code_sum.copy_(q.codebook)
+    q.code_count.fill_(1.0)
+    q.initialized.fill_(True)
+    x = torch.tensor([[1.0, 0.0], [0.0, 1.0], [2.0, 2.0], [9.0, 11.0]])  # codes 0, 0, 0, 1; code 2 unused
+    return q, x, q.assign(x)
+
+
+def test_ema_update_equals_the_hand_computation():
+    q, x, idx = _crafted(code_reset=False)
+    assert idx.tolist() == [0, 0, 0, 1]
+    dead = q.ema_update(x, idx)
+    # N = 0.5 N + 0.5 n: (0.5 + 1.5, 0.5 + 0.5, 0.5); S = 0.5 S + 0.5 s
+    assert torch.allclose(q.code_count, torch.tensor([2.0, 1.0, 0.5]))
+    s0 = 0.5 * torch.tensor([0.0, 0.0]) + 0.5 * torch.tensor([3.0, 3.0])
+    s1 = 0.5 * torch.tensor([10.0, 10.0]) + 0.5 * torch.tensor([9.0, 11.0])
+    assert torch.allclose(q.codebook[0], s0 / 2.0) and torch.allclose(q.codebook[1], s1 / 1.0)
+    assert dead.tolist() == [False, False, True]
+    assert torch.equal(q.codebook[2], torch.tensor([-5.0, 5.0]))  # EMA only: a dead code keeps its vector
+
+
+def test_code_reset_restarts_dead_codes_at_encoder_outputs():
+    q, x, idx = _crafted(code_reset=True)
+    dead = q.ema_update(x, idx, torch.Generator().manual_seed(0))
+    assert dead.tolist() == [False, False, True]
+    assert any(torch.equal(q.codebook[2], row) for row in x)  # reset to one of the batch's latents
+    assert q.code_count[2] == 1.0 and torch.equal(q.code_sum[2], q.codebook[2])
+    assert torch.allclose(q.codebook[0], torch.tensor([0.75, 0.75]))  # live codes as without reset
+
+
+def test_quantizer_forward_gives_straight_through_gradients_and_initialises_the_codebook():
+    q = Quantizer(8, 4, mode="soft", temperature=0.5).train()
+    x = torch.randn(2, 4, 6, requires_grad=True)
+    out, idx, terms = q(x, torch.Generator().manual_seed(0))
+    assert bool(q.initialized) and idx.shape == (2, 6) and out.shape == x.shape
+    out.sum().backward()
+    assert torch.allclose(x.grad, torch.ones_like(x))
+    assert terms["commitment"] >= 0 and 1 <= terms["perplexity"] <= 8
+
+
+# ----------------------------------------------------------------------------- flow prior
+
+
+def _random_flow(dim: int = 4) -> CouplingFlow:
+    torch.manual_seed(0)
+    flow = CouplingFlow(dim, layers=4, hidden=16).double()
+    for layer in flow.layers:  # away from the identity it starts as
+        torch.nn.init.normal_(layer.net[-1].weight, std=0.5)
+    return flow
+
+
+def test_flow_log_likelihood_is_the_change_of_variables_formula():
+    flow = _random_flow()
+    for z in torch.randn(5, 4, dtype=torch.float64):
+        jacobian = torch.autograd.functional.jacobian(lambda v: flow(v[None])[0][0], z)  # (4, 4) du/dz
+        u = flow(z[None])[0][0]
+        expected = -0.5 * (u.square().sum() + 4 * math.log(2 * math.pi)) + torch.linalg.slogdet(jacobian)[1]
+        assert torch.allclose(flow.log_prob(z[None])[0], expected, atol=1e-9)
+
+
+def test_flow_sample_then_invert_returns_the_input():
+    flow = _random_flow()
+    u = torch.randn(64, 4, dtype=torch.float64)
+    z = flow.inverse(u)
+    assert not torch.allclose(z, u)
+    assert torch.allclose(flow(z)[0], u, atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- retrieval
+
+
+@pytest.fixture(scope="module")
+def minilm():
+    from omg.text.base import build_text_encoder
+
+    return build_text_encoder("minilm")
+
+
+@pytest.mark.parametrize(("query", "expected"), [("zebra", "horse"), ("donkey", "horse"), ("goat", "sheep")])
+def test_retrieval_finds_the_nearest_known_species(minilm, query, expected):
+    from omg.text.species import SpeciesBook, nearest_category
+
+    book = SpeciesBook.load()
+    assert nearest_category(minilm, book.describe(query), book.descriptions(CATEGORIES))[0] == expected
+
+
+# ----------------------------------------------------------------------------- mini fit
+
+
+def _fit(module, out, steps: int, batch_size: int = 32, seed: int = 0):
+    import lightning as L
+
+    from omg.data.datamodule import MotionDataModule
+
+    L.seed_everything(seed, verbose=False)
+    data = MotionDataModule(str(QUATVEL / "train"), batch_size=batch_size, max_len=64, min_len=64, clips="windows",
+                            batches_per_epoch=steps, num_workers=0, shuffle_buffer=94, verify_shards=False)
+    module = module(data.spec) if callable(module) and not isinstance(module, L.LightningModule) else module
+    trainer = L.Trainer(accelerator="cpu", max_steps=steps, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(out),
+                        gradient_clip_val=1.0, limit_val_batches=0)
+    trainer.fit(module, datamodule=data)
+    module.hparams["_class_path"] = f"{type(module).__module__}.{type(module).__qualname__}"  # as LightningCLI records
+    path = out / "last.ckpt"
+    trainer.save_checkpoint(path)
+    return module, path
+
+
+@pytest.fixture(scope="session")
+def habit_run(tmp_path_factory):
+    """A tiny VQ-VAE, its flow priors and an evaluator, fitted briefly on the mini quadrupeds."""
+    from omg.lit.evaluator import EvaluatorModule
+    from omg.lit.habit import HabitPriorModule, HabitVQModule
+
+    out = tmp_path_factory.mktemp("habit")
+    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, flavor="tiny", temperature=0.1, lr=3e-3,
+                                                  lr_after=3e-4, lr_switch=0.8, condition_decoder=True,
+                                                  spec=spec), out / "vq", 250)
+    prior, prior_path = _fit(HabitPriorModule(str(vq_path), lr=3e-3), out / "prior", 60)
+    evaluator, _ = _fit(lambda spec: EvaluatorModule(flavor="mini", evaluator={"n_layers": 1, "d_model": 64,
+                                                                                "embed_dim": 64},
+                                                     lr=2e-3, warmup_steps=10, r_precision_pool=10, spec=spec),
+                        out / "evaluator", 120)
+    return {"vq": vq.eval(), "vq_path": vq_path, "prior": prior.eval(), "prior_path": prior_path,
+            "evaluator": evaluator.evaluator.eval(), "evaluator_path": out / "evaluator" / "last.ckpt"}
+
+
+@torch.no_grad()
+def test_transfer_carries_the_target_habits_and_keeps_the_path(habit_run):
+    from omg.callbacks.habit import crops
+    from omg.data.datamodule import ClipDataset, MotionDataModule
+
+    vq, prior, evaluator = habit_run["vq"], habit_run["prior"], habit_run["evaluator"]
+    data = MotionDataModule(str(QUATVEL / "train"), max_len=64, min_len=64, clips="windows", verify_shards=False)
+    train = crops(ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples, 64)
+
+    @torch.no_grad()
+    def centroid(name):
+        motion = torch.stack([torch.from_numpy(np.asarray(c["motion"])) for c in train if c["category"] == name
+                              and len(c["motion"]) == 64])
+        return evaluator.encode_motion(motion).mean(0)
+
+    def crops_of(name):
+        return torch.stack([torch.from_numpy(np.asarray(c["motion"])) for c in train
+                            if c["category"] == name and len(c["motion"]) == 64])  # (B, 64, D)
+
+    def tail_carriage(motion):  # mean pitch of the tail's first joint (rad, + up): a habit the species differ in
+        quats = motion[..., : vq.num_joints * 4].unflatten(-1, (vq.num_joints, 4))
+        return float((2 * torch.asin(torch.nn.functional.normalize(quats[..., 25, :], dim=-1)[..., 1])).mean())
+
+    motion = crops_of("dog")
+    for target in ("sheep", "deer", "cow"):
+        k = vq.categories.index(target)
+        z = prior.habit_latents(k, len(motion), seed=0)
+        moved = vq.transfer(motion, k, z, seed=0)
+        features = evaluator.encode_motion(moved)
+        to_target = (features - centroid(target)).norm(dim=-1).mean()
+        to_dog = (features - centroid("dog")).norm(dim=-1).mean()
+        assert to_target < to_dog, (target, float(to_target), float(to_dog))
+        if target == "cow":  # a dog carries its tail up, a cow lets it hang
+            dog, cow, moved_tail = tail_carriage(motion), tail_carriage(crops_of("cow")), tail_carriage(moved)
+            assert abs(moved_tail - cow) < abs(moved_tail - dog), (dog, moved_tail, cow)
+    # the action is kept: the root travels the way the source does
+    J = vq.num_joints
+    path_in, path_out = motion[..., J * 4:J * 4 + 3].sum(1), moved[..., J * 4:J * 4 + 3].sum(1)  # (B, 3) displacement
+    travelling = path_in[:, [0, 2]].norm(dim=-1) > 0.5
+    cos = torch.nn.functional.cosine_similarity(path_in[travelling][:, [0, 2]], path_out[travelling][:, [0, 2]])
+    assert travelling.any() and cos.mean() > 0.9, cos
+
+
+def test_omg_transfer_writes_a_bvh_of_a_real_dog_clip(habit_run, shared_motion, tmp_path, capsys):
+    bvh = pytest.importorskip("bvh", reason="the test-only package `bvh` (PyPI) is not installed")
+    from omg.cli import main
+
+    clip = shared_motion / "quadruped" / "mann_dog" / "D1_007_KAN01_001.bvh"
+    for to, expect in (("horse", "horse"), ("zebra", "horse")):
+        out = tmp_path / to
+        main(["transfer", str(clip), "--to", to, "--ckpt", str(habit_run["vq_path"]), "--prior_ckpt",
+              str(habit_run["prior_path"]), "--out", str(out), "--no_preview" if to == "zebra" else "--preview"])
+        settings = json.loads((out / "transfer.json").read_text())
+        assert settings["category"] == expect and settings["retrieved"] == (to != expect)
+        parsed = bvh.Bvh((out / "transfer.bvh").read_text())  # an independent reader
+        joints = np.load(out / "transfer.joints.npy")
+        assert len(parsed.get_joints_names()) == 35 and parsed.nframes == len(joints) and np.isfinite(joints).all()
+        assert parsed.frame_time == pytest.approx(1 / 20)
+        # on the target's proportions: the bones of the horse's mean offsets, not the dog's
+        horse = habit_run["vq"].category_offsets(habit_run["vq"].categories.index("horse")).numpy()
+        for joint in (8, 12, 19):  # a foreleg, the other foreleg, a hind leg bone
+            name = SMAL35.names[joint]
+            assert np.linalg.norm(parsed.joint_offset(name)) == pytest.approx(np.linalg.norm(horse[joint]), rel=1e-3)
+        assert np.linalg.norm(horse[8]) > 1.5 * np.linalg.norm(SMAL35.rest_offsets[8])  # a horse's legs are longer
+    assert (tmp_path / "horse" / "preview.gif").stat().st_size > 0
+    assert "via the nearest known category horse" in capsys.readouterr().out
+
+
+def test_omg_transfer_reads_a_deepmimic_dog(habit_run, shared_motion, tmp_path):
+    from omg.tools.transfer import transfer
+
+    clip = shared_motion / "quadruped" / "deepmimic_dog" / "dog3d_trot.txt"
+    if not clip.is_file():
+        pytest.skip(f"no DeepMimic dog clip at {clip}")
+    settings = transfer(clip, to="cow", ckpt=habit_run["vq_path"], out=tmp_path / "cow", preview=False)
+    assert settings["habit"] == "posterior mean" and (tmp_path / "cow" / "transfer.bvh").is_file()
+
+
+def test_omg_transfer_refuses_an_unknown_species(habit_run, tmp_path, capsys):
+    from omg.cli import main
+
+    source = tmp_path / "m.npy"
+    np.save(source, np.zeros((10, 245), np.float32))
+    with pytest.raises(SystemExit) as e:
+        main(["transfer", str(source), "--to", "griffon", "--ckpt", str(habit_run["vq_path"]), "--out",
+              str(tmp_path / "o")])
+    assert e.value.code == 2 and "unknown species 'griffon'" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+
+def test_cross_category_fid_averages_the_targets_with_enough_real_samples():
+    from omg.metrics import CrossCategoryFID, frechet_distance
+
+    gen = torch.Generator().manual_seed(0)
+    real_a, moved_a = torch.randn(6, 3, generator=gen), torch.randn(8, 3, generator=gen) + 1.0
+    real_b, moved_b = torch.randn(3, 3, generator=gen), torch.randn(8, 3, generator=gen)  # b: 3 real < 5
+    metric = CrossCategoryFID(3, ["a", "b"], min_samples=5)
+    metric.update(torch.cat([real_a, real_b]), torch.tensor([0] * 6 + [1] * 3), real=True)
+    metric.update(torch.cat([moved_a, moved_b]), torch.tensor([0] * 8 + [1] * 8), real=False)
+    out = metric.compute()
+
+    def stats(x):
+        return x.double().mean(0), torch.cov(x.double().T)
+
+    expected = frechet_distance(*stats(real_a), *stats(moved_a))
+    assert torch.allclose(out["cross_category_fid"], expected) and out["cross_category_fid/b"].isnan()
+
+
+def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
+    import yaml
+
+    from omg.cli import main
+
+    config = yaml.safe_load((REPO / "configs" / "mini" / "habit_eval.yaml").read_text())
+    callback = config["trainer"]["callbacks"][0]["init_args"]
+    callback.update(evaluator=str(habit_run["evaluator_path"]), replications=2, table=str(tmp_path / "table.json"))
+    config["trainer"]["default_root_dir"] = str(tmp_path / "run")
+    config["model"]["init_args"]["vq_ckpt"] = str(habit_run["vq_path"])
+    config["data"]["val"] = str(QUATVEL / "val")
+    (tmp_path / "eval.yaml").write_text(yaml.safe_dump(config))
+    main(["test", "--config", str(tmp_path / "eval.yaml"), "--ckpt_path", str(habit_run["prior_path"])])
+    printed = capsys.readouterr().out
+    assert "| quantizer | FID | Intra-FID | downstream FID | Diversity | 1-NNA | MPJPE (m) |" in printed
+    assert "| EMA-reset |" in printed and "| real motion |" in printed
+    rows = json.loads((tmp_path / "table.json").read_text())
+    assert set(rows["EMA-reset"]) >= {"fid", "intra_fid", "cross_category_fid", "diversity", "one_nna", "mpjpe"}
+    assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
