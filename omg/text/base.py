@@ -22,6 +22,23 @@ from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
 
 
+def bert_hidden_states(encoder: TextEncoder, texts: list[str]) -> tuple[Tensor, list[int]]:
+    """A BERT encoder's last hidden states (B, n, D) of a batch and each text's token count; texts
+    longer than the context are truncated (``[SEP]`` kept last) with a warning. ``encoder`` holds a
+    ``tokenizers`` tokenizer (``tokenizer``) and a transformers ``BertModel`` (``model``)."""
+    encodings = encoder.tokenizer.encode_batch(texts)
+    for text, enc in zip(texts, encodings):
+        if enc.overflowing:
+            encoder._warn_truncated(text)
+    lengths = [len(e.ids) for e in encodings]
+    ids = torch.zeros(len(texts), max(lengths), dtype=torch.long)
+    for b, enc in enumerate(encodings):
+        ids[b, : len(enc.ids)] = torch.tensor(enc.ids)
+    mask = (torch.arange(ids.shape[1]) < torch.tensor(lengths)[:, None]).long()
+    hidden = encoder.model(input_ids=ids.to(encoder.device), attention_mask=mask.to(encoder.device)).last_hidden_state
+    return hidden, lengths
+
+
 @dataclass
 class TextFeatures:
     """A batch of encoded texts; padding positions of ``tokens`` are zero."""

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
-from omg.text.base import TextEncoder, building_on_meta
+from omg.text.base import TextEncoder, bert_hidden_states, building_on_meta
 
 NAME = "bge-base-en-v1.5"
 CONFIG_KEY = "model.init_args.text_encoder_args.model_dir"  # where a config sets ``model_dir``
@@ -80,19 +80,10 @@ class BgeTextEncoder(TextEncoder):
         self._freeze()
 
     def _encode(self, texts: list[str]) -> list[Tensor]:
-        encodings = self.tokenizer.encode_batch(texts)
-        for text, enc in zip(texts, encodings):
-            if enc.overflowing:
-                self._warn_truncated(text)
-        lengths = torch.tensor([len(e.ids) for e in encodings])
-        ids = torch.zeros(len(texts), int(lengths.max()), dtype=torch.long)
-        for b, enc in enumerate(encodings):
-            ids[b, : len(enc.ids)] = torch.tensor(enc.ids)
-        mask = (torch.arange(ids.shape[1]) < lengths[:, None]).long()
-        hidden = self.model(input_ids=ids.to(self.device), attention_mask=mask.to(self.device)).last_hidden_state
+        hidden, lengths = bert_hidden_states(self, texts)  # (B, n, 768)
         sentence = torch.nn.functional.normalize(hidden[:, 0], dim=-1)  # (B, 768): CLS pooling, unit length
         out = []
-        for b, n in enumerate(lengths.tolist()):
+        for b, n in enumerate(lengths):
             x = hidden[b, :n].clone()  # (n, 768)
             x[-1] = sentence[b]  # [SEP] <- the sentence embedding
             out.append(x)

@@ -12,11 +12,10 @@ summarise anything.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from omg.registry import TEXT_ENCODERS
-from omg.text.base import TextEncoder, building_on_meta
+from omg.text.base import TextEncoder, bert_hidden_states, building_on_meta
 
 
 @TEXT_ENCODERS.register("minilm")
@@ -46,20 +45,10 @@ class MiniLMTextEncoder(TextEncoder):
         self._freeze()
 
     def _encode(self, texts: list[str]) -> list[Tensor]:
-        encodings = self.tokenizer.encode_batch(texts)
-        for text, enc in zip(texts, encodings):
-            if enc.overflowing:
-                self._warn_truncated(text)
-        n = max(len(e.ids) for e in encodings)
-        ids = torch.zeros(len(texts), n, dtype=torch.long)
-        for b, enc in enumerate(encodings):
-            ids[b, : len(enc.ids)] = torch.tensor(enc.ids)
-        mask = (torch.arange(n) < torch.tensor([len(e.ids) for e in encodings])[:, None]).long()
-        ids, mask = ids.to(self.device), mask.to(self.device)
-        hidden = self.model(input_ids=ids, attention_mask=mask).last_hidden_state  # (B, n, 384)
+        hidden, lengths = bert_hidden_states(self, texts)  # (B, n, 384)
         out = []
-        for b, enc in enumerate(encodings):
-            x = hidden[b, : len(enc.ids)].clone()
+        for b, n in enumerate(lengths):
+            x = hidden[b, :n].clone()
             x[-1] = x.mean(0)  # [SEP] <- the mean-pooled sentence embedding
             out.append(x)
         return out

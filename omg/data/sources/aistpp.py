@@ -34,7 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from omg.data.shards import LazyItem
-from omg.data.sources.smpl import body_model_for, check_body_model, check_sequence, rig_motion, smpl_clip
+from omg.data.sources.smpl import (
+    body_model_for,
+    check_body_model,
+    check_sequence,
+    check_sequence_options,
+    rig_motion,
+    smpl_clip,
+)
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -44,7 +51,6 @@ AISTPP_FPS = 60.0  # AIST++ motions are at 60 fps (Li et al. 2021, "AI Choreogra
 GENRES = {"gBR": "break", "gPO": "pop", "gLO": "lock", "gMH": "middle hip-hop", "gLH": "LA-style hip-hop",
           "gHO": "house", "gWA": "waack", "gKR": "krump", "gJS": "street jazz", "gJB": "ballet jazz"}
 SITUATIONS = {"sBM": "basic", "sFM": "advanced"}
-UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")
 
 
 class _ArraysOnly(pickle.Unpickler):
@@ -123,10 +129,7 @@ def aistpp_source(input: str | None, skeleton: Skeleton, fps: float, body_model:
     if not input or not Path(input).is_dir():
         raise UsageError(f"aistpp: --input must be a folder of AIST++ .pkl motions (motions/), got {input!r}")
     model_path = check_body_model("aistpp", body_model, skeleton)
-    if up not in UP_AXES:
-        raise UsageError(f"aistpp: --option.up {up!r}: expected one of {', '.join(UP_AXES[:6])}")
-    if not source_fps > 0:
-        raise UsageError(f"aistpp: --option.source_fps must be > 0, got {source_fps!r}")
+    check_sequence_options("aistpp", up, source_fps)
     root = Path(input)
     skip = ignored(root)
     paths = [p for p in sorted(root.rglob("*.pkl")) if p.stem not in skip]

@@ -22,69 +22,20 @@ every n-th frame when the rates divide, e.g. 120 -> 20 fps). Clips are unlabeled
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from omg.data.shards import LazyItem
+from omg.data.sources.smpl import NUM_JOINTS, BodyModel, body_model_for, check_body_model
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.rotations import axis_angle_to_quat, quat_to_matrix
 from omg.skeleton import SMPL22_PARENTS, Skeleton
 
-NUM_JOINTS = 22
 Z_UP_TO_Y_UP = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # new = M @ old: (-x, z, y)
-GENDERS = ("male", "female", "neutral")
-
-
-@dataclass(frozen=True)
-class BodyModel:
-    """The parts of an SMPL-family model that joint positions need."""
-
-    v_template: np.ndarray  # (V, 3)
-    shapedirs: np.ndarray  # (V, 3, B)
-    J_regressor: np.ndarray  # (J, V)
-    parents: tuple[int, ...]  # (J,) from kintree_table[0]
-
-    @classmethod
-    @lru_cache(maxsize=8)
-    def load(cls, path: Path) -> BodyModel:
-        if path.suffix == ".pkl":
-            raise UsageError(
-                f"body model {path} is a .pkl, which needs chumpy to read; convert it to .npz "
-                "(np.savez with v_template, shapedirs, J_regressor, kintree_table) and pass "
-                "--option.body_model PATH.npz"
-            )
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                parts = {k: np.asarray(f[k], dtype=np.float64) for k in ("v_template", "shapedirs", "J_regressor")}
-                kintree = np.asarray(f["kintree_table"])
-        except KeyError as e:
-            raise UsageError(
-                f"body model {path} lacks {e}; it needs v_template, shapedirs, J_regressor, kintree_table"
-            ) from None
-        except (OSError, ValueError) as e:
-            raise UsageError(f"body model {path} is not a readable .npz of plain arrays ({e})") from None
-        parents = tuple(int(p) if i else -1 for i, p in enumerate(kintree[0]))
-        if parents[:NUM_JOINTS] != tuple(SMPL22_PARENTS):
-            raise UsageError(
-                f"body model {path}: its first 22 parents {list(parents[:NUM_JOINTS])} are not SMPL's {SMPL22_PARENTS}"
-            )
-        V = len(parts["v_template"])
-        if parts["shapedirs"].shape[:2] != (V, 3) or parts["J_regressor"].shape[1] != V:
-            raise UsageError(f"body model {path}: shapedirs {parts['shapedirs'].shape} or J_regressor "
-                             f"{parts['J_regressor'].shape} do not fit v_template {parts['v_template'].shape}")
-        return cls(parts["v_template"], parts["shapedirs"], parts["J_regressor"], parents)
-
-    def rest_joints(self, betas: np.ndarray) -> np.ndarray:
-        """(B',) shape coefficients -> (22, 3) rest joint locations (extra betas are ignored)."""
-        n = min(len(betas), self.shapedirs.shape[-1])
-        vertices = self.v_template + self.shapedirs[..., :n] @ betas[:n]  # (V, 3)
-        return (self.J_regressor @ vertices)[:NUM_JOINTS]
 
 
 def smpl_joints(model: BodyModel, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray) -> np.ndarray:
@@ -109,15 +60,6 @@ def resample(x: np.ndarray, src_fps: float, dst_fps: float) -> np.ndarray:
     return (1 - w) * x[i] + w * x[np.minimum(i + 1, len(x) - 1)]
 
 
-def _model_for(body_model: Path, gender: str) -> BodyModel:
-    if body_model.is_file():
-        return BodyModel.load(body_model)
-    for name in (gender, "neutral"):
-        if (body_model / name / "model.npz").exists():
-            return BodyModel.load(body_model / name / "model.npz")
-    raise ValueError(f"amass no body model for gender {gender!r}: {body_model}/{{{gender},neutral}}/model.npz")
-
-
 def _read_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps: float) -> Clip | None:
     try:
         with np.load(path, allow_pickle=False) as f:
@@ -136,7 +78,7 @@ def _read_clip(root: Path, path: Path, body_model: Path, skeleton: Skeleton, fps
         raise ValueError(f"amass NaN or inf in motion: {path}")
     gender = np.asarray(data.get("gender", "neutral")).reshape(-1)[0]
     gender = gender.decode() if isinstance(gender, bytes) else str(gender)
-    model = _model_for(body_model, gender if gender in GENDERS else "neutral")
+    model = body_model_for(body_model, gender)
     joints = smpl_joints(model, poses, trans, data["betas"].astype(np.float64).reshape(-1))
     joints = resample(joints @ Z_UP_TO_Y_UP.T, float(data[rate_key]), fps)
     rel = path.relative_to(root).with_suffix("")
@@ -157,16 +99,7 @@ def amass_source(input: str | None, skeleton: Skeleton, fps: float,
     """Unlabeled smpl22 clips from AMASS .npz files; see the module docstring."""
     if not input or not Path(input).is_dir():
         raise UsageError(f"amass: --input must be a folder of AMASS .npz files, got {input!r}")
-    if not body_model:
-        raise UsageError("amass needs an SMPL/SMPL-H body model: --option.body_model PATH "
-                         "(a model.npz, or a folder with male/ female/ neutral/model.npz)")
-    model_path = Path(body_model)
-    if not model_path.exists():
-        raise UsageError(f"amass: --option.body_model {body_model}: no such file or folder")
-    if model_path.is_file():
-        BodyModel.load(model_path)  # fail now, not on the first clip
-    if list(skeleton.parents) != SMPL22_PARENTS:
-        raise UsageError(f"amass gives smpl22 joints, not {skeleton.name!r}; use --skeleton smpl22")
+    model_path = check_body_model("amass", body_model, skeleton)
     root = Path(input)
     return [LazyItem(_load_clip, (root, path, model_path, skeleton, fps)) for path in sorted(root.rglob("*.npz"))]
 

@@ -32,8 +32,14 @@ from pathlib import Path
 import numpy as np
 
 from omg.data.shards import LazyItem
-from omg.data.sources.aistpp import UP_AXES
-from omg.data.sources.smpl import body_model_for, check_body_model, check_sequence, rig_motion, smpl_clip
+from omg.data.sources.smpl import (
+    body_model_for,
+    check_body_model,
+    check_sequence,
+    check_sequence_options,
+    rig_motion,
+    smpl_clip,
+)
 from omg.errors import UsageError
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -113,10 +119,7 @@ def motionx_source(input: str | None, skeleton: Skeleton, fps: float, body_model
     if not input or not Path(input).is_dir():
         raise UsageError(f"motionx: --input must be a folder of Motion-X .npy / SMPL-X .npz files, got {input!r}")
     model_path = check_body_model("motionx", body_model, skeleton)
-    if up not in UP_AXES:
-        raise UsageError(f"motionx: --option.up {up!r}: expected one of {', '.join(UP_AXES[:6])}")
-    if not source_fps > 0:
-        raise UsageError(f"motionx: --option.source_fps must be > 0, got {source_fps!r}")
+    check_sequence_options("motionx", up, source_fps)
     root, texts = Path(input), None
     if (root / "motion_data" / "smplx_322").is_dir():  # Motion-X's release layout
         root, texts = root / "motion_data" / "smplx_322", root / "texts" / "semantic_labels"

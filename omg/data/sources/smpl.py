@@ -2,7 +2,7 @@
 
 Shared by the importers of parameter files (``aistpp``, ``motionx``); the body model itself
 (``BodyModel``: ``v_template``, ``shapedirs``, ``J_regressor``, ``kintree_table`` from a
-user-given ``.npz``) is the ``amass`` importer's. The first 22 joints of every SMPL-family
+user-given ``.npz``) lives here too and is shared with the ``amass`` importer. The first 22 joints of every SMPL-family
 model are SMPL's body joints in smpl22's order (SMPL-X adds jaw, eyes and fingers after them),
 so a sequence's body is its first 22 axis-angle rotations (``(T, 66)``): hands and face are
 dropped.
@@ -16,19 +16,69 @@ bone lengths constant, local rotations and offsets kept in the clip.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from omg.data.sources.amass import GENDERS, NUM_JOINTS, BodyModel
 from omg.errors import UsageError
 from omg.io.rig import RigMotion
 from omg.motion import Clip
 from omg.retarget import JointMap, retarget
 from omg.rotations import axis_angle_to_quat
 from omg.skeleton import SMPL22_PARENTS, Skeleton, get_skeleton
+
+NUM_JOINTS = 22
+UP_AXES = ("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z")  # the up axis of a source's world
+GENDERS = ("male", "female", "neutral")
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """The parts of an SMPL-family model that joint positions need."""
+
+    v_template: np.ndarray  # (V, 3)
+    shapedirs: np.ndarray  # (V, 3, B)
+    J_regressor: np.ndarray  # (J, V)
+    parents: tuple[int, ...]  # (J,) from kintree_table[0]
+
+    @classmethod
+    @lru_cache(maxsize=8)
+    def load(cls, path: Path) -> BodyModel:
+        if path.suffix == ".pkl":
+            raise UsageError(
+                f"body model {path} is a .pkl, which needs chumpy to read; convert it to .npz "
+                "(np.savez with v_template, shapedirs, J_regressor, kintree_table) and pass "
+                "--option.body_model PATH.npz"
+            )
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                parts = {k: np.asarray(f[k], dtype=np.float64) for k in ("v_template", "shapedirs", "J_regressor")}
+                kintree = np.asarray(f["kintree_table"])
+        except KeyError as e:
+            raise UsageError(
+                f"body model {path} lacks {e}; it needs v_template, shapedirs, J_regressor, kintree_table"
+            ) from None
+        except (OSError, ValueError) as e:
+            raise UsageError(f"body model {path} is not a readable .npz of plain arrays ({e})") from None
+        parents = tuple(int(p) if i else -1 for i, p in enumerate(kintree[0]))
+        if parents[:NUM_JOINTS] != tuple(SMPL22_PARENTS):
+            raise UsageError(
+                f"body model {path}: its first 22 parents {list(parents[:NUM_JOINTS])} are not SMPL's {SMPL22_PARENTS}"
+            )
+        V = len(parts["v_template"])
+        if parts["shapedirs"].shape[:2] != (V, 3) or parts["J_regressor"].shape[1] != V:
+            raise UsageError(f"body model {path}: shapedirs {parts['shapedirs'].shape} or J_regressor "
+                             f"{parts['J_regressor'].shape} do not fit v_template {parts['v_template'].shape}")
+        return cls(parts["v_template"], parts["shapedirs"], parts["J_regressor"], parents)
+
+    def rest_joints(self, betas: np.ndarray) -> np.ndarray:
+        """(B',) shape coefficients -> (22, 3) rest joint locations (extra betas are ignored)."""
+        n = min(len(betas), self.shapedirs.shape[-1])
+        vertices = self.v_template + self.shapedirs[..., :n] @ betas[:n]  # (V, 3)
+        return (self.J_regressor @ vertices)[:NUM_JOINTS]
 
 
 @lru_cache(maxsize=1)
@@ -54,6 +104,14 @@ def check_body_model(source: str, body_model: str | None, skeleton: Skeleton) ->
     if list(skeleton.parents) != SMPL22_PARENTS:
         raise UsageError(f"{source} gives smpl22 clips, not {skeleton.name!r}; use --skeleton smpl22")
     return path
+
+
+def check_sequence_options(source: str, up: str, source_fps: float) -> None:
+    """The ``--option.up`` axis and ``--option.source_fps`` of a parameter-file source."""
+    if up not in UP_AXES:
+        raise UsageError(f"{source}: --option.up {up!r}: expected one of {', '.join(UP_AXES[:6])}")
+    if not source_fps > 0:
+        raise UsageError(f"{source}: --option.source_fps must be > 0, got {source_fps!r}")
 
 
 def body_model_for(path: Path, gender: str) -> BodyModel:
