@@ -257,8 +257,8 @@ def _encoded(items: Iterable, start: int, representation: Representation, fps: f
              workers: int) -> Iterator[tuple[int, EncodedClip | Exception | None]]:
     """(position, encoded item) for the items after position ``start``, in the items' order.
 
-    ``workers`` > 1: this process and ``workers - 1`` helper processes (spawned: nothing of this
-    process's threads is inherited) read and encode. A helper is sent an item only when it is
+    ``workers`` > 1: this process and ``workers - 1`` helper processes (forked on Linux, spawned
+    elsewhere) read and encode. A helper is sent an item only when it is
     idle; this process reads the oldest item nobody has taken whenever the oldest result is
     not ready, so the build goes on while the helpers start. At most a few items per worker
     are held, and results come back in order: the same shards as with one worker."""
@@ -271,7 +271,10 @@ def _encoded(items: Iterable, start: int, representation: Representation, fps: f
     import queue
     from collections import deque
 
-    context = multiprocessing.get_context("spawn")
+    # fork on Linux: a helper starts at once with this process's imports (a spawned one spends about a
+    # second importing torch, as much as all the work of a small set); it runs torch on one thread
+    # from its first line, as DataLoader workers do, so no OpenMP pool of this process is used in it
+    context = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn")
     results = context.Queue()
     helpers, pipes = [], []
     for index in range(workers - 1):
