@@ -32,6 +32,8 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
                      "turn a DeepSpeed/Lightning checkpoint into one fp32 (or EMA) safetensors file"),
     "export": ("omg.tools.export:main",
                "write BVH files and rendered previews of motions (npy joint positions or features)"),
+    "transfer": ("omg.tools.transfer:main",
+                 "move a quadruped motion onto another species with its habits (habit VQ-VAE + flow prior)"),
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM

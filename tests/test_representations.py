@@ -344,11 +344,21 @@ def test_round_trip_bvh(name):
         assert _round_trip_error(name, clip) < MM, clip.id  # measured <= 2e-6 m
 
 
-def test_rotations_required():
-    clip = _synthetic(SMAL35)
-    clip.rotations = None
-    with pytest.raises(UsageError, match="needs local joint rotations"):
-        get_representation("maa", SMAL35).encode(clip)
+@pytest.mark.parametrize("name", ["maa", "quatvel"])
+def test_positions_only_clips_get_rotations_by_ik(name):
+    """A clip with joint positions only (HumanML3D's new_joints) is encoded through inverse kinematics:
+    decoding gives its positions back; a clip with neither rotations nor positions is one error."""
+    for skeleton in (SMPL22, SMAL35):
+        clip = _synthetic(skeleton)
+        clip.rotations, clip.offsets = None, None
+        rep = get_representation(name, skeleton)
+        features, meta = rep.encode(clip)
+        kwargs = {"root_start": torch.as_tensor(meta["root_start"])} if "root_start" in meta else {}
+        joints = rep.decode(torch.from_numpy(features), torch.as_tensor(meta["offsets"]), **kwargs).numpy()
+        assert np.abs(joints - clip.positions[: len(joints)]).max() < 5 * MM, (name, skeleton.name)
+        clip.positions = clip.positions[:, :3]
+        with pytest.raises(UsageError, match="neither local rotations nor"):
+            rep.encode(clip)
 
 
 @pytest.mark.parametrize("name", ["humanml3d263", "maa", "quatvel"])

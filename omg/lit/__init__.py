@@ -2,6 +2,9 @@
 
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.evaluator import EvaluatorModule
+from omg.lit.habit import HabitPriorModule, HabitVQModule
+from omg.lit.omgpt import OmniMotionModule
 from omg.lit.pretrain import PretrainModule
 
-__all__ = ["ControlNetModule", "EvaluatorModule", "PretrainModule"]
+__all__ = ["ControlNetModule", "EvaluatorModule", "HabitPriorModule", "HabitVQModule", "OmniMotionModule",
+           "PretrainModule"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from omg import kinematics
 from omg.errors import UsageError
 from omg.motion.base import Clip, Representation
 from omg.registry import REPRESENTATIONS
@@ -21,11 +22,22 @@ def require_rotations(rep: Representation, clip: Clip) -> tuple[np.ndarray, np.n
             f"representation {rep.name!r} is set up for {J} ({rep.skeleton.name!r})"
         )
     if clip.rotations is None or clip.offsets is None:
-        raise UsageError(
-            f"representation {rep.name!r} needs local joint rotations and bone offsets, and clip "
-            f"{clip.id!r} has none; use a source that provides them (BVH, synthetic data)"
-        )
+        return solved_rotations(rep.skeleton, clip)
     return clip.rotations, np.asarray(clip.offsets, dtype=np.float32).reshape(J, 3)
+
+
+def solved_rotations(skeleton: Skeleton, clip: Clip) -> tuple[np.ndarray, np.ndarray]:
+    """(T, J, 4) local rotations and (J, 3) offsets of a clip that has joint positions only (e.g.
+    HumanML3D's ``new_joints``): inverse kinematics on the skeleton's bone directions with the
+    clip's mean bone lengths, so forward kinematics gives the positions back up to the clip's own
+    bone-length jitter (``omg.kinematics``)."""
+    positions = torch.as_tensor(np.asarray(clip.positions), dtype=torch.float64)  # (T, J, 3)
+    if positions.ndim != 3 or positions.shape[1:] != (skeleton.num_joints, 3) or not torch.isfinite(positions).all():
+        raise UsageError(f"clip {clip.id!r} has neither local rotations nor finite {skeleton.name} joint positions "
+                         f"(T, {skeleton.num_joints}, 3) to solve them from")
+    offsets = kinematics.clip_offsets(skeleton, positions)
+    rotations = kinematics.positions_to_rotations(skeleton, positions, offsets)
+    return rotations.float().numpy(), offsets.float().numpy()
 
 
 def fk_offsets(skeleton: Skeleton, offsets: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:

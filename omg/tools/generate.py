@@ -48,6 +48,9 @@ def generate(
     device: str | None = None,
     autocast: Literal["bf16", "fp16"] | None = None,
     compile: bool = False,
+    animal: str | None = None,
+    from_motion: Path | None = None,
+    human_ckpt: Path | None = None,
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
@@ -76,6 +79,12 @@ def generate(
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
         compile: run the network through torch.compile (a one-off compilation, then faster steps)
+        animal: OmniMotionGPT checkpoints: the animal category (default: the one the prompt names)
+        from_motion: OmniMotionGPT: the human motion to turn into the animal's (BVH, ASF/AMC or DeepMimic
+            file retargeted to smpl22, a .joints.npy (T, 22, 3), or a features .npy in smpl22 maa or
+            humanml3d263); one motion per prompt
+        human_ckpt: OmniMotionGPT: an OMG ControlNet checkpoint that generates the human motion from the
+            prompt made about "a person" (without either, the checkpoint's own human source)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
@@ -92,7 +101,24 @@ def generate(
     SAMPLERS.get(sampler)  # an unknown name is one line before anything is loaded
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     out = check_output_dir(out)  # every input is checked before anything is written
-    module = load_module(ckpt, default_class=PretrainModule, use_ema=ema, expect=MotionDiffusionModule)
+    module = load_module(ckpt, default_class=PretrainModule, use_ema=ema)
+    from omg.lit.omgpt import OmniMotionModule
+
+    if isinstance(module, OmniMotionModule):
+        from omg.tools.animal import generate_animal
+
+        return generate_animal(module, prompts, ckpt=ckpt, animal=animal, from_motion=from_motion,
+                               human_ckpt=human_ckpt, num_samples=num_samples, length=length, steps=steps,
+                               sampler=sampler, guidance=guidance, seed=seed, preview=preview,
+                               preview_count=preview_count, device=device, out=out, command=command)
+    if animal is not None or from_motion is not None or human_ckpt is not None:
+        raise UsageError(f"--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {ckpt} holds a "
+                         f"{type(module).__name__}")
+    if not isinstance(module, MotionDiffusionModule):
+        from omg.lit.checkpoint import class_path
+
+        raise UsageError(f"{ckpt} holds a {class_path(type(module))} checkpoint, not a "
+                         f"{class_path(MotionDiffusionModule)}")
     if prompts and not module.text_conditional:
         raise UsageError(f"{ckpt} is an unconditional pretraining checkpoint: pass --unconditional, "
                          "or a text-conditioned (ControlNet) checkpoint for prompts")

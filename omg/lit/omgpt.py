@@ -1,0 +1,487 @@
+"""OmniMotionGPT: joint human + animal motion autoencoders aligned through text space.
+
+Trained end to end on two streams at once (§3.4): the animal set is the run's ``data:``, the
+human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``). Per domain d:
+
+    L_ae^d = L_jrec (‖P − D(E(P, S), S)‖²) + w_clip · (1 − cos(E_t(Z), C)) + w_trec · ‖P − D(D_t(C, Z), S)‖²
+
+and across domains, with the human caption's subject replaced by the paired animal's name (C̃^a):
+
+    L_cross = w_cons · ‖Z^h − E^a(D^a(D_t^a(C̃^a, Z^h), S^a), S^a)‖² + w_cross_clip · (1 − cos(E_t^a(Z^h), C̃^a))
+              + w_ee · ‖V^h − Ṽ^a‖²   (end-effector velocities by forward kinematics on both skeletons)
+
+plus w_translation · the root-translation error of the joint and the text paths. The feature
+errors are in standardised units (``standardize``: each maa number divided by its std over the
+training data), the latent and velocity errors as they come. Inference
+(``sample``): a human motion -> E^h -> Z^h; D_t^a(C̃, Z^h) -> D^a with the chosen animal's offsets.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from contextlib import nullcontext
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omg.data.paired import CompanionStream
+from omg.errors import UsageError
+from omg.lit.base import OmgModule, modes_restored
+from omg.lit.ema import EMA
+from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
+from omg.motion import Clip, DataSpec, get_representation, length_mask
+from omg.skeleton import get_skeleton
+from omg.text import build_text_encoder
+from omg.text.subjects import find_animal, to_animal, to_person
+
+HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
+
+
+def masked_mse(a: Tensor, b: Tensor, mask: Tensor) -> Tensor:
+    """Mean squared error over the real entries: a, b (B, L, ...), mask (B, L)."""
+    weights = mask.reshape(*mask.shape, *([1] * (a.dim() - mask.dim()))).to(a.dtype)
+    per_entry = a[0, 0].numel()
+    return ((a - b).square() * weights).sum() / (weights.sum() * per_entry).clamp_min(1)
+
+
+def cosine_gap(a: Tensor, b: Tensor, rows: Tensor) -> Tensor:
+    """Mean of 1 − cos(a, b) over the selected rows (B,) bool."""
+    gap = 1 - F.cosine_similarity(a, b, dim=-1)
+    return (gap * rows).sum() / rows.sum().clamp_min(1)
+
+
+def translation(features: Tensor) -> Tensor:
+    """The root translation (..., 3) of maa features (the last token's first 3 numbers)."""
+    return features[..., -6:-3]
+
+
+def category_offsets(samples: Sequence[dict]) -> dict[str, list[list[float]]]:
+    """Mean bone offsets (J, 3) per category of decoded samples' meta."""
+    sums: dict[str, tuple[np.ndarray, int]] = {}
+    for meta in samples:
+        if meta.get("offsets") is None:
+            continue
+        name = meta.get("category") or "animal"
+        total, count = sums.get(name, (0.0, 0))
+        sums[name] = (total + np.asarray(meta["offsets"], dtype=np.float64), count + 1)
+    return {name: (total / count).round(6).tolist() for name, (total, count) in sorted(sums.items())}
+
+
+def scan_metas(urls: Sequence[str]) -> list[dict]:
+    """Every sample's meta.json of the shards (motion is not decoded)."""
+    from omg.data.shards import iter_tar
+
+    return [json.loads(raw["meta.json"]) for url in urls for raw in iter_tar(url) if "meta.json" in raw]
+
+
+class OmniMotionModule(OmgModule):
+    """OmniMotionGPT's two autoencoders, text heads and losses.
+
+    Args:
+        human_data: the human stream, ``MotionDataModule`` arguments (``train``, ``val``,
+            ``batch_size``, ``max_len``, ``min_len``, ...); smpl22 shards in the maa representation.
+        flavor, config: network sizes, a preset (``paper``, ``mini``) and field overrides
+            (``omg.models.omgpt.OmniMotionConfig``).
+        text_encoder, text_encoder_args: the registered sentence encoder (paper: CLIP ViT-L/14).
+        lr, betas, weight_decay: Adam (paper: 1e-4, (0.9, 0.999), 0).
+        schedule: ``constant`` (the paper names no schedule) or ``cosine`` (omg's warm-up + cosine).
+        warmup_steps: linear warm-up steps of the cosine schedule.
+        ema_decay: weight EMA (paper: 0.99); 0 disables it.
+        jrec_weight, clip_weight, trec_weight: the per-domain loss weights (paper: 1.0, 1.0, 1.0).
+        cons_weight, cross_clip_weight, ee_weight: the cross-domain weights (paper: 0.1, 1.0, 100).
+        translation_weight: the global-translation loss (paper: 1.0).
+        standardize: the autoencoders read and write features standardised by the training data's
+            per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
+            compare standardised features; without it (``false``) both see raw maa, where the many
+            near-constant 6D numbers let a network that outputs the mean pose reach a small loss.
+            The paper does not say; omg's default is on.
+        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
+            human validation clip whose caption is nearest the prompt made about "a person",
+            among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
+            text-to-motion, from the prompt made about "a person").
+        animals: each animal category's mean bone offsets; filled from the animal training set
+            when training starts and kept in checkpoints (what ``--animal`` accepts).
+        human_spec, spec: the human and the animal data's specs (filled from the shards).
+    """
+
+    text_conditional = True
+    clip_sampling = "whole"  # a caption describes its whole clip
+    frozen_prefixes = ("text_encoder.", "human_generator.")
+
+    def __init__(
+        self,
+        human_data: dict[str, Any] | None = None,
+        flavor: str = "paper",
+        config: dict[str, Any] | None = None,
+        text_encoder: str = "clip-vit-l-14",
+        text_encoder_args: dict[str, Any] | None = None,
+        lr: float = 1e-4,
+        betas: tuple[float, float] = (0.9, 0.999),
+        weight_decay: float = 0.0,
+        schedule: str = "constant",
+        warmup_steps: int = 0,
+        ema_decay: float = 0.99,
+        jrec_weight: float = 1.0,
+        clip_weight: float = 1.0,
+        trec_weight: float = 1.0,
+        cons_weight: float = 0.1,
+        cross_clip_weight: float = 1.0,
+        ee_weight: float = 100.0,
+        translation_weight: float = 1.0,
+        standardize: bool = True,
+        std_floor: float = 0.05,
+        human_source: str = "retrieval",
+        retrieval_top_k: int = 3,
+        animals: dict[str, list] | None = None,
+        human_spec: DataSpec | dict | None = None,
+        spec: DataSpec | dict | None = None,
+    ):
+        super().__init__()
+        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= ema_decay < 1:
+            raise UsageError("model.lr must be > 0, model.weight_decay and model.warmup_steps >= 0 and model.ema_decay "
+                             f"in [0, 1); got {lr}, {weight_decay}, {warmup_steps}, {ema_decay}")
+        if schedule not in ("constant", "cosine"):
+            raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
+        self.companion = None
+        if human_spec is None:
+            if not human_data:
+                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards "
+                                 "(train, val, batch_size, ...), smpl22 in the maa representation")
+            self.companion = CompanionStream(dict(human_data))
+            human_spec = self.companion.spec.to_dict()
+        if spec is None:
+            raise UsageError("OmniMotionModule needs the animal data's spec (set data.train to smal35 maa shards)")
+        self.human_spec, self.spec = DataSpec.coerce(human_spec, "human_data"), DataSpec.coerce(spec, "the data")
+        for name, s, skeleton in (("human_data", self.human_spec, HUMAN_SKELETON),
+                                  ("data", self.spec, ANIMAL_SKELETON)):
+            if s.representation != "maa" or s.skeleton != skeleton:
+                raise UsageError(f"{name}: OmniMotionGPT reads {skeleton} shards in the maa representation, got "
+                                 f"{s.skeleton} {s.representation} (build them with `omg shards build ... --skeleton "
+                                 f"{skeleton} --representation maa`)")
+        if isinstance(human_spec, DataSpec):
+            human_spec = human_spec.to_dict()
+        self.save_hyperparameters()  # `human_spec` now holds the human data's description
+        self.lr, self.betas, self.weight_decay, self.warmup_steps = lr, betas, weight_decay, warmup_steps
+        self.schedule, self.ema_decay = schedule, ema_decay
+        self.weights = {"jrec": jrec_weight, "clip": clip_weight, "trec": trec_weight, "cons": cons_weight,
+                        "cross_clip": cross_clip_weight, "ee": ee_weight, "translation": translation_weight}
+        self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in (animals or {}).items()}
+        self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
+        self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
+        self.config = OmniMotionConfig.from_name(flavor, **(config or {}))
+        self.human_rep = get_representation("maa", get_skeleton(HUMAN_SKELETON))
+        self.representation = get_representation("maa", get_skeleton(ANIMAL_SKELETON))  # what the module generates
+        self.model = OmniMotionGPT(self.human_rep.skeleton, self.representation.skeleton, self.config,
+                                   self.text_encoder.dim)
+        if std_floor <= 0:
+            raise UsageError(f"model.std_floor must be > 0, got {std_floor}")
+        for prefix, s in (("human", self.human_spec), ("animal", self.spec)):
+            mean, std = torch.tensor(s.mean, dtype=torch.float32), torch.tensor(s.std, dtype=torch.float32)
+            self.register_buffer(f"{prefix}_mean", mean, persistent=False)
+            self.register_buffer(f"{prefix}_std", std, persistent=False)
+            # the scale of the features' errors (and of the autoencoders' inputs and outputs)
+            scale = std.clamp_min(std_floor) if standardize else torch.ones_like(std)
+            self.register_buffer(f"{prefix}_scale", scale, persistent=False)
+            getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale)
+        self.ema: EMA | None = None
+        self.human_generator = None  # an OMG ControlNet module, loaded when first needed
+        self._bank: dict | None = None  # retrieval: the human validation clips and their caption features
+        self._companion_state: dict | None = None
+
+    # -- helpers -------------------------------------------------------------------------
+    def trainable_module(self) -> torch.nn.Module:
+        return self.model
+
+    def sentence(self, texts: Sequence[str]) -> Tensor:
+        """(B, D_text) sentence features C (the encoder's EOT / pooled feature), frozen."""
+        with torch.no_grad():
+            return self.text_encoder(list(texts)).to(self.device).eot_embedding().float()
+
+    def raw(self, batch: dict, domain: str) -> Tensor:
+        """The batch's maa features un-normalised (the model reads and writes raw maa), zero at padding."""
+        mean, std = getattr(self, f"{domain}_mean"), getattr(self, f"{domain}_std")
+        return (batch["motion"] * std + mean) * batch["mask"][..., None]
+
+    @property
+    def animal_names(self) -> list[str]:
+        return sorted(self.animals)
+
+    def animal_offsets(self, name: str) -> Tensor:
+        if name not in self.animals:
+            known = ", ".join(self.animal_names) or "none (train the model first)"
+            raise UsageError(f"unknown animal {name!r}; this checkpoint knows: {known}")
+        return self.animals[name].to(self.device)
+
+    # -- losses --------------------------------------------------------------------------
+    def domain_losses(self, domain: str, motion: Tensor, offsets: Tensor, mask: Tensor, text: Tensor,
+                      captioned: Tensor) -> tuple[dict[str, Tensor], Tensor, Tensor]:
+        """L_ae of one domain: ({jrec, clip, trec, translation}, Z, Z's mask)."""
+        parts = getattr(self.model, domain)
+        z, z_mask = parts["ae"].encode(motion, offsets, mask)  # (B, L, 7, C)
+        rec = parts["ae"].decode(z, offsets, mask)  # joint path F_o
+        rec_text = parts["ae"].decode(parts["text_decoder"](text, z, z_mask), offsets, mask)  # text path F_text
+        rows = mask & captioned[:, None]
+        scale = getattr(self, f"{domain}_scale")  # errors in standardised units
+        losses = {
+            "jrec": masked_mse(rec / scale, motion / scale, mask),
+            "clip": cosine_gap(parts["text_encoder"](z, z_mask), text, captioned),
+            "trec": masked_mse(rec_text / scale, motion / scale, rows),
+            "translation": masked_mse(translation(rec), translation(motion), mask)
+            + masked_mse(translation(rec_text), translation(motion), rows),
+        }
+        return losses, z, z_mask
+
+    def losses(self, animal_batch: dict, human_batch: dict) -> dict[str, Tensor]:
+        out: dict[str, Tensor] = {}
+        total = 0.0
+        streams = {}
+        for domain, batch in (("human", human_batch), ("animal", animal_batch)):
+            motion, mask = self.raw(batch, domain), batch["mask"]
+            captioned = torch.tensor([bool(t) for t in batch["text"]], device=self.device)
+            text = self.sentence(batch["text"])
+            parts, z, z_mask = self.domain_losses(domain, motion, batch["offsets"], mask, text, captioned)
+            total = total + sum(self.weights[k] * v for k, v in parts.items())
+            out |= {f"{domain}/{k}": v for k, v in parts.items()}
+            streams[domain] = (motion, mask, z, z_mask)
+        # cross-domain: human i is paired with animal i mod B_a (its category and offsets)
+        motion_h, mask_h, z_h, z_mask_h = streams["human"]
+        pair = torch.arange(len(motion_h), device=self.device) % len(animal_batch["text"])
+        names = [animal_batch["category"][i] or "animal" for i in pair.tolist()]
+        offsets_a = animal_batch["offsets"][pair]
+        captioned = torch.tensor([bool(t) for t in human_batch["text"]], device=self.device)
+        text_cross = self.sentence([to_animal(t, n) if t else "" for t, n in zip(human_batch["text"], names)])
+        animal = self.model.animal
+        z_tilde = animal["text_decoder"](text_cross, z_h, z_mask_h)
+        motion_a = animal["ae"].decode(z_tilde, offsets_a, mask_h)  # P̃^a
+        z_back, _ = animal["ae"].encode(motion_a, offsets_a, mask_h)
+        moving = mask_h[:, 1:] & mask_h[:, :-1]
+        cross = {
+            "cons": masked_mse(z_back, z_h, z_mask_h),
+            "cross_clip": cosine_gap(animal["text_encoder"](z_h, z_mask_h), text_cross, captioned),
+            "ee": masked_mse(end_effector_velocity(self.representation, motion_a, offsets_a),
+                             end_effector_velocity(self.human_rep, motion_h, human_batch["offsets"]), moving),
+        }
+        total = total + sum(self.weights[k] * v for k, v in cross.items())
+        out |= {f"cross/{k}": v for k, v in cross.items()}
+        return {"loss": total, **out}
+
+    # -- training ------------------------------------------------------------------------
+    def on_fit_start(self) -> None:
+        if self.companion is None:
+            raise UsageError("training needs model.init_args.human_data (the human shards)")
+        self.companion.start(self.global_rank, self.trainer.world_size)
+        if self._companion_state is not None:
+            self.companion.load_state_dict(self._companion_state)
+        if not self.animals:
+            data = self.trainer.datamodule
+            found = category_offsets(scan_metas(getattr(data, "train_urls", None) or data.val_urls))
+            self.animals = {k: torch.tensor(v) for k, v in found.items()}
+            self.hparams["animals"] = found  # kept in checkpoints: what --animal accepts
+        if self.ema_decay > 0 and self.ema is None:
+            self.ema = EMA(self.model, self.ema_decay)
+
+    def human_batch(self) -> dict:
+        batch = self.companion.next()
+        return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        losses = self.losses(batch, self.human_batch())
+        if not torch.isfinite(losses["loss"]):
+            raise FloatingPointError(f"non-finite loss at step {self.global_step}; lower model.lr or enable "
+                                     "gradient clipping")
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=len(batch["text"]))
+        self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=len(batch["text"]))
+        return losses["loss"]
+
+    def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
+        """The animal autoencoder's reconstruction errors on the validation clips."""
+        motion, mask = self.raw(batch, "animal"), batch["mask"]
+        captioned = torch.tensor([bool(t) for t in batch["text"]], device=self.device)
+        parts, _, _ = self.domain_losses("animal", motion, batch["offsets"], mask, self.sentence(batch["text"]),
+                                         captioned)
+        self.log_dict({f"{stage}/{k}": v for k, v in parts.items()}, batch_size=len(batch["text"]), sync_dist=True)
+
+    def test_step(self, batch: dict, batch_idx: int) -> None:
+        self.validation_step(batch, batch_idx, stage="test")
+
+    def configure_optimizers(self):
+        if self.schedule == "cosine":
+            return super().configure_optimizers()
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        return torch.optim.Adam(params, lr=self.lr, betas=tuple(self.betas), weight_decay=self.weight_decay)
+
+    def optimizer_step(self, *args, **kwargs) -> None:
+        super().optimizer_step(*args, **kwargs)
+        if self.ema is not None and not self.trainer.fit_loop._should_accumulate():
+            self.ema.update(self.model)
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        super().on_save_checkpoint(checkpoint)
+        if self.ema is not None:
+            checkpoint["ema"] = self.ema.state_dict()
+        if self.companion is not None and self.companion.loader is not None:
+            checkpoint["human_stream"] = self.companion.state_dict()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if "ema" in checkpoint and self.ema_decay > 0:
+            self.ema = EMA(self.model, self.ema_decay)
+            self.ema.load_state_dict(checkpoint["ema"])
+        self._companion_state = checkpoint.get("human_stream")
+        if animals := (checkpoint.get("hyper_parameters") or {}).get("animals"):
+            self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in animals.items()}
+
+    # -- inference -----------------------------------------------------------------------
+    @torch.no_grad()
+    def translate(self, texts: Sequence[str], human: Tensor, human_offsets: Tensor, lengths: Tensor | Sequence[int],
+                  animals: Sequence[str], use_ema: bool = True) -> Tensor:
+        """Human maa (B, T, 138) un-normalised + offsets (B, 22, 3), prompts about the animals and
+        the animal names (B) -> animal maa (B, T, 216) un-normalised, on each animal's mean offsets."""
+        mask = length_mask(lengths, human.shape[1], device=self.device)
+        prompts = [t if find_animal(t, [a]) else to_animal(t, a) for t, a in zip(texts, animals)]
+        offsets = torch.stack([self.animal_offsets(a) for a in animals])
+        weights = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext()
+        with modes_restored(self), weights:
+            self.eval()
+            return self.model.translate(human.to(self.device).float() * mask[..., None], human_offsets.to(self.device),
+                                        mask, self.sentence(prompts), offsets)
+
+    @torch.no_grad()
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, seed: int = 0,
+               use_ema: bool = True, animal: str | None = None, human: Tensor | None = None,
+               human_offsets: Tensor | None = None, **sampling) -> Tensor:
+        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa.
+
+        The animal is the one each prompt names (else ``animal``, else the first known); the human
+        motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from ``human_source``.
+        ``sampling`` (steps, guidance, sampler, ...) goes to a human generator, where one is used.
+        """
+        if not texts:
+            raise UsageError("OmniMotionGPT generates from prompts: give at least one")
+        lengths = torch.as_tensor(lengths, device=self.device)
+        names = self.animal_names
+        if animal is not None:
+            self.animal_offsets(animal)  # an unknown name is one line listing the known ones
+        if not names:
+            raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
+        chosen = [find_animal(t, names) or animal or names[0] for t in texts]
+        if human is None:
+            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, seed, **sampling)
+        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=use_ema)
+
+    def human_motion(self, prompts: Sequence[str], lengths: Tensor, seed: int, **sampling) -> tuple[Tensor, Tensor]:
+        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``."""
+        if self.human_source == "retrieval":
+            return self.retrieve_human(prompts, lengths, seed)
+        if self.human_generator is None:
+            from omg.lit.checkpoint import load_module
+            from omg.lit.controlnet import ControlNetModule
+
+            self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
+        return generate_human(self.human_generator, prompts, lengths, seed, **sampling)
+
+    def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
+        """The human validation clips whose captions are nearest the prompts (one of the top k, drawn
+        with ``seed``), each cut or held at its last frame to the prompt's length."""
+        if self._bank is None:
+            if self.companion is None:
+                self.companion = CompanionStream(dict(self.hparams.human_data or {}))
+            samples = [s for s in self.companion.val_samples() if s["texts"]]
+            if not samples:
+                raise UsageError("human_source retrieval needs captioned human clips in human_data.val")
+            captions = [(i, t) for i, s in enumerate(samples) for t in s["texts"]]
+            self._bank = {"samples": samples, "owner": torch.tensor([i for i, _ in captions]),
+                          "text": F.normalize(self.sentence([t for _, t in captions]).cpu(), dim=-1)}
+        bank = self._bank
+        similarity = F.normalize(self.sentence(prompts).cpu(), dim=-1) @ bank["text"].T  # (B, captions)
+        gen = torch.Generator().manual_seed(seed)
+        T = int(lengths.max())
+        motion = torch.zeros(len(prompts), T, self.human_spec.feature_dim)
+        offsets = []
+        for b, row in enumerate(similarity):
+            order = row.argsort(descending=True)
+            seen: list[int] = []
+            for c in order.tolist():  # the top k distinct clips
+                if (owner := int(bank["owner"][c])) not in seen:
+                    seen.append(owner)
+                if len(seen) == self.retrieval_top_k:
+                    break
+            sample = bank["samples"][seen[int(torch.randint(len(seen), (1,), generator=gen))]]
+            clip = torch.from_numpy(sample["motion"])[:T]
+            motion[b, : len(clip)] = clip
+            motion[b, len(clip):] = clip[-1]
+            offsets.append(torch.tensor(sample["meta"]["offsets"], dtype=torch.float32))
+        return motion.to(self.device), torch.stack(offsets).to(self.device)
+
+
+def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Human joint positions (T, 22, 3) -> smpl22 maa features (T, 138) and offsets (22, 3), the
+    rotations solved by omg's IK on the clip's own bone lengths."""
+    from omg.io.export import positions_to_rotations
+
+    skeleton = get_skeleton(HUMAN_SKELETON)
+    rotations, _, offsets = positions_to_rotations(skeleton, positions)
+    clip = Clip(id="human", skeleton=skeleton, fps=fps, positions=np.asarray(positions, dtype=np.float32),
+                rotations=rotations, offsets=offsets)
+    features, meta = get_representation("maa", skeleton).encode(clip)
+    return features, np.asarray(meta["offsets"], dtype=np.float32)
+
+
+def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int,
+                   **sampling) -> tuple[Tensor, Tensor]:
+    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3).
+
+    ``generator``: an OMG ControlNet module; its features (humanml3d263) are decoded to joint
+    positions and turned into rotations by IK."""
+    if generator.spec.skeleton != HUMAN_SKELETON:
+        raise UsageError(f"the human generator makes {generator.spec.skeleton} motion; OmniMotionGPT needs "
+                         f"{HUMAN_SKELETON}")
+    if generator.spec.fps <= 0:
+        raise UsageError("the human generator's checkpoint records no frame rate")
+    allowed = {k: v for k, v in sampling.items() if k in ("steps", "guidance", "sampler") and v is not None}
+    features = generator.sample(list(prompts), lengths, seed=seed, use_ema=False, **allowed)
+    joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
+    T = int(torch.as_tensor(lengths).max())
+    motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)
+    offsets = []
+    for b, n in enumerate(torch.as_tensor(lengths).tolist()):
+        maa, off = maa_from_positions(joints[b, : max(2, n)], generator.spec.fps)
+        maa = torch.from_numpy(maa)[:T]
+        motion[b, : len(maa)] = maa
+        motion[b, len(maa):] = maa[-1]
+        offsets.append(torch.from_numpy(off))
+    return motion, torch.stack(offsets)
+
+
+class OmniMotionSelfEvaluator(torch.nn.Module):
+    """The paper's self-evaluation: motion features E_t^a(E^a(P, S)) and text features C of an
+    OmniMotionGPT checkpoint, in the same sentence space. An ``EvalCallback`` evaluator::
+
+        evaluator: {class_path: omg.lit.omgpt.OmniMotionSelfEvaluator, init_args: {checkpoint: CKPT}}
+
+    The evaluation passes motions without their offsets: S is the mean of the known animals'
+    bone offsets. Unlike omg's contrastive evaluator it shares the generator's encoders, so it
+    rewards the generator's own view of text; report it beside the independent one.
+    """
+
+    def __init__(self, checkpoint: str):
+        super().__init__()
+        from omg.lit.checkpoint import load_module
+
+        self.module = load_module(checkpoint, expect=OmniMotionModule)  # EMA weights where kept
+        self.spec = self.module.spec
+        self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
+
+    @torch.no_grad()
+    def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
+        return self.module.sentence(list(texts)).to(self.offsets.device)
+
+    @torch.no_grad()
+    def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
+        animal = self.module.model.animal
+        offsets = self.offsets.expand(len(motion), -1, -1)
+        z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
+        return animal["text_encoder"](z, z_mask)

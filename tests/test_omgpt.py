@@ -1,0 +1,351 @@
+"""OmniMotionGPT: primal-joint pooling, the two autoencoders, the end-effector loss, subject
+substitution, `omg fit` + `omg generate` from a real BVH, and the OMG -> OmniMotionGPT chain."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO
+from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
+from omg.motion import get_representation
+from omg.rotations import quat_normalize, quat_to_6d
+from omg.skeleton import SMAL35, SMPL22
+from omg.text.subjects import find_animal, to_animal, to_person
+
+MINI = REPO / "shards/mini"
+TINY = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32,
+        "latent_layers": 1, "dropout": 0.0}
+
+
+def test_primal_joints_come_from_the_graph_with_the_semantic_pairing():
+    assert primal_joints(SMPL22) == SMPL22.primal_joints == (0, 10, 11, 15, 20, 21, 9)
+    assert primal_joints(SMAL35) == SMAL35.primal_joints == (0, 20, 24, 16, 10, 14, 6)
+    names = [(SMPL22.names[h], SMAL35.names[a]) for h, a in zip(primal_joints(SMPL22), primal_joints(SMAL35))]
+    assert names == [("pelvis", "pelvis"), ("left_foot", "LFootBack"), ("right_foot", "RFootBack"), ("head", "Head"),
+                     ("left_wrist", "LFoot"), ("right_wrist", "RFoot"), ("spine3", "spine3")]
+
+
+def test_pooling_shapes_and_unpooling_zeros_exactly_the_non_primal_joints():
+    torch.manual_seed(0)
+    config = OmniMotionConfig.from_name("paper")  # 196 frames -> 49 x 7 x 16
+    model = OmniMotionGPT(SMPL22, SMAL35, config, text_dim=8)
+    B, T = 2, 196
+    mask = torch.ones(B, T, dtype=torch.bool)
+    mask[1, 150:] = False
+    with torch.no_grad():
+        z, z_mask = model.human["ae"].encode(torch.randn(B, T, 23 * 6), torch.randn(B, 22, 3), mask)
+    assert z.shape == (B, 49, 7, 16) and z_mask.shape == (B, 49) and z_mask[1].sum() == 38
+    for skeleton, ae in ((SMPL22, model.human["ae"]), (SMAL35, model.animal["ae"])):
+        h = ae.unpool(z + 1.0, 196)  # (B, 196, J + 1, 16)
+        assert h.shape == (B, 196, skeleton.num_joints + 1, 16)
+        nonzero = (h != 0).any(-1).any(0).any(0)
+        assert nonzero.nonzero().squeeze(1).tolist() == sorted(skeleton.primal_joints)
+        torch.testing.assert_close(h[:, 4:8, list(skeleton.primal_joints)], (z + 1.0)[:, 1:2].expand(-1, 4, -1, -1))
+
+
+def test_latent_decoder_predicts_each_frame_from_the_text_and_the_frames_before_it():
+    """D_t is a GPT over latent frames: frame t never reads input frame t (else it learns to copy Z
+    and ignore C, the collapse of the first mini runs), and the sentence feature changes every frame."""
+    from omg.models.omgpt import LatentTextDecoder
+
+    torch.manual_seed(0)
+    decoder = LatentTextDecoder(OmniMotionConfig.from_name("mini", joint_dim=4), text_dim=8).eval()
+    z, mask, text = torch.randn(2, 6, 7, 4), torch.ones(2, 6, dtype=torch.bool), torch.randn(2, 8)
+    with torch.no_grad():
+        out = decoder(text, z, mask)
+        changed = z.clone()
+        changed[:, 3] += 1.0
+        after = decoder(text, changed, mask)
+        other_text = decoder(torch.randn(2, 8), z, mask)
+    torch.testing.assert_close(after[:, :4], out[:, :4])  # frames 0..3 do not read input frame 3
+    assert (after[:, 4:] - out[:, 4:]).abs().amax() > 1e-3
+    assert ((other_text - out).abs().flatten(2).amax(-1) > 1e-3).all()  # C reaches every frame
+
+
+def test_autoencoders_read_standardised_features():
+    """Raw maa is mostly near-constant 6D numbers: in raw units an autoencoder that outputs the
+    mean pose reaches a small loss (the first mini runs: local joint error no better than the
+    mean pose). The autoencoders standardise inside and the reconstruction losses compare
+    standardised features."""
+    from omg.lit.omgpt import OmniMotionModule
+
+    animal = _data(MINI / "animal_maa/train")
+    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
+                              flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0)
+    std = torch.tensor(animal.spec.std)
+    ae = module.model.animal["ae"]
+    torch.testing.assert_close(ae.feature_scale, std.clamp_min(0.05))
+    torch.testing.assert_close(ae.feature_mean, torch.tensor(animal.spec.mean))
+    torch.testing.assert_close(module.animal_scale, ae.feature_scale)  # the loss's units
+    raw = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
+                           flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0,
+                           standardize=False)
+    assert (raw.model.human["ae"].feature_scale == 1).all() and (raw.model.human["ae"].feature_mean == 0).all()
+
+
+def _known_motion(skeleton, T=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    J = skeleton.num_joints
+    q = quat_normalize(torch.tensor([1.0, 0, 0, 0]) + 0.3 * torch.randn(1, T, J, 4, generator=g))
+    root = torch.cumsum(0.05 * torch.randn(1, T, 3, generator=g), 1)
+    features = torch.cat([quat_to_6d(q).flatten(2), root, torch.zeros(1, T, 3)], -1)
+    return features, q, root
+
+
+def test_end_effector_velocity_is_the_finite_difference_of_forward_kinematics():
+    for skeleton in (SMPL22, SMAL35):
+        features, q, root = _known_motion(skeleton)
+        offsets = torch.as_tensor(skeleton.rest_offsets)[None] * 1.3
+        velocity = end_effector_velocity(get_representation("maa", skeleton), features, offsets)
+        joints = skeleton.forward_kinematics(q, root, offsets[:, None])[..., list(skeleton.end_effectors), :]
+        torch.testing.assert_close(velocity, joints[:, 1:] - joints[:, :-1], atol=1e-5, rtol=1e-4)
+
+
+CAPTIONS = [
+    ("a person walks forward.", "dog", "a dog walks forward."),
+    ("The man turns around and he waves his right arm.", "horse", "A horse turns around and it waves its right arm."),
+    ("someone jumps twice", "cat", "a cat jumps twice"),
+    ("she kicks with her left leg", "elephant", "an elephant kicks with its left leg"),
+    ("a young woman dances happily.", "dog", "a dog dances happily."),
+    ("person runs in a circle", "fox", "a fox runs in a circle"),
+    ("jumps up and down", "dog", "a dog jumps up and down"),
+    ("the figure crawls on all fours", "cow", "a cow crawls on all fours"),
+]
+
+
+@pytest.mark.parametrize("caption, animal, expected", CAPTIONS)
+def test_subject_substitution(caption, animal, expected):
+    assert to_animal(caption, animal) == expected
+
+
+def test_animal_captions_made_about_a_person_and_animals_found():
+    animals = ["dog", "horse", "cat", "cow"]
+    assert to_person("a dog jumps over a log", animals) == "a person jumps over a log"
+    assert to_person("The big horse gallops and shakes its head.", animals) == "A person gallops and shakes their head."
+    assert find_animal("two cats walk past a dog", animals) == "cat"
+    assert find_animal("a person walks", animals) is None
+
+
+def _data(path, **kw):
+    from omg.data.datamodule import MotionDataModule
+
+    args = dict(batch_size=4, max_len=32, min_len=20, num_workers=0, shuffle_buffer=32, clips="whole")
+    return MotionDataModule(str(path), **{**args, **kw})
+
+
+def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
+    from omg.lit.omgpt import OmniMotionModule
+
+    torch.manual_seed(0)
+    animal_data = _data(MINI / "animal_maa/train")
+    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32,
+                                              min_len=20, num_workers=0, shuffle_buffer=32, clips="whole"),
+                              flavor="mini", config=TINY, text_encoder="hash", spec=animal_data.spec, ema_decay=0)
+    module.companion.start()
+    batches = {"animal": next(iter(animal_data.train_dataloader())), "human": module.companion.next()}
+    optimizer = torch.optim.Adam(module.model.parameters(), lr=3e-3)
+    history = []
+    for _ in range(50):
+        loss = 0.0
+        for domain, batch in batches.items():
+            text = module.sentence(batch["text"])
+            parts, _, _ = module.domain_losses(domain, module.raw(batch, domain), batch["offsets"], batch["mask"],
+                                               text, torch.ones(len(text), dtype=torch.bool))
+            loss = loss + parts["jrec"] + parts["translation"]
+        history.append(loss.item())
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert np.isfinite(history).all() and history[-1] < history[0] / 10
+
+
+# -- the commands ------------------------------------------------------------------------------
+
+def _cli(*argv):
+    from omg.cli import main
+
+    main(list(argv))
+
+
+@pytest.fixture(scope="module")
+def omgpt_ckpt(tmp_path_factory):
+    """`omg fit --config configs/mini/omgpt.yaml`, a few steps of a tiny model; its last checkpoint."""
+    root = tmp_path_factory.mktemp("omgpt")
+    torch.manual_seed(0)
+    _cli("fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=4",
+         f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false", "--trainer.val_check_interval=4",
+         "--trainer.enable_model_summary=false", "--model.init_args.text_encoder=hash",
+         f"--model.init_args.config={json.dumps(TINY)}", "--data.batch_size=4",
+         "--model.init_args.human_data.batch_size=4")
+    return root / "checkpoints/last.ckpt"
+
+
+def _bvh_offsets(path):
+    """Joint name -> OFFSET from a BVH hierarchy, read with a few regular expressions."""
+    text = path.read_text().split("MOTION")[0]
+    found = re.findall(r"(?:ROOT|JOINT)\s+(\S+)\s*\{\s*OFFSET\s+(\S+)\s+(\S+)\s+(\S+)", text)
+    return {name: np.array([float(x), float(y), float(z)]) for name, x, y, z in found}
+
+
+def test_fit_then_generate_an_animal_from_a_real_bvh(omgpt_ckpt, shared_motion, tmp_path, capsys):
+    from omg.lit.checkpoint import load_module
+
+    clips = json.loads((shared_motion / "manifest.json").read_text())["clips"]
+    bvh = next(shared_motion / c["path"] for c in clips if c.get("domain") == "human" and c["path"].endswith(".bvh"))
+    module = load_module(omgpt_ckpt)
+    assert set(module.animal_names) == {"cat", "cow", "deer", "dog", "fox", "horse", "sheep"}
+    out = tmp_path / "dog"
+    _cli("generate", "a dog jumps over a log", "--ckpt", str(omgpt_ckpt), "--animal", "dog", "--from_motion", str(bvh),
+         "--length", "2", "--out", str(out))
+    settings = json.loads((out / "generation.json").read_text())
+    assert settings["samples"][0]["animal"] == "dog" and settings["frames"] == 40
+    assert np.load(out / "sample_000.features.npy").shape == (40, 36 * 6)
+    assert np.load(out / "sample_000.joints.npy").shape == (40, 35, 3)
+    assert (out / "preview.gif").stat().st_size > 0
+    offsets = _bvh_offsets(out / "sample_000.bvh")
+    dog = module.animals["dog"].numpy()
+    assert set(offsets) == set(SMAL35.names)
+    for j, name in enumerate(SMAL35.names[1:], start=1):
+        np.testing.assert_allclose(np.linalg.norm(offsets[name]), np.linalg.norm(dog[j]), atol=1e-4)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        _cli("generate", "a unicorn jumps", "--ckpt", str(omgpt_ckpt), "--animal", "unicorn", "--from_motion",
+             str(bvh), "--out", str(tmp_path / "bad"))
+    assert exit_.value.code == 2 and not (tmp_path / "bad").exists()
+    assert capsys.readouterr().err.strip() == ("omg: error: unknown animal 'unicorn'; this checkpoint knows: cat, cow, "
+                                               "deer, dog, fox, horse, sheep")
+
+
+def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
+    import lightning as L
+
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.pretrain import PretrainModule
+
+    torch.manual_seed(0)
+    human = _data(MINI / "human263/train", max_len=40)
+    trainer_args = dict(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, default_root_dir=tmp_path)
+    dit = {"n_layers": 2, "d_model": 32, "n_heads": 2}
+    pretrain = PretrainModule(flavor="mini", dit=dit, spec=human.spec, warmup_steps=1, ema_decay=0)
+    trainer = L.Trainer(max_steps=2, **trainer_args)
+    trainer.fit(pretrain, human)
+    trainer.save_checkpoint(tmp_path / "pretrain.ckpt")
+    controlnet = ControlNetModule(pretrained=str(tmp_path / "pretrain.ckpt"), text_encoder="hash",
+                                  moc={"d_c": 16, "num_experts": 2}, spec=human.spec, warmup_steps=1, ema_decay=0)
+    trainer = L.Trainer(max_steps=2, **trainer_args)
+    trainer.fit(controlnet, _data(MINI / "human263/train", max_len=40))
+    trainer.save_checkpoint(tmp_path / "controlnet.ckpt")
+
+    out = tmp_path / "chain"
+    _cli("generate", "a horse jumps forward", "--ckpt", str(omgpt_ckpt),
+         "--human_ckpt", str(tmp_path / "controlnet.ckpt"), "--length", "1.5", "--num_samples", "2", "--steps", "3",
+         "--out", str(out))
+    settings = json.loads((out / "generation.json").read_text())
+    assert [s["animal"] for s in settings["samples"]] == ["horse", "horse"]
+    assert settings["samples"][0]["human_prompt"] == "a person jumps forward"
+    human_joints = np.load(out / "sample_000.human.joints.npy")
+    assert human_joints.shape == (30, 22, 3) and np.isfinite(human_joints).all()
+    assert np.load(out / "sample_001.joints.npy").shape == (30, 35, 3)
+
+
+def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
+    """`omg test` with configs/mini/omgpt_eval.yaml (scaled down): ID and OOD reports from an animal evaluator."""
+    import yaml
+
+    from omg.lit.evaluator import EvaluatorModule
+
+    torch.manual_seed(0)
+    evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data(MINI / "animal_maa/val").spec)
+    evaluator_path = tmp_path / "evaluator.ckpt"
+    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
+                "module_class": "omg.lit.evaluator.EvaluatorModule"}, evaluator_path)
+    config = yaml.safe_load((REPO / "configs/mini/omgpt_eval.yaml").read_text())
+    config["trainer"]["default_root_dir"] = str(tmp_path / "eval")
+    small = {"evaluator": str(evaluator_path), "num_prompts": 8, "replications": 2, "mm_prompts": 2, "mm_repeats": 3,
+             "metrics": ["fid", {"r_precision": {"pool_size": 4}}, "mm_dist", {"diversity": {"num_pairs": 4}},
+                         {"multimodality": {"num_pairs": 2}}]}
+    for callback in config["trainer"]["callbacks"]:
+        callback["init_args"].update(small)
+    path = tmp_path / "eval.yaml"
+    path.write_text(yaml.safe_dump(config))
+    _cli("test", "--config", str(path), "--ckpt_path", str(omgpt_ckpt), "--trainer.enable_progress_bar=false")
+    printed = capsys.readouterr().out
+    assert "OOD prompts" in printed and "| fid_ood |" in printed and "| r_precision/top1 |" in printed
+    run = next((tmp_path / "eval").glob("version_*"))
+    in_distribution = json.loads((run / "eval.json").read_text())["metrics"]
+    ood = json.loads((run / "eval_ood.json").read_text())
+    assert {"fid", "r_precision/top1", "mm_dist", "diversity", "multimodality"} <= set(in_distribution)
+    assert {"fid_ood", "r_precision/top3", "diversity"} <= set(ood["metrics"]) and "fid" not in ood["metrics"]
+    assert len(ood["metrics"]["fid_ood"]["values"]) == 2 and ood["settings"]["protocol"] == "OOD"
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--animal", "dog", "--from_motion", "{tmp}/missing.bvh"], "--from_motion {tmp}/missing.bvh: no such file"),
+    (["--animal", "dog", "--from_motion", "x.bvh", "--human_ckpt", "y.ckpt"], "give --from_motion"),
+    ([], "prompt 1 names no animal this checkpoint knows; pass --animal (known: cat, cow, deer, dog, fox, horse, "
+         "sheep)"),
+])
+def test_bad_animal_generation_input_is_one_line(omgpt_ckpt, tmp_path, capsys, extra, message):
+    extra, message = [e.format(tmp=tmp_path) for e in extra], message.format(tmp=tmp_path)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        _cli("generate", "a unicorn jumps", "--ckpt", str(omgpt_ckpt), *extra, "--out", str(tmp_path / "out"))
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and message in err and not (tmp_path / "out").exists()
+
+
+def test_generated_motion_depends_on_the_text_and_on_the_human_motion(omgpt_ckpt):
+    """The sampling API keeps both inputs: the same human motion with two prompts, and two human
+    motions with one prompt, give different animal motions (a path that drops C or Z^h gives exactly
+    the same ones; 4 training steps say nothing about how much they should differ)."""
+    from omg.lit.checkpoint import load_module
+
+    module = load_module(omgpt_ckpt)
+    human = _data(MINI / "human_maa/train", max_len=40, min_len=32)
+    batch = next(iter(human.train_dataloader()))
+    motion = (batch["motion"] * torch.tensor(human.spec.std) + torch.tensor(human.spec.mean))[:2, :32]
+    offsets, lengths = batch["offsets"][:2], torch.tensor([32, 32])
+    same_motion = module.sample(["a dog walks forward", "a dog lies down"], lengths, human=motion[:1].expand(2, -1, -1),
+                                human_offsets=offsets[:1].expand(2, -1, -1))
+    same_text = module.sample(["a dog walks forward"] * 2, lengths, human=motion, human_offsets=offsets)
+    for pair in (same_motion, same_text):
+        assert (pair[0] - pair[1]).square().mean().sqrt() > 1e-5
+
+
+def test_self_evaluator_embeds_text_and_motion_in_one_space(omgpt_ckpt):
+    from omg.evaluation import build_evaluator
+
+    evaluator = build_evaluator({"class_path": "omg.lit.omgpt.OmniMotionSelfEvaluator",
+                                 "init_args": {"checkpoint": str(omgpt_ckpt)}})
+    from omg.data.datamodule import MotionDataModule
+
+    samples = MotionDataModule(val=str(MINI / "animal_maa/val"), max_len=196).val_clips().samples[:3]
+    T = max(len(s["motion"]) for s in samples)
+    motion, mask = torch.zeros(3, T, 216), torch.zeros(3, T, dtype=torch.bool)
+    for b, s in enumerate(samples):
+        motion[b, : len(s["motion"])], mask[b, : len(s["motion"])] = torch.from_numpy(s["motion"]), True
+    text = evaluator.encode_text([s["texts"][0] for s in samples])
+    features = evaluator.encode_motion(motion, mask)
+    assert text.shape == features.shape == (3, 64) and torch.isfinite(features).all()
+    torch.testing.assert_close(evaluator.encode_motion(motion[:1, : mask[0].sum()], mask[:1, : mask[0].sum()]),
+                               features[:1], atol=1e-4, rtol=1e-4)  # padding changes nothing
+
+
+def test_generated_features_are_canonical_maa():
+    from omg.models.omgpt import canonical_maa
+    from omg.rotations import sixd_to_matrix
+
+    features, _, _ = _known_motion(SMAL35)
+    torch.testing.assert_close(canonical_maa(features), features, atol=1e-5, rtol=0)  # real maa is kept
+    noisy = canonical_maa(features + 0.3 * torch.randn_like(features))
+    tokens = noisy.unflatten(-1, (-1, 6))
+    assert torch.equal(tokens[..., -1, 3:], torch.zeros_like(tokens[..., -1, 3:]))
+    m = sixd_to_matrix(tokens[..., :-1, :])
+    torch.testing.assert_close(m.mT @ m, torch.eye(3).expand_as(m), atol=1e-5, rtol=0)
+    torch.testing.assert_close(tokens[..., :-1, :], torch.cat([m[..., 0], m[..., 1]], -1), atol=1e-6, rtol=0)
