@@ -64,6 +64,11 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
+    animals = REPO / "shards/mini/animal_maa/train"
+    (d / "mix_negative.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: -1}}\n")
+    (d / "mix_unknown_key.yaml").write_text(f"data:\n  train:\n    - {{pat: {MINI_SHARDS}, weight: 1}}\n")
+    (d / "mix_mismatched.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: 1}}\n"
+                                           f"    - {{path: {animals}, weight: 1}}\n")
     (d / "bvh").mkdir()
     (d / "bvh/tiny.bvh").write_text(TINY_BVH)
     (d / "empty").mkdir()
@@ -169,6 +174,32 @@ ROWS = [
     ("build-empty-source", ["shards", "build", "--source", "bvh-dir", "--input", "{in}/empty", "--out", "{out}/a/b"]),
     ("build-fails-in-user-folder", ["shards", "build", "--source", "synth", "--out", "{in}/user",
                                     "--val_fraction", "0.5", "--option.num_clips", "1"]),
+    ("build-workers-zero", [*SYNTH_BUILD, "--workers", "0"]),
+    ("build-part-out-of-range", [*SYNTH_BUILD, "--part", "2", "--parts", "2"]),
+    ("build-part-without-parts", [*SYNTH_BUILD, "--part", "1"]),
+    # omg shards merge
+    ("merge-no-parts", ["shards", "merge", "--out", "{out}"]),
+    ("merge-part-missing", ["shards", "merge", "{in}/nope", "--out", "{out}"]),
+    ("merge-part-not-a-set", ["shards", "merge", "{in}/empty", "{in}/user", "--out", "{out}"]),
+    ("merge-mismatched-parts", ["shards", "merge", MINI_SHARDS, str(REPO / "shards/mini/animal_maa/train"),
+                                "--out", "{out}"]),
+    # omg transfer (the habit checkpoints are checked before anything is read or written)
+    ("transfer-ckpt-other-class", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{cn}",
+                                   "--out", "{out}"]),
+    ("transfer-ckpt-missing", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{in}/nope.ckpt",
+                               "--out", "{out}"]),
+    ("transfer-ckpt-binary", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{in}/random.bin",
+                              "--out", "{out}"]),
+    ("transfer-out-is-file", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{cn}",
+                              "--out", "{in}/afile"]),
+    ("transfer-no-to", ["transfer", "{in}/bvh/tiny.bvh", "--ckpt", "{cn}", "--out", "{out}"]),
+    # omg generate's animal options on a checkpoint that is not OmniMotionGPT's
+    ("gen-animal-on-controlnet", [*TEXT, "--animal", "dog"]),
+    ("gen-from-motion-on-controlnet", [*TEXT, "--from_motion", "{in}/bvh/tiny.bvh"]),
+    # omg shards inspect on a mixture
+    ("inspect-mixture-negative-weight", ["shards", "inspect", "{in}/mix_negative.yaml"]),
+    ("inspect-mixture-unknown-key", ["shards", "inspect", "{in}/mix_unknown_key.yaml"]),
+    ("inspect-mixture-mismatched-sets", ["shards", "inspect", "{in}/mix_mismatched.yaml"]),
     # omg shards synth
     ("synth-scale-nan", ["shards", "synth", "--out", "{out}", "--scale", "nan"]),
     ("synth-scale-neg", ["shards", "synth", "--out", "{out}", "--scale", "-1"]),
