@@ -292,8 +292,8 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(argv, ckpts, tmp_path, 
 
 def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
-    assert commands == {"generate", "export", "shards build", "shards synth", "fit", "bench data", "bench train",
-                        "bench sample"}
+    assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
+                        "transfer", "fit", "bench data", "bench train", "bench sample"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
 
 
