@@ -15,6 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 
 from conftest import walking_clip
@@ -159,8 +160,11 @@ def test_killed_parallel_build_resumes(one_worker, tmp_path):
     while not state.exists():
         assert process.poll() is None and time.monotonic() < deadline, "the build ended before it could be killed"
         time.sleep(0.01)
+    helpers = psutil.Process(process.pid).children(recursive=True)
     process.send_signal(signal.SIGKILL)
     process.wait()
+    _, alive = psutil.wait_procs(helpers, timeout=15)  # they notice their main process is gone
+    assert helpers and not alive, f"helper processes outlived the killed build: {alive}"
     finished = json.loads(state.read_text())["shards"]
     assert finished and not (out / "train" / "manifest.json").exists()
     summaries = _build(out, workers=2)

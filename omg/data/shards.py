@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import pickle
 import re
 import sys
@@ -228,7 +229,9 @@ def encode_item(item, representation: Representation, fps: float) -> EncodedClip
 
 
 def _helper(representation: Representation, fps: float, tasks, results, index: int) -> None:
-    """A helper process of a build: reads and encodes the items it is sent, one at a time."""
+    """A helper process of a build: reads and encodes the items it is sent, one at a time, and ends
+    when the main process does."""
+    import multiprocessing
     import signal
 
     import torch
@@ -236,11 +239,18 @@ def _helper(representation: Representation, fps: float, tasks, results, index: i
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     torch.set_num_threads(1)  # N workers on N cores: one thread each
     results.put(pickle.dumps((index, 0, None, None)))  # ready for an item
+    parent = multiprocessing.parent_process()
     while True:
         try:
+            # a forked helper holds a copy of the pipe's sending end too, so a killed main process
+            # does not end ``recv`` with EOF: look for it while waiting
+            while not tasks.poll(1.0):
+                if parent is not None and not parent.is_alive():
+                    os._exit(0)
             position, item = tasks.recv()
         except (EOFError, OSError):  # the main process is gone (killed): so is the build
-            return
+            # at once: a normal exit would wait for the results still queued, which nobody reads now
+            os._exit(0)
         try:
             message = (index, position, encode_item(item, representation, fps), None)
         except Exception as e:  # noqa: BLE001 - raised by a source: it stops the build, in the main process
