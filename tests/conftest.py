@@ -95,6 +95,26 @@ def _quiet_threads():
     torch.set_num_threads(1)
 
 
+def smpl_reference_joints(model: dict, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """Independent SMPL-family joints for the importer tests (scipy rotations, SMPL's parent chain), (T, 22, 3)
+    in the body model's frame: ``model`` holds v_template, shapedirs and J_regressor."""
+    from scipy.spatial.transform import Rotation
+
+    from omg.skeleton import SMPL22_PARENTS
+
+    n = len(betas)
+    rest = (model["J_regressor"] @ (model["v_template"] + model["shapedirs"][..., :n] @ betas))[:22]
+    out = np.zeros((len(poses), 22, 3))
+    for t in range(len(poses)):
+        G = [None] * 22
+        for j in range(22):
+            R = Rotation.from_rotvec(poses[t, 3 * j: 3 * j + 3])
+            p = SMPL22_PARENTS[j]
+            G[j] = R if p < 0 else G[p] * R
+            out[t, j] = rest[0] + trans[t] if p < 0 else out[t, p] + G[p].apply(rest[j] - rest[p])
+    return out
+
+
 def walking_clip(index: int, fps: float = 20.0) -> Clip:
     """The rest pose gliding forward with jitter: enough structure for humanml3d263 and losses."""
     rng = np.random.default_rng(index)

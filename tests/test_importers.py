@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import JointPositions, walking_clip
+from conftest import JointPositions, smpl_reference_joints, walking_clip
 from omg.cli import main
 from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar, resolved
 from omg.errors import UsageError
@@ -304,16 +304,8 @@ def _body_model(path: Path, seed: int = 0) -> dict:
 
 
 def _reference_joints(model: dict, poses, trans, betas) -> np.ndarray:
-    """Independent SMPL joints: scipy rotations, SMPL's parent chain, then (x, y, z) -> (-x, z, y)."""
-    rest = model["J_regressor"] @ (model["v_template"] + model["shapedirs"][..., :len(betas)] @ betas)
-    out = np.zeros((len(poses), 22, 3))
-    for t in range(len(poses)):
-        G = [None] * 22
-        for j in range(22):
-            R = Rotation.from_rotvec(poses[t, 3 * j : 3 * j + 3])
-            p = SMPL22_PARENTS[j]
-            G[j] = R if p < 0 else G[p] * R
-            out[t, j] = rest[0] + trans[t] if p < 0 else out[t, p] + G[p].apply(rest[j] - rest[p])
+    """Independent SMPL joints (``smpl_reference_joints``), then AMASS's (x, y, z) -> (-x, z, y)."""
+    out = smpl_reference_joints(model, poses, trans, betas)
     return np.stack([-out[..., 0], out[..., 2], out[..., 1]], -1)
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 
+from conftest import smpl_reference_joints
 from omg.cli import main
 from omg.data.shards import resolved
 from omg.errors import UsageError
@@ -42,21 +42,6 @@ def _body_model(path: Path, joints: int, betas: int) -> dict:
     return model
 
 
-def _fk(model: dict, poses: np.ndarray, trans: np.ndarray, betas: np.ndarray) -> np.ndarray:
-    """Independent SMPL joints (scipy rotations, SMPL's parent chain), (T, 22, 3)."""
-    n = len(betas)
-    rest = (model["J_regressor"] @ (model["v_template"] + model["shapedirs"][..., :n] @ betas))[:22]
-    out = np.zeros((len(poses), 22, 3))
-    for t in range(len(poses)):
-        G = [None] * 22
-        for j in range(22):
-            R = Rotation.from_rotvec(poses[t, 3 * j: 3 * j + 3])
-            p = SMPL22_PARENTS[j]
-            G[j] = R if p < 0 else G[p] * R
-            out[t, j] = rest[0] + trans[t] if p < 0 else out[t, p] + G[p].apply(rest[j] - rest[p])
-    return out
-
-
 def _walk(model: dict, fps: float, seconds: float, betas: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """SMPL parameters of a walk along +Z (Y up), one stride per second: hips swinging in
     antiphase, the swinging knee bent; the root bobs to keep the lower foot on y = 0 and travels
@@ -68,14 +53,14 @@ def _walk(model: dict, fps: float, seconds: float, betas: np.ndarray) -> tuple[n
         poses[:, 3 * hip] = sign * 0.35 * np.sin(phase)  # about X: > 0 takes the foot back (-Z)
         poses[:, 3 * knee] = 0.6 * np.maximum(0.0, -sign * np.cos(phase))
     poses[:, 3 * 16 + 2], poses[:, 3 * 17 + 2] = -1.2, 1.2  # arms lowered
-    P = _fk(model, poses, np.zeros((T, 3)), betas)
+    P = smpl_reference_joints(model, poses, np.zeros((T, 3)), betas)
     feet = np.array([[7, 10], [8, 11]])  # (left, right) x (ankle, foot)
     lowest = P[:, feet, 1].min(2)  # (T, 2)
     stance = lowest.argmin(1)
     toe_z = P[:, feet[:, 1], 2]
     step = -(toe_z[1:, stance[:-1]].diagonal() - toe_z[:-1, stance[:-1]].diagonal())
     trans = np.stack([np.zeros(T), -lowest.min(1), np.concatenate([[0.0], np.cumsum(step)])], 1)
-    return poses, trans, _fk(model, poses, trans, betas)
+    return poses, trans, smpl_reference_joints(model, poses, trans, betas)
 
 
 def _check_walk(clip: Clip, expected: np.ndarray) -> None:
