@@ -419,13 +419,9 @@ class OmniMotionModule(OmgModule):
 
 def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
     """Human joint positions (T, 22, 3) -> smpl22 maa features (T, 138) and offsets (22, 3), the
-    rotations solved by omg's IK on the clip's own bone lengths."""
-    from omg.io.export import positions_to_rotations
-
+    rotations solved by the representation's IK on the clip's own bone lengths."""
     skeleton = get_skeleton(HUMAN_SKELETON)
-    rotations, _, offsets = positions_to_rotations(skeleton, positions)
-    clip = Clip(id="human", skeleton=skeleton, fps=fps, positions=np.asarray(positions, dtype=np.float32),
-                rotations=rotations, offsets=offsets)
+    clip = Clip(id="human", skeleton=skeleton, fps=fps, positions=np.asarray(positions, dtype=np.float32))
     features, meta = get_representation("maa", skeleton).encode(clip)
     return features, np.asarray(meta["offsets"], dtype=np.float32)
 

@@ -73,8 +73,12 @@ class MAA(Representation):
         features = np.concatenate([sixd.numpy(), root, np.zeros((T, 3))], axis=1)
         return features.astype(np.float32), {"offsets": offsets.tolist()}
 
-    def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
+    def rotations_and_root(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., T, (J + 1) * 6) features -> local rotations (..., T, J, 4) and root positions (..., T, 3)."""
         J = self.skeleton.num_joints
-        rotations = sixd_to_quat(features[..., : J * 6].unflatten(-1, (J, 6)))  # (..., T, J, 4)
-        root = features[..., J * 6 : J * 6 + 3]  # (..., T, 3)
+        rotations = sixd_to_quat(features[..., : J * 6].unflatten(-1, (J, 6)))
+        return rotations, features[..., J * 6 : J * 6 + 3]
+
+    def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
+        rotations, root = self.rotations_and_root(features)
         return self.skeleton.forward_kinematics(rotations, root, fk_offsets(self.skeleton, offsets, features))

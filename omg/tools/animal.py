@@ -18,14 +18,13 @@ import torch
 
 from omg.errors import UsageError
 from omg.files import atomic_write, npy_bytes, write_json
-from omg.rotations import sixd_to_quat
+from omg.motion import get_representation
 from omg.tools.common import removing_created
 
 
 def read_human_motion(path: Path, fps: float) -> tuple[np.ndarray, np.ndarray]:
     """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``."""
     from omg.lit.omgpt import HUMAN_SKELETON, maa_from_positions
-    from omg.motion import get_representation
     from omg.skeleton import get_skeleton
 
     path = Path(path)
@@ -112,9 +111,7 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
             if not torch.isfinite(features).all():
                 raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt})")
             offsets = module.animal_offsets(name).cpu()
-            J = skeleton.num_joints
-            rotations = sixd_to_quat(features[:, : J * 6].unflatten(-1, (J, 6)).cpu().float())  # (T, J, 4)
-            root = features[:, J * 6: J * 6 + 3].cpu().float()
+            rotations, root = get_representation("maa", skeleton).rotations_and_root(features.cpu().float())
             joints = skeleton.forward_kinematics(rotations, root, offsets).numpy().astype(np.float32)
             human_joints = module.human_rep.decode(human[0].float().cpu(), human_offsets[0].cpu()).numpy()
             stem = f"sample_{index:03d}"

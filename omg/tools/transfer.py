@@ -29,7 +29,6 @@ def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.nd
     """A motion file as the model's features: (features (T, D), source offsets (J, 3), root start (3,),
     the source's category). ``.npy``: quatvel features (T, D) or SMAL-35 joint positions (T, J, 3) at
     the model's frame rate; other files are read and retargeted onto the model's skeleton."""
-    from omg.io.export import positions_to_rotations
     from omg.motion import Clip
 
     skeleton, fps = module.representation.skeleton, module.spec.fps
@@ -44,10 +43,8 @@ def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.nd
         if array.ndim == 2 and array.shape[1] == D:
             return (array.astype(np.float32), np.asarray(skeleton.rest_offsets, np.float32), np.zeros(3, np.float32),
                     "")
-        if array.ndim == 3 and array.shape[1:] == (J, 3):
-            rotations, _, offsets = positions_to_rotations(skeleton, array)
-            clip = Clip(id=path.stem, skeleton=skeleton, fps=fps, positions=array.astype(np.float32),
-                        rotations=rotations, offsets=offsets)
+        if array.ndim == 3 and array.shape[1:] == (J, 3):  # the representation solves the rotations (IK)
+            clip = Clip(id=path.stem, skeleton=skeleton, fps=fps, positions=array.astype(np.float32))
         else:
             raise UsageError(f"SOURCE {path}: a .npy source holds quatvel features (T, {D}) or {skeleton.name} joint "
                              f"positions (T, {J}, 3), got shape {array.shape}")
