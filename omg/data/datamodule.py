@@ -390,6 +390,9 @@ class MotionDataModule(L.LightningDataModule):
         timeout: float = 600.0,
         verify_shards: bool = True,
     ):
+        # this call's arguments, explicitly: Lightning's frame inspection would also collect those of
+        # an enclosing __init__ (a LightningModule that builds a second data module, as OmniMotionGPT does)
+        arguments = {name: value for name, value in locals().items() if name not in ("self", "__class__")}
         super().__init__()
         if batch_size < 1 or batches_per_epoch < 1 or num_workers < 0 or shuffle_buffer < 1:
             raise UsageError(
@@ -400,7 +403,7 @@ class MotionDataModule(L.LightningDataModule):
             raise UsageError(f"data.timeout must be >= 0 seconds (0: no limit), got {timeout}")
         if clips not in ("auto", *CLIP_MODES):
             raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
-        self.save_hyperparameters()
+        self.save_hyperparameters(arguments)
         if not train and not val:
             raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
                              "is enough for `omg validate` and `omg test`)")
@@ -459,8 +462,15 @@ class MotionDataModule(L.LightningDataModule):
     def train_dataloader(self) -> StreamLoader:
         if not self.train_urls:
             raise UsageError("training needs data.train: a shard directory or URL pattern")
+        trainer = self.trainer
+        return self.stream_loader(*self._rank_world(), self.windows,
+                                  epoch_fn=(lambda: trainer.current_epoch) if trainer is not None else None)
+
+    def stream_loader(self, rank: int, world: int, windows: WindowSampler,
+                      epoch_fn: Callable[[], int] | None = None) -> StreamLoader:
+        """Rank ``rank``'s training stream of ``data.train`` (a mixture's sets each split across the
+        ranks), cut by ``windows``; ``epoch_fn`` gives the epoch (each ``iter()`` is the next without it)."""
         h = self.hparams
-        rank, world = self._rank_world()
         manifest = self.manifest
         mixture = self.mixture
         sets = None
@@ -472,7 +482,7 @@ class MotionDataModule(L.LightningDataModule):
             rank=rank,
             batches=h.batches_per_epoch,
             batch_size=h.batch_size,
-            windows=self.windows,
+            windows=windows,
             feature_dim=self.feature_dim,
             seed=h.seed,
             shuffle_buffer=h.shuffle_buffer,
@@ -481,10 +491,8 @@ class MotionDataModule(L.LightningDataModule):
             mean_frames=manifest["num_frames"] / max(1, manifest["num_clips"]),
             sets=sets,
         )
-        trainer = self.trainer
-        return StreamLoader(stream, epoch_fn=(lambda: trainer.current_epoch) if trainer is not None else None,
-                            num_workers=h.num_workers, collate_fn=self.collate, persistent_workers=False,
-                            timeout=h.timeout if h.num_workers > 0 else 0)
+        return StreamLoader(stream, epoch_fn=epoch_fn, num_workers=h.num_workers, collate_fn=self.collate,
+                            persistent_workers=False, timeout=h.timeout if h.num_workers > 0 else 0)
 
     def val_clips(self) -> ClipDataset:
         """The validation set, decoded and verified (bad samples skipped and counted)."""

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from types import SimpleNamespace
 from typing import Any
 
-from omg.data.datamodule import ClipDataset, MotionDataModule, MotionStream, StreamLoader, rank_shards
+from omg.data.datamodule import ClipDataset, MotionDataModule, StreamLoader
 from omg.data.windows import WindowSampler
 from omg.errors import UsageError
 
@@ -30,8 +30,8 @@ class CompanionStream:
         except TypeError as e:
             raise UsageError(f"human_data: {e}; it takes the arguments of data (train, val, batch_size, ...)") from None
         bound.apply_defaults()
-        self.args = SimpleNamespace(**bound.arguments)  # read here: a data module built inside a LightningModule's
-        self.data = MotionDataModule(**args)  # __init__ records that module's arguments as its hparams
+        self.args = SimpleNamespace(**bound.arguments)
+        self.data = MotionDataModule(**args)
         mode = self.args.clips
         self.windows = WindowSampler(self.args.max_len, self.args.min_len, clips if mode == "auto" else mode)
         self.loader: StreamLoader | None = None
@@ -44,18 +44,10 @@ class CompanionStream:
 
     def start(self, rank: int = 0, world_size: int = 1) -> None:
         """Build this rank's loader (call once the trainer knows the rank)."""
-        data, h = self.data, self.args
-        if not data.train_urls:
+        if not self.data.train_urls:
             raise UsageError("human_data.train: a shard directory or URL pattern is needed to train")
-        manifest = data.manifest
-        stream = MotionStream(rank_shards(data.train_urls, rank, world_size), rank=rank,
-                              batches=h.batches_per_epoch, batch_size=h.batch_size, windows=self.windows,
-                              feature_dim=data.feature_dim, seed=h.seed, shuffle_buffer=h.shuffle_buffer,
-                              max_bad_fraction=h.max_bad_fraction, checks=data.shard_checks,
-                              mean_frames=manifest["num_frames"] / max(1, manifest["num_clips"]))
         # epochs of its own: each pass over the loader is the next epoch of this stream
-        self.loader = StreamLoader(stream, epoch_fn=None, num_workers=h.num_workers, collate_fn=data.collate,
-                                   persistent_workers=False, timeout=h.timeout if h.num_workers > 0 else 0)
+        self.loader = self.data.stream_loader(rank, world_size, self.windows)
         if self._resume is not None:
             self.loader.load_state_dict(self._resume)
             self._resume = None
