@@ -28,6 +28,9 @@ PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
                 "runs/mini_habit_prior": REPO / "configs/mini/habit_vqvae.yaml",
                 "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml"}
 
+# an overlay -> the config it completes
+OVERLAYS = {"omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml"}
+
 
 def maa_spec(skeleton: str, dim: int) -> dict:
     return {"representation": "maa", "skeleton": skeleton, "fps": 20.0, "feature_dim": dim, "mean": [0.0] * dim,
@@ -41,9 +44,10 @@ def parse(path: Path):
     parser.add_lightning_class_args(L.Trainer, "trainer")
     parser.add_lightning_class_args(L.LightningModule, "model", subclass_mode=True)
     parser.add_lightning_class_args(MotionDataModule, "data")
-    # a data-only config (configs/data/) follows a model config, as `omg fit --config A --config B` composes them
-    model = ["--config", str(REPO / "configs/pretrain_base.yaml")] if path.parent.name == "data" else []
-    return parser.parse_args([*model, "--config", str(path)])
+    # a data-only config (configs/data/) or an overlay follows the config it completes, as
+    # `omg fit --config A --config B` composes them
+    base = REPO / "configs/pretrain_base.yaml" if path.parent.name == "data" else OVERLAYS.get(path.name)
+    return parser.parse_args([*(["--config", str(base)] if base else []), "--config", str(path)])
 
 
 def build_model_on_meta(cfg, flavor: str = "mini"):

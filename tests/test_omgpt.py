@@ -71,20 +71,38 @@ def test_autoencoders_read_standardised_features():
     """Raw maa is mostly near-constant 6D numbers: in raw units an autoencoder that outputs the
     mean pose reaches a small loss (the first mini runs: local joint error no better than the
     mean pose). The autoencoders standardise inside and the reconstruction losses compare
-    standardised features."""
+    standardised features; the root's ground position becomes per-frame displacement in metres
+    per second (``config.root_velocity``), summed back exactly on the way out."""
     from omg.lit.omgpt import OmniMotionModule
 
     animal = _data(MINI / "animal_maa/train")
     module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
                               flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0)
-    std = torch.tensor(animal.spec.std)
+    std, mean = torch.tensor(animal.spec.std), torch.tensor(animal.spec.mean)
     ae = module.model.animal["ae"]
-    torch.testing.assert_close(ae.feature_scale, std.clamp_min(0.05))
-    torch.testing.assert_close(ae.feature_mean, torch.tensor(animal.spec.mean))
-    torch.testing.assert_close(module.animal_scale, ae.feature_scale)  # the loss's units
+    D = len(std)
+    ground = torch.zeros(D, dtype=torch.bool)
+    ground[[D - 6, D - 4]] = True
+    torch.testing.assert_close(ae.feature_scale[~ground], std.clamp_min(0.05)[~ground])
+    torch.testing.assert_close(ae.feature_mean[~ground], mean[~ground])
+    assert (ae.feature_mean[ground] == 0).all() and torch.allclose(ae.feature_scale[ground], torch.tensor(1 / 20.0))
+
+    batch = next(iter(animal.train_dataloader()))
+    motion, mask = module.raw(batch, "animal"), batch["mask"]
+    internal = ae.normalize(motion, mask)
+    torch.testing.assert_close(ae.denormalize(internal, mask), motion, atol=1e-5, rtol=1e-5)
+    assert (internal[~mask] == 0).all()
+    walk = torch.zeros(1, 10, D)
+    walk[0, :, D - 4] = torch.arange(10) * 0.05  # 1 m/s along z at 20 fps
+    step = ae.normalize(walk + mean * ~ground, torch.ones(1, 10, dtype=torch.bool))[0, 1:, D - 4]
+    torch.testing.assert_close(step, torch.ones(9))
+    flat = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
+                            flavor="mini", config={**TINY, "root_velocity": False}, text_encoder="hash",
+                            spec=animal.spec, ema_decay=0)
+    torch.testing.assert_close(flat.model.animal["ae"].feature_scale, std.clamp_min(0.05))
     raw = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
-                           flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0,
-                           standardize=False)
+                           flavor="mini", config={**TINY, "root_velocity": False}, text_encoder="hash",
+                           spec=animal.spec, ema_decay=0, standardize=False)
     assert (raw.model.human["ae"].feature_scale == 1).all() and (raw.model.human["ae"].feature_mean == 0).all()
 
 
@@ -199,6 +217,9 @@ def test_fit_then_generate_an_animal_from_a_real_bvh(omgpt_ckpt, shared_motion, 
     bvh = next(shared_motion / c["path"] for c in clips if c.get("domain") == "human" and c["path"].endswith(".bvh"))
     module = load_module(omgpt_ckpt)
     assert set(module.animal_names) == {"cat", "cow", "deer", "dog", "fox", "horse", "sheep"}
+    # the checkpoint holds every network field, resolved (a later default cannot change what it means)
+    resolved = OmniMotionConfig.from_name("mini", **TINY)
+    assert module.hparams["config"] == {f: getattr(resolved, f) for f in resolved.__dataclass_fields__ if f != "name"}
     out = tmp_path / "dog"
     _cli("generate", "a dog jumps over a log", "--ckpt", str(omgpt_ckpt), "--animal", "dog", "--from_motion", str(bvh),
          "--length", "2", "--out", str(out))
@@ -284,6 +305,20 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
     assert {"fid_ood", "r_precision/top3", "diversity"} <= set(ood["metrics"]) and "fid" not in ood["metrics"]
     assert len(ood["metrics"]["fid_ood"]["values"]) == 2 and ood["settings"]["protocol"] == "OOD"
 
+    # the paper's self-evaluation: configs/mini/omgpt_self_eval.yaml over the same config
+    overlay = yaml.safe_load((REPO / "configs/mini/omgpt_self_eval.yaml").read_text())
+    overlay["trainer"]["default_root_dir"] = str(tmp_path / "self_eval")
+    for callback in overlay["trainer"]["callbacks"]:
+        assert callback["init_args"]["evaluator"]["class_path"] == "omg.lit.omgpt.OmniMotionSelfEvaluator"
+        callback["init_args"].update({**small, "evaluator": {**callback["init_args"]["evaluator"],
+                                                             "init_args": {"checkpoint": str(omgpt_ckpt)}}})
+    (tmp_path / "self_eval.yaml").write_text(yaml.safe_dump(overlay))
+    _cli("test", "--config", str(path), "--config", str(tmp_path / "self_eval.yaml"), "--ckpt_path", str(omgpt_ckpt),
+         "--trainer.enable_progress_bar=false")
+    run = next((tmp_path / "self_eval").glob("version_*"))
+    for report in ("eval.json", "eval_ood.json"):
+        assert json.loads((run / report).read_text())["settings"]["evaluator"] == "OmniMotionSelfEvaluator"
+
 
 @pytest.mark.parametrize("extra, message", [
     (["--animal", "dog", "--from_motion", "{tmp}/missing.bvh"], "--from_motion {tmp}/missing.bvh: no such file"),
@@ -333,6 +368,13 @@ def test_self_evaluator_embeds_text_and_motion_in_one_space(omgpt_ckpt):
     text = evaluator.encode_text([s["texts"][0] for s in samples])
     features = evaluator.encode_motion(motion, mask)
     assert text.shape == features.shape == (3, 64) and torch.isfinite(features).all()
+    # unit vectors: E_t learns directions (a cosine loss), so distances between lengths would mean nothing
+    torch.testing.assert_close(features.norm(dim=-1), torch.ones(3))
+    torch.testing.assert_close(text.norm(dim=-1), torch.ones(3))
+    module = evaluator.module
+    z, z_mask = module.model.animal["ae"].encode(motion, evaluator.offsets.expand(3, -1, -1), mask)
+    raw = module.model.animal["text_encoder"](z, z_mask)
+    torch.testing.assert_close(features, raw / raw.norm(dim=-1, keepdim=True))  # E_t^a(E^a(P)), the paper's
     torch.testing.assert_close(evaluator.encode_motion(motion[:1, : mask[0].sum()], mask[:1, : mask[0].sum()]),
                                features[:1], atol=1e-4, rtol=1e-4)  # padding changes nothing
 
@@ -349,3 +391,55 @@ def test_generated_features_are_canonical_maa():
     m = sixd_to_matrix(tokens[..., :-1, :])
     torch.testing.assert_close(m.mT @ m, torch.eye(3).expand_as(m), atol=1e-5, rtol=0)
     torch.testing.assert_close(tokens[..., :-1, :], torch.cat([m[..., 0], m[..., 1]], -1), atol=1e-6, rtol=0)
+
+
+def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
+    """A tiny OmniMotionGPT run of 7 steps on the mini sets; ``seen``: step -> the human clip ids it trained on."""
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from omg.lit.omgpt import OmniMotionModule
+    from test_resume import KillAt, Killed
+
+    class Recorded(OmniMotionModule):
+        def human_batch(self):
+            batch = super().human_batch()
+            seen[self.global_step] = tuple(batch["id"])
+            return batch
+
+    L.seed_everything(0, verbose=False)
+    animal = _data(MINI / "animal_maa/train", batches_per_epoch=4, shuffle_buffer=8)
+    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
+                 shuffle_buffer=8, batches_per_epoch=3)  # the human stream turns epochs at other steps
+    model = Recorded(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec,
+                     lr=1e-3, ema_decay=0.9)
+    checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1)
+    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=7, logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=root,
+                        callbacks=[checkpoints] + ([KillAt(kill_at)] if kill_at else []))
+    try:
+        trainer.fit(model, animal, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
+    except Killed:
+        pass
+
+
+def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
+    """The human stream's position travels in the checkpoint beside the animal data's: a run killed
+    at step 5 and resumed trains on the same human clips, step for step, and ends bit-identical."""
+    from test_resume import assert_identical
+
+    full, killed = {}, {}
+    _fit_omgpt(tmp_path / "full", full)
+    _fit_omgpt(tmp_path / "killed", killed, kill_at=5)
+    assert sorted(killed) == [0, 1, 2, 3, 4]
+    _fit_omgpt(tmp_path / "killed", killed, resume=True)
+    assert killed == full and sorted(full) == list(range(7))
+    assert len(set(full.values())) > 3  # the stream moves on (and rolls over to its next epoch at step 3)
+    state = {}
+    for run in ("full", "killed"):
+        ckpt = torch.load(tmp_path / run / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
+        state[run] = {"step": ckpt["global_step"], "weights": ckpt["state_dict"], "ema": ckpt["ema"],
+                      "optimizer": ckpt["optimizer_states"], "human_stream": ckpt["human_stream"],
+                      "animal_stream": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"]}
+    assert_identical(state["killed"], state["full"])
+    assert state["full"]["human_stream"]["epoch"] >= 2

@@ -11,8 +11,9 @@ and across domains, with the human caption's subject replaced by the paired anim
               + w_ee · ‖V^h − Ṽ^a‖²   (end-effector velocities by forward kinematics on both skeletons)
 
 plus w_translation · the root-translation error of the joint and the text paths. The feature
-errors are in standardised units (``standardize``: each maa number divided by its std over the
-training data), the latent and velocity errors as they come. Inference
+errors are in the autoencoders' own units (``standardize``: each maa number divided by its std over
+the training data; with ``config.root_velocity`` the root's ground position as per-frame
+displacement in m/s), the latent and velocity errors as they come. Inference
 (``sample``): a human motion -> E^h -> Z^h; D_t^a(C̃, Z^h) -> D^a with the chosen animal's offsets.
 """
 
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from contextlib import nullcontext
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -173,6 +175,8 @@ class OmniMotionModule(OmgModule):
         self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
         self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
         self.config = OmniMotionConfig.from_name(flavor, **(config or {}))
+        # every field, resolved: a checkpoint keeps meaning what it meant when a later version changes a default
+        self.hparams["config"] = {k: v for k, v in asdict(self.config).items() if k != "name"}
         self.human_rep = get_representation("maa", get_skeleton(HUMAN_SKELETON))
         self.representation = get_representation("maa", get_skeleton(ANIMAL_SKELETON))  # what the module generates
         self.model = OmniMotionGPT(self.human_rep.skeleton, self.representation.skeleton, self.config,
@@ -183,10 +187,11 @@ class OmniMotionModule(OmgModule):
             mean, std = torch.tensor(s.mean, dtype=torch.float32), torch.tensor(s.std, dtype=torch.float32)
             self.register_buffer(f"{prefix}_mean", mean, persistent=False)
             self.register_buffer(f"{prefix}_std", std, persistent=False)
-            # the scale of the features' errors (and of the autoencoders' inputs and outputs)
+            # the autoencoders' inputs and outputs, and the reconstruction errors, are in these units;
+            # ground displacement (config.root_velocity) in metres per second
             scale = std.clamp_min(std_floor) if standardize else torch.ones_like(std)
-            self.register_buffer(f"{prefix}_scale", scale, persistent=False)
-            getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale)
+            getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale,
+                                                          1.0 / s.fps if standardize and s.fps > 0 else None)
         self.ema: EMA | None = None
         self.human_generator = None  # an OMG ControlNet module, loaded when first needed
         self._bank: dict | None = None  # retrieval: the human validation clips and their caption features
@@ -225,11 +230,12 @@ class OmniMotionModule(OmgModule):
         rec = parts["ae"].decode(z, offsets, mask)  # joint path F_o
         rec_text = parts["ae"].decode(parts["text_decoder"](text, z, z_mask), offsets, mask)  # text path F_text
         rows = mask & captioned[:, None]
-        scale = getattr(self, f"{domain}_scale")  # errors in standardised units
+        internal = parts["ae"].normalize  # errors in the autoencoder's own (standardised) units
+        target = internal(motion, mask)
         losses = {
-            "jrec": masked_mse(rec / scale, motion / scale, mask),
+            "jrec": masked_mse(internal(rec, mask), target, mask),
             "clip": cosine_gap(parts["text_encoder"](z, z_mask), text, captioned),
-            "trec": masked_mse(rec_text / scale, motion / scale, rows),
+            "trec": masked_mse(internal(rec_text, mask), target, rows),
             "translation": masked_mse(translation(rec), translation(motion), mask)
             + masked_mse(translation(rec_text), translation(motion), rows),
         }
@@ -471,13 +477,15 @@ class OmniMotionSelfEvaluator(torch.nn.Module):
         self.spec = self.module.spec
         self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
 
+    # both features are unit vectors, as omg's evaluator's: E_t is trained on 1 − cos(E_t(Z), C), so its
+    # output's length is arbitrary and Euclidean distances (FID, MM-Dist, R-precision) would mostly measure it
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
-        return self.module.sentence(list(texts)).to(self.offsets.device)
+        return F.normalize(self.module.sentence(list(texts)).to(self.offsets.device), dim=-1)
 
     @torch.no_grad()
     def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
         animal = self.module.model.animal
         offsets = self.offsets.expand(len(motion), -1, -1)
         z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
-        return animal["text_encoder"](z, z_mask)
+        return F.normalize(animal["text_encoder"](z, z_mask), dim=-1)

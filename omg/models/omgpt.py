@@ -47,6 +47,10 @@ class OmniMotionConfig:
     # D_t as a GPT: latent frame t is predicted from C and the frames before t (input shifted right by one,
     # C's projection as the start token). Unshifted, a causal decoder can copy each frame and ignore C.
     latent_shift: bool = True
+    # The autoencoders see the root's horizontal translation (x, z) as per-frame displacement, summed back
+    # on decoding (the paper feeds maa's absolute translation). Clips wander metres, so a decoder's small
+    # error on absolute positions is centimetres of jitter every frame; on displacements it is smooth drift.
+    root_velocity: bool = True
     dropout: float = 0.1
 
     @property
@@ -200,19 +204,43 @@ class MotionAutoencoder(nn.Module):
         self.dec_temporal = TemporalTokens(N, 2 * C, C, config)
         self.dec_joints = JointTokens(C, N, config)
         self.head = nn.Linear(C, 6)
-        # the features' per-dimension mean and scale (identity until ``standardize`` sets the data's statistics):
-        # the networks read and write standardised features, callers pass and get raw maa
-        self.register_buffer("feature_mean", torch.zeros(self.num_tokens * 6), persistent=False)
-        self.register_buffer("feature_scale", torch.ones(self.num_tokens * 6), persistent=False)
+        # the root's x and z translation in the features (the last token's first and third numbers)
+        D = self.num_tokens * 6
+        self.register_buffer("ground", torch.tensor([D - 6, D - 4]), persistent=False)
+        # the internal features' per-dimension mean and scale (identity until ``standardize`` sets the data's
+        # statistics): the networks read and write standardised features, callers pass and get raw maa
+        self.register_buffer("feature_mean", torch.zeros(D), persistent=False)
+        self.register_buffer("feature_scale", torch.ones(D), persistent=False)
 
-    def standardize(self, mean: Tensor, scale: Tensor) -> None:
-        """Set the (D,) mean and scale by which raw maa features are standardised inside the autoencoder."""
-        self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-        self.feature_scale.copy_(torch.as_tensor(scale, dtype=torch.float32))
+    def standardize(self, mean: Tensor, scale: Tensor, ground_step: float | None = None) -> None:
+        """Set the (D,) mean and scale by which raw maa features are standardised inside the autoencoder;
+        with ``config.root_velocity`` the ground displacement has mean 0 and scale ``ground_step`` (metres
+        per frame; the module passes one frame's time, so the networks read m/s)."""
+        mean, scale = torch.as_tensor(mean, dtype=torch.float32).clone(), torch.as_tensor(scale, dtype=torch.float32)
+        if self.config.root_velocity:
+            mean[self.ground], scale = 0.0, scale.clone()
+            scale[self.ground] = 1.0 if ground_step is None else ground_step
+        self.feature_mean.copy_(mean)
+        self.feature_scale.copy_(scale)
+
+    def normalize(self, features: Tensor, mask: Tensor) -> Tensor:
+        """Raw maa (B, T, D) -> the standardised features the networks read and write (zero at padding)."""
+        features = features * mask[..., None]
+        if self.config.root_velocity:  # ground position -> per-frame displacement (frame 0 keeps its position)
+            ground = features[..., self.ground]
+            features = features.index_copy(-1, self.ground, ground - nn.functional.pad(ground, (0, 0, 1, -1)))
+        return (features - self.feature_mean) / self.feature_scale * mask[..., None]
+
+    def denormalize(self, x: Tensor, mask: Tensor) -> Tensor:
+        """The inverse of ``normalize``: standardised (B, T, D) -> raw maa, zero at padding."""
+        features = (x * self.feature_scale + self.feature_mean) * mask[..., None]
+        if self.config.root_velocity:
+            features = features.index_copy(-1, self.ground, features[..., self.ground].cumsum(1))
+        return features * mask[..., None]
 
     def encode(self, features: Tensor, offsets: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
         """(B, T, (J+1)·6), (B, J, 3), (B, T) -> Z (B, ceil(T/l), 7, C_j) and its mask (B, ceil(T/l))."""
-        pose = as_tokens((features - self.feature_mean) / self.feature_scale)  # (B, T, J + 1, 6)
+        pose = as_tokens(self.normalize(features, mask))  # (B, T, J + 1, 6)
         S = padded_offsets(offsets)  # (B, J + 1, 3)
         F_j = self.pose_joints(torch.cat([pose, S[:, None].expand(-1, pose.shape[1], -1, -1)], -1))  # (B, T, N, C)
         F_o = self.enc_offsets(S)[:, None].expand_as(F_j)  # (B, T, N, C)
@@ -236,7 +264,7 @@ class MotionAutoencoder(nn.Module):
         F_o = self.dec_offsets(padded_offsets(offsets))[:, None].expand_as(h)
         h = self.dec_temporal(torch.cat([h, F_o], -1), mask)  # (B, T, N, C)
         out = self.head(self.dec_joints(h))  # (B, T, N, 6) standardised
-        return (out.flatten(2) * self.feature_scale + self.feature_mean) * mask[..., None]
+        return self.denormalize(out.flatten(2), mask)
 
 
 class LatentTextEncoder(nn.Module):
