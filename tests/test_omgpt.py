@@ -292,7 +292,8 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
              "metrics": ["fid", {"r_precision": {"pool_size": 4}}, "mm_dist", {"diversity": {"num_pairs": 4}},
                          {"multimodality": {"num_pairs": 2}}]}
     for callback in config["trainer"]["callbacks"]:
-        callback["init_args"].update(small)
+        if "evaluator" in callback["init_args"]:
+            callback["init_args"].update(small)
     path = tmp_path / "eval.yaml"
     path.write_text(yaml.safe_dump(config))
     _cli("test", "--config", str(path), "--ckpt_path", str(omgpt_ckpt), "--trainer.enable_progress_bar=false")
@@ -304,6 +305,8 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
     assert {"fid", "r_precision/top1", "mm_dist", "diversity", "multimodality"} <= set(in_distribution)
     assert {"fid_ood", "r_precision/top3", "diversity"} <= set(ood["metrics"]) and "fid" not in ood["metrics"]
     assert len(ood["metrics"]["fid_ood"]["values"]) == 2 and ood["settings"]["protocol"] == "OOD"
+    sides = json.loads((run / "eval_sides.json").read_text())["sides"]  # SideTransferCallback, in the same run
+    assert "One-sided human actions made into animals" in printed and sides["dog/leg"]["clips"] > 10
 
     # the paper's self-evaluation: configs/mini/omgpt_self_eval.yaml over the same config
     overlay = yaml.safe_load((REPO / "configs/mini/omgpt_self_eval.yaml").read_text())
@@ -443,3 +446,62 @@ def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
                       "animal_stream": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"]}
     assert_identical(state["killed"], state["full"])
     assert state["full"]["human_stream"]["epoch"] >= 2
+
+
+@pytest.mark.parametrize("caption, expected", [
+    ("a person kicks with the left leg.", ("leg", "left")),
+    ("someone waves with their right hand", ("arm", "right")),
+    ("The man punches twice with his right fist", ("arm", "right")),
+    ("a man waves with both hands", None),
+    ("a person turns left and walks", None),  # a side, but no limb
+    ("the person raises the left arm and kicks with the right leg", None),  # both sides
+    ("a person kicks and waves with the left side", None),  # a leg word and an arm word
+])
+def test_one_sided_limb_in_captions(caption, expected):
+    from omg.text.subjects import one_sided_limb
+
+    assert one_sided_limb(caption) == expected
+
+
+def _swinging(skeleton, limb_end: int, T: int = 40) -> torch.Tensor:
+    """maa features (T, (J+1)·6): the rest pose with the joint two above ``limb_end`` swinging about X."""
+    hip = skeleton.parents[skeleton.parents[limb_end]]
+    q = torch.zeros(T, skeleton.num_joints, 4)
+    q[..., 0] = 1.0
+    angle = 0.6 * torch.sin(torch.linspace(0, 6 * np.pi, T))
+    q[:, hip] = torch.stack([torch.cos(angle / 2), torch.sin(angle / 2), 0 * angle, 0 * angle], -1)
+    return torch.cat([quat_to_6d(q).flatten(1), torch.zeros(T, 6)], -1)
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
+    """A stand-in translation that swings exactly the animal limb the caption names (or, mirrored,
+    the other one) is kept on every clip (on none); a left-kick human clip moves its left foot most."""
+    from omg.callbacks.ood import OTHER_SIDE, SideTransferCallback, limb_travel
+    from omg.lit.checkpoint import load_module
+    from omg.text.subjects import one_sided_limb
+
+    module = load_module(omgpt_ckpt)
+    callback = SideTransferCallback(str(MINI / "human_maa/train"), animals=["dog", "horse"])
+    clips = callback.clips()
+    kick = next(s for t, limb, s in clips if limb == ("leg", "left"))
+    travel = limb_travel(module.human_rep, torch.from_numpy(kick["motion"]), torch.tensor(kick["meta"]["offsets"]))
+    assert travel["leg", "left"] > 1.5 * travel["leg", "right"]
+
+    ends = {limb: primal_joints(SMAL35)[i] for limb, i in {("leg", "left"): 1, ("leg", "right"): 2,
+                                                           ("arm", "left"): 4, ("arm", "right"): 5}.items()}
+
+    def translate(texts, human, human_offsets, lengths, animals, use_ema=True):
+        kind, side = one_sided_limb(texts[0])
+        moving = ends[kind, OTHER_SIDE[side] if mirror else side]
+        return _swinging(SMAL35, moving, human.shape[1])[None].expand(len(animals), -1, -1)
+
+    module.translate = translate
+    sides = callback.measure(module)
+    consistent = 0  # captions whose human limb on the named side travels farther
+    for _, (kind, side), s in clips:
+        t = limb_travel(module.human_rep, torch.from_numpy(s["motion"]), torch.tensor(s["meta"]["offsets"]))
+        consistent += t[kind, side] > t[kind, OTHER_SIDE[side]]
+    assert sides["dog/leg"]["clips"] + sides["dog/arm"]["clips"] == consistent > 20
+    for key, v in sides.items():
+        assert v["kept"] == (0 if mirror else v["clips"]), key

@@ -18,8 +18,8 @@ versioned directory (``run_dir``). In a config::
 
 from omg.callbacks.eval import EvalCallback
 from omg.callbacks.habit import HabitEvalCallback
-from omg.callbacks.ood import OODEvalCallback
+from omg.callbacks.ood import OODEvalCallback, SideTransferCallback
 from omg.callbacks.render import RenderCallback
 from omg.callbacks.run import run_dir
 
-__all__ = ["EvalCallback", "HabitEvalCallback", "OODEvalCallback", "RenderCallback", "run_dir"]
+__all__ = ["EvalCallback", "HabitEvalCallback", "OODEvalCallback", "RenderCallback", "SideTransferCallback", "run_dir"]

@@ -6,6 +6,9 @@ so the real set of FID-OOD is the whole real animal set: each prompt is paired w
 animal clip (training and validation sets of ``data``), cut to the prompt's length. The metrics are
 those of ``EvalCallback`` on these prompts, logged as ``ood/<metric>`` with ``fid`` as ``fid_ood``; ``omg test`` writes
 ``eval_ood.json`` / ``eval_ood.md`` beside the in-distribution ``eval.json``.
+
+``SideTransferCallback`` measures what no animal-trained judge can: whether a one-sided human
+action ("kicks with the left leg") keeps its side when the model makes it into each animal.
 """
 
 from __future__ import annotations
@@ -19,10 +22,14 @@ import torch
 from lightning.pytorch.utilities import rank_zero_only
 
 from omg.callbacks.eval import EvalCallback
+from omg.callbacks.run import run_dir
 from omg.data.datamodule import ClipDataset, resolve_shards
+from omg.data.windows import WindowSampler
 from omg.errors import UsageError
 from omg.evaluation import PromptSet, markdown_table, write_report
-from omg.text.subjects import to_animal
+from omg.files import atomic_write, write_json
+from omg.models.omgpt import primal_joints
+from omg.text.subjects import one_sided_limb, to_animal
 
 
 class OODEvalCallback(EvalCallback):
@@ -106,3 +113,86 @@ def rename(key: str) -> str:
     head, _, name = key.rpartition("/")
     name = "fid_ood" if name == "fid" else name
     return f"ood/{head}/{name}" if head else f"ood/{name}"
+
+
+# the limb ends among the primal joints (root, left leg, right leg, head, left arm, right arm, chest)
+LIMB_ENDS = {("leg", "left"): 1, ("leg", "right"): 2, ("arm", "left"): 4, ("arm", "right"): 5}
+OTHER_SIDE = {"left": "right", "right": "left"}
+
+
+def limb_travel(representation, features: torch.Tensor, offsets: torch.Tensor) -> dict[tuple[str, str], float]:
+    """The path length (metres) of each limb end over a motion: maa features (T, D), offsets (J, 3).
+    An animal's front feet are its arms, its hind feet its legs (the primal-joint pairing)."""
+    joints = representation.decode(features[None].float(), offsets[None].float())[0]  # (T, J, 3)
+    ends = primal_joints(representation.skeleton)
+    path = (joints[1:] - joints[:-1]).norm(dim=-1).sum(0)  # (J,)
+    return {limb: float(path[ends[i]]) for limb, i in LIMB_ENDS.items()}
+
+
+class SideTransferCallback(L.Callback):
+    """At ``omg test``: each human clip whose caption names one side and one limb ("kicks with the
+    left leg", "waves with the right hand") is made into every animal (``translate``, the clip's own
+    caption about the animal); the clip counts where the human's named limb end travels farther
+    than the other side's, and *kept* where the animal's does too (arms are an animal's front feet,
+    legs its hind feet). Written to ``eval_sides.json`` / ``eval_sides.md`` and printed.
+
+    Args:
+        prompts: the human shard set (a directory or URL pattern) whose captioned clips are used.
+        animals: the animals (default: every animal the model knows).
+        max_frames: clips are cut to this many frames (the model's longest: 196).
+    """
+
+    report_name = "eval_sides"
+
+    def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196):
+        if not prompts:
+            raise UsageError("SideTransferCallback.prompts: a human shard directory with captioned clips")
+        self.prompt_shards, self.animals, self.max_frames = prompts, animals, max_frames
+
+    def clips(self) -> list[tuple[str, tuple[str, str], dict]]:
+        """(caption, (limb, side), sample) of every one-sided caption of the human set."""
+        urls, manifest, checks = resolve_shards(self.prompt_shards)
+        windows = WindowSampler(self.max_frames, 1, "whole")
+        samples = ClipDataset.from_shards(urls, manifest["feature_dim"], windows, checks=checks).samples
+        return [(t, limb, s) for s in samples for t in s["texts"] if (limb := one_sided_limb(t))]
+
+    @torch.no_grad()
+    def measure(self, module: L.LightningModule) -> dict[str, dict[str, Any]]:
+        animals = self.animals or module.animal_names
+        counts = {(a, kind): [0, 0] for a in animals for kind in ("leg", "arm")}  # (clips, kept)
+        for caption, (kind, side), sample in self.clips():
+            human = torch.from_numpy(np.ascontiguousarray(sample["motion"][: self.max_frames])).float()
+            human_offsets = torch.tensor(sample["meta"]["offsets"], dtype=torch.float32)
+            if len(human) < 2:
+                continue
+            travel = limb_travel(module.human_rep, human, human_offsets)
+            if travel[kind, side] <= travel[kind, OTHER_SIDE[side]]:
+                continue  # the caption's side is not the one that moves: nothing to keep
+            out = module.translate([caption] * len(animals), human[None].expand(len(animals), -1, -1),
+                                   human_offsets[None].expand(len(animals), -1, -1), [len(human)] * len(animals),
+                                   animals)
+            for b, animal in enumerate(animals):
+                moved = limb_travel(module.representation, out[b].cpu(), module.animal_offsets(animal).cpu())
+                counts[animal, kind][0] += 1
+                counts[animal, kind][1] += int(moved[kind, side] > moved[kind, OTHER_SIDE[side]])
+        return {f"{animal}/{kind}": {"clips": n, "kept": k, "fraction": k / n if n else float("nan")}
+                for (animal, kind), (n, k) in counts.items()}
+
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not hasattr(pl_module, "translate"):
+            raise UsageError("SideTransferCallback needs an OmniMotionGPT checkpoint (a model with translate)")
+        self._report(trainer, self.measure(pl_module))
+
+    @rank_zero_only
+    def _report(self, trainer: L.Trainer, sides: dict[str, dict[str, Any]]) -> None:
+        directory = Path(run_dir(trainer))
+        directory.mkdir(parents=True, exist_ok=True)
+        lines = ["| animal / limb | one-sided human captions | side kept | fraction |", "|---|---:|---:|---:|"]
+        lines += [f"| {key} | {v['clips']} | {v['kept']} | {v['fraction']:.3f} |" for key, v in sides.items()]
+        table = "\n".join(lines)
+        write_json(directory / f"{self.report_name}.json", {"settings": {"prompts": self.prompt_shards},
+                                                             "sides": sides})
+        atomic_write(directory / f"{self.report_name}.md", f"# One-sided human actions made into animals\n\n{table}\n"
+                     .encode())
+        print(f"\nOne-sided human actions made into animals (side kept: the animal's matching limb moves "
+              f"more)\n{table}\n\nwritten to {directory / (self.report_name + '.json')}")

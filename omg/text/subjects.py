@@ -113,3 +113,20 @@ def find_animal(caption: str, animals: Sequence[str]) -> str | None:
         if m and (best is None or m.start() < best[0]):
             best = (m.start(), name)
     return None if best is None else best[1]
+
+
+LEG_WORDS = frozenset({"leg", "legs", "foot", "feet", "knee", "knees", "kick", "kicks", "kicking", "kicked",
+                       "stomp", "stomps", "stomping", "hop", "hops", "hopping"})
+ARM_WORDS = frozenset({"arm", "arms", "hand", "hands", "wrist", "elbow", "wave", "waves", "waving", "waved", "punch",
+                       "punches", "punching", "throw", "throws", "throwing", "swing", "swings", "reach", "reaches"})
+
+
+def one_sided_limb(caption: str) -> tuple[str, str] | None:
+    """("leg" | "arm", "left" | "right") when a caption names one side and one kind of limb ("a person
+    kicks with the left leg" -> ("leg", "left")), else None (both sides, no side, or legs and arms)."""
+    words = re.findall(r"[a-z]+", caption.lower())
+    sides = {w for w in words if w in ("left", "right")}
+    limbs = {"leg" if w in LEG_WORDS else "arm" for w in words if w in LEG_WORDS or w in ARM_WORDS}
+    if len(sides) != 1 or len(limbs) != 1 or "both" in words:
+        return None
+    return limbs.pop(), sides.pop()
