@@ -260,10 +260,9 @@ def test_inspect_prints_each_sets_share_from_a_config_or_the_list(two_sets, tmp_
 
 def _fit_mixture(h263_shards, root, kill_at=None, resume=False):
     import lightning as L
-    from lightning.pytorch.callbacks import ModelCheckpoint
 
     from omg.lit.pretrain import PretrainModule
-    from test_resume import KillAt, Killed, Recorder
+    from test_resume import Recorder, run_until_killed
 
     L.seed_everything(0, verbose=False)
     data = _dm([{"path": str(h263_shards / "train"), "weight": 0.7}, {"path": str(h263_shards / "val"), "weight": 0.3}],
@@ -271,14 +270,7 @@ def _fit_mixture(h263_shards, root, kill_at=None, resume=False):
     model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=2,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
-    callbacks = [recorder, ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1)]
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=7, logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0,
-                        default_root_dir=root, callbacks=callbacks + ([KillAt(kill_at)] if kill_at else []))
-    try:
-        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
-    except Killed:
-        pass
+    run_until_killed(model, data, root, max_steps=7, kill_at=kill_at, resume=resume, callbacks=[recorder])
     return recorder.steps
 
 

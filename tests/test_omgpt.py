@@ -399,10 +399,9 @@ def test_generated_features_are_canonical_maa():
 def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
     """A tiny OmniMotionGPT run of 7 steps on the mini sets; ``seen``: step -> the human clip ids it trained on."""
     import lightning as L
-    from lightning.pytorch.callbacks import ModelCheckpoint
 
     from omg.lit.omgpt import OmniMotionModule
-    from test_resume import KillAt, Killed
+    from test_resume import run_until_killed
 
     class Recorded(OmniMotionModule):
         def human_batch(self):
@@ -416,14 +415,7 @@ def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
                  shuffle_buffer=8, batches_per_epoch=3)  # the human stream turns epochs at other steps
     model = Recorded(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec,
                      lr=1e-3, ema_decay=0.9)
-    checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1)
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=7, logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=root,
-                        callbacks=[checkpoints] + ([KillAt(kill_at)] if kill_at else []))
-    try:
-        trainer.fit(model, animal, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
-    except Killed:
-        pass
+    run_until_killed(model, animal, root, max_steps=7, kill_at=kill_at, resume=resume)
 
 
 def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
@@ -488,8 +480,9 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
     travel = limb_travel(module.human_rep, torch.from_numpy(kick["motion"]), torch.tensor(kick["meta"]["offsets"]))
     assert travel["leg", "left"] > 1.5 * travel["leg", "right"]
 
-    ends = {limb: primal_joints(SMAL35)[i] for limb, i in {("leg", "left"): 1, ("leg", "right"): 2,
-                                                           ("arm", "left"): 4, ("arm", "right"): 5}.items()}
+    names = {("leg", "left"): "LFootBack", ("leg", "right"): "RFootBack", ("arm", "left"): "LFoot",
+             ("arm", "right"): "RFoot"}  # an animal's hind feet are its legs, its front feet its arms
+    ends = {limb: SMAL35.names.index(name) for limb, name in names.items()}
 
     def translate(texts, human, human_offsets, lengths, animals, use_ema=True):
         kind, side = one_sided_limb(texts[0])

@@ -44,6 +44,24 @@ class Recorder(Callback):
         self.steps[trainer.global_step] = (trainer.current_epoch, tuple(batch["id"]), tuple(batch["lengths"].tolist()))
 
 
+def run_until_killed(model, data, root, *, max_steps: int, kill_at: int | None = None, resume: bool = False,
+                     callbacks=(), keep_all: bool = False, **trainer_args) -> L.Trainer:
+    """``trainer.fit`` of a tiny CPU run checkpointing every step into ``root/ckpt``, killed at the
+    start of step ``kill_at``, or resumed from ``root/ckpt/last.ckpt``; ``keep_all`` keeps every
+    step's checkpoint."""
+    checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1,
+                                  **({"save_top_k": -1} if keep_all else {}))
+    callbacks = [*callbacks, checkpoints] + ([KillAt(kill_at)] if kill_at is not None else [])
+    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=root,
+                        callbacks=callbacks, **trainer_args)
+    try:
+        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
+    except Killed:
+        pass
+    return trainer
+
+
 def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_workers: int = 0,
         accumulate: int = 1) -> tuple[Recorder, L.Trainer]:
     L.seed_everything(0, verbose=False)
@@ -52,16 +70,8 @@ def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_w
     model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=3,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
-    callbacks = [recorder, ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1, save_top_k=-1)]
-    if kill_at is not None:
-        callbacks.append(KillAt(kill_at))
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=TOTAL_STEPS, accumulate_grad_batches=accumulate,
-                        logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
-                        num_sanity_val_steps=0, default_root_dir=root, callbacks=callbacks)
-    try:
-        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
-    except Killed:
-        pass
+    trainer = run_until_killed(model, data, root, max_steps=TOTAL_STEPS, kill_at=kill_at, resume=resume,
+                               callbacks=[recorder], keep_all=True, accumulate_grad_batches=accumulate)
     return recorder, trainer
 
 
