@@ -312,3 +312,36 @@ def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
     rows = json.loads((tmp_path / "table.json").read_text())
     assert set(rows["EMA-reset"]) >= {"fid", "intra_fid", "cross_category_fid", "diversity", "one_nna", "mpjpe"}
     assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+
+
+def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path):
+    """A prior checkpoint holds its VQ-VAE: copied elsewhere, with the VQ-VAE file it was fitted on
+    gone and its vq_ckpt naming a `pipe:` command (here: creating a marker file), `omg transfer`
+    works and runs nothing."""
+    from omg.cli import main
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.habit import HabitPriorModule, HabitVQModule
+
+    torch.manual_seed(0)
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    vq = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=spec)
+    original = tmp_path / "run" / "vq.ckpt"
+    original.parent.mkdir()
+    torch.save({"state_dict": vq.state_dict(), "hyper_parameters": dict(vq.hparams),
+                "module_class": "omg.lit.habit.HabitVQModule"}, original)
+    prior = HabitPriorModule(str(original), spec=spec)
+    marker = tmp_path / "PWNED"
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    torch.save({"state_dict": prior.state_dict(), "module_class": "omg.lit.habit.HabitPriorModule",
+                "hyper_parameters": {**prior.hparams, "vq_ckpt": f"pipe:touch {marker}; cat {original}"}},
+               moved / "prior.ckpt")
+    (moved / "vq.ckpt").write_bytes(original.read_bytes())
+    original.unlink()
+    source = moved / "source.npy"
+    clip = MotionDataModule(val=str(QUATVEL / "val"), max_len=64, verify_shards=False).val_clips().samples[0]
+    np.save(source, np.asarray(clip["motion"][:24], np.float32))
+    main(["transfer", str(source), "--to", "horse", "--ckpt", str(moved / "vq.ckpt"), "--prior_ckpt",
+          str(moved / "prior.ckpt"), "--no_preview", "--out", str(tmp_path / "out")])
+    assert np.load(tmp_path / "out" / "transfer.joints.npy").shape == (24, 35, 3)
+    assert not marker.exists()
