@@ -160,9 +160,10 @@ class OmniMotionModule(OmgModule):
             raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
         self.companion = None
         if human_spec is None:
-            if not human_data:
-                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards "
-                                 "(train, val, batch_size, ...), smpl22 in the maa representation")
+            if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
+                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards (train, val, "
+                                 "batch_size, ...), smpl22 in the maa representation; a checkpoint without human_spec "
+                                 "(written before omg kept it) loads only to go on training (`omg fit --ckpt_path`)")
             self.companion = CompanionStream(dict(human_data))
             human_spec = self.companion.spec.to_dict()
         if spec is None:
