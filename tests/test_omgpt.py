@@ -521,8 +521,9 @@ def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys
     }
     for name, locations in variants.items():
         human_data = {**ckpt["hyper_parameters"]["human_data"], **locations}
-        torch.save({**ckpt, "hyper_parameters": {**ckpt["hyper_parameters"], "human_data": human_data}},
-                   moved / f"{name}.ckpt")
+        human_source = str(tmp_path / "gone/controlnet.ckpt") if name == "gone" else "retrieval"
+        torch.save({**ckpt, "hyper_parameters": {**ckpt["hyper_parameters"], "human_data": human_data,
+                                                 "human_source": human_source}}, moved / f"{name}.ckpt")
         _cli("generate", "a dog jumps forward", "--ckpt", str(moved / f"{name}.ckpt"), "--length", "1",
              "--num_samples", "1", "--no_preview", "--out", str(tmp_path / f"gen_{name}"))
         assert np.load(tmp_path / f"gen_{name}/sample_000.joints.npy").shape == (20, 35, 3)

@@ -104,24 +104,26 @@ class OmniMotionModule(OmgModule):
         human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
             human validation clip whose caption is nearest the prompt made about "a person",
             among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
-            text-to-motion, from the prompt made about "a person").
+            text-to-motion, from the prompt made about "a person"). A file, so not taken from a
+            checkpoint: a loaded checkpoint retrieves unless the config (or ``--human_ckpt``) names one.
         animals: each animal category's mean bone offsets; filled from the animal training set
             when training starts and kept in checkpoints (what ``--animal`` accepts).
         human_spec, spec: the human and the animal data's specs (filled from the shards and kept
             in checkpoints).
         human_bank: the captions and frame counts of the captioned human validation clips that
-            retrieval draws from; filled when training starts, the clips' motion and offsets kept
-            as buffers, so that a checkpoint retrieves without its human shards.
+            retrieval draws from; filled when training starts (whatever ``human_source``), the
+            clips' motion and offsets kept as buffers, so that a checkpoint retrieves without its
+            human shards.
 
     A checkpoint is self-contained: everything inference needs (both specs, the animals' offsets,
-    the retrieval clips) is inside it, and its ``human_data`` (a location, ``location_hparams``)
-    is never opened when it loads.
+    the retrieval clips) is inside it, and what its ``human_data`` and ``human_source`` name
+    (locations, ``location_hparams``) is never opened when it loads.
     """
 
     text_conditional = True
     clip_sampling = "whole"  # a caption describes its whole clip
     frozen_prefixes = ("text_encoder.", "human_generator.")
-    location_hparams = ("human_data",)
+    location_hparams = ("human_data", "human_source")
 
     def __init__(
         self,
@@ -323,7 +325,7 @@ class OmniMotionModule(OmgModule):
                 raise UsageError("training needs model.init_args.human_data (the human shards)")
             self.companion = CompanionStream(dict(self.hparams["human_data"]))
             check_same_stats(self.companion.spec, self.human_spec)
-        if self.human_source == "retrieval" and getattr(self, "human_bank_motion", None) is None:
+        if getattr(self, "human_bank_motion", None) is None:
             self.build_bank()
         self.companion.start(self.global_rank, self.trainer.world_size)
         if self._companion_state is not None:
