@@ -61,6 +61,7 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "random.bin").write_bytes(b"\x81\xff" + rng.bytes(2000))
     (d / "nul.txt").write_bytes(b"\x00" * 64 + b"\n")  # valid UTF-8, still binary
     (d / "afile").write_text("a file, not a folder\n")
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, d / "bare.ckpt")  # weights without hyper-parameters
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
@@ -125,6 +126,7 @@ ROWS = [
     ("gen-num-samples-neg", [*UNCOND, "--num_samples", "-2"]),
     ("gen-batch-size-zero", [*UNCOND, "--batch_size", "0"]),
     ("gen-nan-weights", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{out}"]),
+    ("gen-ckpt-bare-state-dict", [*GEN, "--unconditional", "--ckpt", "{in}/bare.ckpt", "--out", "{out}"]),
     ("gen-fails-in-user-folder", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{in}/user"]),
     # omg export (writes beside its inputs: nothing may appear there either)
     ("export-fps-nan", [*EXPORT, "--fps", "nan"]),

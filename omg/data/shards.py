@@ -30,6 +30,7 @@ import json
 import os
 import pickle
 import re
+import shlex
 import sys
 import tarfile
 import time
@@ -47,6 +48,10 @@ SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
 BUILD_STATE = "build-state.json"
 SHARD_PATTERN = "shard-{:06d}.tar"
+# A manifest's shard names: what the writer and `omg shards merge` write (SHARD_PATTERN). Nothing
+# else is accepted: a pipe: set puts each name into its command, which a shell runs.
+SHARD_NAME = re.compile(r"shard-[0-9]{6,}\.tar")
+PIPE_TIMEOUT_S = 600.0  # a pipe: command that prints a manifest (a few MB at most) and has not ended by then hangs
 META_KEYS = ("id", "representation", "skeleton", "fps", "source", "labels", "category")
 
 
@@ -744,8 +749,9 @@ def _manifest_problem(data) -> str | None:
         if not isinstance(entry, dict):
             return f"shards[{i}] must be an object, got {entry!r}"
         name = entry.get("name")
-        if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in (".", ".."):
-            return f"shards[{i}] needs a 'name' (a file name in the manifest's directory), got {name!r}"
+        if not isinstance(name, str) or not SHARD_NAME.fullmatch(name):
+            return (f"shards[{i}] needs a 'name' of the form shard-NNNNNN.tar (a file in the manifest's directory, as "
+                    f"`omg shards build` names them), got {name!r}")
         if name in names:
             return f"shard {name} is listed twice"
         names.add(name)
@@ -839,7 +845,8 @@ class Manifest:
         """Every shard's path, or URL for a fetched set (what ``iter_tar`` opens)."""
         if self.url is None:
             return [str(p) for p in self.shard_paths]
-        return [sibling_url(self.url, MANIFEST, s["name"]) for s in self.data["shards"]]
+        quote = shlex.quote if self.url.startswith("pipe:") else str  # a shell reads a pipe: command
+        return [sibling_url(self.url, MANIFEST, quote(s["name"])) for s in self.data["shards"]]
 
     @property
     def shard_paths(self) -> list[Path]:
@@ -1053,17 +1060,25 @@ def open_url(url: str):
     return gopen(url)
 
 
-def read_url(url: str) -> bytes:
-    """All the bytes ``open_url`` gives; a ``pipe:`` command that fails raises ``OSError`` with the
-    last line it printed to stderr."""
+def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
+    """All the bytes ``open_url`` gives; a ``pipe:`` command that fails, or runs longer than
+    ``timeout`` seconds, raises ``OSError`` (with the last line it printed to stderr)."""
     if url.startswith("pipe:"):
+        import signal
         import subprocess
 
-        done = subprocess.run(url[len("pipe:"):], shell=True, capture_output=True)
-        if done.returncode != 0:
-            said = done.stderr.decode(errors="replace").strip().splitlines()
-            raise OSError(f"the command exited with {done.returncode}" + (f": {said[-1]}" if said else ""))
-        return done.stdout
+        # its own process group: on a timeout the shell and everything it started are stopped
+        with subprocess.Popen(url[len("pipe:"):], shell=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              start_new_session=True) as process:
+            try:
+                out, err = process.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                raise OSError(f"the command did not end within {timeout:g} s and was stopped") from None
+        if process.returncode != 0:
+            said = err.decode(errors="replace").strip().splitlines()
+            raise OSError(f"the command exited with {process.returncode}" + (f": {said[-1]}" if said else ""))
+        return out
     with open_url(url) as stream:
         return stream.read()
 

@@ -52,12 +52,17 @@ class OmgModule(L.LightningModule):
     """Base of omg's LightningModules.
 
     Subclasses list in ``frozen_prefixes`` the state-dict prefixes of submodules built from their
-    own weight files (a text backbone): those are neither saved nor expected on load. They give
+    own weight files (a text backbone): those are neither saved nor expected on load. They list in
+    ``location_hparams`` the hyper-parameters that name data or files to open (a second shard set,
+    a companion checkpoint): a checkpoint's values of those are never used, since a checkpoint is
+    inert and self-contained (``omg.lit.checkpoint.load_module`` drops them; ``--ckpt_path`` takes
+    them from the run's config). They give
     their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
     and ``warmup_steps``; the schedule is linear warm-up then cosine decay over the run.
     """
 
     frozen_prefixes: tuple[str, ...] = ()
+    location_hparams: tuple[str, ...] = ()
     lr: float
     betas: tuple[float, float]
     weight_decay: float

@@ -351,15 +351,41 @@ def resolve_class(name: str | None, src: PathLike) -> type[L.LightningModule]:
     return obj
 
 
-def _build(cls: type[L.LightningModule], hparams: dict[str, Any], src: PathLike, device: str | None = None):
-    """``cls(**hparams)``; on the meta device (structure only, no weights read) when asked."""
+def inert_hparams(cls: type, hparams: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's hyper-parameters without those that name data or files to open
+    (``cls.location_hparams``, e.g. OmniMotionGPT's ``human_data``): a checkpoint is inert, so
+    loading it never opens what its file names (a ``pipe:`` location would start a process), and
+    self-contained, so it loads on a machine where those locations do not exist."""
+    drop = set(getattr(cls, "location_hparams", ()))
+    return {k: v for k, v in hparams.items() if k not in drop}
+
+
+def _check_rebuildable(ckpt: dict[str, Any], src: PathLike) -> None:
+    """UsageError for a file that holds weights but nothing to rebuild the module from."""
+    if not ckpt["hyper_parameters"] and not recorded_class(ckpt):
+        raise UsageError(f"{src} is a bare state dict: it holds weights without the module's hyper-parameters or "
+                         f"class, so omg cannot rebuild the model from it; {ACCEPTED}, saved with its "
+                         "hyper-parameters (what `omg fit` writes)")
+
+
+def build_module(cls: type[L.LightningModule], hparams: dict[str, Any], src: PathLike, device: str | None = None):
+    """``cls(**hparams)`` without the location hyper-parameters; on the meta device (structure only,
+    no weights read) when asked."""
+    from lightning.pytorch.core.mixins.hparams_mixin import _given_hyperparameters
+
+    # LightningCLI hands the module it instantiates its config through this variable, which every
+    # save_hyperparameters() in that block reads: a module rebuilt here while another is built
+    # (HabitPriorModule's VQ-VAE) must record its own hyper-parameters, not the outer module's
+    token = _given_hyperparameters.set(None)
     try:
         with torch.device(device) if device else contextlib.nullcontext(), warnings.catch_warnings():
             # a module that loads weights while it is built (ControlNetModule's frozen base) copies onto meta
             warnings.filterwarnings("ignore", message=".*non-meta parameter in the checkpoint to a meta parameter")
-            return cls(**hparams)
+            return cls(**inert_hparams(cls, hparams))
     except TypeError as e:
         raise UsageError(f"{src}: its hyper-parameters do not fit {class_path(cls)} ({e})") from None
+    finally:
+        _given_hyperparameters.reset(token)
 
 
 def _trainable_prefix(module: L.LightningModule, src: PathLike) -> str:
@@ -402,11 +428,12 @@ def load_module(
     ``use_ema`` the EMA weights then replace the trained ones for inference. ``expect``: the
     class (or a base class) the caller needs.
     """
-    ckpt = load_checkpoint(path, default_class)
-    cls = resolve_class(ckpt["module_class"], path)
+    ckpt = load_checkpoint(path)
+    _check_rebuildable(ckpt, path)
+    cls = resolve_class(ckpt["module_class"] or (class_path(default_class) if default_class else None), path)
     if expect is not None and not issubclass(cls, expect):
         raise UsageError(f"{path} holds a {class_path(cls)} checkpoint, not a {class_path(expect)}")
-    module = _build(cls, ckpt["hyper_parameters"], path)
+    module = build_module(cls, ckpt["hyper_parameters"], path)
     check_weights(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     module.to(map_location)  # before the EMA is rebuilt, so that it lands on the same device
@@ -425,9 +452,12 @@ def convert(src: PathLike, dst: PathLike, ema: bool = False,
     dst = Path(dst)
     if dst.suffix != ".safetensors":
         raise UsageError(f"{dst}: the output file must end in .safetensors")
-    ckpt = load_checkpoint(src, default_class)
+    ckpt = load_checkpoint(src)
+    _check_rebuildable(ckpt, src)
+    ckpt["module_class"] = ckpt["module_class"] or (class_path(default_class) if default_class else None)
     cls = resolve_class(ckpt["module_class"], src)
-    module = _build(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
+    ckpt["hyper_parameters"] = inert_hparams(cls, ckpt["hyper_parameters"])  # locations are not copied either
+    module = build_module(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
     state = dict(ckpt["state_dict"])
     check_weights(module, state, src)
     if ema and not ckpt["ema_weights"]:

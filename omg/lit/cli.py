@@ -131,7 +131,7 @@ class OmgLightningCLI(LightningCLI):
     # zeroed or foreign file, or a checkpoint of another class, is one UsageError line.
 
     def _parse_ckpt_path(self) -> None:
-        from omg.lit.checkpoint import inspect_checkpoint
+        from omg.lit.checkpoint import inert_hparams, inspect_checkpoint
 
         subcommand = self.config.get("subcommand")
         if not subcommand:
@@ -154,9 +154,12 @@ class OmgLightningCLI(LightningCLI):
                              "its weights elsewhere")
         model = self.config[subcommand].get("model")
         configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
-        self._check_ckpt_class(ckpt_path, header["module_class"], configured)
+        cls = self._check_ckpt_class(ckpt_path, header["module_class"], configured)
         hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
         hparams.pop("_instantiator", None)
+        # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
+        # run's config, never from the file: a checkpoint that named a `pipe:` command would run it
+        hparams = inert_hparams(cls, hparams) if cls is not None else hparams
         if not hparams:  # as LightningCLI: a checkpoint file's hyper-parameters become the model's config
             return
         if "_class_path" in hparams:
@@ -168,27 +171,26 @@ class OmgLightningCLI(LightningCLI):
             raise
 
     @staticmethod
-    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> None:
+    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> type | None:
         """UsageError unless the checkpoint's recorded class is the configured model's class (LightningCLI
         would otherwise replace the configured model by the recorded class, or restore its state into
-        a module of another kind)."""
+        a module of another kind); the class, where known."""
         from omg.lit.checkpoint import class_path, resolve_class
 
-        if not recorded or configured is None:
-            return
         if isinstance(configured, str):
-            if recorded == configured:
-                return
             module, _, name = configured.rpartition(".")
             try:
                 configured = getattr(importlib.import_module(module), name)  # jsonargparse imported it already
             except (ImportError, AttributeError, ValueError):
-                return  # jsonargparse reports a bad class_path itself
+                configured = None  # jsonargparse reports a bad class_path itself
+        if not recorded:
+            return configured
         try:
-            if resolve_class(recorded, ckpt_path) is configured:
-                return
+            cls = resolve_class(recorded, ckpt_path)
         except UsageError:
-            pass  # a class that cannot be resolved here is not the configured one
+            cls = None  # a class that cannot be resolved here is not the configured one
+        if configured is None or cls is configured:
+            return cls
         hint = (" (to start a ControlNet from a stage-1 checkpoint, set model.init_args.pretrained instead)"
                 if recorded.endswith("PretrainModule") else "")
         raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
