@@ -26,7 +26,25 @@ class SigtermAt(Callback):
             os.kill(os.getpid(), signal.SIGTERM)
 
 
-def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), **data):
+class KillWritingLast(Callback):
+    """Stands for a kill while ``last.ckpt`` is written at ``step``: the periodic checkpoint of that
+    step is whole, and ``last.ckpt`` stays the older file (its write is atomic)."""
+
+    def __init__(self, step: int):
+        self.step, self.saves = step, 0
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint):
+        if trainer.global_step == self.step:
+            self.saves += 1
+            if self.saves == 2:  # ModelCheckpoint writes the step's periodic file, then last.ckpt
+                raise KilledWritingLast
+
+
+class KilledWritingLast(Exception):
+    pass
+
+
+def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), top_k=1, **data):
     config = {
         "seed_everything": 0,
         "trainer": {
@@ -34,7 +52,8 @@ def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=()
             "enable_model_summary": False, "limit_val_batches": 0, "num_sanity_val_steps": 0,
             "default_root_dir": str(root),
             "callbacks": [{"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2}},
+                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2,
+                                         "save_top_k": top_k}},
                           *callbacks],
         },
         "model": {"class_path": "PretrainModule",
@@ -125,3 +144,53 @@ def test_too_many_bad_samples_in_a_worker_is_one_line(h263_shards, tmp_path, cap
     assert e.value.code == 2
     line = one_error_line(capsys)
     assert "samples were bad" in line and "max_bad_fraction" in line and "DataLoader worker" not in line
+
+
+def test_resume_last_takes_the_newest_whole_checkpoint_and_keeps_the_top_k_policy(h263_shards, tmp_path, caplog):
+    """Killed while last.ckpt (step 2) was being replaced at step 4: `--ckpt_path last` takes the
+    newer epoch=0-step=4.ckpt, and the resumed run leaves the folder as the run never killed does
+    (save_top_k=1: the newest periodic file and last.ckpt), the files of the killed run it does not
+    keep deleted, the checkpoint resumed from included, and a user's own files kept."""
+    shards = h263_shards / "train"
+    main(["fit", "--config", write_config(tmp_path / "full.yaml", shards, tmp_path / "full")])
+    kill = {"class_path": "test_run_faults.KillWritingLast", "init_args": {"step": 4}}
+    with pytest.raises(KilledWritingLast):
+        main(["fit", "--config", write_config(tmp_path / "killed.yaml", shards, tmp_path / "run", callbacks=[kill])])
+    ckpt = tmp_path / "run" / "ckpt"
+    assert sorted(p.name for p in ckpt.iterdir()) == ["epoch=0-step=4.ckpt", "last.ckpt"]
+    assert torch.load(ckpt / "last.ckpt", weights_only=True)["global_step"] == 2
+    (ckpt / "epoch=0-step=2.ckpt").write_bytes((ckpt / "last.ckpt").read_bytes())  # killed before its removal
+    mine = [ckpt / "mine.ckpt", ckpt / "epoch=0-step=2.ckpt.bak", ckpt / "notes.txt"]
+    for path in mine:
+        path.write_bytes((ckpt / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "resumed.yaml", shards, tmp_path / "run"), "--ckpt_path",
+              "last"])
+    assert f"Restoring states from the checkpoint path at {ckpt / 'epoch=0-step=4.ckpt'}" in caplog.text
+    full = tmp_path / "full" / "ckpt"
+    assert sorted(p.name for p in full.iterdir()) == ["epoch=1-step=8.ckpt", "last.ckpt"]
+    kept = ["epoch=1-step=8.ckpt", "last.ckpt", *(m.name for m in mine)]
+    assert sorted(p.name for p in ckpt.iterdir()) == sorted(kept)
+    a, b = (torch.load(d / "last.ckpt", weights_only=True) for d in (full, ckpt))
+    assert a["global_step"] == b["global_step"] == 8
+    for key in a["state_dict"]:
+        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
+
+
+@pytest.mark.parametrize("init, written, others", [
+    ({}, ["epoch=0-step=4.ckpt", "epoch=12-step=5000-v1.ckpt"],
+     ["last.ckpt", "last-v1.ckpt", "mine.ckpt", "epoch=0-step=4.ckpt.bak", "best-epoch=0-step=4.ckpt",
+      "epoch=0-step=4-val_loss=0.50.ckpt", "interrupted.ckpt"]),
+    ({"filename": "{epoch}-{val_loss:.2f}"}, ["epoch=3-val_loss=0.12.ckpt", "epoch=3-val_loss=nan-v2.ckpt"],
+     ["epoch=3.ckpt", "epoch=3-val_loss=0.12.ckpt.tmp", "last.ckpt"]),
+    ({"filename": "step{step:06d}", "auto_insert_metric_name": False}, ["step000100.ckpt"], ["step=100.ckpt"]),
+])
+def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_path, init, written, others):
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from omg.callbacks.checkpoint import written_checkpoints
+
+    for name in written + others:
+        (tmp_path / name).write_bytes(b"x")
+    callback = ModelCheckpoint(dirpath=tmp_path, **init)
+    assert [p.name for p in written_checkpoints(callback)] == sorted(written)

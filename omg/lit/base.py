@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
@@ -96,6 +97,9 @@ class OmgModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # which class to rebuild, also for checkpoints written outside LightningCLI
         checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
+        # when it was written, which orders a run's checkpoints for `--ckpt_path last`
+        # (omg.lit.checkpoint.saved_order) also after a copy that did not keep the files' mtimes
+        checkpoint["saved_time"] = time.time()
 
     def on_train_start(self) -> None:
         start_epoch_after_restored_last_batch(self.trainer)

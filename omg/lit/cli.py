@@ -196,22 +196,26 @@ class OmgLightningCLI(LightningCLI):
 
     def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
         """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
-        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here, as Lightning would
-        (the newest ``last*.ckpt`` of the ModelCheckpoint folders), but when that file is unreadable
-        to the newest readable checkpoint beside it, with a warning naming both."""
-        from omg.callbacks.checkpoint import prepare_checkpointing
+        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
+        run's checkpoints that reads and passes its CRC check (``resume_candidate``: Lightning's
+        ``last*.ckpt``, the ModelCheckpoints' periodic/top-k files, a SIGTERM's checkpoint), with a
+        warning when a newer one does not read; the resumed run then brings the top-k folders back
+        to their policy (``TopKHousekeeping``)."""
+        from omg.callbacks.checkpoint import TopKHousekeeping, prepare_checkpointing, written_checkpoints
         from omg.lit.checkpoint import resume_candidate
 
         kwargs = super()._prepare_subcommand_kwargs(subcommand)
         prepare_checkpointing(self.trainer)
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
-            last = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
-            last += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's checkpoint
-                     if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
-            found = resume_candidate(last, sorted({p.parent for p in last}), warn=rank_zero_warn)
+            run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
+            run += [p for cb in callbacks for p in written_checkpoints(cb)]
+            run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's checkpoint
+                    if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
+            found = resume_candidate(run, sorted({p.parent for p in run}), warn=rank_zero_warn)
             if found is not None:
                 resolved, header = found
                 self._check_ckpt_class(resolved, header["module_class"], type(self.model))
                 kwargs["ckpt_path"] = str(resolved)
+                self.trainer.callbacks.append(TopKHousekeeping())
         return kwargs
