@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -12,7 +14,7 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
-from omg.cli import SIGTERM_EXIT, main
+from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
 class SigtermAt(Callback):
@@ -194,3 +196,86 @@ def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_pat
         (tmp_path / name).write_bytes(b"x")
     callback = ModelCheckpoint(dirpath=tmp_path, **init)
     assert [p.name for p in written_checkpoints(callback)] == sorted(written)
+
+
+class SlowAfterCtrlC(Callback):
+    """Makes the step in which a stop was asked for last a minute, the time to press Ctrl-C again."""
+
+    def on_train_batch_end(self, trainer, *args):
+        if trainer.received_sigterm:
+            time.sleep(60)
+
+
+def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
+    """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
+    Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
+    from conftest import REPO
+
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "omg.cli", "fit", "--config", "configs/mini/pretrain.yaml",
+               f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false",
+               "--trainer.callbacks.every_n_train_steps=5", *args]
+    if callbacks:
+        command.append("--trainer.callbacks+=test_run_faults.SlowAfterCtrlC")
+    err = open(root.parent / f"{root.name}.err", "w")  # noqa: SIM115 (closed with the process)
+    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+
+
+def _wait_for(condition, process, timeout=120):
+    start = time.monotonic()
+    while not condition():
+        assert process.poll() is None, "the run ended early"
+        assert time.monotonic() - start < timeout, "timed out"
+        time.sleep(0.1)
+
+
+def test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300")
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole foreground process group
+    assert run.wait(timeout=120) == SIGINT_EXIT
+    err = (tmp_path / "run.err").read_text()
+    assert "Traceback" not in err and "Error" not in err, err[-3000:]
+    last = [line for line in err.splitlines() if line.startswith("omg:")][-1]
+    interrupted = root / "checkpoints" / "interrupted.ckpt"
+    assert last.startswith("omg: interrupted by Ctrl-C at step ") and f"checkpoint {interrupted} " in last, err
+    assert "resume with --ckpt_path last" in last
+    step = torch.load(interrupted, weights_only=True)["global_step"]
+    assert last.startswith(f"omg: interrupted by Ctrl-C at step {step};") and step >= 5
+
+    resumed = _mini_fit(root, f"--trainer.max_steps={step + 2}", "--ckpt_path=last")
+    assert resumed.wait(timeout=300) == 0, (tmp_path / "run.err").read_text()[-3000:]
+    assert f"Restoring states from the checkpoint path at {interrupted}" in (tmp_path / "run.err").read_text()
+    assert torch.load(root / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == step + 2
+
+
+def test_a_second_ctrl_c_aborts_at_once(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300", callbacks=True)
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)
+    _wait_for(lambda: "Ctrl-C again aborts at once" in (tmp_path / "run.err").read_text(), run)
+    start = time.monotonic()
+    os.killpg(run.pid, signal.SIGINT)
+    assert run.wait(timeout=30) == -signal.SIGINT and time.monotonic() - start < 20
+
+
+def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, capsys, monkeypatch):
+    """In a SLURM job, Lightning resumes from default_root_dir's hpc_ckpt_N.ckpt on its own: that
+    file passes the checks of every checkpoint, and one holding pickled code is one line."""
+    import argparse
+
+    for key, value in {"SLURM_NTASKS": "1", "SLURM_JOB_NAME": "omg", "SLURM_JOB_ID": "7", "SLURM_PROCID": "0",
+                       "SLURM_LOCALID": "0", "SLURM_NODEID": "0"}.items():
+        monkeypatch.setenv(key, value)
+    root = tmp_path / "run"
+    root.mkdir()
+    torch.save({"state_dict": {}, "args": argparse.Namespace(lr=1.0)}, root / "hpc_ckpt_1.ckpt")
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root)])
+    assert e.value.code == 2
+    line = one_error_line(capsys)
+    assert line.startswith("omg: error: resuming this SLURM job from its requeue checkpoint: ")
+    assert "hpc_ckpt_1.ckpt holds pickled Python objects (argparse.Namespace)" in line and "refused" in line
+    assert [p.name for p in root.iterdir()] == ["hpc_ckpt_1.ckpt"]  # nothing left behind

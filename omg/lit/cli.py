@@ -194,6 +194,31 @@ class OmgLightningCLI(LightningCLI):
         raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
                          f"{class_path(configured)}: resume with a checkpoint of that class{hint}")
 
+    def _hpc_checkpoint(self, ckpt_path: Any) -> str | None:
+        """The SLURM checkpoint (``hpc_ckpt_N.ckpt`` in default_root_dir, written when SLURM requeues a
+        run) that Lightning would load for ``--ckpt_path hpc``, or on its own in a SLURM job without a
+        ``--ckpt_path``, after the checks every other checkpoint passes (omg.lit.checkpoint: readable,
+        CRC-checked, no pickled code, the configured model's class); None where Lightning loads none."""
+        from lightning.fabric.plugins.environments import SLURMEnvironment
+
+        from omg.lit.checkpoint import inspect_checkpoint
+
+        if ckpt_path != "hpc" and not (ckpt_path is None and SLURMEnvironment.detect()):
+            return None
+        what = "--ckpt_path hpc" if ckpt_path == "hpc" else "resuming this SLURM job from its requeue checkpoint"
+        hpc = self.trainer._checkpoint_connector._hpc_resume_path  # Lightning's own choice: the highest N
+        if hpc is None:
+            if ckpt_path == "hpc":
+                raise UsageError(f"--ckpt_path hpc: {self.trainer.default_root_dir} holds no hpc_ckpt_N.ckpt "
+                                 "(Lightning writes one when SLURM requeues a run); pass --ckpt_path last or a file")
+            return None
+        try:
+            header = inspect_checkpoint(hpc)
+        except UsageError as e:
+            raise type(e)(f"{what}: {e}") from None
+        self._check_ckpt_class(hpc, header["module_class"], type(self.model))
+        return hpc
+
     def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
         """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
         folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
@@ -206,6 +231,8 @@ class OmgLightningCLI(LightningCLI):
 
         kwargs = super()._prepare_subcommand_kwargs(subcommand)
         prepare_checkpointing(self.trainer)
+        if hpc := self._hpc_checkpoint(kwargs.get("ckpt_path")):
+            kwargs["ckpt_path"] = hpc
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
             run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
