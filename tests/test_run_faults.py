@@ -261,7 +261,7 @@ def test_a_second_ctrl_c_aborts_at_once(tmp_path):
     assert run.wait(timeout=30) == -signal.SIGINT and time.monotonic() - start < 20
 
 
-def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, capsys, monkeypatch):
+def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, capsys, caplog, monkeypatch):
     """In a SLURM job, Lightning resumes from default_root_dir's hpc_ckpt_N.ckpt on its own: that
     file passes the checks of every checkpoint, and one holding pickled code is one line."""
     import argparse
@@ -279,3 +279,13 @@ def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, 
     assert line.startswith("omg: error: resuming this SLURM job from its requeue checkpoint: ")
     assert "hpc_ckpt_1.ckpt holds pickled Python objects (argparse.Namespace)" in line and "refused" in line
     assert [p.name for p in root.iterdir()] == ["hpc_ckpt_1.ckpt"]  # nothing left behind
+
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "first", max_steps=4)
+    monkeypatch.delenv("SLURM_NTASKS")  # the first job: not resumed
+    main(["fit", "--config", config])
+    monkeypatch.setenv("SLURM_NTASKS", "1")
+    (root / "hpc_ckpt_2.ckpt").write_bytes((tmp_path / "first" / "ckpt" / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=6)])
+    assert f"Restoring states from the checkpoint path at {root / 'hpc_ckpt_2.ckpt'}" in caplog.text
+    assert torch.load(root / "ckpt" / "last.ckpt", weights_only=True)["global_step"] == 6

@@ -144,10 +144,11 @@ def kept_checkpoints(callback: ModelCheckpoint) -> set[Path]:
 
 
 class TopKHousekeeping(Callback):
-    """For a run resumed with ``--ckpt_path last`` (``omg.lit.cli`` adds it then): delete the files
-    of every ``ModelCheckpoint(save_top_k=k)`` (k >= 1) that its restored state does not keep, at the
-    start of training (all but the checkpoint resumed from) and after each later save (the
-    checkpoint resumed from too, once it falls out of the top k). Only files the callback writes
+    """For a run resumed with ``--ckpt_path last`` or from its SLURM requeue checkpoint (``omg.lit.cli``
+    adds it then): delete the files of every ``ModelCheckpoint(save_top_k=k)`` (k >= 1) that its
+    restored state does not keep, at the start of training (all but the checkpoint resumed from)
+    and after each later save (the checkpoint resumed from too, once it falls out of the top k).
+    Only files the callback writes
     (``written_checkpoints``) are candidates, only when its state names files in its own folder (a
     moved folder's state names the old one), and never one that another checkpoint callback with
     the same folder keeps (``save_top_k=-1``: all of its files)."""

@@ -224,25 +224,29 @@ class OmgLightningCLI(LightningCLI):
         folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
         run's checkpoints that reads and passes its CRC check (``resume_candidate``: Lightning's
         ``last*.ckpt``, the ModelCheckpoints' periodic/top-k files, a SIGTERM's checkpoint), with a
-        warning when a newer one does not read; the resumed run then brings the top-k folders back
-        to their policy (``TopKHousekeeping``)."""
+        warning when a newer one does not read; ``--ckpt_path hpc`` and SLURM's own resume checked
+        (``_hpc_checkpoint``). A run resumed from either then brings its top-k folders back to their
+        policy (``TopKHousekeeping``); one resumed from a checkpoint named by its path does not (the
+        files of the steps after it are the user's to keep)."""
         from omg.callbacks.checkpoint import TopKHousekeeping, prepare_checkpointing, written_checkpoints
         from omg.lit.checkpoint import resume_candidate
 
         kwargs = super()._prepare_subcommand_kwargs(subcommand)
         prepare_checkpointing(self.trainer)
+        resumed = False  # from the run's own newest checkpoint, whose folder then goes back to its top-k policy
         if hpc := self._hpc_checkpoint(kwargs.get("ckpt_path")):
-            kwargs["ckpt_path"] = hpc
+            kwargs["ckpt_path"], resumed = hpc, True
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
             run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
             run += [p for cb in callbacks for p in written_checkpoints(cb)]
-            run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's checkpoint
+            run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's or Ctrl-C's checkpoint
                     if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
             found = resume_candidate(run, sorted({p.parent for p in run}), warn=rank_zero_warn)
             if found is not None:
                 resolved, header = found
                 self._check_ckpt_class(resolved, header["module_class"], type(self.model))
-                kwargs["ckpt_path"] = str(resolved)
-                self.trainer.callbacks.append(TopKHousekeeping())
+                kwargs["ckpt_path"], resumed = str(resolved), True
+        if resumed and subcommand == "fit":
+            self.trainer.callbacks.append(TopKHousekeeping())
         return kwargs
