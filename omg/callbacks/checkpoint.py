@@ -148,10 +148,9 @@ class TopKHousekeeping(Callback):
     adds it then): delete the files of every ``ModelCheckpoint(save_top_k=k)`` (k >= 1) that its
     restored state does not keep, at the start of training (all but the checkpoint resumed from)
     and after each later save (the checkpoint resumed from too, once it falls out of the top k).
-    Only files the callback writes
-    (``written_checkpoints``) are candidates, only when its state names files in its own folder (a
-    moved folder's state names the old one), and never one that another checkpoint callback with
-    the same folder keeps (``save_top_k=-1``: all of its files)."""
+    Only files the callback writes (``written_checkpoints``) are candidates, only when its state
+    names files in its own folder (a moved folder's state names the old one), and never one that
+    another checkpoint callback with the same folder keeps (``save_top_k=-1``: all of its files)."""
 
     def __init__(self):
         self.resumed_from: Path | None = None

@@ -503,9 +503,9 @@ def resume_candidate(candidates: Iterable[PathLike], directories: Iterable[PathL
                      warn=lambda message: None) -> tuple[Path, dict[str, Any]] | None:
     """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest
     (``saved_order``) of ``candidates`` (the run's checkpoints: Lightning's ``last*.ckpt``, the files
-    its ModelCheckpoints write, a SIGTERM's ``interrupted.ckpt``) that reads and passes its CRC
-    check. A ``last.ckpt`` whose write was killed is the older file, and the newer periodic
-    checkpoint written just before it wins. When a newer one does not read (truncated, zeroed),
+    its ModelCheckpoints write, the ``interrupted.ckpt`` of a SIGTERM or Ctrl-C) that reads and
+    passes its CRC check. A ``last.ckpt`` whose write was killed is the older file, and the newer
+    periodic checkpoint written just before it wins. When a newer one does not read (truncated, zeroed),
     ``warn`` names it and the one taken. None when there is no candidate at all (Lightning then
     starts afresh, as with its own "last"); a UsageError when none reads (``directories`` name where
     they were looked for), and UnsafeCheckpoint as soon as one holds pickled code."""
