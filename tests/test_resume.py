@@ -153,7 +153,7 @@ def test_every_epoch_trains_on_new_batches(uninterrupted):
     assert epochs[0][:2] != epochs[2], "epoch 2 replays epoch 0"
 
 
-# kills at the start of a step: 4, 8 and 12 resume from a checkpoint written at an epoch's last batch
+# kills at the start of a step: 4 and 8 resume from a checkpoint written at an epoch's last batch
 @pytest.mark.parametrize("kill_at", [1, 3, 4, 5, 8, 9])
 def test_killed_run_resumes_bit_for_bit(h263_shards, uninterrupted, tmp_path, kill_at):
     steps, expected = uninterrupted
