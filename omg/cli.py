@@ -37,6 +37,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM
+SIGINT_EXIT = 128 + 2  # ... and by SIGINT (Ctrl-C)
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"
 
 
@@ -142,12 +143,16 @@ def lightning_main(argv: list[str]) -> None:
         raise UsageError(f"{str(e).strip().splitlines()[0]} (override trainer settings with --trainer.KEY VALUE, "
                          "e.g. --trainer.accelerator cpu)") from None
     except SIGTERMException as e:  # Lightning's loops stop at a step boundary and exit "successfully"
-        stop = getattr(e, "omg_stop", None) or {"step": "?", "checkpoint": None, "requeued": False}
+        stop = {"step": "?", "checkpoint": None, "requeued": False, "signal": "SIGTERM",
+                **(getattr(e, "omg_stop", None) or {})}  # omg.callbacks.run.InterruptCheckpoint
         where = (f"checkpoint {stop['checkpoint']} (resume with --ckpt_path last)" if stop["checkpoint"]
                  else "no checkpoint was written")
         if stop["requeued"]:
             print(f"omg: requeued by SLURM at step {stop['step']}; {where}", file=sys.stderr)
             raise SystemExit(0) from None
+        if stop["signal"] == "SIGINT":
+            print(f"omg: interrupted by Ctrl-C at step {stop['step']}; {where}", file=sys.stderr)
+            raise SystemExit(SIGINT_EXIT) from None
         print(f"omg: interrupted by SIGTERM at step {stop['step']}; {where}", file=sys.stderr)
         raise SystemExit(SIGTERM_EXIT) from None
     except TooManyBadSamples as e:  # from a data worker: torch re-raises it with the worker's traceback as its text

@@ -8,6 +8,7 @@ the argument handling is under test, so nothing needs training.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -88,6 +89,13 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "gen_binary/generation.json").write_bytes(b"\xff\xfe{\x00")
     (d / "gen_dir/generation.json").mkdir()
     (d / "gen_bvhdir/sample_000.bvh").mkdir()  # where the BVH file would go
+    # SLURM requeue checkpoints (hpc_ckpt_N.ckpt in default_root_dir): one holding a pickled object
+    # that a weights-only load refuses, and a torn one
+    (d / "hpc_pickled").mkdir()
+    torch.save({"state_dict": {}, "args": argparse.Namespace(lr=1.0)}, d / "hpc_pickled/hpc_ckpt_1.ckpt")
+    (d / "hpc_torn").mkdir()
+    torch.save({"state_dict": {"w": torch.zeros(4096)}}, d / "hpc_torn/hpc_ckpt_2.ckpt")
+    (d / "hpc_torn/hpc_ckpt_2.ckpt").write_bytes((d / "hpc_torn/hpc_ckpt_2.ckpt").read_bytes()[:-2000])
 
 
 # (id, argv); {in}: the input folder, {out}: a path that does not exist yet, {pre}/{cn}/{nanck}: checkpoints
@@ -102,6 +110,8 @@ BENCH_DATA = ["bench", "data", "--clips", "20", "--batch_size", "4", "--batches"
 BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch_size", "1"]
 BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch_sizes", "[1]"]
 MINI_SHARDS = str(REPO / "shards/mini/human263/train")
+# the mini config with its shards found from any folder: a row that gets past the config runs
+FIT_RUNS = [*FIT, "--data.train", MINI_SHARDS, "--data.val", str(REPO / "shards/mini/human263/val")]
 ROWS = [
     # omg generate
     ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
@@ -214,6 +224,9 @@ ROWS = [
     ("fit-config-random-eq", ["fit", "--config={in}/random.bin"]),
     ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
+    ("fit-ckpt-hpc-pickled", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_pickled", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-torn", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_torn", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-none", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/empty", "--ckpt_path", "hpc"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),

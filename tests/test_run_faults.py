@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -12,7 +14,7 @@ import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
-from omg.cli import SIGTERM_EXIT, main
+from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
 class SigtermAt(Callback):
@@ -26,7 +28,25 @@ class SigtermAt(Callback):
             os.kill(os.getpid(), signal.SIGTERM)
 
 
-def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), **data):
+class KillWritingLast(Callback):
+    """Stands for a kill while ``last.ckpt`` is written at ``step``: the periodic checkpoint of that
+    step is whole, and ``last.ckpt`` stays the older file (its write is atomic)."""
+
+    def __init__(self, step: int):
+        self.step, self.saves = step, 0
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint):
+        if trainer.global_step == self.step:
+            self.saves += 1
+            if self.saves == 2:  # ModelCheckpoint writes the step's periodic file, then last.ckpt
+                raise KilledWritingLast
+
+
+class KilledWritingLast(Exception):
+    pass
+
+
+def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), top_k=1, **data):
     config = {
         "seed_everything": 0,
         "trainer": {
@@ -34,7 +54,8 @@ def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=()
             "enable_model_summary": False, "limit_val_batches": 0, "num_sanity_val_steps": 0,
             "default_root_dir": str(root),
             "callbacks": [{"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2}},
+                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2,
+                                         "save_top_k": top_k}},
                           *callbacks],
         },
         "model": {"class_path": "PretrainModule",
@@ -125,3 +146,146 @@ def test_too_many_bad_samples_in_a_worker_is_one_line(h263_shards, tmp_path, cap
     assert e.value.code == 2
     line = one_error_line(capsys)
     assert "samples were bad" in line and "max_bad_fraction" in line and "DataLoader worker" not in line
+
+
+def test_resume_last_takes_the_newest_whole_checkpoint_and_keeps_the_top_k_policy(h263_shards, tmp_path, caplog):
+    """Killed while last.ckpt (step 2) was being replaced at step 4: `--ckpt_path last` takes the
+    newer epoch=0-step=4.ckpt, and the resumed run leaves the folder as the run never killed does
+    (save_top_k=1: the newest periodic file and last.ckpt), the files of the killed run it does not
+    keep deleted, the checkpoint resumed from included, and a user's own files kept."""
+    shards = h263_shards / "train"
+    main(["fit", "--config", write_config(tmp_path / "full.yaml", shards, tmp_path / "full")])
+    kill = {"class_path": "test_run_faults.KillWritingLast", "init_args": {"step": 4}}
+    with pytest.raises(KilledWritingLast):
+        main(["fit", "--config", write_config(tmp_path / "killed.yaml", shards, tmp_path / "run", callbacks=[kill])])
+    ckpt = tmp_path / "run" / "ckpt"
+    assert sorted(p.name for p in ckpt.iterdir()) == ["epoch=0-step=4.ckpt", "last.ckpt"]
+    assert torch.load(ckpt / "last.ckpt", weights_only=True)["global_step"] == 2
+    (ckpt / "epoch=0-step=2.ckpt").write_bytes((ckpt / "last.ckpt").read_bytes())  # killed before its removal
+    mine = [ckpt / "mine.ckpt", ckpt / "epoch=0-step=2.ckpt.bak", ckpt / "notes.txt"]
+    for path in mine:
+        path.write_bytes((ckpt / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "resumed.yaml", shards, tmp_path / "run"), "--ckpt_path",
+              "last"])
+    assert f"Restoring states from the checkpoint path at {ckpt / 'epoch=0-step=4.ckpt'}" in caplog.text
+    full = tmp_path / "full" / "ckpt"
+    assert sorted(p.name for p in full.iterdir()) == ["epoch=1-step=8.ckpt", "last.ckpt"]
+    kept = ["epoch=1-step=8.ckpt", "last.ckpt", *(m.name for m in mine)]
+    assert sorted(p.name for p in ckpt.iterdir()) == sorted(kept)
+    a, b = (torch.load(d / "last.ckpt", weights_only=True) for d in (full, ckpt))
+    assert a["global_step"] == b["global_step"] == 8
+    for key in a["state_dict"]:
+        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
+
+
+@pytest.mark.parametrize("init, written, others", [
+    ({}, ["epoch=0-step=4.ckpt", "epoch=12-step=5000-v1.ckpt"],
+     ["last.ckpt", "last-v1.ckpt", "mine.ckpt", "epoch=0-step=4.ckpt.bak", "best-epoch=0-step=4.ckpt",
+      "epoch=0-step=4-val_loss=0.50.ckpt", "interrupted.ckpt"]),
+    ({"filename": "{epoch}-{val_loss:.2f}"}, ["epoch=3-val_loss=0.12.ckpt", "epoch=3-val_loss=nan-v2.ckpt"],
+     ["epoch=3.ckpt", "epoch=3-val_loss=0.12.ckpt.tmp", "last.ckpt"]),
+    ({"filename": "step{step:06d}", "auto_insert_metric_name": False}, ["step000100.ckpt"], ["step=100.ckpt"]),
+])
+def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_path, init, written, others):
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from omg.callbacks.checkpoint import written_checkpoints
+
+    for name in written + others:
+        (tmp_path / name).write_bytes(b"x")
+    callback = ModelCheckpoint(dirpath=tmp_path, **init)
+    assert [p.name for p in written_checkpoints(callback)] == sorted(written)
+
+
+class SlowAfterCtrlC(Callback):
+    """Makes the step in which a stop was asked for last a minute, the time to press Ctrl-C again."""
+
+    def on_train_batch_end(self, trainer, *args):
+        if trainer.received_sigterm:
+            time.sleep(60)
+
+
+def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
+    """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
+    Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
+    from conftest import REPO
+
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "omg.cli", "fit", "--config", "configs/mini/pretrain.yaml",
+               f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false",
+               "--trainer.callbacks.every_n_train_steps=5", *args]
+    if callbacks:
+        command.append("--trainer.callbacks+=test_run_faults.SlowAfterCtrlC")
+    err = open(root.parent / f"{root.name}.err", "w")  # noqa: SIM115 (closed with the process)
+    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+
+
+def _wait_for(condition, process, timeout=120):
+    start = time.monotonic()
+    while not condition():
+        assert process.poll() is None, "the run ended early"
+        assert time.monotonic() - start < timeout, "timed out"
+        time.sleep(0.1)
+
+
+def test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300")
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole foreground process group
+    assert run.wait(timeout=120) == SIGINT_EXIT
+    err = (tmp_path / "run.err").read_text()
+    assert "Traceback" not in err and "Error" not in err, err[-3000:]
+    last = [line for line in err.splitlines() if line.startswith("omg:")][-1]
+    interrupted = root / "checkpoints" / "interrupted.ckpt"
+    assert last.startswith("omg: interrupted by Ctrl-C at step ") and f"checkpoint {interrupted} " in last, err
+    assert "resume with --ckpt_path last" in last
+    step = torch.load(interrupted, weights_only=True)["global_step"]
+    assert last.startswith(f"omg: interrupted by Ctrl-C at step {step};") and step >= 5
+
+    resumed = _mini_fit(root, f"--trainer.max_steps={step + 2}", "--ckpt_path=last")
+    assert resumed.wait(timeout=300) == 0, (tmp_path / "run.err").read_text()[-3000:]
+    assert f"Restoring states from the checkpoint path at {interrupted}" in (tmp_path / "run.err").read_text()
+    assert torch.load(root / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == step + 2
+
+
+def test_a_second_ctrl_c_aborts_at_once(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300", callbacks=True)
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)
+    _wait_for(lambda: "Ctrl-C again aborts at once" in (tmp_path / "run.err").read_text(), run)
+    start = time.monotonic()
+    os.killpg(run.pid, signal.SIGINT)
+    assert run.wait(timeout=30) == -signal.SIGINT and time.monotonic() - start < 20
+
+
+def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, capsys, caplog, monkeypatch):
+    """In a SLURM job, Lightning resumes from default_root_dir's hpc_ckpt_N.ckpt on its own: that
+    file passes the checks of every checkpoint, and one holding pickled code is one line."""
+    import argparse
+
+    for key, value in {"SLURM_NTASKS": "1", "SLURM_JOB_NAME": "omg", "SLURM_JOB_ID": "7", "SLURM_PROCID": "0",
+                       "SLURM_LOCALID": "0", "SLURM_NODEID": "0"}.items():
+        monkeypatch.setenv(key, value)
+    root = tmp_path / "run"
+    root.mkdir()
+    torch.save({"state_dict": {}, "args": argparse.Namespace(lr=1.0)}, root / "hpc_ckpt_1.ckpt")
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root)])
+    assert e.value.code == 2
+    line = one_error_line(capsys)
+    assert line.startswith("omg: error: resuming this SLURM job from its requeue checkpoint: ")
+    assert "hpc_ckpt_1.ckpt holds pickled Python objects (argparse.Namespace)" in line and "refused" in line
+    assert [p.name for p in root.iterdir()] == ["hpc_ckpt_1.ckpt"]  # nothing left behind
+
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "first", max_steps=4)
+    monkeypatch.delenv("SLURM_NTASKS")  # the first job: not resumed
+    main(["fit", "--config", config])
+    monkeypatch.setenv("SLURM_NTASKS", "1")
+    (root / "hpc_ckpt_2.ckpt").write_bytes((tmp_path / "first" / "ckpt" / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=6)])
+    assert f"Restoring states from the checkpoint path at {root / 'hpc_ckpt_2.ckpt'}" in caplog.text
+    assert torch.load(root / "ckpt" / "last.ckpt", weights_only=True)["global_step"] == 6

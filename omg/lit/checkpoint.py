@@ -509,34 +509,52 @@ def _mtime(path: Path) -> float:
         return float("-inf")
 
 
-def resume_candidate(last: Iterable[PathLike], directories: Iterable[PathLike],
+def saved_order(path: PathLike) -> tuple[float, int]:
+    """When a checkpoint was written, to order a run's checkpoints: the save time it records
+    (``saved_time``, which omg's modules write), else its file's mtime; then its global step. Read
+    from its pickle alone (weights-only, tensors memory-mapped, no CRC): a file that does not read
+    sorts by its mtime, and ``inspect_checkpoint`` decides whether it is whole."""
+    path = Path(path)
+    if not (path.is_file() and zipfile.is_zipfile(path)):
+        return _mtime(path), -1
+    try:
+        header = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except (pickle.UnpicklingError, zipfile.BadZipFile, OSError, RuntimeError, EOFError, ValueError, KeyError,
+            IndexError, TypeError):
+        return _mtime(path), -1
+    if not isinstance(header, dict):
+        return _mtime(path), -1
+    saved, step = header.get("saved_time"), header.get("global_step")
+    return (float(saved) if isinstance(saved, (int, float)) else _mtime(path),
+            int(step) if isinstance(step, int) else -1)
+
+
+def resume_candidate(candidates: Iterable[PathLike], directories: Iterable[PathLike],
                      warn=lambda message: None) -> tuple[Path, dict[str, Any]] | None:
-    """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest of
-    ``last`` (Lightning's ``last*.ckpt`` candidates) when it reads; when it does not (truncated,
-    zeroed, an interrupted save), the newest readable checkpoint (``*.ckpt``) in ``directories``,
-    after ``warn`` names both. None when there is no candidate at all (Lightning then starts
-    afresh, as with its own "last"); a UsageError when no checkpoint reads, and UnsafeCheckpoint as
-    soon as one holds pickled code."""
-    existing = sorted({Path(p) for p in last if Path(p).exists()}, key=_mtime, reverse=True)
+    """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest
+    (``saved_order``) of ``candidates`` (the run's checkpoints: Lightning's ``last*.ckpt``, the files
+    its ModelCheckpoints write, the ``interrupted.ckpt`` of a SIGTERM or Ctrl-C) that reads and
+    passes its CRC check. A ``last.ckpt`` whose write was killed is the older file, and the newer
+    periodic checkpoint written just before it wins. When a newer one does not read (truncated, zeroed),
+    ``warn`` names it and the one taken. None when there is no candidate at all (Lightning then
+    starts afresh, as with its own "last"); a UsageError when none reads (``directories`` name where
+    they were looked for), and UnsafeCheckpoint as soon as one holds pickled code."""
+    existing = [Path(p) for p in dict.fromkeys(str(Path(c)) for c in candidates) if Path(p).exists()]
     if not existing:
         return None
-    newest = existing[0]
-    try:
-        return newest, inspect_checkpoint(newest)
-    except UnsafeCheckpoint:
-        raise
-    except UsageError as e:
-        problem = str(e)
-    directories = [Path(d) for d in directories] or [newest.parent]
-    others = {p for d in directories if d.is_dir() for p in d.glob("*.ckpt") if p != newest}
-    for candidate in sorted(others, key=_mtime, reverse=True):
+    problems = []
+    for candidate in sorted(existing, key=saved_order, reverse=True):
         try:
             header = inspect_checkpoint(candidate)
         except UnsafeCheckpoint:
             raise
-        except UsageError:
+        except UsageError as e:
+            problems.append(str(e))
             continue
-        warn(f"--ckpt_path last: {problem}; resuming from {candidate} instead, the newest readable checkpoint there")
+        if problems:
+            warn(f"--ckpt_path last: {problems[0]}; resuming from {candidate} instead, the newest readable "
+                 "checkpoint there")
         return candidate, header
-    raise UsageError(f"--ckpt_path last: {problem}; and no other checkpoint in {', '.join(map(str, directories))} "
+    directories = [str(d) for d in directories] or sorted({str(p.parent) for p in existing})
+    raise UsageError(f"--ckpt_path last: {problems[0]}; and no other checkpoint in {', '.join(directories)} "
                      "reads; pass a checkpoint with --ckpt_path PATH, or leave it out to start afresh")

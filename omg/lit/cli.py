@@ -196,24 +196,59 @@ class OmgLightningCLI(LightningCLI):
         raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
                          f"{class_path(configured)}: resume with a checkpoint of that class{hint}")
 
+    def _hpc_checkpoint(self, ckpt_path: Any) -> str | None:
+        """The SLURM checkpoint (``hpc_ckpt_N.ckpt`` in default_root_dir, written when SLURM requeues a
+        run) that Lightning would load for ``--ckpt_path hpc``, or on its own in a SLURM job without a
+        ``--ckpt_path``, after the checks every other checkpoint passes (omg.lit.checkpoint: readable,
+        CRC-checked, no pickled code, the configured model's class); None where Lightning loads none."""
+        from lightning.fabric.plugins.environments import SLURMEnvironment
+
+        from omg.lit.checkpoint import inspect_checkpoint
+
+        if ckpt_path != "hpc" and not (ckpt_path is None and SLURMEnvironment.detect()):
+            return None
+        what = "--ckpt_path hpc" if ckpt_path == "hpc" else "resuming this SLURM job from its requeue checkpoint"
+        hpc = self.trainer._checkpoint_connector._hpc_resume_path  # Lightning's own choice: the highest N
+        if hpc is None:
+            if ckpt_path == "hpc":
+                raise UsageError(f"--ckpt_path hpc: {self.trainer.default_root_dir} holds no hpc_ckpt_N.ckpt "
+                                 "(Lightning writes one when SLURM requeues a run); pass --ckpt_path last or a file")
+            return None
+        try:
+            header = inspect_checkpoint(hpc)
+        except UsageError as e:
+            raise type(e)(f"{what}: {e}") from None
+        self._check_ckpt_class(hpc, header["module_class"], type(self.model))
+        return hpc
+
     def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
         """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
-        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here, as Lightning would
-        (the newest ``last*.ckpt`` of the ModelCheckpoint folders), but when that file is unreadable
-        to the newest readable checkpoint beside it, with a warning naming both."""
-        from omg.callbacks.checkpoint import prepare_checkpointing
+        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
+        run's checkpoints that reads and passes its CRC check (``resume_candidate``: Lightning's
+        ``last*.ckpt``, the ModelCheckpoints' periodic/top-k files, a SIGTERM's checkpoint), with a
+        warning when a newer one does not read; ``--ckpt_path hpc`` and SLURM's own resume checked
+        (``_hpc_checkpoint``). A run resumed from either then brings its top-k folders back to their
+        policy (``TopKHousekeeping``); one resumed from a checkpoint named by its path does not (the
+        files of the steps after it are the user's to keep)."""
+        from omg.callbacks.checkpoint import TopKHousekeeping, prepare_checkpointing, written_checkpoints
         from omg.lit.checkpoint import resume_candidate
 
         kwargs = super()._prepare_subcommand_kwargs(subcommand)
         prepare_checkpointing(self.trainer)
+        resumed = False  # from the run's own newest checkpoint, whose folder then goes back to its top-k policy
+        if hpc := self._hpc_checkpoint(kwargs.get("ckpt_path")):
+            kwargs["ckpt_path"], resumed = hpc, True
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
-            last = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
-            last += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's checkpoint
-                     if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
-            found = resume_candidate(last, sorted({p.parent for p in last}), warn=rank_zero_warn)
+            run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
+            run += [p for cb in callbacks for p in written_checkpoints(cb)]
+            run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's or Ctrl-C's checkpoint
+                    if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
+            found = resume_candidate(run, sorted({p.parent for p in run}), warn=rank_zero_warn)
             if found is not None:
                 resolved, header = found
                 self._check_ckpt_class(resolved, header["module_class"], type(self.model))
-                kwargs["ckpt_path"] = str(resolved)
+                kwargs["ckpt_path"], resumed = str(resolved), True
+        if resumed and subcommand == "fit":
+            self.trainer.callbacks.append(TopKHousekeeping())
         return kwargs
