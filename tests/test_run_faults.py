@@ -211,11 +211,12 @@ def test_a_stopped_data_worker_ends_the_run_within_data_timeout(h263_shards, tmp
     assert workers[0] not in processes(str(config))  # killed: a stopped process never acts on SIGTERM
 
 
-def test_a_stalled_read_without_data_workers_ends_the_run(h263_shards, tmp_path):
+@pytest.mark.parametrize("num_workers", [0, 1])
+def test_a_stalled_read_ends_the_run(h263_shards, tmp_path, num_workers):
     """num_workers 0 (configs/mini/omgpt.yaml): the shard is read in the main process, which
-    DataLoader(timeout) never bounded; the `pipe:` command is killed with the run."""
+    DataLoader(timeout) never bounded. Either way the `pipe:` command is killed with the run."""
     train = stalling_set(h263_shards / "train", tmp_path / "fifo")
-    config = write_config(tmp_path / "c.yaml", train, tmp_path / "run", num_workers=0, timeout=2)
+    config = write_config(tmp_path / "c.yaml", train, tmp_path / "run", num_workers=num_workers, timeout=2)
     log = tmp_path / "err.txt"
     line = finish(omg_process("fit", "--config", config, log=log), log, within=90, leftovers=str(tmp_path / "fifo"))
     assert "data.timeout=2" in line and "stalled" in line

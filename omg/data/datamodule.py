@@ -27,6 +27,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import signal
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
@@ -267,7 +270,7 @@ class StreamLoader(DataLoader):
                 with deadline(self.fetch_timeout, stalled_message(self.fetch_timeout, "no training batch arrived")):
                     batch = next(batches, None)
             except UsageError:
-                kill_workers(batches)
+                stop_workers(batches)
                 raise
             if batch is None:
                 return
@@ -312,12 +315,35 @@ def stalled_message(timeout: float, what: str) -> str:
             "(omg shards inspect), or raise data.timeout (0 waits forever)")
 
 
-def kill_workers(batches) -> None:
-    """SIGKILL a DataLoader iterator's worker processes: torch's shutdown sends SIGTERM, which a stopped
-    (SIGSTOP) worker never acts on, and Python's exit then waits for it forever."""
-    for worker in getattr(batches, "_workers", []):
+def stop_workers(batches, grace: float = 2.0) -> None:
+    """End a DataLoader iterator's worker processes now. SIGTERM, which each turns into an exit that kills
+    the ``pipe:`` command it reads from (``exit_on_sigterm``); SIGCONT, as a stopped (SIGSTOP) worker acts
+    on no other signal; SIGKILL for any still there after ``grace`` seconds. (torch's own shutdown sends
+    SIGTERM only: a stopped worker never exits, and Python's exit then waits for it forever.)"""
+    workers = [worker for worker in getattr(batches, "_workers", []) if worker.is_alive()]
+    for worker in workers:
+        worker.terminate()
+        try:
+            os.kill(worker.pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    end = time.monotonic() + grace
+    for worker in workers:
+        worker.join(max(0.0, end - time.monotonic()))
         if worker.is_alive():
             worker.kill()
+            worker.join()
+
+
+def exit_on_sigterm(worker_id: int) -> None:
+    """A data worker's ``worker_init_fn``: SIGTERM raises SystemExit, so the worker unwinds and a shard
+    read it abandons kills its ``pipe:`` command (``omg.data.shards``) instead of leaving it running
+    (torch's handler ends the process at once)."""
+    signal.signal(signal.SIGTERM, _exit_on_signal)
+
+
+def _exit_on_signal(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 def _mixture_text(state: dict | None) -> str:
@@ -523,7 +549,7 @@ class MotionDataModule(L.LightningDataModule):
             sets=sets,
         )
         return StreamLoader(stream, epoch_fn=epoch_fn, num_workers=h.num_workers, collate_fn=self.collate,
-                            persistent_workers=False, fetch_timeout=h.timeout)
+                            persistent_workers=False, fetch_timeout=h.timeout, worker_init_fn=exit_on_sigterm)
 
     def val_clips(self) -> ClipDataset:
         """The validation set, decoded and verified (bad samples skipped and counted)."""
