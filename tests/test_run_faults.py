@@ -237,3 +237,25 @@ def test_a_stalled_read_ends_shards_inspect(h263_shards, tmp_path):
     line = finish(omg_process("shards", "inspect", url, "--timeout", "2", log=log), log, within=60,
                   leftovers=str(tmp_path / "fifo"))
     assert "--timeout=2" in line and "stalled" in line
+
+
+def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, tmp_path):
+    """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
+    import threading
+
+    from omg.data.paired import CompanionStream
+    from omg.errors import UsageError
+
+    fifo = str(tmp_path / "fifo")
+    stream = CompanionStream({"val": stalling_set(h263_shards / "val", tmp_path / "fifo"), "timeout": 1})
+    # without the bound the read never ends: kill `cat` after a while, so the test fails instead of hanging
+    rescue = threading.Timer(30, lambda: [os.kill(pid, signal.SIGKILL) for pid in processes(fifo)])
+    rescue.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(UsageError, match=r"shard-000000.tar was not read in data.timeout=1 s"):
+            stream.val_samples()
+    finally:
+        rescue.cancel()
+    assert time.monotonic() - start < 10
+    assert not processes(fifo)
