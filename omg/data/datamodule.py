@@ -320,6 +320,11 @@ def stop_workers(batches, grace: float = 2.0) -> None:
     the ``pipe:`` command it reads from (``exit_on_sigterm``); SIGCONT, as a stopped (SIGSTOP) worker acts
     on no other signal; SIGKILL for any still there after ``grace`` seconds. (torch's own shutdown sends
     SIGTERM only: a stopped worker never exits, and Python's exit then waits for it forever.)"""
+    from torch.utils.data._utils import signal_handling
+
+    if getattr(batches, "_worker_pids_set", False):  # as torch's shutdown does first: else its SIGCHLD
+        signal_handling._remove_worker_pids(id(batches))  # handler takes these exits for a worker's crash
+        batches._worker_pids_set = False
     workers = [worker for worker in getattr(batches, "_workers", []) if worker.is_alive()]
     for worker in workers:
         worker.terminate()
