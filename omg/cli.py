@@ -70,8 +70,8 @@ def plugins_main(argv: list[str]) -> None:
 
 
 def _lightning_cli() -> type:
-    """OmgLightningCLI whose parsers mark their errors with the failing key (``omg.tools.args``),
-    and whose runs report a stalled data worker as a usage error."""
+    """OmgLightningCLI whose parsers mark their errors with the failing key (``omg.tools.args``)
+    (a stalled data read ends as a UsageError of its own: ``omg.data.deadline``)."""
     from lightning.pytorch.cli import LightningArgumentParser
 
     from omg.lit.cli import OmgLightningCLI
@@ -92,17 +92,6 @@ def _lightning_cli() -> type:
                 raise
             except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
                 raise UsageError(explain(e)) from None
-
-        def _run_subcommand(self, subcommand: str) -> None:
-            try:
-                super()._run_subcommand(subcommand)
-            except RuntimeError as e:
-                # torch raises a plain RuntimeError for a DataLoader timeout: only its text tells it apart
-                if "DataLoader timed out" not in str(e):
-                    raise
-                timeout = getattr(getattr(self.datamodule, "hparams", None), "timeout", "?")
-                raise UsageError(f"a data worker delivered no batch in data.timeout={timeout} s: a stalled read or "
-                                 "worker; check the shard storage, or raise data.timeout (0 waits forever)") from None
 
     return CLI
 

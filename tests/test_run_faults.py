@@ -1,19 +1,22 @@
-"""Faults of a running `omg fit`: SIGTERM, a stalled data worker, too many bad samples in a
+"""Faults of a running `omg fit`: SIGTERM, a stalled data worker or read, too many bad samples in a
 worker. Each ends with one line on stderr and an exit code a scheduler can act on."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
+from conftest import REPO
 from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
@@ -289,3 +292,132 @@ def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, 
         main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=6)])
     assert f"Restoring states from the checkpoint path at {root / 'hpc_ckpt_2.ckpt'}" in caplog.text
     assert torch.load(root / "ckpt" / "last.ckpt", weights_only=True)["global_step"] == 6
+
+
+# -- stalls in real `omg` processes: a stalled read or worker ends the run within about data.timeout,
+# with data workers or without, and leaves no process behind
+
+def processes(where: str | None = None, parent: int | None = None) -> list[int]:
+    """Live (not zombie) processes whose command line names ``where``, or whose parent is ``parent``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError):  # not a process, or gone
+            continue
+        named = where is not None and where in command
+        if stat[0] != "Z" and (named or (parent is not None and int(stat[1]) == parent)):
+            found.append(int(entry.name))
+    return found
+
+
+def omg_process(*args: str, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], env=env, stdout=subprocess.DEVNULL,
+                            stderr=log.open("w"))
+
+
+def finish(process: subprocess.Popen, log: Path, within: float, leftovers: str | None = None) -> str:
+    """Wait ``within`` seconds for ``process`` to end (killing it and what it left when it does not), then
+    assert it ended with exit code 2 and one error line, and left no process naming ``leftovers``."""
+    try:
+        process.wait(within)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    finally:
+        left = processes(leftovers) if leftovers else []
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+    err = log.read_text()
+    assert process.returncode == 2, f"exit code {process.returncode} after {within} s: {err[-2000:]}"
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("omg:")]
+    assert len(lines) == 1, err[-2000:]
+    assert not left, f"left behind: {left}"
+    return lines[0]
+
+
+def stalling_set(shards: Path, out: Path) -> str:
+    """A `pipe:` URL of ``shards``' set whose every shard is a FIFO that no one writes: `cat` blocks on it."""
+    out.mkdir()
+    shutil.copy(shards / "manifest.json", out / "manifest.json")
+    for shard in shards.glob("*.tar"):
+        os.mkfifo(out / shard.name)
+    return f"pipe:cat {out}/manifest.json"
+
+
+def test_a_stopped_data_worker_ends_the_run_within_data_timeout(h263_shards, tmp_path):
+    """SIGSTOP on a worker that has batches in flight: the main process blocked fetching a batch's
+    shared-memory descriptor from it (multiprocessing.resource_sharer), which DataLoader(timeout) does not bound."""
+    root = tmp_path / "run"
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=100_000, num_workers=1,
+                          batches_per_epoch=100_000, timeout=3)
+    log = tmp_path / "err.txt"
+    process = omg_process("fit", "--config", config, log=log)
+    deadline = time.monotonic() + 240
+    while not (root / "ckpt" / "last.ckpt").exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)  # a checkpoint every 2 steps: training runs, the worker keeps batches queued
+    workers = processes(parent=process.pid)
+    assert len(workers) == 1, log.read_text()[-2000:]
+    os.kill(workers[0], signal.SIGSTOP)
+    start = time.monotonic()
+    try:
+        line = finish(process, log, within=60)
+    finally:
+        if processes(parent=process.pid) or workers[0] in processes(str(config)):
+            os.kill(workers[0], signal.SIGKILL)
+    assert time.monotonic() - start < 3 + 20
+    assert "data.timeout=3" in line and "stalled" in line
+    assert workers[0] not in processes(str(config))  # killed: a stopped process never acts on SIGTERM
+
+
+@pytest.mark.parametrize("num_workers", [0, 1])
+def test_a_stalled_read_ends_the_run(h263_shards, tmp_path, num_workers):
+    """num_workers 0 (configs/mini/omgpt.yaml): the shard is read in the main process, which
+    DataLoader(timeout) never bounded. Either way the `pipe:` command is killed with the run."""
+    train = stalling_set(h263_shards / "train", tmp_path / "fifo")
+    config = write_config(tmp_path / "c.yaml", train, tmp_path / "run", num_workers=num_workers, timeout=2)
+    log = tmp_path / "err.txt"
+    line = finish(omg_process("fit", "--config", config, log=log), log, within=90, leftovers=str(tmp_path / "fifo"))
+    assert "data.timeout=2" in line and "stalled" in line
+
+
+def test_a_stalled_validation_read_ends_the_run(h263_shards, tmp_path):
+    val = stalling_set(h263_shards / "val", tmp_path / "fifo")
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "run", timeout=2, val=val)
+    log = tmp_path / "err.txt"
+    process = omg_process("validate", "--config", config, "--trainer.limit_val_batches", "1", log=log)
+    line = finish(process, log, within=90, leftovers=str(tmp_path / "fifo"))
+    assert "data.timeout=2" in line and "shard-000000.tar was not read" in line
+
+
+def test_a_stalled_read_ends_shards_inspect(h263_shards, tmp_path):
+    url = stalling_set(h263_shards / "train", tmp_path / "fifo")
+    log = tmp_path / "err.txt"
+    line = finish(omg_process("shards", "inspect", url, "--timeout", "2", log=log), log, within=60,
+                  leftovers=str(tmp_path / "fifo"))
+    assert "--timeout=2" in line and "stalled" in line
+
+
+def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, tmp_path):
+    """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
+    import threading
+
+    from omg.data.paired import CompanionStream
+    from omg.errors import UsageError
+
+    fifo = str(tmp_path / "fifo")
+    stream = CompanionStream({"val": stalling_set(h263_shards / "val", tmp_path / "fifo"), "timeout": 1})
+    # without the bound the read never ends: kill `cat` after a while, so the test fails instead of hanging
+    rescue = threading.Timer(30, lambda: [os.kill(pid, signal.SIGKILL) for pid in processes(fifo)])
+    rescue.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(UsageError, match=r"shard-000000.tar was not read in data.timeout=1 s"):
+            stream.val_samples()
+    finally:
+        rescue.cancel()
+    assert time.monotonic() - start < 10
+    assert not processes(fifo)

@@ -31,6 +31,7 @@ import os
 import pickle
 import re
 import shlex
+import signal
 import sys
 import tarfile
 import time
@@ -40,6 +41,7 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
+from omg.data.deadline import deadline
 from omg.errors import UsageError
 from omg.files import atomic_path, atomic_write, npy_bytes, write_json
 from omg.motion import Clip, DataSpec, Representation
@@ -1046,9 +1048,15 @@ def open_url(url: str):
     if local is not None:
         return open(local, "rb")
     if url.startswith("pipe:"):
-        from webdataset.gopen import gopen
+        from webdataset import utils
+        from webdataset.gopen import Pipe
 
-        return gopen(url)
+        if utils.enforce_security:
+            raise ValueError("pipe: URLs are disabled (WDS_SECURE is set)")
+        # as webdataset.gopen, but the command in a process group of its own, which a read given up
+        # (a stall, a failed check, a reader that stops early) kills whole: see _abandon
+        return Pipe(url[len("pipe:"):], mode="rb", shell=True, bufsize=8192, ignore_status=[141],
+                    start_new_session=True)
     opener, missing = _fsspec_opener(url)
     if opener is not None:
         return opener()
@@ -1121,6 +1129,23 @@ def _count_error(url: str, count: int, samples: int | None) -> ShardError | None
     return ShardError(url, "samples", f"{count} samples, the manifest says {samples}")
 
 
+def _abandon(stream) -> None:
+    """Close a stream that will not be read to its end. A ``pipe:`` command is killed with its process
+    group, not waited for: webdataset's close waits up to two hours for a command that is stalled, and
+    killing only the shell would leave its commands running."""
+    process = getattr(stream, "proc", None)
+    if process is not None and process.poll() is None:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        process.wait()
+    try:
+        stream.close()
+    except OSError:  # the killed command's exit status: not news
+        pass
+
+
 def _tar_samples(stream, url: str) -> Iterator[dict[str, bytes]]:
     import webdataset as wds
 
@@ -1176,7 +1201,10 @@ def _read_shard(url: str, sha256: str | None = None, samples: int | None = None,
         if errors:
             raise errors[0]
         yield from buffered
-    finally:
+    except BaseException:  # a failed check, a stall (omg.data.deadline), or a reader that stopped early
+        _abandon(raw)
+        raise
+    else:
         raw.close()
 
 
@@ -1275,26 +1303,30 @@ class ShardSetCheck:
         return out
 
 
-def check_shards(shard_dir: str | Path) -> ShardSetCheck:
+def check_shards(shard_dir: str | Path, timeout: float = 0.0, timeout_name: str = "timeout") -> ShardSetCheck:
     """Read every shard of a set once: decode every sample and check each shard's file, size,
     sample count, end-of-archive blocks and sha256 against the manifest. Raises
-    ``UsageError`` only for a missing or invalid manifest; every other fault is reported."""
+    ``UsageError`` only for a missing or invalid manifest, or a shard whose read takes over ``timeout``
+    seconds (0: no limit; ``timeout_name`` is the option that sets it); every other fault is reported."""
     manifest = Manifest.load(shard_dir)
     results = []
     for entry, url in zip(manifest["shards"], manifest.shard_urls):
         expected = manifest.expected(entry["name"])
         result = ShardCheck(entry["name"], checks=("file", "readable", "end-of-archive", *expected))
-        try:
-            # streamed without the size pre-check: a bad shard's samples are still decoded and named
-            for raw in _read_shard(url, whole=False, precheck=False, **expected):
-                result.samples += 1
-                try:
-                    decode_sample(raw, manifest["feature_dim"])
-                    result.good += 1
-                except (ValueError, KeyError) as e:
-                    result.problems.append(f"{entry['name']} {raw.get('__key__')}: {e}")
-        except ShardError as e:
-            result.error = e
+        stalled = (f"{url} was not read in {timeout_name}={timeout:g} s: a stalled read; check the storage, "
+                   f"or raise {timeout_name} (0 waits forever)")
+        with deadline(timeout, stalled):
+            try:
+                # streamed without the size pre-check: a bad shard's samples are still decoded and named
+                for raw in _read_shard(url, whole=False, precheck=False, **expected):
+                    result.samples += 1
+                    try:
+                        decode_sample(raw, manifest["feature_dim"])
+                        result.good += 1
+                    except (ValueError, KeyError) as e:
+                        result.problems.append(f"{entry['name']} {raw.get('__key__')}: {e}")
+            except ShardError as e:
+                result.error = e
         results.append(result)
     return ShardSetCheck(manifest, results)
 
