@@ -32,6 +32,7 @@ import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
 from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
+from omg.files import check_output_dir
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
 
@@ -119,6 +120,8 @@ class OmgLightningCLI(LightningCLI):
         TensorBoard when installed, in a lightning_logs/ subfolder)."""
         config = self.config[self.subcommand] if self.subcommand else self.config
         trainer = config.trainer
+        # before anything is built or run: a file or an unwritable folder would fail only at the first write
+        check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
         if trainer.logger is None or trainer.logger is True:
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
