@@ -7,6 +7,7 @@ cut at a header boundary or inside a member, an invalid manifest. Each is caught
 from __future__ import annotations
 
 import json
+import os
 import pickle
 import tarfile
 
@@ -182,6 +183,20 @@ def test_inspect_reports_a_header_boundary_cut_and_a_missing_shard(shards, capsy
     assert ("6 of 8 shards verified against the manifest, 2 failed "
             "(shard-000001.tar: samples, shard-000006.tar: file)" in out)
     _assert_one_error_line(err, "2 of 8 shards failed verification", "shard-000001.tar")
+
+
+def test_inspect_names_a_fifo_or_folder_named_like_a_shard(shards, capsys):
+    """Not "no such file": the name is there, but it is no file to read (and a FIFO would block the read)."""
+    m = Manifest.load(shards)
+    m.shard_paths[2].unlink()
+    os.mkfifo(m.shard_paths[2])
+    m.shard_paths[5].unlink()
+    m.shard_paths[5].mkdir()
+    code, out, err = inspect(shards, capsys)
+    assert code == 1
+    assert "BAD shard-000002.tar: file check failed: not a regular file (a FIFO, socket or device)" in out
+    assert "BAD shard-000005.tar: file check failed: is a directory; a file is expected" in out
+    _assert_one_error_line(err, "2 of 8 shards failed verification", "shard-000002.tar")
 
 
 def test_tar_with_garbage_after_a_damaged_header_is_not_a_clean_end(tmp_path):

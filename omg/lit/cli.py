@@ -126,6 +126,17 @@ class OmgLightningCLI(LightningCLI):
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
 
+    def _preflight(self) -> None:
+        """Callbacks that can judge the model and the data before the run (a ``preflight(model,
+        datamodule)`` method, e.g. EvalCallback's evaluator against the data) do so here: the
+        Trainer's logger creates the run folder before any callback's ``setup``, which would leave
+        it behind, empty, on a refusal there."""
+        for callback in self.trainer.callbacks:
+            if callable(check := getattr(callback, "preflight", None)):
+                check(self.model, self.datamodule)
+
+    before_fit = before_validate = before_test = before_predict = _preflight
+
     # -- --ckpt_path -------------------------------------------------------------------------
     # Lightning reads --ckpt_path twice: LightningCLI right after parsing, to take the model's
     # hyper-parameters from it (and its class: a checkpoint of another class replaced the
