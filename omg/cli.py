@@ -11,6 +11,7 @@ on stderr, ``omg: error: <key>: <reason>``, and exit code 2.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import warnings
 
@@ -37,6 +38,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM
+SIGPIPE_EXIT = 128 + 13  # and by SIGPIPE
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"
 
 
@@ -177,6 +179,16 @@ def main(argv: list[str] | None = None) -> None:
         _usage_exit(f"a file is not UTF-8 text ({e.reason} at offset {e.start}); save it as UTF-8")
     except UsageError as e:
         _usage_exit(str(e))
+    except BrokenPipeError:
+        _stdout_closed()
+
+
+def _stdout_closed() -> None:
+    """The reader of stdout left early (``omg plugins | head -1``): it has what it wanted, so end
+    quietly, with the status of a process that SIGPIPE ended, as ``yes | head -1`` does."""
+    # what is still buffered would fail again when Python flushes stdout at exit, with a message
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    raise SystemExit(SIGPIPE_EXIT) from None
 
 
 def _usage_exit(message: str) -> None:
