@@ -78,6 +78,8 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
+    (d / "syntax.yaml").write_text("trainer:\n  max_steps: 3\n  devices: [1, 2\nmodel: x\n")  # ] missing
+    (d / "empty.yaml").write_text("")
     animals = REPO / "shards/mini/animal_maa/train"
     (d / "mix_negative.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: -1}}\n")
     (d / "mix_unknown_key.yaml").write_text(f"data:\n  train:\n    - {{pat: {MINI_SHARDS}, weight: 1}}\n")
@@ -186,6 +188,8 @@ ROWS = [
     ("build-config-dir", ["shards", "build", "--config", "{in}", "--source", "synth", "--out", "{out}"]),
     ("build-config-nan", ["shards", "build", "--config", "{in}/nan.yaml"]),
     ("build-config-wrong-type", ["shards", "build", "--config", "{in}/list_out.yaml"]),
+    ("build-config-syntax", ["shards", "build", "--config", "{in}/syntax.yaml"]),
+    ("build-config-empty", ["shards", "build", "--config", "{in}/empty.yaml"]),
     ("build-option-nan", [*SYNTH_BUILD, "--option.num_clips", "nan"]),
     ("build-option-neg-seed", [*SYNTH_BUILD, "--option.seed", "-1"]),
     ("build-option-unknown", [*SYNTH_BUILD, "--option.banana", "1"]),
@@ -242,6 +246,8 @@ ROWS = [
     ("fit-config-random", ["fit", "--config", "{in}/random.bin"]),
     ("fit-config-random-eq", ["fit", "--config={in}/random.bin"]),
     ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
+    ("fit-config-syntax", ["fit", "--config", "{in}/syntax.yaml"]),
+    ("fit-config-empty", ["fit", "--config={in}/empty.yaml"]),
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
     # omg fit: values refused before the run folder is made (they failed at fit start, or at the first batch)
     ("fit-ema-decay-over-1", [*FIT_DATA, "--model.init_args.ema_decay", "1.5"]),
@@ -306,6 +312,10 @@ ROWS = [
 
 # words the line of a row must hold, where a wrong one would mislead
 SAYS = {
+    "build-config-syntax": "syntax.yaml: not valid YAML at line 4",
+    "build-config-empty": "empty.yaml: the file is empty",
+    "fit-config-syntax": "syntax.yaml: not valid YAML at line 4",
+    "fit-config-empty": "empty.yaml: the file is empty",
     "merge-part-twice": "given twice",
     "merge-part-twice-other-spelling": "given twice",
     "merge-parts-overlap": "both hold clip",

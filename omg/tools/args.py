@@ -230,7 +230,25 @@ def check_config_files(argv: list[str]) -> None:
             continue
         value = value if sep else argv[i + 1]
         if Path(value).exists() or not any(c in value for c in "{}[]:\n"):
-            read_text(value, flag)
+            check_config_text(read_text(value, flag), f"{flag} {value}")
+
+
+def check_config_text(text: str, what: str) -> None:
+    """A config file's text is a YAML mapping: jsonargparse reports a syntax error without the
+    file or the line, and an empty file as "Unexpected config"."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or _first_line(e)
+        raise UsageError(f"{what}: not valid YAML{where}: {problem}") from None
+    if config is None:
+        raise UsageError(f"{what}: the file is empty (or only comments); give the settings as key: value lines")
+    if not isinstance(config, dict):
+        raise UsageError(f"{what}: a config file holds key: value settings, got a {type(config).__name__}")
 
 
 # -- functions as commands --------------------------------------------------------------------
