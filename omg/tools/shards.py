@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import logging
 import math
 import sys
 import types
@@ -400,8 +401,16 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
     stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size,
                           windows=WindowSampler(mode="whole"), feature_dim=data.feature_dim,
                           shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
-    items = list(stream)
-    samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows, max_bad_fraction=1.0).samples
+    # `inspect` has reported every bad sample once already; the stream would warn at each of its visits
+    data_log = logging.getLogger(MotionStream.__module__)
+    level = data_log.level
+    data_log.setLevel(logging.ERROR)
+    try:
+        items = list(stream)
+        samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows,
+                                          max_bad_fraction=1.0).samples
+    finally:
+        data_log.setLevel(level)
     groups = {"captions": ([it["text"] for it in items], [s["texts"][0] if s["texts"] else "" for s in samples])}
     for label in sorted({k for s in samples for k in s["meta"]["labels"]}):
         groups[label] = ([str(it["labels"].get(label)) for it in items],
