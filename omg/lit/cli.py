@@ -126,6 +126,14 @@ class OmgLightningCLI(LightningCLI):
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
 
+    def _run_subcommand(self, subcommand: str) -> None:
+        from omg.lit.base import NonFiniteLoss
+
+        try:
+            super()._run_subcommand(subcommand)
+        except NonFiniteLoss as e:  # one line: its step and its batch's clips say where to look
+            raise UsageError(str(e)) from None
+
     def _preflight(self) -> None:
         """Callbacks that can judge the model and the data before the run (a ``preflight(model,
         datamodule)`` method, e.g. EvalCallback's evaluator against the data) do so here: the

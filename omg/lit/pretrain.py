@@ -20,7 +20,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, checkpoint_each, modes_restored
+from omg.lit.base import OmgModule, check_finite, checkpoint_each, modes_restored
 from omg.lit.ema import EMA
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
@@ -130,11 +130,8 @@ class MotionDiffusionModule(OmgModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         losses = self.diffusion_losses(batch)
-        if not torch.isfinite(losses["loss"]):
-            raise FloatingPointError(
-                f"non-finite loss at step {self.global_step} ({ {k: float(v) for k, v in losses.items()} }); "
-                "lower model.lr, enable gradient clipping, or check the data with `omg shards inspect`"
-            )
+        check_finite(losses["loss"], self.global_step, batch, hint="lower model.lr, enable gradient clipping",
+                     terms=losses)
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=batch["motion"].shape[0])
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])
         self._log_throughput(batch)
