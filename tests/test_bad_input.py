@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from conftest import REPO, TINY_BVH
 from omg.cli import main
@@ -387,3 +388,29 @@ def test_good_input_still_works(ckpts, tmp_path, capsys, monkeypatch):
     main(["bench", "sample", "--steps", "0", "--token_steps", "1", "--batch_sizes", "[1]", "--frames", "8"])
     captured = capsys.readouterr()  # --steps 0 with --token-steps: only the token padding is timed
     assert "trimming:" in captured.out and "Traceback" not in captured.err
+
+
+def test_dashed_option_names_are_the_underscore_options(ckpts, tmp_path, capsys, monkeypatch):
+    """Scripts of the CLI before jsonargparse spell options with dashes (--num-samples, --no-preview,
+    --trainer.max-steps): the same options, for the tools and for omg fit; values are never rewritten."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    out = tmp_path / "gen"
+    main(["generate", "--unconditional", "--ckpt", ckpts["pre"], "--out", str(out), "--num-samples", "2",
+          "--batch-size", "1", "--steps", "2", "--length", "1", "--no-preview"])
+    assert sorted(p.name for p in out.glob("sample_*.bvh")) == ["sample_000.bvh", "sample_001.bvh"]
+    assert not (out / "preview.gif").exists()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.max-steps", "7",
+              "--data.batch-size", "5", "--model.init-args.ema-decay", "0.5", "--trainer.default-root-dir=--my-runs",
+              "--data.train", "shards/--dashed-set", "--print-config"])
+    assert e.value.code == 0
+    config = yaml.safe_load(capsys.readouterr().out)
+    assert config["trainer"]["max_steps"] == 7 and config["data"]["batch_size"] == 5
+    assert config["model"]["init_args"]["ema_decay"] == 0.5
+    assert config["trainer"]["default_root_dir"] == "--my-runs" and config["data"]["train"] == "shards/--dashed-set"
+    with pytest.raises(SystemExit):
+        main(["generate", "--help"])
+    help_text = capsys.readouterr().out
+    assert "--num_samples" in help_text and "--num-samples" not in help_text  # help shows one spelling
