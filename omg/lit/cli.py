@@ -121,7 +121,9 @@ class OmgLightningCLI(LightningCLI):
         config = self.config[self.subcommand] if self.subcommand else self.config
         trainer = config.trainer
         # before anything is built or run: a file or an unwritable folder would fail only at the first write
-        check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
+        # (a URL, s3://..., is Lightning's to open)
+        if "://" not in str(trainer.default_root_dir or ""):
+            check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
         if trainer.logger is None or trainer.logger is True:
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
