@@ -1,5 +1,7 @@
 """Files that readers never see half-written: every file omg writes (shards, manifests,
-checkpoints, BVH, previews, settings) goes through ``atomic_path``."""
+checkpoints, BVH, previews, settings) goes through ``atomic_path``. And the checks made before
+reading or writing: ``file_problem`` (what a path is when it is no regular file) and
+``check_output_dir`` (an output folder that can be created and written)."""
 
 from __future__ import annotations
 
