@@ -158,7 +158,16 @@ def lightning_main(argv: list[str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
+    try:
+        try:
+            _run(sys.argv[1:] if argv is None else argv)
+        finally:
+            sys.stdout.flush()  # here rather than at exit, so that a closed stdout is handled below
+    except BrokenPipeError:
+        _stdout_closed()
+
+
+def _run(argv: list[str]) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return
@@ -179,8 +188,6 @@ def main(argv: list[str] | None = None) -> None:
         _usage_exit(f"a file is not UTF-8 text ({e.reason} at offset {e.start}); save it as UTF-8")
     except UsageError as e:
         _usage_exit(str(e))
-    except BrokenPipeError:
-        _stdout_closed()
 
 
 def _stdout_closed() -> None:

@@ -42,9 +42,10 @@ def test_unknown_command_is_one_line(capsys):
     _assert_usage_error(capsys, ["fitt"], "unknown command 'fitt'", "fit")
 
 
-def test_stdout_closed_early_ends_quietly():
+@pytest.mark.parametrize("args", [["plugins"], ["--help"]])
+def test_stdout_closed_early_ends_quietly(args):
     """`omg plugins | head -1`: the reader is gone before omg writes (a closed pipe, deterministically)."""
-    proc = subprocess.Popen([sys.executable, "-m", "omg.cli", "plugins"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "omg.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO)
     proc.stdout.close()
     err = proc.stderr.read().decode()
