@@ -11,6 +11,7 @@ on stderr, ``omg: error: <key>: <reason>``, and exit code 2.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 import warnings
 
@@ -37,7 +38,8 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM
-SIGINT_EXIT = 128 + 2  # ... and by SIGINT (Ctrl-C)
+SIGINT_EXIT = 128 + 2  # ... by SIGINT (Ctrl-C)
+SIGPIPE_EXIT = 128 + 13  # ... and by SIGPIPE (a reader that closed our stdout)
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"
 
 
@@ -150,7 +152,16 @@ def lightning_main(argv: list[str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
+    try:
+        try:
+            _run(sys.argv[1:] if argv is None else argv)
+        finally:
+            sys.stdout.flush()  # here rather than at exit, so that a closed stdout is handled below
+    except BrokenPipeError:
+        _stdout_closed()
+
+
+def _run(argv: list[str]) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return
@@ -171,6 +182,14 @@ def main(argv: list[str] | None = None) -> None:
         _usage_exit(f"a file is not UTF-8 text ({e.reason} at offset {e.start}); save it as UTF-8")
     except UsageError as e:
         _usage_exit(str(e))
+
+
+def _stdout_closed() -> None:
+    """The reader of stdout left early (``omg plugins | head -1``): it has what it wanted, so end
+    quietly, with the status of a process that SIGPIPE ended, as ``yes | head -1`` does."""
+    # what is still buffered would fail again when Python flushes stdout at exit, with a message
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    raise SystemExit(SIGPIPE_EXIT) from None
 
 
 def _usage_exit(message: str) -> None:

@@ -11,12 +11,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from conftest import REPO, TINY_BVH
 from omg.cli import main
@@ -27,10 +29,13 @@ TINY_DIT = {"n_layers": 1, "d_model": 32, "n_heads": 2}
 
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory) -> dict[str, str]:
-    """Untrained tiny checkpoints: unconditional, text-conditioned, and one with NaN weights."""
+    """Untrained tiny checkpoints: unconditional, text-conditioned, one with NaN weights, a habit VQ-VAE,
+    and an animal evaluator in a copy of the human evaluation config."""
     from omg.data.datamodule import MotionDataModule
     from omg.lit.checkpoint import class_path
     from omg.lit.controlnet import ControlNetModule
+    from omg.lit.evaluator import EvaluatorModule
+    from omg.lit.habit import HabitVQModule
     from omg.lit.pretrain import PretrainModule
 
     root = tmp_path_factory.mktemp("bad_input_ckpts")
@@ -50,6 +55,16 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
         for p in pre.parameters():
             p.fill_(float("nan"))
     paths["nanck"] = save(pre, "nan.ckpt")
+    animal_spec = MotionDataModule(str(REPO / "shards/mini/animal_quatvel/train"), batch_size=2, num_workers=0).spec
+    habit = HabitVQModule(["dog", "horse"], flavor="tiny", text_encoder="hash", spec=animal_spec)
+    paths["habit"] = save(habit, "habit.ckpt")
+    maa_spec = MotionDataModule(str(REPO / "shards/mini/animal_maa/train"), batch_size=2, num_workers=0).spec
+    evaluator = EvaluatorModule(flavor="mini", evaluator={"n_layers": 1, "d_model": 64, "embed_dim": 64},
+                                text_encoder="hash", spec=maa_spec)
+    config = (REPO / "configs/mini/eval.yaml").read_text().replace("runs/mini_evaluator/checkpoints/last.ckpt",
+                                                                   save(evaluator, "animal_evaluator.ckpt"))
+    (root / "eval_animal_evaluator.yaml").write_text(config.replace("shards/mini", str(REPO / "shards/mini")))
+    paths["eval_animal"] = str(root / "eval_animal_evaluator.yaml")
     return paths
 
 
@@ -66,11 +81,17 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
+    (d / "syntax.yaml").write_text("trainer:\n  max_steps: 3\n  devices: [1, 2\nmodel: x\n")  # ] missing
+    (d / "empty.yaml").write_text("")
     animals = REPO / "shards/mini/animal_maa/train"
     (d / "mix_negative.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: -1}}\n")
     (d / "mix_unknown_key.yaml").write_text(f"data:\n  train:\n    - {{pat: {MINI_SHARDS}, weight: 1}}\n")
     (d / "mix_mismatched.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: 1}}\n"
                                            f"    - {{path: {animals}, weight: 1}}\n")
+    np.save(d / "nan.npy", np.full((10, 245), np.nan, np.float32))  # quatvel features' shape on smal35
+    np.save(d / "still.npy", np.zeros((10, 245), np.float32))  # a sound source
+    os.mkfifo(d / "fifo.npy")
+    shutil.copytree(MINI_VAL, d / "val_copy")  # the same clips as MINI_VAL
     (d / "bvh").mkdir()
     (d / "bvh/tiny.bvh").write_text(TINY_BVH)
     (d / "empty").mkdir()
@@ -110,8 +131,10 @@ BENCH_DATA = ["bench", "data", "--clips", "20", "--batch_size", "4", "--batches"
 BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch_size", "1"]
 BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch_sizes", "[1]"]
 MINI_SHARDS = str(REPO / "shards/mini/human263/train")
-# the mini config with its shards found from any folder: a row that gets past the config runs
-FIT_RUNS = [*FIT, "--data.train", MINI_SHARDS, "--data.val", str(REPO / "shards/mini/human263/val")]
+MINI_VAL = str(REPO / "shards/mini/human263/val")
+TRANSFER = ["transfer", "--to", "horse", "--ckpt", "{habit}", "--no_preview"]
+FIT_DATA = [*FIT, "--data.train", MINI_SHARDS, "--data.val", MINI_VAL,  # the config names them from the repo
+            "--trainer.max_steps", "1"]  # were a check missing, the run would end soon
 ROWS = [
     # omg generate
     ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
@@ -129,6 +152,7 @@ ROWS = [
     ("gen-device-cuda99", [*UNCOND, "--device", "cuda:99"]),
     ("gen-out-is-file", [*UNCOND, "--out", "{in}/afile"]),
     ("gen-out-under-file", [*UNCOND, "--out", "{in}/afile/sub"]),
+    ("gen-out-in-proc", [*UNCOND, "--out", "/proc/omg-out"]),  # os.access says root may write there
     ("gen-steps-too-many", [*UNCOND, "--steps", "100000"]),
     ("gen-steps-zero", [*UNCOND, "--steps", "0"]),
     ("gen-seed-neg", [*UNCOND, "--seed", "-1"]),
@@ -169,11 +193,14 @@ ROWS = [
     ("build-out-is-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile", "--option.num_clips", "2"]),
     ("build-out-under-file", ["shards", "build", "--source", "synth", "--out", "{in}/afile/x",
                               "--option.num_clips", "2"]),
+    ("build-out-in-proc", [*SYNTH_BUILD, "--out", "/proc/omg-out"]),
     ("build-config-binary", ["shards", "build", "--config", "{in}/random.bin"]),
     ("build-config-latin1", ["shards", "build", "--config", "{in}/latin1.yaml"]),
     ("build-config-dir", ["shards", "build", "--config", "{in}", "--source", "synth", "--out", "{out}"]),
     ("build-config-nan", ["shards", "build", "--config", "{in}/nan.yaml"]),
     ("build-config-wrong-type", ["shards", "build", "--config", "{in}/list_out.yaml"]),
+    ("build-config-syntax", ["shards", "build", "--config", "{in}/syntax.yaml"]),
+    ("build-config-empty", ["shards", "build", "--config", "{in}/empty.yaml"]),
     ("build-option-nan", [*SYNTH_BUILD, "--option.num_clips", "nan"]),
     ("build-option-neg-seed", [*SYNTH_BUILD, "--option.seed", "-1"]),
     ("build-option-unknown", [*SYNTH_BUILD, "--option.banana", "1"]),
@@ -195,6 +222,9 @@ ROWS = [
     ("merge-part-not-a-set", ["shards", "merge", "{in}/empty", "{in}/user", "--out", "{out}"]),
     ("merge-mismatched-parts", ["shards", "merge", MINI_SHARDS, str(REPO / "shards/mini/animal_maa/train"),
                                 "--out", "{out}"]),
+    ("merge-part-twice", ["shards", "merge", MINI_VAL, MINI_VAL, "--out", "{out}"]),
+    ("merge-part-twice-other-spelling", ["shards", "merge", MINI_VAL, f"{MINI_VAL}/../val", "--out", "{out}"]),
+    ("merge-parts-overlap", ["shards", "merge", MINI_VAL, "{in}/val_copy", "--out", "{out}"]),
     # omg transfer (the habit checkpoints are checked before anything is read or written)
     ("transfer-ckpt-other-class", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{cn}",
                                    "--out", "{out}"]),
@@ -205,6 +235,10 @@ ROWS = [
     ("transfer-out-is-file", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{cn}",
                               "--out", "{in}/afile"]),
     ("transfer-no-to", ["transfer", "{in}/bvh/tiny.bvh", "--ckpt", "{cn}", "--out", "{out}"]),
+    ("transfer-out-in-proc", [*TRANSFER, "{in}/still.npy", "--out", "/proc/omg-out"]),
+    ("transfer-source-nan", [*TRANSFER, "{in}/nan.npy", "--out", "{out}"]),
+    ("transfer-source-dir", [*TRANSFER, "{in}/empty", "--out", "{out}"]),
+    ("transfer-source-fifo", [*TRANSFER, "{in}/fifo.npy", "--out", "{out}"]),
     # omg generate's animal options on a checkpoint that is not OmniMotionGPT's
     ("gen-animal-on-controlnet", [*TEXT, "--animal", "dog"]),
     ("gen-from-motion-on-controlnet", [*TEXT, "--from_motion", "{in}/bvh/tiny.bvh"]),
@@ -223,10 +257,25 @@ ROWS = [
     ("fit-config-random", ["fit", "--config", "{in}/random.bin"]),
     ("fit-config-random-eq", ["fit", "--config={in}/random.bin"]),
     ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
+    ("fit-config-syntax", ["fit", "--config", "{in}/syntax.yaml"]),
+    ("fit-config-empty", ["fit", "--config={in}/empty.yaml"]),
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
-    ("fit-ckpt-hpc-pickled", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_pickled", "--ckpt_path", "hpc"]),
-    ("fit-ckpt-hpc-torn", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_torn", "--ckpt_path", "hpc"]),
-    ("fit-ckpt-hpc-none", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/empty", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-pickled", [*FIT_DATA, "--trainer.default_root_dir", "{in}/hpc_pickled", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-torn", [*FIT_DATA, "--trainer.default_root_dir", "{in}/hpc_torn", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-none", [*FIT_DATA, "--trainer.default_root_dir", "{in}/empty", "--ckpt_path", "hpc"]),
+    # omg fit: values refused before the run folder is made (they failed at fit start, or at the first batch)
+    ("fit-ema-decay-over-1", [*FIT_DATA, "--model.init_args.ema_decay", "1.5"]),
+    ("fit-vel-weight-neg", [*FIT_DATA, "--model.init_args.vel_weight", "-1"]),
+    ("fit-root-dir-is-file", [*FIT_DATA, "--trainer.default_root_dir", "{in}/afile"]),
+    ("fit-root-dir-in-proc", [*FIT_DATA, "--trainer.default_root_dir", "/proc/omg-runs"]),
+    ("fit-max-bad-fraction-over-1", [*FIT_DATA, "--data.max_bad_fraction", "2"]),
+    ("fit-max-bad-fraction-neg", [*FIT_DATA, "--data.max_bad_fraction", "-1"]),
+    ("fit-min-len-over-max-len", [*FIT_DATA, "--data.min_len", "200", "--data.max_len", "120"]),
+    ("fit-val-other-representation", [*FIT_DATA, "--data.val", str(REPO / "shards/mini/animal_maa/val")]),
+    # omg test: an evaluator of another representation than the data's
+    ("test-evaluator-other-kind", ["test", "--config", "{eval_animal}", "--trainer.default_root_dir", "{out}",
+                                   "--model.init_args.pretrained", "{pre}", "--model.init_args.text_encoder", "hash",
+                                   "--model.init_args.moc", "{{d_c: 16, num_experts: 2}}"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -275,6 +324,27 @@ ROWS = [
 ]
 
 
+# words the line of a row must hold, where a wrong one would mislead
+SAYS = {
+    "build-config-syntax": "syntax.yaml: not valid YAML at line 4",
+    "build-config-empty": "empty.yaml: the file is empty",
+    "fit-config-syntax": "syntax.yaml: not valid YAML at line 4",
+    "fit-config-empty": "empty.yaml: the file is empty",
+    "merge-part-twice": "given twice",
+    "merge-part-twice-other-spelling": "given twice",
+    "merge-parts-overlap": "both hold clip",
+    "transfer-source-nan": "nan.npy: holds NaN or inf",
+    "transfer-source-dir": "is a directory; a file is expected",
+    "transfer-source-fifo": "not a regular file",
+    "fit-ema-decay-over-1": "model.ema_decay",
+    "fit-root-dir-is-file": "trainer.default_root_dir",
+    "fit-root-dir-in-proc": "trainer.default_root_dir",
+    "fit-max-bad-fraction-over-1": "data.max_bad_fraction",
+    "fit-val-other-representation": "data.train (",
+    "test-evaluator-other-kind": "EvalCallback.evaluator differ",
+}
+
+
 def _tree(root: Path) -> dict[str, tuple]:
     """Every file and folder under root, with size and modification time of the files."""
     tree = {}
@@ -287,8 +357,8 @@ def _tree(root: Path) -> dict[str, tuple]:
     return tree
 
 
-@pytest.mark.parametrize("argv", [argv for _, argv in ROWS], ids=[name for name, _ in ROWS])
-def test_bad_input_is_one_line_exit_2_and_leaves_nothing(argv, ckpts, tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize("name, argv", ROWS, ids=[name for name, _ in ROWS])
+def test_bad_input_is_one_line_exit_2_and_leaves_nothing(name, argv, ckpts, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)  # default output folders would land here
     monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
     _write_inputs(tmp_path / "in", tmp_path / "out")
@@ -302,13 +372,15 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(argv, ckpts, tmp_path, 
     assert e.value.code == 2, captured.err[-3000:]
     assert "Traceback" not in captured.out + captured.err
     assert len(lines) == 1 and lines[0].startswith("omg: error: "), captured.err[-3000:]
+    assert SAYS.get(name, "") in lines[0]
     assert _tree(tmp_path) == before, "the failed run left files behind or changed them"
 
 
 def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
-                        "transfer", "fit", "bench data", "bench train", "bench sample"}
+                        "transfer", "fit", "test", "bench data", "bench train", "bench sample"}
+    assert set(SAYS) <= {name for name, _ in ROWS}
     assert len({name for name, _ in ROWS}) == len(ROWS)
 
 
@@ -329,3 +401,29 @@ def test_good_input_still_works(ckpts, tmp_path, capsys, monkeypatch):
     main(["bench", "sample", "--steps", "0", "--token_steps", "1", "--batch_sizes", "[1]", "--frames", "8"])
     captured = capsys.readouterr()  # --steps 0 with --token-steps: only the token padding is timed
     assert "trimming:" in captured.out and "Traceback" not in captured.err
+
+
+def test_dashed_option_names_are_the_underscore_options(ckpts, tmp_path, capsys, monkeypatch):
+    """Scripts of the CLI before jsonargparse spell options with dashes (--num-samples, --no-preview,
+    --trainer.max-steps): the same options, for the tools and for omg fit; values are never rewritten."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    out = tmp_path / "gen"
+    main(["generate", "--unconditional", "--ckpt", ckpts["pre"], "--out", str(out), "--num-samples", "2",
+          "--batch-size", "1", "--steps", "2", "--length", "1", "--no-preview"])
+    assert sorted(p.name for p in out.glob("sample_*.bvh")) == ["sample_000.bvh", "sample_001.bvh"]
+    assert not (out / "preview.gif").exists()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.max-steps", "7",
+              "--data.batch-size", "5", "--model.init-args.ema-decay", "0.5", "--trainer.default-root-dir=--my-runs",
+              "--data.train", "shards/--dashed-set", "--print-config"])
+    assert e.value.code == 0
+    config = yaml.safe_load(capsys.readouterr().out)
+    assert config["trainer"]["max_steps"] == 7 and config["data"]["batch_size"] == 5
+    assert config["model"]["init_args"]["ema_decay"] == 0.5
+    assert config["trainer"]["default_root_dir"] == "--my-runs" and config["data"]["train"] == "shards/--dashed-set"
+    with pytest.raises(SystemExit):
+        main(["generate", "--help"])
+    help_text = capsys.readouterr().out
+    assert "--num_samples" in help_text and "--num-samples" not in help_text  # help shows one spelling

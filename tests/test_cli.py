@@ -42,6 +42,16 @@ def test_unknown_command_is_one_line(capsys):
     _assert_usage_error(capsys, ["fitt"], "unknown command 'fitt'", "fit")
 
 
+@pytest.mark.parametrize("args", [["plugins"], ["--help"]])
+def test_stdout_closed_early_ends_quietly(args):
+    """`omg plugins | head -1`: the reader is gone before omg writes (a closed pipe, deterministically)."""
+    proc = subprocess.Popen([sys.executable, "-m", "omg.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 128 + 13 and err == ""
+
+
 def test_tool_command_errors_are_one_line(capsys, tmp_path):
     _assert_usage_error(capsys, ["shards", "frobnicate"], "frobnicate", "build")
     _assert_usage_error(capsys, ["shards", "build", "--max_clips", "many"],

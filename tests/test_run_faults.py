@@ -421,3 +421,34 @@ def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, t
         rescue.cancel()
     assert time.monotonic() - start < 10
     assert not processes(fifo)
+
+
+def test_a_non_finite_loss_names_the_batch_clips_in_one_line(h263_shards, tmp_path, capsys):
+    """Values that overflow the loss (1e30: finite, so every sample decodes) in a set read without
+    checksums: one line with the step and the batch's clips, not a FloatingPointError traceback."""
+    import io
+    import re
+    import shutil
+    import tarfile
+
+    import numpy as np
+
+    from omg.data.shards import Manifest
+    from test_shards import _rewrite_member
+
+    shards = tmp_path / "s"
+    shutil.copytree(h263_shards / "train", shards)
+    huge = io.BytesIO()
+    np.save(huge, np.full((40, 263), 1e30, np.float32))
+    for path in Manifest.load(shards).shard_paths:
+        with tarfile.open(path) as tar:
+            keys = sorted({name.split(".")[0] for name in tar.getnames()})
+        for key in keys:
+            _rewrite_member(path, f"{key}.motion.npy", huge.getvalue())
+    config = write_config(tmp_path / "c.yaml", shards, tmp_path / "run", max_steps=2, verify_shards=False)
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", config])
+    assert e.value.code == 2
+    line = one_error_line(capsys)
+    assert "non-finite loss" in line and "at step 0" in line
+    assert re.search(r"on the batch of clips walk\d+, walk\d+, walk\d+, walk\d+;", line), line  # batch_size 4

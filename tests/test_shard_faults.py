@@ -6,10 +6,14 @@ cut at a header boundary or inside a member, an invalid manifest. Each is caught
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
+import os
 import pickle
 import tarfile
 
+import numpy as np
 import pytest
 
 from conftest import write_toy_shards
@@ -182,6 +186,44 @@ def test_inspect_reports_a_header_boundary_cut_and_a_missing_shard(shards, capsy
     assert ("6 of 8 shards verified against the manifest, 2 failed "
             "(shard-000001.tar: samples, shard-000006.tar: file)" in out)
     _assert_one_error_line(err, "2 of 8 shards failed verification", "shard-000001.tar")
+
+
+def test_inspect_names_a_fifo_or_folder_named_like_a_shard(shards, capsys):
+    """Not "no such file": the name is there, but it is no file to read (and a FIFO would block the read)."""
+    m = Manifest.load(shards)
+    m.shard_paths[2].unlink()
+    os.mkfifo(m.shard_paths[2])
+    m.shard_paths[5].unlink()
+    m.shard_paths[5].mkdir()
+    code, out, err = inspect(shards, capsys)
+    assert code == 1
+    assert "BAD shard-000002.tar: file check failed: not a regular file (a FIFO, socket or device)" in out
+    assert "BAD shard-000005.tar: file check failed: is a directory; a file is expected" in out
+    _assert_one_error_line(err, "2 of 8 shards failed verification", "shard-000002.tar")
+
+
+def test_inspect_reports_a_bad_sample_once(shards, capsys, caplog):
+    """A sample that does not decode, in a shard that passes every check: one BAD line and the count,
+    not a warning at every visit of the batch-composition draws (there were over 20 of them)."""
+    path = Manifest.load(shards).shard_paths[3]
+    with tarfile.open(path) as tar:
+        members = [(m, tar.extractfile(m).read()) for m in tar.getmembers()]
+    victim = next(m.name for m, _ in members if m.name.endswith(".motion.npy"))
+    narrow = io.BytesIO()
+    np.save(narrow, np.zeros((8, 2), np.float32))  # the manifest's feature width is not 2
+    with tarfile.open(path, "w") as tar:
+        for m, data in members:
+            data = narrow.getvalue() if m.name == victim else data
+            m.size = len(data)
+            tar.addfile(m, io.BytesIO(data))
+    _edit_manifest(shards, lambda d: d["shards"][3].update(bytes=path.stat().st_size,
+                                                          sha256=hashlib.sha256(path.read_bytes()).hexdigest()))
+    key = victim.split(".")[0]
+    code, out, err = inspect(shards, capsys)
+    assert code == 1
+    assert out.count(key) == 1 and "39 valid samples, 1 problems" in out
+    assert [r.getMessage() for r in caplog.records if key in r.getMessage()] == []
+    _assert_one_error_line(err, "1 bad samples", key)
 
 
 def test_tar_with_garbage_after_a_damaged_header_is_not_a_clean_end(tmp_path):

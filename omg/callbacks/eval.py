@@ -28,12 +28,15 @@ from omg.evaluation import (
 from omg.registry import SAMPLERS
 
 
-def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
-    """The decoded clips of the data module's validation/test set and its window sampler."""
-    data = trainer.datamodule
+def check_eval_data(data: L.LightningDataModule | None, key: str) -> None:
     if data is None or not getattr(data, "val_urls", None):
         raise UsageError(f"{key} draws its prompts from the validation/test set: set data.val to a shard directory")
-    return data.val_clips().samples, data
+
+
+def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
+    """The decoded clips of the data module's validation/test set and its window sampler."""
+    check_eval_data(trainer.datamodule, key)
+    return trainer.datamodule.val_clips().samples, trainer.datamodule
 
 
 def check_generative(module: L.LightningModule, key: str) -> None:
@@ -112,15 +115,16 @@ class EvalCallback(Callback):
         self._fixed: PromptSet | None = None
         self._last_step = -1
 
-    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        check_generative(pl_module, "EvalCallback")
+    def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None) -> None:
+        """The checks that need no trainer: ``omg.lit.cli`` runs them before the run creates its
+        folder, ``setup`` again for a Trainer used without the CLI."""
+        check_generative(model, "EvalCallback")
+        check_eval_data(data, "EvalCallback")
         if self.evaluator is None:
             self.evaluator = build_evaluator(self.evaluator_spec, key="EvalCallback.evaluator")
-        self._samples, data = eval_samples(trainer, "EvalCallback")
-        self.spec, self._windows = data.spec, data.windows
-        check_evaluator_spec(self.evaluator, self.spec, key="EvalCallback.evaluator")
+        check_evaluator_spec(self.evaluator, data.spec, key="EvalCallback.evaluator")
         # generated and real motions are compared at one frame rate: the model's must be the data's
-        check_evaluator_spec(pl_module, self.spec, key=f"the model ({type(pl_module).__name__})")
+        check_evaluator_spec(model, data.spec, key=f"the model ({type(model).__name__})")
         for name, options in self.metrics.items():  # pool sizes and pair counts the prompt set can fill
             for option, default in (("pool_size", 32 if name == "r_precision" else None),
                                     ("num_pairs", 300 if name == "diversity" else None)):
@@ -128,6 +132,11 @@ class EvalCallback(Callback):
                 if need is not None and self.num_prompts < need:
                     raise UsageError(f"EvalCallback.num_prompts={self.num_prompts} is below {name}'s {option}={need}: "
                                      f"raise num_prompts or set metrics: [{{{name}: {{{option}: N}}}}]")
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        self.preflight(pl_module, trainer.datamodule)
+        self._samples, data = eval_samples(trainer, "EvalCallback")
+        self.spec, self._windows = data.spec, data.windows
 
     def prompts(self, replication: int) -> PromptSet:
         """The prompt set of a replication (replication 0 is the fixed set used during fit)."""

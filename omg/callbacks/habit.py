@@ -160,12 +160,17 @@ class HabitEvalCallback(Callback):
         self.table = Path(table) if table else None
         self.evaluator: nn.Module | None = None
 
-    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if not hasattr(pl_module, "flows") or not hasattr(pl_module, "vq"):
-            raise UsageError(f"HabitEvalCallback evaluates a HabitPriorModule, not a {type(pl_module).__name__}")
+    def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None = None) -> None:
+        """The checks that need no trainer: ``omg.lit.cli`` runs them before the run creates its
+        folder, ``setup`` again for a Trainer used without the CLI."""
+        if not hasattr(model, "flows") or not hasattr(model, "vq"):
+            raise UsageError(f"HabitEvalCallback evaluates a HabitPriorModule, not a {type(model).__name__}")
         if self.evaluator is None:
             self.evaluator = build_evaluator(self.evaluator_path, key="HabitEvalCallback.evaluator")
-        check_evaluator_spec(self.evaluator, pl_module.spec, key="HabitEvalCallback.evaluator")
+        check_evaluator_spec(self.evaluator, model.spec, key="HabitEvalCallback.evaluator")
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        self.preflight(pl_module, trainer.datamodule)
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         data = trainer.datamodule

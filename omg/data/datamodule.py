@@ -463,6 +463,11 @@ class MotionDataModule(L.LightningDataModule):
             )
         if not timeout >= 0:  # also NaN
             raise UsageError(f"data.timeout must be >= 0 seconds (0: no limit), got {timeout}")
+        if not 0 <= max_bad_fraction <= 1:  # also NaN
+            raise UsageError(f"data.max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
+        if not 1 <= min_len <= max_len:  # else the first batch would fail, after the run folder was written
+            raise UsageError(f"data.min_len and data.max_len must satisfy 1 <= min_len <= max_len, "
+                             f"got min_len={min_len}, max_len={max_len}")
         if clips not in ("auto", *CLIP_MODES):
             raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
         self.save_hyperparameters(arguments)
@@ -476,6 +481,9 @@ class MotionDataModule(L.LightningDataModule):
             self.train_urls, manifest, self.shard_checks = self.mixture.urls, self.mixture.manifest, self.mixture.checks
         if val:
             self.val_urls, val_manifest, val_checks = resolve_shards(val, "data.val")
+            if manifest is not None:  # else every validation sample would fail to decode, one by one
+                manifest.spec().check_compatible(val_manifest.spec(), f"data.train ({manifest.location})",
+                                                 f"data.val ({val_manifest.location})")
             self.shard_checks = {**self.shard_checks, **val_checks}
             manifest = manifest or val_manifest
         self.manifest = manifest  # the (first) training set's; the validation set's when there is none

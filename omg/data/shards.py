@@ -43,7 +43,7 @@ import numpy as np
 
 from omg.data.deadline import deadline
 from omg.errors import UsageError
-from omg.files import atomic_path, atomic_write, npy_bytes, write_json
+from omg.files import atomic_path, atomic_write, file_problem, npy_bytes, write_json
 from omg.motion import Clip, DataSpec, Representation
 
 SCHEMA_VERSION = 1
@@ -625,6 +625,35 @@ def manifest_data(representation: Representation, fps: float, shards: list[dict]
     }
 
 
+def _clip_ids(shard: Path) -> set[str]:
+    """The sample keys of a local shard, as WebDataset groups its members, from the tar headers alone."""
+    from webdataset.tariterators import base_plus_ext
+
+    try:
+        with tarfile.open(shard) as tar:
+            return {key for key, _ in map(base_plus_ext, tar.getnames()) if key}
+    except (OSError, tarfile.TarError) as e:
+        raise UsageError(f"{shard}: not a readable shard ({e}); rebuild that part") from None
+
+
+def _check_disjoint(manifests: list[Manifest]) -> None:
+    """Each part once and no clip in two parts: a merge would otherwise train on those clips twice
+    as often and pool their statistics twice."""
+    owners: dict[str, Path] = {}  # clip id -> the part holding it
+    seen: dict[Path, Path] = {}  # resolved folder -> the part as given
+    for m in manifests:
+        if (resolved := m.dir.resolve()) in seen:
+            raise UsageError(f"cannot merge {m.dir}: the same part as {seen[resolved]}, given twice; "
+                             "give each part once")
+        seen[resolved] = m.dir
+        for path in m.shard_paths:
+            ids = _clip_ids(path)
+            if clash := next((i for i in sorted(ids) if i in owners), None):
+                raise UsageError(f"cannot merge {m.dir} and {owners[clash]}: they overlap (both hold clip {clash}); "
+                                 "parts of one build hold disjoint clips")
+            owners.update(dict.fromkeys(ids, m.dir))
+
+
 def merge_shard_sets(parts: list[str | Path], out: str | Path, command: str = "", link: bool = False,
                      log=print) -> Manifest:
     """Join finished shard sets (the parts of an array build) into one set at ``out``: their
@@ -648,6 +677,7 @@ def merge_shard_sets(parts: list[str | Path], out: str | Path, command: str = ""
                 raise UsageError(f"cannot merge {m.dir}: {what}; parts must be built with the same settings")
     if missing := [str(m.dir) for m in manifests if m.sums is None]:
         raise UsageError(f"{missing[0]}: its manifest has no raw sums to pool statistics from; rebuild that part")
+    _check_disjoint(manifests)
     out = Path(out)
     if out.exists() and (any(out.glob("shard-*.tar")) or (out / MANIFEST).exists()):
         raise UsageError(f"--out {out}: already holds a shard set; choose an empty folder")
@@ -1159,8 +1189,8 @@ def _read_shard(url: str, sha256: str | None = None, samples: int | None = None,
                 whole: bool = False, precheck: bool = True) -> Iterator[dict[str, bytes]]:
     local = _local_path(url)
     if local is not None:
-        if not local.is_file():
-            raise ShardError(url, "file", "no such file")
+        if problem := file_problem(local):  # a FIFO would block the read
+            raise ShardError(url, "file", problem)
         if precheck and size is not None and (found := local.stat().st_size) != size:
             raise _size_error(url, found, size)
     try:
@@ -1235,8 +1265,8 @@ def verify_shard(path: str | Path, sha256: str | None = None, *, size: int | Non
     missing or its size or sha256 differ from the expected ones; returns its sha256."""
     url = str(path)
     local = _local_path(url)
-    if local is None or not local.is_file():
-        raise ShardError(url, "file", "no such file")
+    if local is None or (problem := file_problem(local)):
+        raise ShardError(url, "file", problem if local is not None else "no such file")
     if size is not None and (found := local.stat().st_size) != size:
         raise _size_error(url, found, size)
     digest = hashlib.sha256()

@@ -49,6 +49,25 @@ def modes_restored(module: nn.Module) -> Iterator[None]:
             m.train(training)
 
 
+class NonFiniteLoss(FloatingPointError):
+    """A training loss that is NaN or inf; its message names the step and the batch's clips. The
+    CLI prints it as one line (``omg.lit.cli``)."""
+
+
+def check_finite(loss: torch.Tensor, step: int, batch: dict, what: str = "loss", hint: str = "lower model.lr",
+                 terms: dict[str, torch.Tensor] | None = None) -> None:
+    """NonFiniteLoss unless ``loss`` is finite, naming the clips of ``batch`` (and the loss's
+    ``terms``): data whose values overflow (garbled bytes in a set read without checksums)
+    diverge like a too-high lr."""
+    if torch.isfinite(loss).all():
+        return
+    values = ", ".join(f"{k} {float(v):.4g}" for k, v in (terms or {what: loss}).items())
+    ids = [str(i) for i in batch.get("id") or []]
+    clips = f" on the batch of clips {', '.join(ids[:4])}{f' and {len(ids) - 4} more' if len(ids) > 4 else ''}"
+    raise NonFiniteLoss(f"non-finite {what} ({values}) at step {step}{clips if ids else ''}; {hint}, or check "
+                        "the data (`omg shards inspect`, the clips' value ranges)")
+
+
 class OmgModule(L.LightningModule):
     """Base of omg's LightningModules.
 

@@ -32,6 +32,7 @@ import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
 from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
+from omg.files import check_output_dir
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
 
@@ -135,9 +136,32 @@ class OmgLightningCLI(LightningCLI):
         TensorBoard when installed, in a lightning_logs/ subfolder)."""
         config = self.config[self.subcommand] if self.subcommand else self.config
         trainer = config.trainer
+        # before anything is built or run: a file or an unwritable folder would fail only at the first write
+        # (a URL, s3://..., is Lightning's to open)
+        if "://" not in str(trainer.default_root_dir or ""):
+            check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
         if trainer.logger is None or trainer.logger is True:
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
+
+    def _run_subcommand(self, subcommand: str) -> None:
+        from omg.lit.base import NonFiniteLoss
+
+        try:
+            super()._run_subcommand(subcommand)
+        except NonFiniteLoss as e:  # one line: its step and its batch's clips say where to look
+            raise UsageError(str(e)) from None
+
+    def _preflight(self) -> None:
+        """Callbacks that can judge the model and the data before the run (a ``preflight(model,
+        datamodule)`` method, e.g. EvalCallback's evaluator against the data) do so here: the
+        Trainer's logger creates the run folder before any callback's ``setup``, which would leave
+        it behind, empty, on a refusal there."""
+        for callback in self.trainer.callbacks:
+            if callable(check := getattr(callback, "preflight", None)):
+                check(self.model, self.datamodule)
+
+    before_fit = before_validate = before_test = before_predict = _preflight
 
     # -- --ckpt_path -------------------------------------------------------------------------
     # Lightning reads --ckpt_path twice: LightningCLI right after parsing, to take the model's

@@ -17,7 +17,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule
+from omg.lit.base import OmgModule, check_finite
 from omg.lit.checkpoint import load_module
 from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
@@ -91,8 +91,7 @@ class EvaluatorModule(OmgModule):
         text, motion, same = out
         logits = self.evaluator.logits(text, motion)
         loss = info_nce(logits, same)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite InfoNCE at step {self.global_step}; lower model.lr or check the data")
+        check_finite(loss, self.global_step, batch, what="InfoNCE")
         n = len(text)
         # in-batch top-1 accuracy, a duplicate caption's motion counting as a hit
         hit = same[torch.arange(n, device=self.device), logits.argmax(1)].float().mean()

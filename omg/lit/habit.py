@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule
+from omg.lit.base import OmgModule, check_finite
 from omg.models.habit import CategoryFlows, CategoryHabitEncoders, HabitConfig, MotionVQVAE, Quantizer, gaussian_kl
 from omg.motion import DataSpec, get_representation
 from omg.skeleton import get_skeleton
@@ -206,8 +206,7 @@ class HabitVQModule(OmgModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         losses, _, extra = self.losses(batch, self.generator())
-        if not torch.isfinite(losses["loss"]):
-            raise FloatingPointError(f"non-finite loss at step {self.global_step}; lower model.lr or check the data")
+        check_finite(losses["loss"], self.global_step, batch)
         self._accumulate(batch, extra["category"], extra["mu"])
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=len(batch["motion"]))
         return losses["loss"]
@@ -352,8 +351,7 @@ class HabitPriorModule(OmgModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         loss = self.nll(batch, self.vq.generator())
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite NLL at step {self.global_step}; lower model.lr")
+        check_finite(loss, self.global_step, batch, what="NLL")
         self.log("train/nll", loss, prog_bar=True, batch_size=len(batch["motion"]))
         return loss
 

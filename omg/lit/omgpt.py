@@ -32,7 +32,7 @@ from torch import Tensor
 
 from omg.data.paired import CompanionStream
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, modes_restored
+from omg.lit.base import OmgModule, check_finite, modes_restored
 from omg.lit.ema import EMA
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
 from omg.motion import Clip, DataSpec, get_representation, length_mask
@@ -344,9 +344,7 @@ class OmniMotionModule(OmgModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         losses = self.losses(batch, self.human_batch())
-        if not torch.isfinite(losses["loss"]):
-            raise FloatingPointError(f"non-finite loss at step {self.global_step}; lower model.lr or enable "
-                                     "gradient clipping")
+        check_finite(losses["loss"], self.global_step, batch, hint="lower model.lr, enable gradient clipping")
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=len(batch["text"]))
         self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=len(batch["text"]))
         return losses["loss"]

@@ -9,6 +9,7 @@ velocities of x̂0 and x0, and L_foot penalises the velocity of feet that are in
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from contextlib import nullcontext
@@ -19,7 +20,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, checkpoint_each, modes_restored
+from omg.lit.base import OmgModule, check_finite, checkpoint_each, modes_restored
 from omg.lit.ema import EMA
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
@@ -45,6 +46,14 @@ class MotionDiffusionModule(OmgModule):
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
             raise UsageError("model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; "
                              f"got {lr}, {weight_decay}, {warmup_steps}")
+        # checked here, when the module is built: the EMA and the optimizer would refuse them only at fit start
+        for key, value, ok, wanted in (
+                ("ema_decay", ema_decay, 0 <= ema_decay < 1, "in [0, 1) (0: no EMA)"),
+                ("vel_weight", vel_weight, 0 <= vel_weight < math.inf, "a finite number >= 0"),
+                ("foot_weight", foot_weight, 0 <= foot_weight < math.inf, "a finite number >= 0"),
+                ("betas", betas, len(betas) == 2 and all(0 <= b < 1 for b in betas), "two numbers in [0, 1)")):
+            if not ok:
+                raise UsageError(f"model.{key} must be {wanted}, got {value!r}")
         self.spec = DataSpec.coerce(spec)
         fields = set(DiTConfig.__dataclass_fields__) - {"name", "input_dim"}
         if unknown := set(dit or {}) - fields:
@@ -121,11 +130,8 @@ class MotionDiffusionModule(OmgModule):
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         losses = self.diffusion_losses(batch)
-        if not torch.isfinite(losses["loss"]):
-            raise FloatingPointError(
-                f"non-finite loss at step {self.global_step} ({ {k: float(v) for k, v in losses.items()} }); "
-                "lower model.lr, enable gradient clipping, or check the data with `omg shards inspect`"
-            )
+        check_finite(losses["loss"], self.global_step, batch, hint="lower model.lr, enable gradient clipping",
+                     terms=losses)
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=batch["motion"].shape[0])
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])
         self._log_throughput(batch)

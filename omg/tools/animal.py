@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import atomic_write, npy_bytes, write_json
+from omg.files import atomic_write, file_problem, npy_bytes, write_json
 from omg.motion import get_representation
 from omg.tools.common import removing_created
 
@@ -28,8 +28,8 @@ def read_human_motion(path: Path, fps: float) -> tuple[np.ndarray, np.ndarray]:
     from omg.skeleton import get_skeleton
 
     path = Path(path)
-    if not path.is_file():
-        raise UsageError(f"--from_motion {path}: no such file")
+    if problem := file_problem(path):
+        raise UsageError(f"--from_motion {path}: {problem}")
     skeleton = get_skeleton(HUMAN_SKELETON)
     if path.suffix.lower() != ".npy":
         from omg.io.read import read_motion

@@ -22,6 +22,7 @@ import argparse
 import inspect
 import math
 import shlex
+import sys
 import types
 import typing
 from pathlib import Path, PurePath
@@ -52,7 +53,8 @@ PositiveFiniteFloat = number_type("PositiveFiniteFloat", float, [(">", 0.0), ("<
 Fraction = number_type("Fraction", float, [(">=", 0.0), ("<", 1.0)], "a number in [0, 1)")
 
 __all__ = ["FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt", "Seed", "number_type",
-           "function_parser", "run", "run_subcommands", "explain", "KeyedErrors", "check_config_files"]
+           "function_parser", "run", "run_subcommands", "explain", "KeyedErrors", "check_config_files",
+           "underscore_options"]
 
 
 # -- errors -----------------------------------------------------------------------------------
@@ -93,9 +95,10 @@ class KeyedErrors:
     jsonargparse makes of the parent's class) go through ``_check_value_key``. Where a jsonargparse
     version calls neither, errors lose their key and ``explain`` falls back to the innermost reason."""
 
-    def parse_args(self, *args, **kwargs):
+    def parse_args(self, args=None, *rest, **kwargs):
         _watch(self)
-        return super().parse_args(*args, **kwargs)
+        args = underscore_options(sys.argv[1:] if args is None else list(args), option_names(self))
+        return super().parse_args(args, *rest, **kwargs)
 
     def parse_object(self, *args, **kwargs):
         _watch(self)
@@ -108,6 +111,42 @@ class KeyedErrors:
             if not isinstance(action, ActionSubCommands):  # its subcommand's parser names the key
                 _mark(e, key, action, value)
             raise
+
+
+# -- option spellings ----------------------------------------------------------------------------
+def option_names(parser: ArgumentParser) -> set[str]:
+    """Every long option of ``parser`` and of its subcommands' parsers."""
+    names: set[str] = set()
+    for action in parser._actions:
+        if isinstance(action, ActionSubCommands):
+            for subparser in action.choices.values():
+                names |= option_names(subparser)
+        names.update(s for s in action.option_strings if s.startswith("--"))
+    return names
+
+
+def underscore_options(argv: list[str], known: set[str]) -> list[str]:
+    """``argv`` with option names spelled with dashes (``--num-samples``, ``--trainer.max-steps``,
+    the earlier CLI's spelling) in the underscore spelling the parsers know; help shows only that one.
+
+    A token is rewritten only where it starts with ``--``, is no option as it is spelled, and its
+    underscore spelling is an option or, dotted, extends one (``--model.init-args.ema-decay``
+    extends ``--model``, whose keys come from its class). So values stay as they are: what follows
+    ``=``, everything after a bare ``--``, and a value such as the prompt ``--a-b`` (no option
+    ``--a_b``); a value spelled like a dashed option would be rewritten, so pass such a value as
+    ``--option=VALUE``."""
+    out = []
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            return out + argv[i:]
+        name, sep, value = arg.partition("=")
+        if name.startswith("--") and "-" in name[2:] and name not in known:
+            underscored = "--" + name[2:].replace("-", "_")
+            parts = underscored.split(".")
+            if any(".".join(parts[:k]) in known for k in range(len(parts), 0, -1)):
+                arg = underscored + sep + value
+        out.append(arg)
+    return out
 
 
 class OmgArgumentParser(KeyedErrors, ArgumentParser):
@@ -230,7 +269,25 @@ def check_config_files(argv: list[str]) -> None:
             continue
         value = value if sep else argv[i + 1]
         if Path(value).exists() or not any(c in value for c in "{}[]:\n"):
-            read_text(value, flag)
+            check_config_text(read_text(value, flag), f"{flag} {value}")
+
+
+def check_config_text(text: str, what: str) -> None:
+    """A config file's text is a YAML mapping: jsonargparse reports a syntax error without the
+    file or the line, and an empty file as "Unexpected config"."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(e, "problem", None) or _first_line(e)
+        raise UsageError(f"{what}: not valid YAML{where}: {problem}") from None
+    if config is None:
+        raise UsageError(f"{what}: the file is empty (or only comments); give the settings as key: value lines")
+    if not isinstance(config, dict):
+        raise UsageError(f"{what}: a config file holds key: value settings, got a {type(config).__name__}")
 
 
 # -- functions as commands --------------------------------------------------------------------

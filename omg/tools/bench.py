@@ -510,10 +510,10 @@ def bench_quality(
 
     from omg.data.datamodule import MotionDataModule
     from omg.evaluation import build_evaluator, check_evaluator_spec, evaluate, parse_metrics, prompt_set, summarize
+    from omg.files import check_output_dir
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
     from omg.registry import SAMPLERS
-    from omg.tools.common import check_output_dir
 
     for name in samplers:
         SAMPLERS.get(name)

@@ -1,24 +1,22 @@
-"""Helpers the tool commands share: output folders that are checked before anything is written
-and removed again when a command fails, UTF-8 text files read with one-line errors."""
+"""Helpers the tool commands share: output folders removed again when a command fails (checked
+before anything is written by ``omg.files.check_output_dir``), UTF-8 text files read with one-line errors."""
 
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 from pathlib import Path
 from typing import Iterator
 
 from omg.errors import UsageError
+from omg.files import file_problem
 
 
 def read_text(path: str | Path, what: str) -> str:
     """A UTF-8 text file's contents; a missing file, a folder or another encoding is a UsageError."""
     path = Path(path)
-    if path.is_dir():
-        raise UsageError(f"{what} {path}: is a folder, not a file")
-    if not path.is_file():
-        raise UsageError(f"{what} {path}: no such file")
+    if problem := file_problem(path):  # a FIFO would block the read forever
+        raise UsageError(f"{what} {path}: {problem}")
     try:
         data = path.read_bytes()
     except OSError as e:
@@ -34,20 +32,6 @@ def last_line(message: str) -> str:
     """The last non-empty line of a message, e.g. the exception line of a traceback a worker sent."""
     lines = [line for line in message.strip().splitlines() if line.strip()]
     return lines[-1].strip() if lines else message
-
-
-def check_output_dir(path: str | Path, what: str = "--out") -> Path:
-    """``path`` can be (or already is) a folder: neither it nor a parent is an existing file."""
-    path = Path(path)
-    for p in [path, *path.parents]:
-        if p.exists() and not p.is_dir():
-            where = "" if p == path else f" (its parent {p} is a file)"
-            raise UsageError(f"{what} {path}: not a folder{where}; choose a folder path for the output")
-        if p.exists():
-            if not os.access(p, os.W_OK | os.X_OK):
-                raise UsageError(f"{what} {path}: {p} is not writable")
-            break
-    return path
 
 
 @contextlib.contextmanager

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import logging
 import math
 import sys
 import types
@@ -19,6 +20,7 @@ import numpy as np
 
 from omg.data.shards import BuildProgress, EncodedClip, ShardWriter, check_shards, merge_shard_sets, write_shards
 from omg.errors import UsageError
+from omg.files import check_output_dir
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import get_skeleton
@@ -31,7 +33,7 @@ from omg.tools.args import (
     number_type,
     run_subcommands,
 )
-from omg.tools.common import check_output_dir, removing_created
+from omg.tools.common import removing_created
 
 MAX_FPS = 1000.0
 Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of frames per second in (0, {MAX_FPS:g}]")
@@ -400,8 +402,16 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
     stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size,
                           windows=WindowSampler(mode="whole"), feature_dim=data.feature_dim,
                           shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
-    items = list(stream)
-    samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows, max_bad_fraction=1.0).samples
+    # `inspect` has reported every bad sample once already; the stream would warn at each of its visits
+    data_log = logging.getLogger(MotionStream.__module__)
+    level = data_log.level
+    data_log.setLevel(logging.ERROR)
+    try:
+        items = list(stream)
+        samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows,
+                                          max_bad_fraction=1.0).samples
+    finally:
+        data_log.setLevel(level)
     groups = {"captions": ([it["text"] for it in items], [s["texts"][0] if s["texts"] else "" for s in samples])}
     for label in sorted({k for s in samples for k in s["meta"]["labels"]}):
         groups[label] = ([str(it["labels"].get(label)) for it in items],

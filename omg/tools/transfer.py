@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import atomic_write, npy_bytes, write_json
+from omg.files import atomic_write, check_output_dir, file_problem, npy_bytes, write_json
 from omg.tools.args import PositiveFiniteFloat, Seed, run
-from omg.tools.common import check_output_dir, removing_created
+from omg.tools.common import removing_created
 
 
 def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
@@ -32,13 +32,16 @@ def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.nd
     from omg.motion import Clip
 
     skeleton, fps = module.representation.skeleton, module.spec.fps
-    if not path.is_file():
-        raise UsageError(f"SOURCE {path}: no such file")
+    if problem := file_problem(path):
+        raise UsageError(f"SOURCE {path}: {problem}")
     if path.suffix.lower() == ".npy":
         try:
             array = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise UsageError(f"SOURCE {path}: not a readable .npy array ({e})") from None
+        if array.dtype.kind in "fc" and not np.isfinite(array).all():  # the model would sample from NaN
+            raise UsageError(f"SOURCE {path}: holds NaN or inf values ({int((~np.isfinite(array)).sum())} of "
+                             f"{array.size}); give finite motion")
         J, D = skeleton.num_joints, module.spec.feature_dim
         if array.ndim == 2 and array.shape[1] == D:
             return (array.astype(np.float32), np.asarray(skeleton.rest_offsets, np.float32), np.zeros(3, np.float32),
