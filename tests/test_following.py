@@ -135,7 +135,8 @@ def test_the_prompt_set_covers_each_category_and_bad_files_fail(tmp_path):
     for text, problem in (("prompts: [{text: a, targets: [{hand: up, action: wave}]}]", "hand must be one of"),
                           ("prompts: [{text: a, targets: [{turn: left, travel: left}]}]", "exactly one of"),
                           ("prompts: [{text: a, category: weird, targets: [{pace: run}]}]", "category must be"),
-                          ("prompts: [{text: a}]", "targets is a non-empty list"), ("nothing: 1", "expected `prompts:`")):
+                          ("prompts: [{text: a}]", "targets is a non-empty list"),
+                          ("nothing: 1", "expected `prompts:`")):
         path = tmp_path / "p.yaml"
         path.write_text(text)
         with pytest.raises(UsageError, match=problem):
