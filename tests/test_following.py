@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import json
 
+import lightning as L
 import pytest
 import torch
+import yaml
 
 from omg.errors import UsageError
 from omg.metrics.following import (
@@ -160,3 +162,75 @@ def test_the_registered_metric_scores_parts_and_categories(takes):
     assert out["following/sidedness"] == pytest.approx(0.5) and out["following/combinations"] == 0.0
     assert out["following/parts"] == pytest.approx(2 / 4) and out["following/pace"] == 1.0
     assert out["following/hand"] == pytest.approx(1 / 3)
+
+
+class Replay(L.LightningModule):
+    """A 'generator' that answers every prompt with one real take's features (humanml3d263), so
+    what the evaluation should find is known: the take's own verdicts."""
+
+    text_conditional = True
+
+    def __init__(self, features: torch.Tensor, spec):
+        super().__init__()
+        self.features, self.spec, self.seen = features, spec, []
+        self.anchor = torch.nn.Parameter(torch.zeros(()))
+
+    def sample(self, texts, lengths, *, seed=0, **sampling):
+        self.seen.append(list(texts))
+        out = torch.zeros(len(texts), int(lengths.max()), self.features.shape[-1])
+        for b, n in enumerate(lengths.tolist()):
+            out[b, :n] = self.features[:n]
+        return out
+
+    def test_step(self, batch, index):
+        return None
+
+
+def test_the_metric_end_to_end_through_the_eval_callback_with_a_prompt_file(shared_motion, tmp_path):
+    from omg.callbacks import EvalCallback
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.shards import ShardWriter
+    from omg.io.read import read_motion
+    from omg.motion import get_representation
+    from omg.retarget import retarget
+
+    clip = retarget(read_motion(shared_motion / "human/bandai2/dataset-2_wave-left-hand_normal_024.bvh"),
+                    "smpl22", fps=FPS, texts=["a person waves the left hand."])
+    rep = get_representation("humanml3d263", SMPL22)
+    ShardWriter(tmp_path / "shards", rep, fps=FPS, log=lambda m: None).write([clip])
+    data = MotionDataModule(val=str(tmp_path / "shards"), batch_size=2, max_len=200, clips="whole", num_workers=0)
+    seconds = (len(clip) - 1) / FPS
+    (tmp_path / "prompts.yaml").write_text(yaml.safe_dump({"prompts": [
+        {"text": "a person waves the left hand.", "category": "sidedness", "seconds": seconds,
+         "targets": [{"hand": "left", "action": "wave"}]},
+        {"text": "a person waves the right hand.", "category": "sidedness", "seconds": seconds,
+         "targets": [{"hand": "right", "action": "wave"}]},
+        {"text": "a man walks while waving the left hand.", "category": "combinations", "seconds": seconds,
+         "targets": [{"pace": "walk"}, {"hand": "left", "action": "wave"}]}]}))
+    module = Replay(torch.from_numpy(rep.encode(clip)[0]), data.spec)
+    callback = EvalCallback(metrics=["following", "foot_skating"], prompts=str(tmp_path / "prompts.yaml"),
+                            samples_per_prompt=2, replications=2, steps=2, batch_size=4)  # no evaluator needed
+    trainer = L.Trainer(accelerator="cpu", logger=False, callbacks=[callback], limit_test_batches=1,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path / "run")
+    results = trainer.test(module, data, verbose=False)[0]
+    assert [t for batch in module.seen for t in batch][:6] == [
+        "a person waves the left hand."] * 2 + ["a person waves the right hand."] * 2 + [
+        "a man walks while waving the left hand."] * 2  # each prompt samples_per_prompt times
+    assert results["eval/following"] == pytest.approx(1 / 3)
+    assert results["eval/following/sidedness"] == pytest.approx(0.5)
+    assert results["eval/following/combinations"] == 0.0
+    assert results["eval/following/parts"] == pytest.approx(2 / 4)
+    assert "eval/real/following" not in results  # a prompt file has no real motions
+    report = json.loads(next((tmp_path / "run").rglob("eval.json")).read_text())
+    assert report["settings"]["prompts"] == 3 and report["settings"]["samples_per_prompt"] == 2
+
+
+def test_a_prompt_file_takes_only_metrics_that_need_no_real_motion():
+    from omg.callbacks import EvalCallback
+
+    with pytest.raises(UsageError, match="fid compare with real motions"):
+        EvalCallback(metrics=["following", "fid"], prompts="following")
+    with pytest.raises(UsageError, match="r_precision read the evaluator's embeddings"):
+        EvalCallback(metrics=["r_precision"])
+    assert EvalCallback(metrics=["following"], prompts="following", samples_per_prompt=3).num_prompts == 3 * len(
+        load_prompts())
