@@ -139,3 +139,42 @@ def test_mirror_prob_is_checked(shared_motion, tmp_path):
     with pytest.raises(UsageError, match="quatvel.* does not define its mirror image"):  # not for every one
         MotionDataModule(train=str(shards), mirror_prob=0.5)
     MotionDataModule(train=str(shards), mirror_prob=0.0)  # off: any representation
+
+
+def test_side_separation_of_text_features():
+    from omg.text import build_text_encoder
+    from omg.text.sides import side_separation
+
+    captions = [("a person waves the left hand.", "wave-left"), ("a person waves the right hand.", "wave-right"),
+                ("a person waves the left hand sadly.", "wave-left"), ("a person runs forward.", "run"),
+                ("a person bows.", "bow")]
+    encoder = build_text_encoder("hash")
+    out = side_separation(encoder, captions)
+    assert set(out) == {"sentence", "tokens"} and out["sentence"]["captions"] == 3
+    for r in out.values():
+        assert 0 < r["side"] < r["action"] and r["ratio"] == pytest.approx(r["side"] / r["action"])
+        assert 0 <= r["rank"] <= 1
+    # the mirror of "waves the left hand" is the caption "waves the right hand": their sentence distance
+    features = encoder(["a person waves the left hand.", "a person waves the right hand."]).eot_embedding().double()
+    direct = 1 - torch.nn.functional.cosine_similarity(features[0], features[1], dim=0)
+    only_side = side_separation(encoder, captions[:2] + captions[3:])
+    assert only_side["sentence"]["side"] == pytest.approx(float(direct))
+    with pytest.raises(ValueError, match="no caption names a side"):
+        side_separation(encoder, captions[3:])
+
+
+def test_bench_sides_reads_manifests_and_fails_in_one_line(tmp_path, capsys):
+    from omg.cli import main
+
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps({"clips": [
+        {"texts": ["a person walks to the left."], "labels": {"content": "walk-left"}},
+        {"texts": ["a person walks forward."], "labels": {"content": "walk"}}]}))
+    main(["bench", "sides", "--manifests", f"[{manifest}]", "--encoders", "[hash]"])
+    out = capsys.readouterr().out
+    assert "| hash | sentence | 1 |" in out and "| hash | tokens | 1 |" in out
+    (tmp_path / "bad.json").write_text("[]")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench", "sides", "--manifests", f"[{tmp_path / 'bad.json'}]", "--encoders", "[hash]"])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().startswith("omg: error: --manifests:")

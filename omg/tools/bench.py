@@ -594,8 +594,49 @@ def plot_quality(rows: list[dict], path: Path, command: str) -> None:
     plt.close(fig)
 
 
+# -- sides in the text features -----------------------------------------------------------------
+def bench_sides(manifests: tuple[Path, ...], encoders: tuple[str, ...] = ("minilm",)) -> list[dict]:
+    """Does sidedness survive in the text features? For each text encoder, the cosine distance
+    between every caption that names a side and its mirror image (left <-> right), against the
+    distance between captions of different actions (``omg.text.sides.side_separation``), for the
+    sentence feature and the token features. Prints one Markdown row per (encoder, feature).
+
+    Args:
+        manifests: clip manifests (``{"clips": [{texts, labels: {content}}]}``), e.g.
+            ../shared/data/bandai1/manifest.json; the action of a caption is its clip's content label
+        encoders: registered text encoders (minilm, clip, bge, hash), a list such as [minilm, clip]
+
+    Returns:
+        One row per (encoder, feature): side, same_action, action, ratio, rank, captions.
+    """
+    from omg.text import build_text_encoder
+    from omg.text.sides import side_separation
+
+    captions = []
+    for path in manifests:
+        try:
+            clips = json.loads(Path(path).read_text())["clips"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise UsageError(f"--manifests: {path} is not a clip manifest ({{\"clips\": [...]}}): {e}") from None
+        captions += [(t, str((c.get("labels") or {}).get("content", t))) for c in clips for t in c.get("texts") or []]
+    rows = []
+    print("| encoder | feature | captions | d(left, right) | d(same action, other style) | "
+          "d(other action) | ratio | other actions nearer than the mirror |\n|---|---|---:|---:|---:|---:|---:|---:|")
+    for name in encoders:
+        encoder = build_text_encoder(name)
+        try:
+            result = side_separation(encoder, captions)
+        except ValueError as e:
+            raise UsageError(f"--manifests: {e}") from None
+        for feature, r in result.items():
+            rows.append({"encoder": name, "feature": feature, **r})
+            print(f"| {name} | {feature} | {r['captions']} | {r['side']:.4f} | {r['same_action']:.4f} "
+                  f"| {r['action']:.4f} | {r['ratio']:.3f} | {r['rank']:.3f} |", flush=True)
+    return rows
+
+
 BENCHMARKS = {"data": (bench_data, {}), "train": (bench_train, {}), "sample": (bench_sample, {}),
-              "quality": (bench_quality, {})}
+              "quality": (bench_quality, {}), "sides": (bench_sides, {})}
 
 
 def main(argv: list[str]) -> None:
