@@ -234,3 +234,23 @@ def test_a_prompt_file_takes_only_metrics_that_need_no_real_motion():
         EvalCallback(metrics=["r_precision"])
     assert EvalCallback(metrics=["following"], prompts="following", samples_per_prompt=3).num_prompts == 3 * len(
         load_prompts())
+
+
+def test_bench_following_scores_real_clips_and_their_mirror_images(shared_motion, tmp_path, capsys):
+    from omg.cli import main
+
+    folder = shared_motion / "human" / "bandai2"
+    (tmp_path / "manifest.json").write_text(json.dumps({"clips": [
+        {"id": name, "path": str(folder / f"dataset-2_{name}.bvh"), "format": "bvh", "domain": "human",
+         "labels": {"content": name.split("_")[0]}}
+        for name in ("wave-left-hand_normal_024", "walk-turn-right_exhausted_027", "raise-up-left-hand_normal_013")]}))
+    for flag, rows in (([], ("| wave-left-hand |", "| walk-turn-right |", "| raise-up-left-hand |")),
+                       (["--mirror"], ("| wave-right-hand |", "| walk-turn-left |", "| raise-up-right-hand |"))):
+        main(["bench", "following", "--input", str(tmp_path), *flag])
+        out = capsys.readouterr().out
+        for row in rows:
+            assert any(line.startswith(row) and line.endswith("| 1/1 |") for line in out.splitlines()), (row, out)
+        assert "| all | | 3/3 (1.00) |" in out
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench", "following", "--input", str(tmp_path), "--label", "style"])
+    assert exit_info.value.code == 2 and "no clip has a 'style' label" in capsys.readouterr().err
