@@ -482,6 +482,8 @@ def bench_quality(
     seed: NonNegativeInt = 0,
     out: Path = Path("out/quality"),
     command: str = "omg bench quality",
+    prompts: str | None = None,
+    samples_per_prompt: PositiveInt = 4,
 ) -> list[dict]:
     """FID and R-precision against sampling steps and seconds per motion, for each sampler: the
     evaluation protocol of ``omg test`` (seeded prompt sets from the validation shards, a frozen
@@ -502,6 +504,9 @@ def bench_quality(
         seed: the protocol's seed
         out: folder for quality.csv and quality.png
         command: the command line, recorded with the results
+        prompts: also score prompt following (``omg.metrics.following``) on a prompt file with
+            targets: ``following`` (the built-in set) or a YAML path; adds the following columns
+        samples_per_prompt: generations of each prompt of the prompt file per replication
 
     Returns:
         One row per (sampler, steps): seconds per motion and each metric's mean and CI.
@@ -509,9 +514,18 @@ def bench_quality(
     import csv
 
     from omg.data.datamodule import MotionDataModule
-    from omg.evaluation import build_evaluator, check_evaluator_spec, evaluate, parse_metrics, prompt_set, summarize
+    from omg.evaluation import (
+        build_evaluator,
+        check_evaluator_spec,
+        evaluate,
+        file_prompt_set,
+        parse_metrics,
+        prompt_set,
+        summarize,
+    )
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
+    from omg.metrics.following import CATEGORIES, load_prompts
     from omg.registry import SAMPLERS
     from omg.tools.common import check_output_dir
 
@@ -526,6 +540,10 @@ def bench_quality(
     model = build_evaluator(evaluator, key="--evaluator")
     check_evaluator_spec(model, data.spec, key="--evaluator")
     metrics = parse_metrics(["fid", {"r_precision": {"pool_size": min(32, num_prompts)}}])
+    following = None
+    if prompts is not None:
+        entries = load_prompts(None if prompts == "following" else prompts)
+        following = file_prompt_set(entries, samples_per_prompt, data.spec.fps, max_len)
     rows = []
     for name in samplers:
         for n in steps:
@@ -542,11 +560,17 @@ def bench_quality(
                              replication=r, spec=data.spec) for r in range(replications)]
             summary = summarize(runs)
             row = {"sampler": name, "steps": n, "s_per_motion": seconds / motions}
-            for key in ("fid", "r_precision/top1", "r_precision/top3"):
+            keys = ["fid", "r_precision/top1", "r_precision/top3"]
+            if following is not None:
+                summary |= summarize([evaluate(generate, None, following, {"following": {}}, seed=seed, replication=r,
+                                               spec=data.spec) for r in range(replications)])
+                keys += [k for k in ("following", *(f"following/{c}" for c in CATEGORIES)) if k in summary]
+            for key in keys:
                 row[f"{key}_mean"], row[f"{key}_ci95"] = summary[key]["mean"], summary[key]["ci95"]
             rows.append(row)
+            extra = f" {row['following_mean']:.3f} ± {row['following_ci95']:.3f} |" if following is not None else ""
             print(f"| {name} | {n} | {row['s_per_motion']:.3f} | {row['fid_mean']:.3f} ± {row['fid_ci95']:.3f} "
-                  f"| {row['r_precision/top3_mean']:.3f} ± {row['r_precision/top3_ci95']:.3f} |", flush=True)
+                  f"| {row['r_precision/top3_mean']:.3f} ± {row['r_precision/top3_ci95']:.3f} |{extra}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "quality.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
