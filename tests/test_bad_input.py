@@ -212,6 +212,8 @@ ROWS = [
     ("fit-config-random-eq", ["fit", "--config={in}/random.bin"]),
     ("fit-config-latin1", ["fit", "--config", "{in}/latin1.yaml"]),
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
+    ("fit-mirror-prob-above-one", [*FIT, "--data.mirror_prob", "1.5"]),
+    ("fit-mirror-prob-nan", [*FIT, "--data.mirror_prob", "nan"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -257,6 +259,13 @@ ROWS = [
     ("bench-sample-flavor-banana", [*BENCH_SAMPLE, "--flavor", "banana"]),
     ("bench-sample-text-encoder-banana", [*BENCH_SAMPLE, "--text_encoder", "banana"]),
     ("bench-sample-precision-banana", [*BENCH_SAMPLE, "--precision", "banana"]),
+    ("bench-following-input-missing", ["bench", "following", "--input", "{in}/nope"]),
+    ("bench-following-input-no-labels", ["bench", "following", "--input", "{in}"]),
+    ("bench-following-prompts-missing", ["bench", "following", "--input", "{in}", "--prompts", "{in}/nope.yaml"]),
+    ("bench-following-prompts-binary", ["bench", "following", "--input", "{in}", "--prompts", "{in}/elf.bin"]),
+    ("bench-following-fps-nan", ["bench", "following", "--input", "{in}", "--fps", "nan"]),
+    ("bench-sides-manifest-missing", ["bench", "sides", "--manifests", "[{in}/nope.json]", "--encoders", "[hash]"]),
+    ("bench-sides-manifest-binary", ["bench", "sides", "--manifests", "[{in}/elf.bin]", "--encoders", "[hash]"]),
 ]
 
 
@@ -293,7 +302,8 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(argv, ckpts, tmp_path, 
 def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
-                        "transfer", "fit", "bench data", "bench train", "bench sample"}
+                        "transfer", "fit", "bench data", "bench train", "bench sample", "bench following",
+                        "bench sides"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
 
 
