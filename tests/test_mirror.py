@@ -22,11 +22,26 @@ WAVE_LEFT = "human/bandai2/dataset-2_wave-left-hand_normal_024.bvh"
 TURN_LEFT = "human/bandai2/dataset-2_walk-turn-left_normal_001.bvh"
 
 
-def real_clip(shared_motion, path, skeleton="smpl22", texts=()):
+def real_clip(shared_motion, path, skeleton="smpl22", texts=(), labels=None):
     from omg.io.read import read_motion
     from omg.retarget import retarget
 
-    return retarget(read_motion(shared_motion / path), skeleton, fps=20, id=path, texts=list(texts))
+    return retarget(read_motion(shared_motion / path), skeleton, fps=20, id=path, texts=list(texts),
+                    labels=labels or {})
+
+
+@pytest.mark.parametrize("skeleton", [SMPL22, SMAL35], ids=lambda s: s.name)
+def test_skeleton_mirror_swaps_sides_and_reflects(skeleton):
+    rest = torch.from_numpy(skeleton.rest_positions()).double()  # (J, 3), left side at +X
+    mirrored = skeleton.mirror(rest)
+    assert torch.equal(skeleton.mirror(mirrored), rest)
+    left = [j for j, name in enumerate(skeleton.names) if name.startswith(("left_", "L"))]
+    assert len(left) >= 7
+    for j in left:  # a left joint's mirror joint sits where the left one would be seen in a mirror
+        k = skeleton.symmetry[j]
+        assert k != j and rest[j, 0] > 0 and mirrored[k, 0] == -rest[j, 0] and mirrored[k, 1] == rest[j, 1]
+    if skeleton is SMAL35:  # built symmetric: its rest pose is its own mirror image
+        torch.testing.assert_close(mirrored, rest, atol=1e-6, rtol=0)
 
 
 def test_humanml3d263_mirror_is_exact_on_a_real_clip(shared_motion):
@@ -108,8 +123,11 @@ def write_real_shards(out, clips, representation="humanml3d263"):
 
 
 def test_the_stream_mirrors_training_pairs_when_asked(shared_motion, tmp_path):
-    clips = [real_clip(shared_motion, WAVE_LEFT, texts=["a person waves the left hand."]),
-             real_clip(shared_motion, TURN_LEFT, texts=["a person walks and turns left."])]
+    clips = [real_clip(shared_motion, WAVE_LEFT, texts=["a person waves the left hand."],
+                       labels={"content": "wave-left-hand", "style": "normal"}),
+             real_clip(shared_motion, TURN_LEFT, texts=["a person walks and turns left."],
+                       labels={"content": "walk-turn-left", "style": "normal"})]
+    labels = {c.id: c.labels for c in clips}
     shards = write_real_shards(tmp_path / "train", clips)
     rep = get_representation("humanml3d263", SMPL22)
     originals = {c.id: (rep.encode(c)[0], c.texts[0]) for c in clips}
@@ -125,6 +143,8 @@ def test_the_stream_mirrors_training_pairs_when_asked(shared_motion, tmp_path):
             flipped = bool(np.array_equal(item["motion"], rep.mirror(window)[0]))
             assert flipped or np.array_equal(item["motion"], window)
             assert item["text"] == (mirror_caption(text) if flipped else text)
+            content = labels[item["id"]]["content"]
+            assert item["labels"] == {"content": mirror_caption(content) if flipped else content, "style": "normal"}
             mirrored.append(flipped)
         if expect_mirrored is not None:
             assert np.mean(mirrored) == expect_mirrored
