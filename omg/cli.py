@@ -37,6 +37,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM
+SIGINT_EXIT = 128 + 2  # ... and by SIGINT (Ctrl-C)
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"
 
 
@@ -69,8 +70,8 @@ def plugins_main(argv: list[str]) -> None:
 
 
 def _lightning_cli() -> type:
-    """OmgLightningCLI whose parsers mark their errors with the failing key (``omg.tools.args``),
-    and whose runs report a stalled data worker as a usage error."""
+    """OmgLightningCLI whose parsers mark their errors with the failing key (``omg.tools.args``)
+    (a stalled data read ends as a UsageError of its own: ``omg.data.deadline``)."""
     from lightning.pytorch.cli import LightningArgumentParser
 
     from omg.lit.cli import OmgLightningCLI
@@ -91,17 +92,6 @@ def _lightning_cli() -> type:
                 raise
             except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
                 raise UsageError(explain(e)) from None
-
-        def _run_subcommand(self, subcommand: str) -> None:
-            try:
-                super()._run_subcommand(subcommand)
-            except RuntimeError as e:
-                # torch raises a plain RuntimeError for a DataLoader timeout: only its text tells it apart
-                if "DataLoader timed out" not in str(e):
-                    raise
-                timeout = getattr(getattr(self.datamodule, "hparams", None), "timeout", "?")
-                raise UsageError(f"a data worker delivered no batch in data.timeout={timeout} s: a stalled read or "
-                                 "worker; check the shard storage, or raise data.timeout (0 waits forever)") from None
 
     return CLI
 
@@ -142,12 +132,16 @@ def lightning_main(argv: list[str]) -> None:
         raise UsageError(f"{str(e).strip().splitlines()[0]} (override trainer settings with --trainer.KEY VALUE, "
                          "e.g. --trainer.accelerator cpu)") from None
     except SIGTERMException as e:  # Lightning's loops stop at a step boundary and exit "successfully"
-        stop = getattr(e, "omg_stop", None) or {"step": "?", "checkpoint": None, "requeued": False}
+        stop = {"step": "?", "checkpoint": None, "requeued": False, "signal": "SIGTERM",
+                **(getattr(e, "omg_stop", None) or {})}  # omg.callbacks.run.InterruptCheckpoint
         where = (f"checkpoint {stop['checkpoint']} (resume with --ckpt_path last)" if stop["checkpoint"]
                  else "no checkpoint was written")
         if stop["requeued"]:
             print(f"omg: requeued by SLURM at step {stop['step']}; {where}", file=sys.stderr)
             raise SystemExit(0) from None
+        if stop["signal"] == "SIGINT":
+            print(f"omg: interrupted by Ctrl-C at step {stop['step']}; {where}", file=sys.stderr)
+            raise SystemExit(SIGINT_EXIT) from None
         print(f"omg: interrupted by SIGTERM at step {stop['step']}; {where}", file=sys.stderr)
         raise SystemExit(SIGTERM_EXIT) from None
     except TooManyBadSamples as e:  # from a data worker: torch re-raises it with the worker's traceback as its text

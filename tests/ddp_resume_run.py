@@ -11,7 +11,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from omg.data.datamodule import MotionDataModule  # noqa: E402
 from omg.lit.pretrain import PretrainModule  # noqa: E402
-from test_resume import TOTAL_STEPS, KillAt, Killed  # noqa: E402
+from test_resume import KillAt, Killed  # noqa: E402
+
+MAX_STEPS = 7  # epochs of 3 batches: boundaries after steps 3 and 6
 
 if __name__ == "__main__":
     shards, root, kill_at, resume = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
@@ -24,7 +26,7 @@ if __name__ == "__main__":
     callbacks = [L.pytorch.callbacks.ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1)]
     if kill_at >= 0:
         callbacks.append(KillAt(kill_at))
-    trainer = L.Trainer(accelerator="cpu", devices=2, strategy="ddp", max_steps=TOTAL_STEPS // 2 + 1, logger=False,
+    trainer = L.Trainer(accelerator="cpu", devices=2, strategy="ddp", max_steps=MAX_STEPS, logger=False,
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                         num_sanity_val_steps=0, default_root_dir=root, callbacks=callbacks)
     try:

@@ -8,6 +8,7 @@ the argument handling is under test, so nothing needs training.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -61,6 +62,7 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "random.bin").write_bytes(b"\x81\xff" + rng.bytes(2000))
     (d / "nul.txt").write_bytes(b"\x00" * 64 + b"\n")  # valid UTF-8, still binary
     (d / "afile").write_text("a file, not a folder\n")
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, d / "bare.ckpt")  # weights without hyper-parameters
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
@@ -87,6 +89,13 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "gen_binary/generation.json").write_bytes(b"\xff\xfe{\x00")
     (d / "gen_dir/generation.json").mkdir()
     (d / "gen_bvhdir/sample_000.bvh").mkdir()  # where the BVH file would go
+    # SLURM requeue checkpoints (hpc_ckpt_N.ckpt in default_root_dir): one holding a pickled object
+    # that a weights-only load refuses, and a torn one
+    (d / "hpc_pickled").mkdir()
+    torch.save({"state_dict": {}, "args": argparse.Namespace(lr=1.0)}, d / "hpc_pickled/hpc_ckpt_1.ckpt")
+    (d / "hpc_torn").mkdir()
+    torch.save({"state_dict": {"w": torch.zeros(4096)}}, d / "hpc_torn/hpc_ckpt_2.ckpt")
+    (d / "hpc_torn/hpc_ckpt_2.ckpt").write_bytes((d / "hpc_torn/hpc_ckpt_2.ckpt").read_bytes()[:-2000])
 
 
 # (id, argv); {in}: the input folder, {out}: a path that does not exist yet, {pre}/{cn}/{nanck}: checkpoints
@@ -101,6 +110,8 @@ BENCH_DATA = ["bench", "data", "--clips", "20", "--batch_size", "4", "--batches"
 BENCH_TRAIN = ["bench", "train", "--steps", "1", "--warmup", "0", "--frames", "8", "--batch_size", "1"]
 BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch_sizes", "[1]"]
 MINI_SHARDS = str(REPO / "shards/mini/human263/train")
+# the mini config with its shards found from any folder: a row that gets past the config runs
+FIT_RUNS = [*FIT, "--data.train", MINI_SHARDS, "--data.val", str(REPO / "shards/mini/human263/val")]
 ROWS = [
     # omg generate
     ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
@@ -125,6 +136,7 @@ ROWS = [
     ("gen-num-samples-neg", [*UNCOND, "--num_samples", "-2"]),
     ("gen-batch-size-zero", [*UNCOND, "--batch_size", "0"]),
     ("gen-nan-weights", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{out}"]),
+    ("gen-ckpt-bare-state-dict", [*GEN, "--unconditional", "--ckpt", "{in}/bare.ckpt", "--out", "{out}"]),
     ("gen-fails-in-user-folder", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{in}/user"]),
     # omg export (writes beside its inputs: nothing may appear there either)
     ("export-fps-nan", [*EXPORT, "--fps", "nan"]),
@@ -214,6 +226,9 @@ ROWS = [
     ("fit-data-config-binary", [*FIT, "--data", "{in}/random.bin"]),
     ("fit-mirror-prob-above-one", [*FIT, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT, "--data.mirror_prob", "nan"]),
+    ("fit-ckpt-hpc-pickled", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_pickled", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-torn", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/hpc_torn", "--ckpt_path", "hpc"]),
+    ("fit-ckpt-hpc-none", [*FIT_RUNS, "--trainer.default_root_dir", "{in}/empty", "--ckpt_path", "hpc"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),

@@ -327,3 +327,30 @@ def test_a_killed_checkpoint_write_keeps_the_old_file_and_its_temp_file_is_clean
     assert len(temp) == 1 and temp[0].name.startswith(".last.") and temp[0].name.endswith(".tmp.ckpt")
     assert torch.load(last, weights_only=True)["global_step"] == 7  # the old checkpoint, whole
     assert remove_stale_temp_files([last.parent]) == temp and [p.name for p in last.parent.iterdir()] == ["last.ckpt"]
+
+
+def test_a_checkpoint_of_the_wrong_kind_says_what_it_is(tiny, tmp_path, capsys):
+    """A bare state dict is named as one (not "the model needs its data spec"), and an evaluator
+    checkpoint given as a ControlNet's pretrained model names both classes (not a state-dict mismatch)."""
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.evaluator import EvaluatorModule
+
+    torch.save({"state_dict": tiny.state_dict()}, tmp_path / "bare.ckpt")
+    for argv in (["generate", "--unconditional", "--ckpt", str(tmp_path / "bare.ckpt"), "--out", str(tmp_path / "g")],
+                 ["convert-ckpt", str(tmp_path / "bare.ckpt"), str(tmp_path / "bare.safetensors")]):
+        with pytest.raises(SystemExit) as exit:
+            omg(argv)
+        err = capsys.readouterr().err.strip()
+        assert exit.value.code == 2 and "\n" not in err, err
+        assert err.startswith(f"omg: error: {tmp_path / 'bare.ckpt'} is a bare state dict: it holds weights without "
+                              "the module's hyper-parameters or class") and "expected a Lightning .ckpt file" in err
+    assert not (tmp_path / "g").exists() and not (tmp_path / "bare.safetensors").exists()
+
+    evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC)
+    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
+                "module_class": "omg.lit.evaluator.EvaluatorModule"}, tmp_path / "evaluator.ckpt")
+    with pytest.raises(UsageError) as error:
+        ControlNetModule(pretrained=str(tmp_path / "evaluator.ckpt"), text_encoder="hash")
+    assert str(error.value) == (f"model.init_args.pretrained: {tmp_path / 'evaluator.ckpt'} holds a "
+                                "omg.lit.evaluator.EvaluatorModule checkpoint, where a omg.lit.pretrain.PretrainModule "
+                                "(stage-1) checkpoint is expected")

@@ -134,3 +134,40 @@ def test_print_config_resolves_the_mini_config(capsys):
     out = capsys.readouterr().out
     assert "class_path: omg.lit.PretrainModule" in out and "flavor: mini" in out
     assert "train: shards/mini/human263/train" in out
+
+
+def test_cpu_threads_follow_the_trainable_work(tmp_path, monkeypatch):
+    """One intra-op thread for the small ControlNet recipe (configs/small/controlnet.yaml: 2.3M trainable
+    parameters, 26M with the frozen MiniLM, which once got two threads and trained several times slower on
+    a busy machine); torch's threads for a genuinely big trainable model; OMP_NUM_THREADS decides when set."""
+    import lightning as L
+    import torch
+
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import class_path
+    from omg.lit.cli import pick_cpu_threads
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.pretrain import PretrainModule
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
+    pre = PretrainModule(flavor="mini", dit={"n_layers": 6, "d_model": 128, "n_heads": 4}, spec=spec, ema_decay=0)
+    torch.save({"state_dict": pre.state_dict(), "hyper_parameters": dict(pre.hparams),
+                "module_class": class_path(type(pre))}, tmp_path / "pre.ckpt")
+    small = ControlNetModule(pretrained=str(tmp_path / "pre.ckpt"), text_encoder="minilm",
+                             moc={"d_c": 64, "num_experts": 4}, spec=spec)
+    assert sum(p.numel() for p in small.parameters()) > 25_000_000  # with the frozen MiniLM and DiT
+    big = PretrainModule(flavor="mini", dit={"n_layers": 8, "d_model": 512, "n_heads": 8}, spec=spec, ema_decay=0)
+    assert sum(p.numel() for p in big.parameters() if p.requires_grad) > 20_000_000
+    trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+
+    def threads_for(model) -> int:
+        torch.set_num_threads(2)
+        pick_cpu_threads(trainer, model)
+        return torch.get_num_threads()
+
+    assert threads_for(small) == 1
+    assert threads_for(big) == 2
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert threads_for(small) == 2

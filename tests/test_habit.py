@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -312,3 +313,40 @@ def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
     rows = json.loads((tmp_path / "table.json").read_text())
     assert set(rows["EMA-reset"]) >= {"fid", "intra_fid", "cross_category_fid", "diversity", "one_nna", "mpjpe"}
     assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+
+
+def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path, monkeypatch):
+    """A prior checkpoint holds its VQ-VAE: copied elsewhere, with the VQ-VAE file it was fitted on
+    gone and its vq_ckpt naming a `pipe:` command (here: creating a marker file), `omg transfer`
+    works and runs nothing."""
+    from omg.cli import main
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.habit import HabitVQModule
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
+    torch.manual_seed(0)
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    vq = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=spec)
+    original = tmp_path / "run" / "vq.ckpt"
+    original.parent.mkdir()
+    torch.save({"state_dict": vq.state_dict(), "hyper_parameters": dict(vq.hparams),
+                "module_class": "omg.lit.habit.HabitVQModule"}, original)
+    main(["fit", "--config", str(REPO / "configs/mini/habit_prior.yaml"), f"--model.init_args.vq_ckpt={original}",
+          "--trainer.max_steps=1", f"--trainer.default_root_dir={tmp_path / 'run'}", "--data.num_workers=0",
+          "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false"])
+    prior = torch.load(tmp_path / "run/checkpoints/last.ckpt", map_location="cpu", weights_only=True)
+    assert prior["hyper_parameters"]["vq"]["categories"] == CATEGORIES  # the VQ-VAE's own, under LightningCLI
+    marker = tmp_path / "PWNED"
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    prior["hyper_parameters"]["vq_ckpt"] = f"pipe:touch {marker}; cat {original}"
+    torch.save(prior, moved / "prior.ckpt")
+    (moved / "vq.ckpt").write_bytes(original.read_bytes())
+    original.unlink()
+    source = moved / "source.npy"
+    clip = MotionDataModule(val=str(QUATVEL / "val"), max_len=64, verify_shards=False).val_clips().samples[0]
+    np.save(source, np.asarray(clip["motion"][:24], np.float32))
+    main(["transfer", str(source), "--to", "horse", "--ckpt", str(moved / "vq.ckpt"), "--prior_ckpt",
+          str(moved / "prior.ckpt"), "--no_preview", "--out", str(tmp_path / "out")])
+    assert np.load(tmp_path / "out" / "transfer.joints.npy").shape == (24, 35, 3)
+    assert not marker.exists()

@@ -377,3 +377,20 @@ def test_amass_shards_count_skips(amass_root, tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["num_clips"] == 2 and manifest["stats_origin"] == "measured"
     assert manifest["skipped"] == {"amass missing keys": 1, "amass unreadable file": 1}
+
+
+def test_humanml3d_object_array_stats_are_one_line(hml_root, tmp_path, capsys):
+    """A Mean.npy that holds a pickled object array (np.save of a list of objects) is refused with
+    one line naming the file, never unpickled."""
+    import shutil
+
+    root = tmp_path / "HumanML3D"
+    shutil.copytree(hml_root, root)
+    np.save(root / "Mean.npy", np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    out = tmp_path / "shards"
+    with pytest.raises(SystemExit) as exit:
+        main(["shards", "build", "--source", "humanml3d", "--input", str(root), "--out", str(out), "--fps", "20"])
+    err = capsys.readouterr().err.strip()
+    assert exit.value.code == 2 and "\n" not in err and "Traceback" not in err, err
+    assert err.startswith(f"omg: error: humanml3d: {root / 'Mean.npy'} is not a plain numeric .npy array"), err
+    assert not out.exists()

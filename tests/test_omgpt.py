@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 
 import numpy as np
 import pytest
@@ -498,3 +499,53 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
     assert sides["dog/leg"]["clips"] + sides["dog/arm"]["clips"] == consistent > 20
     for key, v in sides.items():
         assert v["kept"] == (0 if mirror else v["clips"]), key
+
+
+def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys):
+    """An OmniMotionGPT checkpoint keeps its training run's human_data; one whose human_data names
+    `pipe:` commands (here: creating a marker file) runs none of them through `omg generate`,
+    `omg convert-ckpt` (nor the .safetensors it writes) or `omg fit --ckpt_path` (the run's config
+    says where the human shards are), and a checkpoint moved where its human shards do not exist
+    still generates: the human spec and the retrieval clips are inside it."""
+    from safetensors import safe_open
+
+    marker = tmp_path / "PWNED"
+    ckpt = torch.load(omgpt_ckpt, map_location="cpu", weights_only=True)
+    assert ckpt["hyper_parameters"]["human_data"]["val"] == "shards/mini/human_maa/val"  # the run's own
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    variants = {
+        "pipe": {split: f"pipe:touch {marker}; cat {REPO}/shards/mini/human_maa/{split}/manifest.json"
+                 for split in ("train", "val")},
+        "gone": {split: str(tmp_path / f"gone/{split}") for split in ("train", "val")},
+    }
+    for name, locations in variants.items():
+        human_data = {**ckpt["hyper_parameters"]["human_data"], **locations}
+        human_source = str(tmp_path / "gone/controlnet.ckpt") if name == "gone" else "retrieval"
+        torch.save({**ckpt, "hyper_parameters": {**ckpt["hyper_parameters"], "human_data": human_data,
+                                                 "human_source": human_source}}, moved / f"{name}.ckpt")
+        _cli("generate", "a dog jumps forward", "--ckpt", str(moved / f"{name}.ckpt"), "--length", "1",
+             "--num_samples", "1", "--no_preview", "--out", str(tmp_path / f"gen_{name}"))
+        assert np.load(tmp_path / f"gen_{name}/sample_000.joints.npy").shape == (20, 35, 3)
+        assert not marker.exists(), name
+    crafted = moved / "pipe.ckpt"
+
+    _cli("convert-ckpt", str(crafted), str(tmp_path / "omgpt.safetensors"))
+    with safe_open(tmp_path / "omgpt.safetensors", "pt") as f:
+        assert "human_data" not in json.loads(f.metadata()["hyper_parameters"])  # the locations are not copied
+    _cli("generate", "a dog jumps forward", "--ckpt", str(tmp_path / "omgpt.safetensors"), "--length", "1",
+         "--num_samples", "1", "--no_preview", "--out", str(tmp_path / "gen_safetensors"))
+    assert not marker.exists()
+
+    saved = list(sys.argv)
+    try:
+        _cli("fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=5",
+             f"--trainer.default_root_dir={tmp_path / 'resumed'}", "--trainer.enable_progress_bar=false",
+             "--trainer.val_check_interval=100", "--trainer.enable_model_summary=false",
+             "--data.batch_size=4", "--model.init_args.human_data.batch_size=4", f"--ckpt_path={crafted}")
+    finally:
+        sys.argv[:] = saved
+    resumed = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", map_location="cpu", weights_only=True)
+    assert resumed["global_step"] == 5 and resumed["hyper_parameters"]["human_data"]["train"] == \
+        "shards/mini/human_maa/train"  # the config's, not the file's
+    assert not marker.exists()

@@ -3,8 +3,9 @@
 Tiny models on the CPU with a real Lightning Trainer and real shards. A kill is an exception
 raised from a callback at the start of a step (the process state is then thrown away: the
 resumed run builds a new Trainer, module and data module from the config). Every comparison
-is bit for bit: weights, EMA, optimizer, LR schedule, noise RNG, data position, and the
-batches each step trained on.
+is bit for bit: weights, EMA, optimizer, LR schedule, noise RNG, data position, Lightning's
+loop counters, and the batches each step trained on. A run may be killed again and again, each
+time resuming from the checkpoint the last resumed run wrote.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from omg.data.datamodule import MotionDataModule
 from omg.lit.pretrain import PretrainModule
 
 BATCHES_PER_EPOCH = 4
-TOTAL_STEPS = 10
+TOTAL_STEPS = 13  # three epoch boundaries (after steps 4, 8 and 12) and a part of a fourth epoch
 
 
 class Killed(Exception):
@@ -48,13 +49,13 @@ def run_until_killed(model, data, root, *, max_steps: int, kill_at: int | None =
                      callbacks=(), keep_all: bool = False, **trainer_args) -> L.Trainer:
     """``trainer.fit`` of a tiny CPU run checkpointing every step into ``root/ckpt``, killed at the
     start of step ``kill_at``, or resumed from ``root/ckpt/last.ckpt``; ``keep_all`` keeps every
-    step's checkpoint."""
+    step's checkpoint. Without validation unless ``trainer_args`` ask for it."""
     checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1,
                                   **({"save_top_k": -1} if keep_all else {}))
     callbacks = [*callbacks, checkpoints] + ([KillAt(kill_at)] if kill_at is not None else [])
+    trainer_args = {"limit_val_batches": 0, "num_sanity_val_steps": 0, **trainer_args}
     trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=root,
-                        callbacks=callbacks, **trainer_args)
+                        enable_model_summary=False, default_root_dir=root, callbacks=callbacks, **trainer_args)
     try:
         trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
     except Killed:
@@ -63,16 +64,41 @@ def run_until_killed(model, data, root, *, max_steps: int, kill_at: int | None =
 
 
 def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_workers: int = 0,
-        accumulate: int = 1) -> tuple[Recorder, L.Trainer]:
+        accumulate: int = 1, validate: bool = False) -> tuple[Recorder, L.Trainer]:
+    """One run (or the part of it before ``kill_at``); ``validate``: one validation batch at each
+    epoch's end, as the shipped configs (val_check_interval == batches_per_epoch) validate."""
     L.seed_everything(0, verbose=False)
-    data = MotionDataModule(str(shards / "train"), batch_size=4, max_len=30, min_len=10,
-                            batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers, shuffle_buffer=8)
+    data = MotionDataModule(str(shards / "train"), val=str(shards / "val") if validate else None, batch_size=4,
+                            max_len=30, min_len=10, batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers,
+                            shuffle_buffer=8)
     model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=3,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
+    validation = ({"limit_val_batches": 1, "val_check_interval": BATCHES_PER_EPOCH, "check_val_every_n_epoch": None}
+                  if validate else {})
     trainer = run_until_killed(model, data, root, max_steps=TOTAL_STEPS, kill_at=kill_at, resume=resume,
-                               callbacks=[recorder], keep_all=True, accumulate_grad_batches=accumulate)
+                               callbacks=[recorder], keep_all=True, accumulate_grad_batches=accumulate, **validation)
     return recorder, trainer
+
+
+def fit_killed(shards, root, kills: tuple[int, ...], **kwargs) -> dict[int, tuple]:
+    """A run killed at the start of each step in ``kills``, each time resumed from ``last.ckpt``,
+    then run to its end: what each step trained on."""
+    steps = {}
+    for i, kill_at in enumerate([*kills, None]):
+        recorder, _ = fit(shards, root, kill_at=kill_at, resume=i > 0, **kwargs)
+        assert i == 0 or min(recorder.steps) == kills[i - 1]  # resumed where the last run was killed
+        steps.update(recorder.steps)
+    return steps
+
+
+def loop_counters(ckpt: dict) -> dict:
+    """Lightning's training-loop counters in a checkpoint: epochs (ready, started, processed,
+    completed), batches, optimizer and scheduler steps. The validation loop's own batch counter is
+    left out: Lightning resets it at each epoch's start and, resuming from a checkpoint written
+    before an epoch-end validation, counts that validation as run after the reset."""
+    fit_loop = ckpt["loops"]["fit_loop"]
+    return {k: v for k, v in fit_loop.items() if k != "state_dict" and not k.startswith("epoch_loop.val_loop.")}
 
 
 def final_state(root) -> dict:
@@ -86,6 +112,7 @@ def final_state(root) -> dict:
         "lr": ckpt["lr_schedulers"],
         "noise_rng": ckpt["noise_rng"],
         "data": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"],  # the stream position
+        "loops": loop_counters(ckpt),
     }
 
 
@@ -115,7 +142,9 @@ def uninterrupted(h263_shards, tmp_path_factory):
 def test_every_epoch_trains_on_new_batches(uninterrupted):
     steps, state = uninterrupted
     assert len(steps) == TOTAL_STEPS and state["global_step"] == TOTAL_STEPS
-    assert state["data"] == [{"epoch": 2, "batches_done": 2}]
+    assert state["data"] == [{"epoch": 3, "batches_done": 1}]
+    epochs_done = state["loops"]["epoch_progress"]["total"]
+    assert epochs_done == {"ready": 4, "started": 4, "processed": 3, "completed": 3}
     epochs = {}
     for step, (epoch, ids, lengths) in steps.items():
         assert epoch == step // BATCHES_PER_EPOCH
@@ -133,6 +162,28 @@ def test_killed_run_resumes_bit_for_bit(h263_shards, uninterrupted, tmp_path, ki
     second, _ = fit(h263_shards, tmp_path, resume=True)
     assert min(second.steps) == kill_at
     assert {**first.steps, **second.steps} == steps, "the resumed run trained on other batches"
+    assert_identical(final_state(tmp_path), expected)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_validated(h263_shards, tmp_path_factory):
+    root = tmp_path_factory.mktemp("uninterrupted_validated")
+    recorder, _ = fit(h263_shards, root, validate=True)
+    return recorder.steps, final_state(root)
+
+
+# A run resumed from an epoch's last batch writes the next epoch's checkpoints, and a second kill
+# resumes from one of those: at the next boundary (4, 8), twice more (4, 8, 12), or after a first
+# resume mid-epoch (5, 8). Lightning once counted the resumed run's next epoch as the one resumed,
+# so the checkpoint at the next boundary held its epoch counters one short; with validation at the
+# epoch's end, a run resumed from it restarted the finished epoch and the stream replayed it.
+@pytest.mark.parametrize("validate", [False, True], ids=["no-val", "val"])
+@pytest.mark.parametrize("kills", [(4, 8), (4, 8, 12), (5, 8)], ids=lambda k: "-".join(map(str, k)))
+def test_a_run_killed_again_and_again_resumes_bit_for_bit(h263_shards, uninterrupted, uninterrupted_validated,
+                                                          tmp_path, kills, validate):
+    steps, expected = uninterrupted_validated if validate else uninterrupted
+    resumed = fit_killed(h263_shards, tmp_path, kills, validate=validate)
+    assert resumed == steps, "the resumed runs trained on other batches"
     assert_identical(final_state(tmp_path), expected)
 
 
@@ -200,8 +251,9 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
 
 
 def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
-    """Two gloo ranks on the CPU: kill at an epoch boundary, resume, compare with the run never
-    killed, each rank's noise RNG included."""
+    """Two gloo ranks on the CPU: kill at an epoch boundary, resume, kill at the next boundary,
+    resume again, and compare with the run never killed, each rank's noise RNG and the loop
+    counters included."""
     import os
     import socket
     import subprocess
@@ -224,8 +276,10 @@ def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
 
     code, err = run(tmp_path / "full")
     assert code == 0, err
-    code, err = run(tmp_path / "killed", kill_at=3)
-    assert code != 0
+    code, err = run(tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
+    assert code == 3, err
+    code, err = run(tmp_path / "killed", kill_at=6, resume=True)
+    assert code == 3, err
     code, err = run(tmp_path / "killed", resume=True)
     assert code == 0, err
     expected, resumed = final_state(tmp_path / "full"), final_state(tmp_path / "killed")

@@ -1,18 +1,23 @@
-"""Faults of a running `omg fit`: SIGTERM, a stalled data worker, too many bad samples in a
+"""Faults of a running `omg fit`: SIGTERM, a stalled data worker or read, too many bad samples in a
 worker. Each ends with one line on stderr and an exit code a scheduler can act on."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
 import yaml
 from lightning.pytorch.callbacks import Callback
 
-from omg.cli import SIGTERM_EXIT, main
+from conftest import REPO
+from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
 class SigtermAt(Callback):
@@ -26,7 +31,25 @@ class SigtermAt(Callback):
             os.kill(os.getpid(), signal.SIGTERM)
 
 
-def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), **data):
+class KillWritingLast(Callback):
+    """Stands for a kill while ``last.ckpt`` is written at ``step``: the periodic checkpoint of that
+    step is whole, and ``last.ckpt`` stays the older file (its write is atomic)."""
+
+    def __init__(self, step: int):
+        self.step, self.saves = step, 0
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint):
+        if trainer.global_step == self.step:
+            self.saves += 1
+            if self.saves == 2:  # ModelCheckpoint writes the step's periodic file, then last.ckpt
+                raise KilledWritingLast
+
+
+class KilledWritingLast(Exception):
+    pass
+
+
+def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), top_k=1, **data):
     config = {
         "seed_everything": 0,
         "trainer": {
@@ -34,7 +57,8 @@ def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=()
             "enable_model_summary": False, "limit_val_batches": 0, "num_sanity_val_steps": 0,
             "default_root_dir": str(root),
             "callbacks": [{"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2}},
+                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2,
+                                         "save_top_k": top_k}},
                           *callbacks],
         },
         "model": {"class_path": "PretrainModule",
@@ -125,3 +149,275 @@ def test_too_many_bad_samples_in_a_worker_is_one_line(h263_shards, tmp_path, cap
     assert e.value.code == 2
     line = one_error_line(capsys)
     assert "samples were bad" in line and "max_bad_fraction" in line and "DataLoader worker" not in line
+
+
+def test_resume_last_takes_the_newest_whole_checkpoint_and_keeps_the_top_k_policy(h263_shards, tmp_path, caplog):
+    """Killed while last.ckpt (step 2) was being replaced at step 4: `--ckpt_path last` takes the
+    newer epoch=0-step=4.ckpt, and the resumed run leaves the folder as the run never killed does
+    (save_top_k=1: the newest periodic file and last.ckpt), the files of the killed run it does not
+    keep deleted, the checkpoint resumed from included, and a user's own files kept."""
+    shards = h263_shards / "train"
+    main(["fit", "--config", write_config(tmp_path / "full.yaml", shards, tmp_path / "full")])
+    kill = {"class_path": "test_run_faults.KillWritingLast", "init_args": {"step": 4}}
+    with pytest.raises(KilledWritingLast):
+        main(["fit", "--config", write_config(tmp_path / "killed.yaml", shards, tmp_path / "run", callbacks=[kill])])
+    ckpt = tmp_path / "run" / "ckpt"
+    assert sorted(p.name for p in ckpt.iterdir()) == ["epoch=0-step=4.ckpt", "last.ckpt"]
+    assert torch.load(ckpt / "last.ckpt", weights_only=True)["global_step"] == 2
+    (ckpt / "epoch=0-step=2.ckpt").write_bytes((ckpt / "last.ckpt").read_bytes())  # killed before its removal
+    mine = [ckpt / "mine.ckpt", ckpt / "epoch=0-step=2.ckpt.bak", ckpt / "notes.txt"]
+    for path in mine:
+        path.write_bytes((ckpt / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "resumed.yaml", shards, tmp_path / "run"), "--ckpt_path",
+              "last"])
+    assert f"Restoring states from the checkpoint path at {ckpt / 'epoch=0-step=4.ckpt'}" in caplog.text
+    full = tmp_path / "full" / "ckpt"
+    assert sorted(p.name for p in full.iterdir()) == ["epoch=1-step=8.ckpt", "last.ckpt"]
+    kept = ["epoch=1-step=8.ckpt", "last.ckpt", *(m.name for m in mine)]
+    assert sorted(p.name for p in ckpt.iterdir()) == sorted(kept)
+    a, b = (torch.load(d / "last.ckpt", weights_only=True) for d in (full, ckpt))
+    assert a["global_step"] == b["global_step"] == 8
+    for key in a["state_dict"]:
+        assert torch.equal(a["state_dict"][key], b["state_dict"][key]), key
+
+
+@pytest.mark.parametrize("init, written, others", [
+    ({}, ["epoch=0-step=4.ckpt", "epoch=12-step=5000-v1.ckpt"],
+     ["last.ckpt", "last-v1.ckpt", "mine.ckpt", "epoch=0-step=4.ckpt.bak", "best-epoch=0-step=4.ckpt",
+      "epoch=0-step=4-val_loss=0.50.ckpt", "interrupted.ckpt"]),
+    ({"filename": "{epoch}-{val_loss:.2f}"}, ["epoch=3-val_loss=0.12.ckpt", "epoch=3-val_loss=nan-v2.ckpt"],
+     ["epoch=3.ckpt", "epoch=3-val_loss=0.12.ckpt.tmp", "last.ckpt"]),
+    ({"filename": "step{step:06d}", "auto_insert_metric_name": False}, ["step000100.ckpt"], ["step=100.ckpt"]),
+])
+def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_path, init, written, others):
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from omg.callbacks.checkpoint import written_checkpoints
+
+    for name in written + others:
+        (tmp_path / name).write_bytes(b"x")
+    callback = ModelCheckpoint(dirpath=tmp_path, **init)
+    assert [p.name for p in written_checkpoints(callback)] == sorted(written)
+
+
+class SlowAfterCtrlC(Callback):
+    """Makes the step in which a stop was asked for last a minute, the time to press Ctrl-C again."""
+
+    def on_train_batch_end(self, trainer, *args):
+        if trainer.received_sigterm:
+            time.sleep(60)
+
+
+def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
+    """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
+    Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
+    from conftest import REPO
+
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "omg.cli", "fit", "--config", "configs/mini/pretrain.yaml",
+               f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false",
+               "--trainer.callbacks.every_n_train_steps=5", *args]
+    if callbacks:
+        command.append("--trainer.callbacks+=test_run_faults.SlowAfterCtrlC")
+    err = open(root.parent / f"{root.name}.err", "w")  # noqa: SIM115 (closed with the process)
+    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+
+
+def _wait_for(condition, process, timeout=120):
+    start = time.monotonic()
+    while not condition():
+        assert process.poll() is None, "the run ended early"
+        assert time.monotonic() - start < timeout, "timed out"
+        time.sleep(0.1)
+
+
+def test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300")
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole foreground process group
+    assert run.wait(timeout=120) == SIGINT_EXIT
+    err = (tmp_path / "run.err").read_text()
+    assert "Traceback" not in err and "Error" not in err, err[-3000:]
+    last = [line for line in err.splitlines() if line.startswith("omg:")][-1]
+    interrupted = root / "checkpoints" / "interrupted.ckpt"
+    assert last.startswith("omg: interrupted by Ctrl-C at step ") and f"checkpoint {interrupted} " in last, err
+    assert "resume with --ckpt_path last" in last
+    step = torch.load(interrupted, weights_only=True)["global_step"]
+    assert last.startswith(f"omg: interrupted by Ctrl-C at step {step};") and step >= 5
+
+    resumed = _mini_fit(root, f"--trainer.max_steps={step + 2}", "--ckpt_path=last")
+    assert resumed.wait(timeout=300) == 0, (tmp_path / "run.err").read_text()[-3000:]
+    assert f"Restoring states from the checkpoint path at {interrupted}" in (tmp_path / "run.err").read_text()
+    assert torch.load(root / "checkpoints" / "last.ckpt", weights_only=True)["global_step"] == step + 2
+
+
+def test_a_second_ctrl_c_aborts_at_once(tmp_path):
+    root = tmp_path / "run"
+    run = _mini_fit(root, "--trainer.max_steps=300", callbacks=True)
+    _wait_for(lambda: (root / "checkpoints" / "last.ckpt").exists(), run)
+    os.killpg(run.pid, signal.SIGINT)
+    _wait_for(lambda: "Ctrl-C again aborts at once" in (tmp_path / "run.err").read_text(), run)
+    start = time.monotonic()
+    os.killpg(run.pid, signal.SIGINT)
+    assert run.wait(timeout=30) == -signal.SIGINT and time.monotonic() - start < 20
+
+
+def test_slurm_auto_resume_checks_the_requeue_checkpoint(h263_shards, tmp_path, capsys, caplog, monkeypatch):
+    """In a SLURM job, Lightning resumes from default_root_dir's hpc_ckpt_N.ckpt on its own: that
+    file passes the checks of every checkpoint, and one holding pickled code is one line."""
+    import argparse
+
+    for key, value in {"SLURM_NTASKS": "1", "SLURM_JOB_NAME": "omg", "SLURM_JOB_ID": "7", "SLURM_PROCID": "0",
+                       "SLURM_LOCALID": "0", "SLURM_NODEID": "0"}.items():
+        monkeypatch.setenv(key, value)
+    root = tmp_path / "run"
+    root.mkdir()
+    torch.save({"state_dict": {}, "args": argparse.Namespace(lr=1.0)}, root / "hpc_ckpt_1.ckpt")
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root)])
+    assert e.value.code == 2
+    line = one_error_line(capsys)
+    assert line.startswith("omg: error: resuming this SLURM job from its requeue checkpoint: ")
+    assert "hpc_ckpt_1.ckpt holds pickled Python objects (argparse.Namespace)" in line and "refused" in line
+    assert [p.name for p in root.iterdir()] == ["hpc_ckpt_1.ckpt"]  # nothing left behind
+
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "first", max_steps=4)
+    monkeypatch.delenv("SLURM_NTASKS")  # the first job: not resumed
+    main(["fit", "--config", config])
+    monkeypatch.setenv("SLURM_NTASKS", "1")
+    (root / "hpc_ckpt_2.ckpt").write_bytes((tmp_path / "first" / "ckpt" / "last.ckpt").read_bytes())
+    with caplog.at_level("INFO"):
+        main(["fit", "--config", write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=6)])
+    assert f"Restoring states from the checkpoint path at {root / 'hpc_ckpt_2.ckpt'}" in caplog.text
+    assert torch.load(root / "ckpt" / "last.ckpt", weights_only=True)["global_step"] == 6
+
+
+# -- stalls in real `omg` processes: a stalled read or worker ends the run within about data.timeout,
+# with data workers or without, and leaves no process behind
+
+def processes(where: str | None = None, parent: int | None = None) -> list[int]:
+    """Live (not zombie) processes whose command line names ``where``, or whose parent is ``parent``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except (OSError, IndexError):  # not a process, or gone
+            continue
+        named = where is not None and where in command
+        if stat[0] != "Z" and (named or (parent is not None and int(stat[1]) == parent)):
+            found.append(int(entry.name))
+    return found
+
+
+def omg_process(*args: str, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], env=env, stdout=subprocess.DEVNULL,
+                            stderr=log.open("w"))
+
+
+def finish(process: subprocess.Popen, log: Path, within: float, leftovers: str | None = None) -> str:
+    """Wait ``within`` seconds for ``process`` to end (killing it and what it left when it does not), then
+    assert it ended with exit code 2 and one error line, and left no process naming ``leftovers``."""
+    try:
+        process.wait(within)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    finally:
+        left = processes(leftovers) if leftovers else []
+        for pid in left:
+            os.kill(pid, signal.SIGKILL)
+    err = log.read_text()
+    assert process.returncode == 2, f"exit code {process.returncode} after {within} s: {err[-2000:]}"
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("omg:")]
+    assert len(lines) == 1, err[-2000:]
+    assert not left, f"left behind: {left}"
+    return lines[0]
+
+
+def stalling_set(shards: Path, out: Path) -> str:
+    """A `pipe:` URL of ``shards``' set whose every shard is a FIFO that no one writes: `cat` blocks on it."""
+    out.mkdir()
+    shutil.copy(shards / "manifest.json", out / "manifest.json")
+    for shard in shards.glob("*.tar"):
+        os.mkfifo(out / shard.name)
+    return f"pipe:cat {out}/manifest.json"
+
+
+def test_a_stopped_data_worker_ends_the_run_within_data_timeout(h263_shards, tmp_path):
+    """SIGSTOP on a worker that has batches in flight: the main process blocked fetching a batch's
+    shared-memory descriptor from it (multiprocessing.resource_sharer), which DataLoader(timeout) does not bound."""
+    root = tmp_path / "run"
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", root, max_steps=100_000, num_workers=1,
+                          batches_per_epoch=100_000, timeout=3)
+    log = tmp_path / "err.txt"
+    process = omg_process("fit", "--config", config, log=log)
+    deadline = time.monotonic() + 240
+    while not (root / "ckpt" / "last.ckpt").exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)  # a checkpoint every 2 steps: training runs, the worker keeps batches queued
+    workers = processes(parent=process.pid)
+    assert len(workers) == 1, log.read_text()[-2000:]
+    os.kill(workers[0], signal.SIGSTOP)
+    start = time.monotonic()
+    try:
+        line = finish(process, log, within=60)
+    finally:
+        if processes(parent=process.pid) or workers[0] in processes(str(config)):
+            os.kill(workers[0], signal.SIGKILL)
+    assert time.monotonic() - start < 3 + 20
+    assert "data.timeout=3" in line and "stalled" in line
+    assert workers[0] not in processes(str(config))  # killed: a stopped process never acts on SIGTERM
+
+
+@pytest.mark.parametrize("num_workers", [0, 1])
+def test_a_stalled_read_ends_the_run(h263_shards, tmp_path, num_workers):
+    """num_workers 0 (configs/mini/omgpt.yaml): the shard is read in the main process, which
+    DataLoader(timeout) never bounded. Either way the `pipe:` command is killed with the run."""
+    train = stalling_set(h263_shards / "train", tmp_path / "fifo")
+    config = write_config(tmp_path / "c.yaml", train, tmp_path / "run", num_workers=num_workers, timeout=2)
+    log = tmp_path / "err.txt"
+    line = finish(omg_process("fit", "--config", config, log=log), log, within=90, leftovers=str(tmp_path / "fifo"))
+    assert "data.timeout=2" in line and "stalled" in line
+
+
+def test_a_stalled_validation_read_ends_the_run(h263_shards, tmp_path):
+    val = stalling_set(h263_shards / "val", tmp_path / "fifo")
+    config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "run", timeout=2, val=val)
+    log = tmp_path / "err.txt"
+    process = omg_process("validate", "--config", config, "--trainer.limit_val_batches", "1", log=log)
+    line = finish(process, log, within=90, leftovers=str(tmp_path / "fifo"))
+    assert "data.timeout=2" in line and "shard-000000.tar was not read" in line
+
+
+def test_a_stalled_read_ends_shards_inspect(h263_shards, tmp_path):
+    url = stalling_set(h263_shards / "train", tmp_path / "fifo")
+    log = tmp_path / "err.txt"
+    line = finish(omg_process("shards", "inspect", url, "--timeout", "2", log=log), log, within=60,
+                  leftovers=str(tmp_path / "fifo"))
+    assert "--timeout=2" in line and "stalled" in line
+
+
+def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, tmp_path):
+    """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
+    import threading
+
+    from omg.data.paired import CompanionStream
+    from omg.errors import UsageError
+
+    fifo = str(tmp_path / "fifo")
+    stream = CompanionStream({"val": stalling_set(h263_shards / "val", tmp_path / "fifo"), "timeout": 1})
+    # without the bound the read never ends: kill `cat` after a while, so the test fails instead of hanging
+    rescue = threading.Timer(30, lambda: [os.kill(pid, signal.SIGKILL) for pid in processes(fifo)])
+    rescue.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(UsageError, match=r"shard-000000.tar was not read in data.timeout=1 s"):
+            stream.val_samples()
+    finally:
+        rescue.cancel()
+    assert time.monotonic() - start < 10
+    assert not processes(fifo)

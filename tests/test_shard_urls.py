@@ -133,3 +133,46 @@ def test_fit_on_a_mixture_read_through_a_pipe_stores_the_pooled_stats(h263_shard
     pooled = _dm(train).spec
     single = _dm(str(h263_shards / "train")).spec
     assert module.spec == pooled and not np.allclose(pooled.mean, single.mean)
+
+
+INJECTED = ["shard-$(touch PWNED).tar", "shard-`touch PWNED`.tar", "shard-000000.tar;touch PWNED",
+            "shard-000000.tar|touch PWNED", "shard-000000.tar touch PWNED", "shard-000000.tar&&touch PWNED"]
+
+
+@pytest.mark.parametrize("name", INJECTED)
+def test_a_shard_name_that_would_run_a_command_is_refused(toy_shards, tmp_path, monkeypatch, capsys, name):
+    """A pipe: set puts each shard name of its manifest into its command, which a shell runs: a name
+    that is not shard-NNNNNN.tar is one error line naming the manifest and the name, and nothing runs."""
+    import json
+
+    from omg.cli import main
+
+    monkeypatch.chdir(tmp_path)  # where the injected command would create its marker
+    data = json.loads((toy_shards / "manifest.json").read_text())
+    data["shards"][0]["name"] = name
+    (toy_shards / "manifest.json").write_text(json.dumps(data))
+    url = f"pipe:cat {toy_shards}/manifest.json"
+    with pytest.raises(SystemExit) as exit:
+        main(["shards", "inspect", url])
+    err = capsys.readouterr().err.strip()
+    assert exit.value.code == 2 and "\n" not in err, err
+    assert err.startswith(f"omg: error: {url}: invalid manifest: shards[0] needs a 'name' of the form "
+                          "shard-NNNNNN.tar") and repr(name) in err
+    with pytest.raises(UsageError, match="needs a 'name' of the form shard-NNNNNN.tar"):
+        _dm(url)
+    assert not (tmp_path / "PWNED").exists()
+
+
+def test_pipe_shard_names_are_shell_quoted_and_a_hanging_manifest_command_stops(toy_shards):
+    import shlex
+    import time
+
+    from omg.data.shards import read_url
+
+    m = Manifest.load(f"pipe:cat {toy_shards}/manifest.json")
+    m.data["shards"][0]["name"] = "shard 0.tar"  # not a name the manifest check lets through: quoted all the same
+    assert m.shard_urls[0] == f"pipe:cat {toy_shards}/{shlex.quote('shard 0.tar')}"
+    start = time.monotonic()
+    with pytest.raises(OSError, match="the command did not end within 1 s and was stopped"):
+        read_url("pipe:echo '{}'; sleep 30", timeout=1)
+    assert time.monotonic() - start < 10

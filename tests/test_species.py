@@ -220,3 +220,22 @@ def test_bge_builds_on_meta_without_a_directory():
         encoder = build_text_encoder("bge-base-en-v1.5")
     assert all(p.is_meta for p in encoder.parameters()) and encoder.dim == 768
     assert sum(p.numel() for p in encoder.parameters()) == 108_891_648  # BERT-base without its pooler
+
+
+def test_bge_refuses_pickled_weights_that_could_run_code(tmp_path):
+    """An old snapshot's pytorch_model.bin is a pickle: one whose pickle calls a function (here: one
+    creating a marker file) is one error line, and nothing runs; plain weights still load."""
+    folder, model = tiny_bert_dir(tmp_path / "bge", tokenizer_json=False)
+    build_text_encoder("bge-base-en-v1.5", model_dir=str(folder))  # the plain old layout loads
+
+    class Payload:
+        def __reduce__(self):
+            return open, (str(tmp_path / "PWNED"), "w")
+
+    torch.save({**model.state_dict(), "extra": Payload()}, folder / "pytorch_model.bin")
+    with pytest.raises(UsageError) as error:
+        build_text_encoder("bge-base-en-v1.5", model_dir=str(folder))
+    assert str(error.value) == (f"bge-base-en-v1.5: {folder / 'pytorch_model.bin'} holds pickled Python objects "
+                                "besides weights, which could run code when read: refused; use a snapshot with "
+                                "model.safetensors")
+    assert not (tmp_path / "PWNED").exists()

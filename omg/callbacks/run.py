@@ -4,6 +4,8 @@ disturbing training (module modes and the global RNG)."""
 from __future__ import annotations
 
 import os
+import signal
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -51,13 +53,18 @@ def sampling(module: L.LightningModule) -> Iterator[None]:
 
 
 class InterruptCheckpoint(Callback):
-    """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) save ``interrupted.ckpt``
-    beside the run's checkpoints at the end of the step in which the signal came, the point where
-    ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly (``omg.lit.cli``
-    counts it among the "last" candidates and takes the newest). Lightning's loops then stop.
-    Other exceptions save nothing: a crash mid-step leaves a state that must not be resumed from.
-    (Not Lightning's OnExceptionCheckpoint: with one of those, every ``fit`` without a
+    """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) or Ctrl-C (SIGINT) save
+    ``interrupted.ckpt`` beside the run's checkpoints at the end of the step in which the signal
+    came, the point where ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly
+    (``omg.lit.cli`` counts it among the run's checkpoints and takes the newest). Lightning's loops
+    then stop. Other exceptions save nothing: a crash mid-step leaves a state that must not be
+    resumed from. (Not Lightning's OnExceptionCheckpoint: with one of those, every ``fit`` without a
     ``--ckpt_path`` silently resumes from the newest checkpoint in the folder.)
+
+    Ctrl-C takes Lightning's SIGTERM path (Lightning's own KeyboardInterrupt handling saves nothing
+    and exits 1): the first one asks for the stop, a second aborts at once. Its handler is set in
+    ``setup``, before the data workers fork, so that they, which get a terminal's Ctrl-C too, go on
+    serving the last step rather than die with a KeyboardInterrupt.
 
     On several ranks Lightning shares the signal through collectives of its own at points that
     differ between ranks, and a checkpoint (a collective too) cannot be slotted in safely: the
@@ -68,6 +75,32 @@ class InterruptCheckpoint(Callback):
     def __init__(self, dirpath: str | Path):
         self.ckpt_path = str(Path(dirpath) / "interrupted.ckpt")
         self.started, self.saved_step = time.time(), None
+        self.signal = "SIGTERM"  # what stopped the run, when something did
+        self._trainer: L.Trainer | None = None
+        self._pid, self._previous_sigint = None, None
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if stage == "fit" and threading.current_thread() is threading.main_thread():
+            self._trainer, self._pid = trainer, os.getpid()
+            self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
+
+    def _on_sigint(self, signum, frame) -> None:
+        if os.getpid() != self._pid:
+            return  # a forked data worker: the main process stops the run
+        signal.signal(signal.SIGINT, signal.SIG_DFL)  # a second Ctrl-C aborts at once
+        self.signal = "SIGINT"
+        self._trainer._signal_connector.received_sigterm = True  # what Lightning's SIGTERM handler sets
+        os.write(2, b"omg: Ctrl-C: stopping after this step to save a checkpoint (Ctrl-C again aborts at once)\n")
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.signal == "SIGINT":  # Ctrl-C before Lightning set its signal handlers, which clears the flag
+            trainer._signal_connector.received_sigterm = True
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        # after a Ctrl-C the process is on its way out: a second one still aborts at once
+        if self._pid == os.getpid() and self._previous_sigint is not None and self.signal != "SIGINT":
+            signal.signal(signal.SIGINT, self._previous_sigint)
+        self._trainer, self._pid, self._previous_sigint = None, None, None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
         if trainer.received_sigterm and trainer.world_size == 1 and self.saved_step is None:
@@ -83,5 +116,7 @@ class InterruptCheckpoint(Callback):
             saver = trainer.checkpoint_callback
             checkpoint = getattr(saver, "last_model_path", "") or getattr(saver, "best_model_path", "") or None
         hpc = sorted(Path(trainer.default_root_dir).glob("hpc_ckpt_*.ckpt"), key=lambda p: p.stat().st_mtime)
-        requeued = bool(hpc) and hpc[-1].stat().st_mtime >= self.started and "SLURM_JOB_ID" in os.environ
-        exception.omg_stop = {"step": trainer.global_step, "checkpoint": checkpoint, "requeued": requeued}
+        requeued = (self.signal == "SIGTERM" and bool(hpc) and hpc[-1].stat().st_mtime >= self.started
+                    and "SLURM_JOB_ID" in os.environ)
+        exception.omg_stop = {"step": trainer.global_step, "checkpoint": checkpoint, "requeued": requeued,
+                              "signal": self.signal}

@@ -27,6 +27,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import signal
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
@@ -34,6 +37,7 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
+from omg.data.deadline import deadline
 from omg.data.mixture import load_mixture
 from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
 from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, mirror_item, pick_text
@@ -246,9 +250,11 @@ class StreamLoader(DataLoader):
     a warning says so and the new mixture's stream goes on from the saved position.
     """
 
-    def __init__(self, dataset: MotionStream, epoch_fn: Callable[[], int] | None = None, **kwargs):
+    def __init__(self, dataset: MotionStream, epoch_fn: Callable[[], int] | None = None, fetch_timeout: float = 0.0,
+                 **kwargs):
         super().__init__(dataset, batch_size=dataset.batch_size, **kwargs)
         self.epoch_fn = epoch_fn
+        self.fetch_timeout = fetch_timeout  # seconds one batch may take (0: no limit), workers or not
         self.epoch, self.batches_done = -1, 0  # nothing yielded yet
         self.mixed = len(dataset.sets) > 1
         self.drawn = [0] * len(dataset.sets)  # samples from each set in this epoch
@@ -265,7 +271,18 @@ class StreamLoader(DataLoader):
         self.epoch, self.batches_done = epoch, skip
         self.drawn = list(resume["drawn"]) if resumed and resume.get("drawn") else [0] * len(self.dataset.sets)
         self.dataset.epoch, self.dataset.skip_batches = epoch, skip
-        for batch in super().__iter__():
+        batches = super().__iter__()
+        while True:
+            try:
+                # the whole fetch, not DataLoader(timeout=): that bounds only the wait on the workers' queue,
+                # not a read in the main process (num_workers 0) nor the fd fetch from a stopped worker
+                with deadline(self.fetch_timeout, stalled_message(self.fetch_timeout, "no training batch arrived")):
+                    batch = next(batches, None)
+            except UsageError:
+                stop_workers(batches)
+                raise
+            if batch is None:
+                return
             self.batches_done += 1
             if self.mixed:
                 for k in batch["shard_set"].tolist():
@@ -302,6 +319,47 @@ class StreamLoader(DataLoader):
             self.epoch = epoch - 1
 
 
+def stalled_message(timeout: float, what: str) -> str:
+    return (f"{what} in data.timeout={timeout:g} s: a stalled shard read or data worker; check the shard storage "
+            "(omg shards inspect), or raise data.timeout (0 waits forever)")
+
+
+def stop_workers(batches, grace: float = 2.0) -> None:
+    """End a DataLoader iterator's worker processes now. SIGTERM, which each turns into an exit that kills
+    the ``pipe:`` command it reads from (``exit_on_sigterm``); SIGCONT, as a stopped (SIGSTOP) worker acts
+    on no other signal; SIGKILL for any still there after ``grace`` seconds. (torch's own shutdown sends
+    SIGTERM only: a stopped worker never exits, and Python's exit then waits for it forever.)"""
+    from torch.utils.data._utils import signal_handling
+
+    if getattr(batches, "_worker_pids_set", False):  # as torch's shutdown does first: else its SIGCHLD
+        signal_handling._remove_worker_pids(id(batches))  # handler takes these exits for a worker's crash
+        batches._worker_pids_set = False
+    workers = [worker for worker in getattr(batches, "_workers", []) if worker.is_alive()]
+    for worker in workers:
+        worker.terminate()
+        try:
+            os.kill(worker.pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    end = time.monotonic() + grace
+    for worker in workers:
+        worker.join(max(0.0, end - time.monotonic()))
+        if worker.is_alive():
+            worker.kill()
+            worker.join()
+
+
+def exit_on_sigterm(worker_id: int) -> None:
+    """A data worker's ``worker_init_fn``: SIGTERM raises SystemExit, so the worker unwinds and a shard
+    read it abandons kills its ``pipe:`` command (``omg.data.shards``) instead of leaving it running
+    (torch's handler ends the process at once)."""
+    signal.signal(signal.SIGTERM, _exit_on_signal)
+
+
+def _exit_on_signal(signum, frame):
+    raise SystemExit(128 + signum)
+
+
 def _mixture_text(state: dict | None) -> str:
     if state is None:
         return "a single set"
@@ -318,23 +376,26 @@ class ClipDataset(Dataset):
 
     @classmethod
     def from_shards(cls, urls: list[str], feature_dim: int, windows: WindowSampler,
-                    max_bad_fraction: float = 0.01, checks: dict[str, dict] | None = None, **kwargs) -> ClipDataset:
+                    max_bad_fraction: float = 0.01, checks: dict[str, dict] | None = None, timeout: float = 0.0,
+                    **kwargs) -> ClipDataset:
         """Decode every sample of ``urls``; bad samples and unreadable shards are skipped with a
-        warning and counted, and more than ``max_bad_fraction`` of them stops with one line."""
+        warning and counted, and more than ``max_bad_fraction`` of them stops with one line, as does
+        a shard whose read takes over ``timeout`` seconds (data.timeout; 0: no limit)."""
         samples, bad, last, checks = [], 0, "", checks or {}
         for url in urls:
             expected = checks.get(url)
-            try:
-                for raw in read_shard(url, expected):
-                    try:
-                        samples.append(decode_sample(raw, feature_dim))
-                    except (ValueError, KeyError) as e:
-                        bad, last = bad + 1, f"{url} key {raw.get('__key__')}: {e}"
-                        log.warning("skipping bad sample %s", last)
-            except Exception as e:  # noqa: BLE001 - a bad shard is counted, not raised
-                bad += (expected or {}).get("samples", 1)
-                last = f"{url}: {shard_problem(e)}"
-                log.warning("skipping %s", last)
+            with deadline(timeout, stalled_message(timeout, f"{url} was not read")):
+                try:
+                    for raw in read_shard(url, expected):
+                        try:
+                            samples.append(decode_sample(raw, feature_dim))
+                        except (ValueError, KeyError) as e:
+                            bad, last = bad + 1, f"{url} key {raw.get('__key__')}: {e}"
+                            log.warning("skipping bad sample %s", last)
+                except Exception as e:  # noqa: BLE001 - a bad shard is counted, not raised
+                    bad += (expected or {}).get("samples", 1)
+                    last = f"{url}: {shard_problem(e)}"
+                    log.warning("skipping %s", last)
         seen = len(samples) + bad
         if bad and (not samples or bad > max_bad_fraction * seen):
             raise TooManyBadSamples(f"{bad} of {seen} samples of {len(urls)} shards were bad (last: {last}), over "
@@ -376,8 +437,9 @@ class MotionDataModule(L.LightningDataModule):
         normalize: standardise features with the data's mean/std (``spec``: the manifest's, or a
             mixture's pooled statistics).
         max_bad_fraction: stop when more than this fraction of the samples a worker read were bad.
-        timeout: seconds a data worker may take for one batch before the run stops with an error
-            (0: wait forever); a stalled worker never hangs a run.
+        timeout: seconds one training batch, or the read of one validation shard, may take before the
+            run stops with one line (0: wait forever); a stalled read or data worker never hangs a run,
+            with data workers or without (``omg.data.deadline``).
         verify_shards: check each shard against its manifest (size, sample count, sha256) before
             any of its samples is used; a shard that fails is skipped whole and counted as bad.
         mirror_prob: mirror augmentation: the probability that a training sample is replaced by
@@ -514,12 +576,12 @@ class MotionDataModule(L.LightningDataModule):
             mirror_prob=h.mirror_prob,
         )
         return StreamLoader(stream, epoch_fn=epoch_fn, num_workers=h.num_workers, collate_fn=self.collate,
-                            persistent_workers=False, timeout=h.timeout if h.num_workers > 0 else 0)
+                            persistent_workers=False, fetch_timeout=h.timeout, worker_init_fn=exit_on_sigterm)
 
     def val_clips(self) -> ClipDataset:
         """The validation set, decoded and verified (bad samples skipped and counted)."""
         return ClipDataset.from_shards(self.val_urls, self.feature_dim, self.windows, self.hparams.max_bad_fraction,
-                                       self.shard_checks)
+                                       self.shard_checks, timeout=self.hparams.timeout)
 
     def val_dataloader(self) -> DataLoader | list:
         if not self.val_urls:

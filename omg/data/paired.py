@@ -80,4 +80,4 @@ class CompanionStream:
         if not self.data.val_urls:
             return []
         return ClipDataset.from_shards(self.data.val_urls, self.data.feature_dim, self.windows,
-                                       self.args.max_bad_fraction, self.data.shard_checks).samples
+                                       self.args.max_bad_fraction, self.data.shard_checks, self.args.timeout).samples

@@ -30,6 +30,8 @@ import json
 import os
 import pickle
 import re
+import shlex
+import signal
 import sys
 import tarfile
 import time
@@ -39,6 +41,7 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
+from omg.data.deadline import deadline
 from omg.errors import UsageError
 from omg.files import atomic_path, atomic_write, npy_bytes, write_json
 from omg.motion import Clip, DataSpec, Representation
@@ -47,6 +50,10 @@ SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
 BUILD_STATE = "build-state.json"
 SHARD_PATTERN = "shard-{:06d}.tar"
+# A manifest's shard names: what the writer and `omg shards merge` write (SHARD_PATTERN). Nothing
+# else is accepted: a pipe: set puts each name into its command, which a shell runs.
+SHARD_NAME = re.compile(r"shard-[0-9]{6,}\.tar")
+PIPE_TIMEOUT_S = 600.0  # a pipe: command that prints a manifest (a few MB at most) and has not ended by then hangs
 META_KEYS = ("id", "representation", "skeleton", "fps", "source", "labels", "category")
 
 
@@ -744,8 +751,9 @@ def _manifest_problem(data) -> str | None:
         if not isinstance(entry, dict):
             return f"shards[{i}] must be an object, got {entry!r}"
         name = entry.get("name")
-        if not isinstance(name, str) or not name or "/" in name or "\\" in name or name in (".", ".."):
-            return f"shards[{i}] needs a 'name' (a file name in the manifest's directory), got {name!r}"
+        if not isinstance(name, str) or not SHARD_NAME.fullmatch(name):
+            return (f"shards[{i}] needs a 'name' of the form shard-NNNNNN.tar (a file in the manifest's directory, as "
+                    f"`omg shards build` names them), got {name!r}")
         if name in names:
             return f"shard {name} is listed twice"
         names.add(name)
@@ -839,7 +847,8 @@ class Manifest:
         """Every shard's path, or URL for a fetched set (what ``iter_tar`` opens)."""
         if self.url is None:
             return [str(p) for p in self.shard_paths]
-        return [sibling_url(self.url, MANIFEST, s["name"]) for s in self.data["shards"]]
+        quote = shlex.quote if self.url.startswith("pipe:") else str  # a shell reads a pipe: command
+        return [sibling_url(self.url, MANIFEST, quote(s["name"])) for s in self.data["shards"]]
 
     @property
     def shard_paths(self) -> list[Path]:
@@ -1039,9 +1048,15 @@ def open_url(url: str):
     if local is not None:
         return open(local, "rb")
     if url.startswith("pipe:"):
-        from webdataset.gopen import gopen
+        from webdataset import utils
+        from webdataset.gopen import Pipe
 
-        return gopen(url)
+        if utils.enforce_security:
+            raise ValueError("pipe: URLs are disabled (WDS_SECURE is set)")
+        # as webdataset.gopen, but the command in a process group of its own, which a read given up
+        # (a stall, a failed check, a reader that stops early) kills whole: see _abandon
+        return Pipe(url[len("pipe:"):], mode="rb", shell=True, bufsize=8192, ignore_status=[141],
+                    start_new_session=True)
     opener, missing = _fsspec_opener(url)
     if opener is not None:
         return opener()
@@ -1053,17 +1068,25 @@ def open_url(url: str):
     return gopen(url)
 
 
-def read_url(url: str) -> bytes:
-    """All the bytes ``open_url`` gives; a ``pipe:`` command that fails raises ``OSError`` with the
-    last line it printed to stderr."""
+def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
+    """All the bytes ``open_url`` gives; a ``pipe:`` command that fails, or runs longer than
+    ``timeout`` seconds, raises ``OSError`` (with the last line it printed to stderr)."""
     if url.startswith("pipe:"):
+        import signal
         import subprocess
 
-        done = subprocess.run(url[len("pipe:"):], shell=True, capture_output=True)
-        if done.returncode != 0:
-            said = done.stderr.decode(errors="replace").strip().splitlines()
-            raise OSError(f"the command exited with {done.returncode}" + (f": {said[-1]}" if said else ""))
-        return done.stdout
+        # its own process group: on a timeout the shell and everything it started are stopped
+        with subprocess.Popen(url[len("pipe:"):], shell=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              start_new_session=True) as process:
+            try:
+                out, err = process.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                raise OSError(f"the command did not end within {timeout:g} s and was stopped") from None
+        if process.returncode != 0:
+            said = err.decode(errors="replace").strip().splitlines()
+            raise OSError(f"the command exited with {process.returncode}" + (f": {said[-1]}" if said else ""))
+        return out
     with open_url(url) as stream:
         return stream.read()
 
@@ -1104,6 +1127,23 @@ def _count_error(url: str, count: int, samples: int | None) -> ShardError | None
     if count < samples:
         return ShardError(url, "samples", f"truncated: {count} of {samples} samples")
     return ShardError(url, "samples", f"{count} samples, the manifest says {samples}")
+
+
+def _abandon(stream) -> None:
+    """Close a stream that will not be read to its end. A ``pipe:`` command is killed with its process
+    group, not waited for: webdataset's close waits up to two hours for a command that is stalled, and
+    killing only the shell would leave its commands running."""
+    process = getattr(stream, "proc", None)
+    if process is not None and process.poll() is None:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        process.wait()
+    try:
+        stream.close()
+    except OSError:  # the killed command's exit status: not news
+        pass
 
 
 def _tar_samples(stream, url: str) -> Iterator[dict[str, bytes]]:
@@ -1161,7 +1201,10 @@ def _read_shard(url: str, sha256: str | None = None, samples: int | None = None,
         if errors:
             raise errors[0]
         yield from buffered
-    finally:
+    except BaseException:  # a failed check, a stall (omg.data.deadline), or a reader that stopped early
+        _abandon(raw)
+        raise
+    else:
         raw.close()
 
 
@@ -1260,26 +1303,30 @@ class ShardSetCheck:
         return out
 
 
-def check_shards(shard_dir: str | Path) -> ShardSetCheck:
+def check_shards(shard_dir: str | Path, timeout: float = 0.0, timeout_name: str = "timeout") -> ShardSetCheck:
     """Read every shard of a set once: decode every sample and check each shard's file, size,
     sample count, end-of-archive blocks and sha256 against the manifest. Raises
-    ``UsageError`` only for a missing or invalid manifest; every other fault is reported."""
+    ``UsageError`` only for a missing or invalid manifest, or a shard whose read takes over ``timeout``
+    seconds (0: no limit; ``timeout_name`` is the option that sets it); every other fault is reported."""
     manifest = Manifest.load(shard_dir)
     results = []
     for entry, url in zip(manifest["shards"], manifest.shard_urls):
         expected = manifest.expected(entry["name"])
         result = ShardCheck(entry["name"], checks=("file", "readable", "end-of-archive", *expected))
-        try:
-            # streamed without the size pre-check: a bad shard's samples are still decoded and named
-            for raw in _read_shard(url, whole=False, precheck=False, **expected):
-                result.samples += 1
-                try:
-                    decode_sample(raw, manifest["feature_dim"])
-                    result.good += 1
-                except (ValueError, KeyError) as e:
-                    result.problems.append(f"{entry['name']} {raw.get('__key__')}: {e}")
-        except ShardError as e:
-            result.error = e
+        stalled = (f"{url} was not read in {timeout_name}={timeout:g} s: a stalled read; check the storage, "
+                   f"or raise {timeout_name} (0 waits forever)")
+        with deadline(timeout, stalled):
+            try:
+                # streamed without the size pre-check: a bad shard's samples are still decoded and named
+                for raw in _read_shard(url, whole=False, precheck=False, **expected):
+                    result.samples += 1
+                    try:
+                        decode_sample(raw, manifest["feature_dim"])
+                        result.good += 1
+                    except (ValueError, KeyError) as e:
+                        result.problems.append(f"{entry['name']} {raw.get('__key__')}: {e}")
+            except ShardError as e:
+                result.error = e
         results.append(result)
     return ShardSetCheck(manifest, results)
 

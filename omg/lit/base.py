@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
@@ -52,12 +53,17 @@ class OmgModule(L.LightningModule):
     """Base of omg's LightningModules.
 
     Subclasses list in ``frozen_prefixes`` the state-dict prefixes of submodules built from their
-    own weight files (a text backbone): those are neither saved nor expected on load. They give
+    own weight files (a text backbone): those are neither saved nor expected on load. They list in
+    ``location_hparams`` the hyper-parameters that name data or files to open (a second shard set,
+    a companion checkpoint): a checkpoint's values of those are never used, since a checkpoint is
+    inert and self-contained (``omg.lit.checkpoint.load_module`` drops them; ``--ckpt_path`` takes
+    them from the run's config). They give
     their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
     and ``warmup_steps``; the schedule is linear warm-up then cosine decay over the run.
     """
 
     frozen_prefixes: tuple[str, ...] = ()
+    location_hparams: tuple[str, ...] = ()
     lr: float
     betas: tuple[float, float]
     weight_decay: float
@@ -96,3 +102,28 @@ class OmgModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # which class to rebuild, also for checkpoints written outside LightningCLI
         checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
+        # when it was written, which orders a run's checkpoints for `--ckpt_path last`
+        # (omg.lit.checkpoint.saved_order) also after a copy that did not keep the files' mtimes
+        checkpoint["saved_time"] = time.time()
+
+    def on_train_start(self) -> None:
+        start_epoch_after_restored_last_batch(self.trainer)
+
+
+def start_epoch_after_restored_last_batch(trainer: L.Trainer) -> None:
+    """Count the epoch that a run resumed from an epoch's last batch starts, as the run never
+    killed counts it.
+
+    A checkpoint written in ``on_train_batch_end`` of an epoch's last batch (ModelCheckpoint with
+    ``every_n_train_steps`` a multiple of the epoch's batches: every periodic checkpoint of the
+    shipped configs) holds that epoch as started but not processed. Lightning's ``_FitLoop.reset``
+    finishes it on restore (processed, completed), but its restart stage stays "mid-epoch", so
+    ``on_advance_start`` treats the next epoch as the one resumed: it neither counts it (ready,
+    started) nor calls ``on_train_epoch_start``. The next checkpoint then holds counters one short,
+    and a run resumed from one at the following epoch boundary (with validation there) takes the
+    finished epoch for the current one: it restarts it, and the data stream replays it. Called
+    from ``on_train_start``, after ``reset`` and before the first epoch starts."""
+    fit_loop = trainer.fit_loop
+    epochs = fit_loop.epoch_progress.total
+    if fit_loop.restarted_mid_epoch and epochs.processed == epochs.started:  # reset finished the epoch
+        fit_loop.reset_restart_stage()

@@ -351,15 +351,41 @@ def resolve_class(name: str | None, src: PathLike) -> type[L.LightningModule]:
     return obj
 
 
-def _build(cls: type[L.LightningModule], hparams: dict[str, Any], src: PathLike, device: str | None = None):
-    """``cls(**hparams)``; on the meta device (structure only, no weights read) when asked."""
+def inert_hparams(cls: type, hparams: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's hyper-parameters without those that name data or files to open
+    (``cls.location_hparams``, e.g. OmniMotionGPT's ``human_data``): a checkpoint is inert, so
+    loading it never opens what its file names (a ``pipe:`` location would start a process), and
+    self-contained, so it loads on a machine where those locations do not exist."""
+    drop = set(getattr(cls, "location_hparams", ()))
+    return {k: v for k, v in hparams.items() if k not in drop}
+
+
+def _check_rebuildable(ckpt: dict[str, Any], src: PathLike) -> None:
+    """UsageError for a file that holds weights but nothing to rebuild the module from."""
+    if not ckpt["hyper_parameters"] and not recorded_class(ckpt):
+        raise UsageError(f"{src} is a bare state dict: it holds weights without the module's hyper-parameters or "
+                         f"class, so omg cannot rebuild the model from it; {ACCEPTED}, saved with its "
+                         "hyper-parameters (what `omg fit` writes)")
+
+
+def build_module(cls: type[L.LightningModule], hparams: dict[str, Any], src: PathLike, device: str | None = None):
+    """``cls(**hparams)`` without the location hyper-parameters; on the meta device (structure only,
+    no weights read) when asked."""
+    from lightning.pytorch.core.mixins.hparams_mixin import _given_hyperparameters
+
+    # LightningCLI hands the module it instantiates its config through this variable, which every
+    # save_hyperparameters() in that block reads: a module rebuilt here while another is built
+    # (HabitPriorModule's VQ-VAE) must record its own hyper-parameters, not the outer module's
+    token = _given_hyperparameters.set(None)
     try:
         with torch.device(device) if device else contextlib.nullcontext(), warnings.catch_warnings():
             # a module that loads weights while it is built (ControlNetModule's frozen base) copies onto meta
             warnings.filterwarnings("ignore", message=".*non-meta parameter in the checkpoint to a meta parameter")
-            return cls(**hparams)
+            return cls(**inert_hparams(cls, hparams))
     except TypeError as e:
         raise UsageError(f"{src}: its hyper-parameters do not fit {class_path(cls)} ({e})") from None
+    finally:
+        _given_hyperparameters.reset(token)
 
 
 def _trainable_prefix(module: L.LightningModule, src: PathLike) -> str:
@@ -402,11 +428,12 @@ def load_module(
     ``use_ema`` the EMA weights then replace the trained ones for inference. ``expect``: the
     class (or a base class) the caller needs.
     """
-    ckpt = load_checkpoint(path, default_class)
-    cls = resolve_class(ckpt["module_class"], path)
+    ckpt = load_checkpoint(path)
+    _check_rebuildable(ckpt, path)
+    cls = resolve_class(ckpt["module_class"] or (class_path(default_class) if default_class else None), path)
     if expect is not None and not issubclass(cls, expect):
         raise UsageError(f"{path} holds a {class_path(cls)} checkpoint, not a {class_path(expect)}")
-    module = _build(cls, ckpt["hyper_parameters"], path)
+    module = build_module(cls, ckpt["hyper_parameters"], path)
     check_weights(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     module.to(map_location)  # before the EMA is rebuilt, so that it lands on the same device
@@ -425,9 +452,12 @@ def convert(src: PathLike, dst: PathLike, ema: bool = False,
     dst = Path(dst)
     if dst.suffix != ".safetensors":
         raise UsageError(f"{dst}: the output file must end in .safetensors")
-    ckpt = load_checkpoint(src, default_class)
+    ckpt = load_checkpoint(src)
+    _check_rebuildable(ckpt, src)
+    ckpt["module_class"] = ckpt["module_class"] or (class_path(default_class) if default_class else None)
     cls = resolve_class(ckpt["module_class"], src)
-    module = _build(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
+    ckpt["hyper_parameters"] = inert_hparams(cls, ckpt["hyper_parameters"])  # locations are not copied either
+    module = build_module(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
     state = dict(ckpt["state_dict"])
     check_weights(module, state, src)
     if ema and not ckpt["ema_weights"]:
@@ -479,34 +509,52 @@ def _mtime(path: Path) -> float:
         return float("-inf")
 
 
-def resume_candidate(last: Iterable[PathLike], directories: Iterable[PathLike],
+def saved_order(path: PathLike) -> tuple[float, int]:
+    """When a checkpoint was written, to order a run's checkpoints: the save time it records
+    (``saved_time``, which omg's modules write), else its file's mtime; then its global step. Read
+    from its pickle alone (weights-only, tensors memory-mapped, no CRC): a file that does not read
+    sorts by its mtime, and ``inspect_checkpoint`` decides whether it is whole."""
+    path = Path(path)
+    if not (path.is_file() and zipfile.is_zipfile(path)):
+        return _mtime(path), -1
+    try:
+        header = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except (pickle.UnpicklingError, zipfile.BadZipFile, OSError, RuntimeError, EOFError, ValueError, KeyError,
+            IndexError, TypeError):
+        return _mtime(path), -1
+    if not isinstance(header, dict):
+        return _mtime(path), -1
+    saved, step = header.get("saved_time"), header.get("global_step")
+    return (float(saved) if isinstance(saved, (int, float)) else _mtime(path),
+            int(step) if isinstance(step, int) else -1)
+
+
+def resume_candidate(candidates: Iterable[PathLike], directories: Iterable[PathLike],
                      warn=lambda message: None) -> tuple[Path, dict[str, Any]] | None:
-    """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest of
-    ``last`` (Lightning's ``last*.ckpt`` candidates) when it reads; when it does not (truncated,
-    zeroed, an interrupted save), the newest readable checkpoint (``*.ckpt``) in ``directories``,
-    after ``warn`` names both. None when there is no candidate at all (Lightning then starts
-    afresh, as with its own "last"); a UsageError when no checkpoint reads, and UnsafeCheckpoint as
-    soon as one holds pickled code."""
-    existing = sorted({Path(p) for p in last if Path(p).exists()}, key=_mtime, reverse=True)
+    """What ``--ckpt_path last`` resumes from, with its ``inspect_checkpoint`` header: the newest
+    (``saved_order``) of ``candidates`` (the run's checkpoints: Lightning's ``last*.ckpt``, the files
+    its ModelCheckpoints write, the ``interrupted.ckpt`` of a SIGTERM or Ctrl-C) that reads and
+    passes its CRC check. A ``last.ckpt`` whose write was killed is the older file, and the newer
+    periodic checkpoint written just before it wins. When a newer one does not read (truncated, zeroed),
+    ``warn`` names it and the one taken. None when there is no candidate at all (Lightning then
+    starts afresh, as with its own "last"); a UsageError when none reads (``directories`` name where
+    they were looked for), and UnsafeCheckpoint as soon as one holds pickled code."""
+    existing = [Path(p) for p in dict.fromkeys(str(Path(c)) for c in candidates) if Path(p).exists()]
     if not existing:
         return None
-    newest = existing[0]
-    try:
-        return newest, inspect_checkpoint(newest)
-    except UnsafeCheckpoint:
-        raise
-    except UsageError as e:
-        problem = str(e)
-    directories = [Path(d) for d in directories] or [newest.parent]
-    others = {p for d in directories if d.is_dir() for p in d.glob("*.ckpt") if p != newest}
-    for candidate in sorted(others, key=_mtime, reverse=True):
+    problems = []
+    for candidate in sorted(existing, key=saved_order, reverse=True):
         try:
             header = inspect_checkpoint(candidate)
         except UnsafeCheckpoint:
             raise
-        except UsageError:
+        except UsageError as e:
+            problems.append(str(e))
             continue
-        warn(f"--ckpt_path last: {problem}; resuming from {candidate} instead, the newest readable checkpoint there")
+        if problems:
+            warn(f"--ckpt_path last: {problems[0]}; resuming from {candidate} instead, the newest readable "
+                 "checkpoint there")
         return candidate, header
-    raise UsageError(f"--ckpt_path last: {problem}; and no other checkpoint in {', '.join(map(str, directories))} "
+    directories = [str(d) for d in directories] or sorted({str(p.parent) for p in existing})
+    raise UsageError(f"--ckpt_path last: {problems[0]}; and no other checkpoint in {', '.join(directories)} "
                      "reads; pass a checkpoint with --ckpt_path PATH, or leave it out to start afresh")

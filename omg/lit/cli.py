@@ -51,21 +51,37 @@ class SaveRunConfig(SaveConfigCallback):
         self.already_saved = trainer.strategy.broadcast(True)
 
 
-SMALL_MODEL_PARAMS = 20_000_000
+SMALL_MODEL_PARAMS = 20_000_000  # trainable parameters under which one intra-op thread is the faster choice
+
+
+def cpu_threads_for(model: torch.nn.Module) -> int | None:
+    """The intra-op threads a model trains fastest with on the CPU: 1 when it has fewer than
+    ``SMALL_MODEL_PARAMS`` trainable parameters, else None (torch's default, one per core).
+
+    A step's work scales with the trainable weights (forward, weight gradients, the optimizer), not
+    with frozen modules: a frozen text encoder runs once per batch, without gradients, on a few caption
+    tokens. Counting it gave the small ControlNet recipe (2.3M trainable parameters, 26M with the frozen
+    MiniLM) two threads, and on a busy 2-core machine it trained several times slower than with one: a
+    small model's matrices are too small for torch's threads to pay for their hand-offs, and the OpenMP
+    thread spins beside MKL's while it waits. Decided from the model, not by timing at start-up: the
+    thread count changes the order of float sums, so a measurement on a loaded machine would make runs
+    of one config irreproducible."""
+    trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+    return 1 if trainable < SMALL_MODEL_PARAMS else None
 
 
 def pick_cpu_threads(trainer: L.Trainer, model: L.LightningModule) -> None:
-    """One intra-op thread for a small model on the CPU: its matrices are too small for torch's
-    threads to pay for their hand-offs, and on a busy machine they wait on each other (a mini
-    run trained up to 8x faster with one). OMP_NUM_THREADS, when set, decides instead."""
+    """``cpu_threads_for(model)`` intra-op threads for a run on the CPU; OMP_NUM_THREADS, when set,
+    decides instead."""
     from lightning.pytorch.accelerators import CPUAccelerator
 
     if not isinstance(trainer.accelerator, CPUAccelerator) or "OMP_NUM_THREADS" in os.environ:
         return
-    params = sum(p.numel() for p in model.parameters())
-    if params < SMALL_MODEL_PARAMS and torch.get_num_threads() != 1:
-        torch.set_num_threads(1)
-        rank_zero_info(f"omg: {params / 1e6:.1f}M parameters on the CPU: 1 intra-op thread "
+    threads = cpu_threads_for(model)
+    if threads is not None and torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+        trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+        rank_zero_info(f"omg: {trainable / 1e6:.1f}M trainable parameters on the CPU: {threads} intra-op thread "
                        "(set OMP_NUM_THREADS to choose another number)")
 
 
@@ -131,7 +147,7 @@ class OmgLightningCLI(LightningCLI):
     # zeroed or foreign file, or a checkpoint of another class, is one UsageError line.
 
     def _parse_ckpt_path(self) -> None:
-        from omg.lit.checkpoint import inspect_checkpoint
+        from omg.lit.checkpoint import inert_hparams, inspect_checkpoint
 
         subcommand = self.config.get("subcommand")
         if not subcommand:
@@ -154,9 +170,12 @@ class OmgLightningCLI(LightningCLI):
                              "its weights elsewhere")
         model = self.config[subcommand].get("model")
         configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
-        self._check_ckpt_class(ckpt_path, header["module_class"], configured)
+        cls = self._check_ckpt_class(ckpt_path, header["module_class"], configured)
         hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
         hparams.pop("_instantiator", None)
+        # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
+        # run's config, never from the file: a checkpoint that named a `pipe:` command would run it
+        hparams = inert_hparams(cls, hparams) if cls is not None else hparams
         if not hparams:  # as LightningCLI: a checkpoint file's hyper-parameters become the model's config
             return
         if "_class_path" in hparams:
@@ -168,50 +187,84 @@ class OmgLightningCLI(LightningCLI):
             raise
 
     @staticmethod
-    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> None:
+    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> type | None:
         """UsageError unless the checkpoint's recorded class is the configured model's class (LightningCLI
         would otherwise replace the configured model by the recorded class, or restore its state into
-        a module of another kind)."""
+        a module of another kind); the class, where known."""
         from omg.lit.checkpoint import class_path, resolve_class
 
-        if not recorded or configured is None:
-            return
         if isinstance(configured, str):
-            if recorded == configured:
-                return
             module, _, name = configured.rpartition(".")
             try:
                 configured = getattr(importlib.import_module(module), name)  # jsonargparse imported it already
             except (ImportError, AttributeError, ValueError):
-                return  # jsonargparse reports a bad class_path itself
+                configured = None  # jsonargparse reports a bad class_path itself
+        if not recorded:
+            return configured
         try:
-            if resolve_class(recorded, ckpt_path) is configured:
-                return
+            cls = resolve_class(recorded, ckpt_path)
         except UsageError:
-            pass  # a class that cannot be resolved here is not the configured one
+            cls = None  # a class that cannot be resolved here is not the configured one
+        if configured is None or cls is configured:
+            return cls
         hint = (" (to start a ControlNet from a stage-1 checkpoint, set model.init_args.pretrained instead)"
                 if recorded.endswith("PretrainModule") else "")
         raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
                          f"{class_path(configured)}: resume with a checkpoint of that class{hint}")
 
+    def _hpc_checkpoint(self, ckpt_path: Any) -> str | None:
+        """The SLURM checkpoint (``hpc_ckpt_N.ckpt`` in default_root_dir, written when SLURM requeues a
+        run) that Lightning would load for ``--ckpt_path hpc``, or on its own in a SLURM job without a
+        ``--ckpt_path``, after the checks every other checkpoint passes (omg.lit.checkpoint: readable,
+        CRC-checked, no pickled code, the configured model's class); None where Lightning loads none."""
+        from lightning.fabric.plugins.environments import SLURMEnvironment
+
+        from omg.lit.checkpoint import inspect_checkpoint
+
+        if ckpt_path != "hpc" and not (ckpt_path is None and SLURMEnvironment.detect()):
+            return None
+        what = "--ckpt_path hpc" if ckpt_path == "hpc" else "resuming this SLURM job from its requeue checkpoint"
+        hpc = self.trainer._checkpoint_connector._hpc_resume_path  # Lightning's own choice: the highest N
+        if hpc is None:
+            if ckpt_path == "hpc":
+                raise UsageError(f"--ckpt_path hpc: {self.trainer.default_root_dir} holds no hpc_ckpt_N.ckpt "
+                                 "(Lightning writes one when SLURM requeues a run); pass --ckpt_path last or a file")
+            return None
+        try:
+            header = inspect_checkpoint(hpc)
+        except UsageError as e:
+            raise type(e)(f"{what}: {e}") from None
+        self._check_ckpt_class(hpc, header["module_class"], type(self.model))
+        return hpc
+
     def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
         """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
-        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here, as Lightning would
-        (the newest ``last*.ckpt`` of the ModelCheckpoint folders), but when that file is unreadable
-        to the newest readable checkpoint beside it, with a warning naming both."""
-        from omg.callbacks.checkpoint import prepare_checkpointing
+        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
+        run's checkpoints that reads and passes its CRC check (``resume_candidate``: Lightning's
+        ``last*.ckpt``, the ModelCheckpoints' periodic/top-k files, a SIGTERM's checkpoint), with a
+        warning when a newer one does not read; ``--ckpt_path hpc`` and SLURM's own resume checked
+        (``_hpc_checkpoint``). A run resumed from either then brings its top-k folders back to their
+        policy (``TopKHousekeeping``); one resumed from a checkpoint named by its path does not (the
+        files of the steps after it are the user's to keep)."""
+        from omg.callbacks.checkpoint import TopKHousekeeping, prepare_checkpointing, written_checkpoints
         from omg.lit.checkpoint import resume_candidate
 
         kwargs = super()._prepare_subcommand_kwargs(subcommand)
         prepare_checkpointing(self.trainer)
+        resumed = False  # from the run's own newest checkpoint, whose folder then goes back to its top-k policy
+        if hpc := self._hpc_checkpoint(kwargs.get("ckpt_path")):
+            kwargs["ckpt_path"], resumed = hpc, True
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
-            last = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
-            last += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's checkpoint
-                     if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
-            found = resume_candidate(last, sorted({p.parent for p in last}), warn=rank_zero_warn)
+            run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
+            run += [p for cb in callbacks for p in written_checkpoints(cb)]
+            run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's or Ctrl-C's checkpoint
+                    if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
+            found = resume_candidate(run, sorted({p.parent for p in run}), warn=rank_zero_warn)
             if found is not None:
                 resolved, header = found
                 self._check_ckpt_class(resolved, header["module_class"], type(self.model))
-                kwargs["ckpt_path"] = str(resolved)
+                kwargs["ckpt_path"], resumed = str(resolved), True
+        if resumed and subcommand == "fit":
+            self.trainer.callbacks.append(TopKHousekeeping())
         return kwargs

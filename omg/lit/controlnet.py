@@ -145,9 +145,13 @@ class ControlNetModule(MotionDiffusionModule):
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:
     """(the stage-1 model's flavor, DiT overrides and spec; its weights, the EMA where kept)."""
-    from omg.lit.checkpoint import load_checkpoint
+    from omg.lit.checkpoint import class_path, load_checkpoint, resolve_class
 
     ckpt = load_checkpoint(path, default_class=PretrainModule)
+    cls = resolve_class(ckpt["module_class"], path)
+    if not issubclass(cls, PretrainModule):  # another model's weights would fail as a state-dict mismatch
+        raise UsageError(f"model.init_args.pretrained: {path} holds a {class_path(cls)} checkpoint, where a "
+                         f"{class_path(PretrainModule)} (stage-1) checkpoint is expected")
     hp = ckpt["hyper_parameters"]
     if "flavor" not in hp or "spec" not in hp:
         raise UsageError(f"{path} is not a stage-1 (PretrainModule) checkpoint: its hyper-parameters lack flavor/spec")

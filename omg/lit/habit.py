@@ -288,34 +288,47 @@ class HabitPriorModule(OmgModule):
     """Stage 2: each known category's flow prior p(z), fitted by NLL to the frozen stage-1 habit posterior.
 
     Args:
-        vq_ckpt: the HabitVQModule checkpoint (frozen; rebuilt from that file, not stored again).
+        vq_ckpt: the HabitVQModule checkpoint to fit on (frozen); read once, when the prior is first
+            built: its weights and hyper-parameters are then kept in the prior's checkpoints.
         posterior_sample: fit the flows to samples z ~ q(z | m) (True) or to the posterior means.
         lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
         spec: linked by ``omg fit`` from the data; must match the VQ-VAE's.
+        vq: the VQ-VAE's hyper-parameters, filled from ``vq_ckpt``: a prior checkpoint holds its
+            VQ-VAE (``vq.*`` weights), so it loads without that file, on any machine.
     """
 
     clip_sampling = "windows"
-    frozen_prefixes = ("vq.",)
+    frozen_prefixes = ()  # the frozen VQ-VAE is saved with the flows: the checkpoint is self-contained
+    location_hparams = ("vq_ckpt",)
 
-    def __init__(self, vq_ckpt: str, posterior_sample: bool = True, lr: float = 2e-4, weight_decay: float = 0.0,
-                 betas: tuple[float, float] = (0.9, 0.99), warmup_steps: int = 0, spec: DataSpec | dict | None = None):
+    def __init__(self, vq_ckpt: str | None = None, posterior_sample: bool = True, lr: float = 2e-4,
+                 weight_decay: float = 0.0, betas: tuple[float, float] = (0.9, 0.99), warmup_steps: int = 0,
+                 spec: DataSpec | dict | None = None, vq: dict[str, Any] | None = None):
         super().__init__()
-        from omg.lit.checkpoint import load_module
+        from omg.lit.checkpoint import build_module, load_module
 
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
             raise UsageError(f"model.lr must be > 0, weight_decay and warmup_steps >= 0; got {lr}, {weight_decay}, "
                              f"{warmup_steps}")
-        if not Path(vq_ckpt).exists() and torch.get_default_device().type != "meta":
+        if vq is None and vq_ckpt is None:
+            raise UsageError("HabitPriorModule needs model.init_args.vq_ckpt, the HabitVQModule checkpoint to fit on "
+                             "(a prior checkpoint written before priors kept their VQ-VAE has neither: refit it)")
+        if vq is None and not Path(vq_ckpt).exists() and torch.get_default_device().type != "meta":
             raise UsageError(f"model.vq_ckpt: no HabitVQModule checkpoint at {vq_ckpt}; train it first with "
                              "`omg fit --config configs/mini/habit_vqvae.yaml`")
         self.save_hyperparameters()
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         self.posterior_sample = posterior_sample
-        self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
+        if vq is None:
+            self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
+            vq = dict(self.vq.hparams)
+        else:  # the structure: the weights come with this checkpoint's
+            self.vq = build_module(HabitVQModule, vq, "model.init_args.vq")
+        self.hparams["vq"] = dict(vq)
         self.vq.requires_grad_(False).eval()
         self.spec = self.vq.spec
         if spec is not None:
-            self.vq.spec.check_compatible(DataSpec.coerce(spec), f"the VQ-VAE {vq_ckpt}", "the data")
+            self.vq.spec.check_compatible(DataSpec.coerce(spec), f"the VQ-VAE {vq_ckpt or ''}".strip(), "the data")
         self.flows = CategoryFlows(len(self.vq.categories), self.vq.config)
 
     @property

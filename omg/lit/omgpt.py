@@ -104,15 +104,26 @@ class OmniMotionModule(OmgModule):
         human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
             human validation clip whose caption is nearest the prompt made about "a person",
             among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
-            text-to-motion, from the prompt made about "a person").
+            text-to-motion, from the prompt made about "a person"). A file, so not taken from a
+            checkpoint: a loaded checkpoint retrieves unless the config (or ``--human_ckpt``) names one.
         animals: each animal category's mean bone offsets; filled from the animal training set
             when training starts and kept in checkpoints (what ``--animal`` accepts).
-        human_spec, spec: the human and the animal data's specs (filled from the shards).
+        human_spec, spec: the human and the animal data's specs (filled from the shards and kept
+            in checkpoints).
+        human_bank: the captions and frame counts of the captioned human validation clips that
+            retrieval draws from; filled when training starts (whatever ``human_source``), the
+            clips' motion and offsets kept as buffers, so that a checkpoint retrieves without its
+            human shards.
+
+    A checkpoint is self-contained: everything inference needs (both specs, the animals' offsets,
+    the retrieval clips) is inside it, and what its ``human_data`` and ``human_source`` name
+    (locations, ``location_hparams``) is never opened when it loads.
     """
 
     text_conditional = True
     clip_sampling = "whole"  # a caption describes its whole clip
     frozen_prefixes = ("text_encoder.", "human_generator.")
+    location_hparams = ("human_data", "human_source")
 
     def __init__(
         self,
@@ -141,6 +152,7 @@ class OmniMotionModule(OmgModule):
         animals: dict[str, list] | None = None,
         human_spec: DataSpec | dict | None = None,
         spec: DataSpec | dict | None = None,
+        human_bank: dict[str, list] | None = None,
     ):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= ema_decay < 1:
@@ -150,9 +162,10 @@ class OmniMotionModule(OmgModule):
             raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
         self.companion = None
         if human_spec is None:
-            if not human_data:
-                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards "
-                                 "(train, val, batch_size, ...), smpl22 in the maa representation")
+            if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
+                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards (train, val, "
+                                 "batch_size, ...), smpl22 in the maa representation; a checkpoint without human_spec "
+                                 "(written before omg kept it) loads only to go on training (`omg fit --ckpt_path`)")
             self.companion = CompanionStream(dict(human_data))
             human_spec = self.companion.spec.to_dict()
         if spec is None:
@@ -166,7 +179,8 @@ class OmniMotionModule(OmgModule):
                                  f"{skeleton} --representation maa`)")
         if isinstance(human_spec, DataSpec):
             human_spec = human_spec.to_dict()
-        self.save_hyperparameters()  # `human_spec` now holds the human data's description
+        self.save_hyperparameters()
+        self.hparams["human_spec"] = human_spec  # the human data's description, kept in checkpoints
         self.lr, self.betas, self.weight_decay, self.warmup_steps = lr, betas, weight_decay, warmup_steps
         self.schedule, self.ema_decay = schedule, ema_decay
         self.weights = {"jrec": jrec_weight, "clip": clip_weight, "trec": trec_weight, "cons": cons_weight,
@@ -196,6 +210,10 @@ class OmniMotionModule(OmgModule):
         self.human_generator = None  # an OMG ControlNet module, loaded when first needed
         self._bank: dict | None = None  # retrieval: the human validation clips and their caption features
         self._companion_state: dict | None = None
+        if human_bank is not None:  # shapes only: the clips come with the weights
+            frames = sum(human_bank["lengths"])
+            self._register_bank(torch.zeros(frames, self.human_spec.feature_dim),
+                                torch.zeros(len(human_bank["lengths"]), self.human_rep.skeleton.num_joints, 3))
 
     # -- helpers -------------------------------------------------------------------------
     def trainable_module(self) -> torch.nn.Module:
@@ -275,10 +293,40 @@ class OmniMotionModule(OmgModule):
         out |= {f"cross/{k}": v for k, v in cross.items()}
         return {"loss": total, **out}
 
+    # -- the retrieval clips ------------------------------------------------------------
+    def _register_bank(self, motion: Tensor, offsets: Tensor) -> None:
+        """The retrieval clips as buffers (saved with the weights): motion (sum of lengths, D) un-normalised,
+        one after another, and offsets (clips, J, 3)."""
+        self.register_buffer("human_bank_motion", motion.float())
+        self.register_buffer("human_bank_offsets", offsets.float())
+        self._bank = None
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        # a module built without the clips (a resumed run in Python) takes them from the checkpoint
+        if "human_bank_motion" in state_dict and getattr(self, "human_bank_motion", None) is None:
+            self._register_bank(torch.zeros_like(state_dict["human_bank_motion"]),
+                                torch.zeros_like(state_dict["human_bank_offsets"]))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def build_bank(self) -> None:
+        """Keep the captioned human validation clips (``human_data.val``) for retrieval."""
+        samples = [s for s in self.companion.val_samples() if s["texts"]]
+        if not samples:
+            return
+        self._register_bank(torch.cat([torch.from_numpy(np.asarray(s["motion"])) for s in samples]).to(self.device),
+                            torch.stack([torch.tensor(s["meta"]["offsets"]) for s in samples]).to(self.device))
+        self.hparams["human_bank"] = {"captions": [list(s["texts"]) for s in samples],
+                                      "lengths": [len(s["motion"]) for s in samples]}
+
     # -- training ------------------------------------------------------------------------
     def on_fit_start(self) -> None:
         if self.companion is None:
-            raise UsageError("training needs model.init_args.human_data (the human shards)")
+            if not self.hparams.get("human_data"):
+                raise UsageError("training needs model.init_args.human_data (the human shards)")
+            self.companion = CompanionStream(dict(self.hparams["human_data"]))
+            check_same_stats(self.companion.spec, self.human_spec)
+        if getattr(self, "human_bank_motion", None) is None:
+            self.build_bank()
         self.companion.start(self.global_rank, self.trainer.world_size)
         if self._companion_state is not None:
             self.companion.load_state_dict(self._companion_state)
@@ -337,8 +385,11 @@ class OmniMotionModule(OmgModule):
             self.ema = EMA(self.model, self.ema_decay)
             self.ema.load_state_dict(checkpoint["ema"])
         self._companion_state = checkpoint.get("human_stream")
-        if animals := (checkpoint.get("hyper_parameters") or {}).get("animals"):
+        hparams = checkpoint.get("hyper_parameters") or {}
+        if animals := hparams.get("animals"):
             self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in animals.items()}
+        if hparams.get("human_bank"):
+            self.hparams["human_bank"] = hparams["human_bank"]
 
     # -- inference -----------------------------------------------------------------------
     @torch.no_grad()
@@ -393,11 +444,14 @@ class OmniMotionModule(OmgModule):
         """The human validation clips whose captions are nearest the prompts (one of the top k, drawn
         with ``seed``), each cut or held at its last frame to the prompt's length."""
         if self._bank is None:
-            if self.companion is None:
-                self.companion = CompanionStream(dict(self.hparams.human_data or {}))
-            samples = [s for s in self.companion.val_samples() if s["texts"]]
-            if not samples:
-                raise UsageError("human_source retrieval needs captioned human clips in human_data.val")
+            bank = self.hparams.get("human_bank")
+            if not bank or getattr(self, "human_bank_motion", None) is None:
+                raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
+                                 "captioned clips in human_data.val, or before checkpoints kept them): give the human "
+                                 "motion with --from_motion or --human_ckpt")
+            motion = self.human_bank_motion.cpu().split(list(bank["lengths"]))
+            samples = [{"motion": m, "offsets": o, "texts": t}
+                       for m, o, t in zip(motion, self.human_bank_offsets.cpu(), bank["captions"])]
             captions = [(i, t) for i, s in enumerate(samples) for t in s["texts"]]
             self._bank = {"samples": samples, "owner": torch.tensor([i for i, _ in captions]),
                           "text": F.normalize(self.sentence([t for _, t in captions]).cpu(), dim=-1)}
@@ -416,11 +470,20 @@ class OmniMotionModule(OmgModule):
                 if len(seen) == self.retrieval_top_k:
                     break
             sample = bank["samples"][seen[int(torch.randint(len(seen), (1,), generator=gen))]]
-            clip = torch.from_numpy(sample["motion"])[:T]
+            clip = sample["motion"][:T]
             motion[b, : len(clip)] = clip
             motion[b, len(clip):] = clip[-1]
-            offsets.append(torch.tensor(sample["meta"]["offsets"], dtype=torch.float32))
+            offsets.append(sample["offsets"])
         return motion.to(self.device), torch.stack(offsets).to(self.device)
+
+
+def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
+    """The human stream's batches are normalised with its shards' statistics and un-normalised with the
+    checkpoint's (``human_spec``): a run that goes on from a checkpoint must read human shards like those."""
+    stored.check_compatible(found, "the checkpoint's human data", "human_data")
+    if found.mean != stored.mean or found.std != stored.std:
+        raise UsageError("human_data: its shards' mean/std differ from those the checkpoint was trained with "
+                         "(human_spec); go on from this checkpoint with the same human shards")
 
 
 def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ by the normalised [CLS] state, so ``TextFeatures.eot_embedding()`` is BGE's sent
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 
 import torch
@@ -63,6 +64,7 @@ class BgeTextEncoder(TextEncoder):
             self._freeze()
             return
         path = model_directory(model_dir)
+        check_pickled_weights(path)
         config = BertConfig.from_dict(_read_config(path))
         self.dim = config.hidden_size
         self.max_tokens = min(self.max_tokens, config.max_position_embeddings)
@@ -105,6 +107,22 @@ def model_directory(model_dir: str | Path | None) -> Path:
     if not any((path / name).is_file() for name in ("tokenizer.json", "vocab.txt")):
         raise UsageError(f"{NAME}: {path} holds no tokenizer (tokenizer.json or vocab.txt)")
     return path
+
+
+def check_pickled_weights(path: Path) -> None:
+    """A snapshot without model.safetensors has its weights in a pickle (pytorch_model.bin), which
+    could run code as it is read: refused unless a weights-only load (tensors and containers only)
+    reads it."""
+    if (path / "model.safetensors").is_file():
+        return
+    try:
+        torch.load(path / "pytorch_model.bin", map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise UsageError(f"{NAME}: {path / 'pytorch_model.bin'} holds pickled Python objects besides weights, which "
+                         "could run code when read: refused; use a snapshot with model.safetensors") from None
+    except (OSError, RuntimeError, EOFError, ValueError) as e:
+        reason = " ".join(str(e).split())[:200]
+        raise UsageError(f"{NAME}: cannot read {path / 'pytorch_model.bin'}: {reason}") from None
 
 
 def _read_config(path: Path) -> dict:

@@ -35,6 +35,7 @@ from omg.tools.common import check_output_dir, removing_created
 
 MAX_FPS = 1000.0
 Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of frames per second in (0, {MAX_FPS:g}]")
+Seconds = number_type("Seconds", float, [(">=", 0.0), ("<", math.inf)], "a number of seconds >= 0 (0: no limit)")
 
 # What `omg shards synth` builds by default: the embedded mini data in shards/mini.
 # (subdirectory, skeleton, representation, clips)
@@ -458,7 +459,8 @@ def _yaml(text: str, what: str):
         raise UsageError(f"{what}: not valid YAML ({str(e).splitlines()[0]})") from None
 
 
-def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer: PositiveInt = 1000) -> None:
+def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer: PositiveInt = 1000,
+                   timeout: Seconds = 600.0) -> None:
     """Summarise shard sets and validate every sample.
 
     Checks every shard against its manifest (file, size, sample count, end-of-archive, sha256)
@@ -471,10 +473,12 @@ def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer
             or mixture configs
         batch_size: batch size of the batch-composition report
         shuffle_buffer: the training stream's shuffle buffer (data.shuffle_buffer) for that report
+        timeout: seconds the read of one shard may take before inspect stops with one line (a stalled
+            read: a hung mount, a pipe: command that prints nothing); 0 waits forever
     """
     failures = []
     for d in [location for arg in dirs for location in mixture_locations(arg)]:
-        result = check_shards(d)
+        result = check_shards(d, timeout, "--timeout")
         print(result.manifest.summary())
         for problem in result.problems:
             print(f"  BAD {problem}")

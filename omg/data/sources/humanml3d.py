@@ -83,6 +83,19 @@ def _load(path: Path, shape: tuple) -> np.ndarray:
     return array.astype(np.float32)
 
 
+def _published_stat(path: Path) -> np.ndarray:
+    """Mean.npy or Std.npy: 263 numbers (never unpickled: an object array could run code as it is read)."""
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise UsageError(f"humanml3d: {path} is not a plain numeric .npy array ({' '.join(str(e).split())[:120]}); "
+                         "remove it or use the published file") from None
+    if array.shape != (263,) or not np.issubdtype(array.dtype, np.number) or not np.isfinite(array).all():
+        raise UsageError(f"humanml3d: {path} holds {array.shape} {array.dtype} values, expected 263 finite numbers; "
+                         "remove it or use the published file")
+    return array
+
+
 def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int,
                 max_frames: int) -> Iterator[Clip | Exception]:
     vec_path, joint_path = root / "new_joint_vecs" / f"{name}.npy", root / "new_joints" / f"{name}.npy"
@@ -168,7 +181,7 @@ def humanml3d_source(
     ids = _split_ids(root, split)
     stats = {}
     if (root / "Mean.npy").exists() and (root / "Std.npy").exists():
-        stats["humanml3d263"] = (np.load(root / "Mean.npy"), np.load(root / "Std.npy"))
+        stats["humanml3d263"] = (_published_stat(root / "Mean.npy"), _published_stat(root / "Std.npy"))
 
     def items() -> Iterator[Clip | Exception]:
         for name in ids:
