@@ -156,12 +156,33 @@ def test_the_registered_metric_scores_parts_and_categories(takes):
     labels = [{"following": "sidedness", "targets": [{"hand": "left", "action": "wave"}]},
               {"following": "sidedness", "targets": [{"hand": "right", "action": "wave"}]},  # the wrong side
               {"following": "combinations", "targets": [{"pace": "walk"}, {"hand": "left", "action": "wave"}]}]
-    metric.update(joints, mask, labels + [{"content": "walk"}])  # a row without targets is left out
+    metric.update(joints, mask, labels)
     out = {k: float(v) for k, v in metric.compute().items()}
     assert out["following"] == pytest.approx(1 / 3)
     assert out["following/sidedness"] == pytest.approx(0.5) and out["following/combinations"] == 0.0
     assert out["following/parts"] == pytest.approx(2 / 4) and out["following/pace"] == 1.0
     assert out["following/hand"] == pytest.approx(1 / 3)
+
+
+def test_validation_clips_are_scored_by_their_action_label(takes):
+    """Rows of a validation set carry clip labels, not targets: the prompt file's labels: table
+    gives them (a side named: sidedness), and a label without targets is left out."""
+    names = ["wave-left-hand", "walk-turn-right", "walk", "run"]
+    T = max(len(takes[n]) for n in names)
+    joints, mask = torch.zeros(len(names), T, 22, 3), torch.zeros(len(names), T, dtype=torch.bool)
+    for b, n in enumerate(names):
+        joints[b, : len(takes[n])], mask[b, : len(takes[n])] = takes[n], True
+    metric = PromptFollowing(fps=FPS)
+    # the run take labelled as a left wave fails; "bow-deep" has no targets and is left out
+    metric.update(joints, mask, [{"content": "wave-left-hand"}, {"content": "walk-turn-right"},
+                                 {"content": "walk"}, {"content": "wave-left-hand"}])
+    metric.update(joints[:1], mask[:1], [{"content": "bow-deep"}])
+    out = {k: float(v) for k, v in metric.compute().items()}
+    assert out["following/sidedness"] == pytest.approx(2 / 3) and out["following/plain"] == 1.0
+    assert out["following"] == pytest.approx(3 / 4)
+    assert out["following/turn"] == 1.0 and out["following/hand"] == pytest.approx(1 / 2)
+    with pytest.raises(UsageError, match="cannot read the prompt file"):
+        PromptFollowing(targets_file="/nonexistent/prompts.yaml")
 
 
 class Replay(L.LightningModule):

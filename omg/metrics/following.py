@@ -301,12 +301,17 @@ def label_targets(path: str | Path | None = None) -> dict[str, list[dict[str, An
 class PromptFollowing(GenerationMetric, Metric):
     """The fraction of motions that do what their prompt says, from the joints alone.
 
-    Rows are fed with their clip labels; a row whose labels hold ``targets`` (a list of target
+    Rows are fed with their clip labels. A row whose labels hold ``targets`` (a list of target
     mappings, see the module docstring) and ``following`` (its category: plain, sidedness,
-    paraphrases, combinations) is scored, other rows are left out. ``compute()`` returns
-    ``following`` (prompts whose every part passes, over all prompts), ``following/<category>``,
-    ``following/parts`` (parts passed over parts) and ``following/<kind>`` (hand, turn, travel,
-    pace) for what was fed. The prompt set comes from a prompt file (``EvalCallback.prompts``).
+    paraphrases, combinations) is scored: a prompt file's rows (``EvalCallback.prompts``). A row
+    of a validation clip is scored by its ``label`` (a take's ``content``) where the prompt file's
+    ``labels:`` table (``targets_file``; the built-in one by default) gives that value targets,
+    as ``sidedness`` when a target names a side and ``plain`` otherwise; its real motion is then
+    scored too (``real/following``: the check's own error on that set). Other rows are left out.
+
+    ``compute()`` returns ``following`` (prompts whose every part passes, over all prompts),
+    ``following/<category>``, ``following/parts`` (parts passed over parts) and
+    ``following/<kind>`` (hand, turn, travel, pace) for what was fed.
     """
 
     is_differentiable = False
@@ -317,11 +322,13 @@ class PromptFollowing(GenerationMetric, Metric):
     needs_embeddings = False
     needs_real = False
 
-    def __init__(self, skeleton: str | Skeleton = "smpl22", fps: float = 20.0, **kwargs):
+    def __init__(self, skeleton: str | Skeleton = "smpl22", fps: float = 20.0, label: str = "content",
+                 targets_file: str | None = None, **kwargs):
         super().__init__(**kwargs)
         if not fps > 0:
             raise UsageError(f"following: fps must be positive, got {fps}")
-        self.at, self.fps = Joints(skeleton), float(fps)
+        self.at, self.fps, self.label = Joints(skeleton), float(fps), label
+        self.label_targets = label_targets(targets_file)
         zeros = torch.zeros
         self.add_state("prompts_passed", zeros(len(CATEGORIES), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("prompts", zeros(len(CATEGORIES), dtype=torch.float64), dist_reduce_fx="sum")
@@ -331,9 +338,13 @@ class PromptFollowing(GenerationMetric, Metric):
     def update(self, joints: Tensor, mask: Tensor | None, labels: Sequence[dict]) -> None:
         """joints: (B, T, J, 3); mask: (B, T) True on real frames; labels: each row's clip labels."""
         for b, label in enumerate(labels):
-            targets = label.get("targets")
+            targets, category = label.get("targets"), label.get("following", "plain")
             if not targets:
-                continue
+                targets = self.label_targets.get(str(label.get(self.label)))
+                if not targets:
+                    continue
+                sided = any(v in ("left", "right") for t in targets for v in t.values())
+                category = "sidedness" if sided else "plain"
             frames = int(mask[b].sum()) if mask is not None else joints.shape[1]
             verdicts = []
             for target in targets:
@@ -341,7 +352,7 @@ class PromptFollowing(GenerationMetric, Metric):
                 verdicts.append(passes(joints[b, :frames], target, self.fps, self.at))
                 self.parts[kind] += 1
                 self.parts_passed[kind] += verdicts[-1]
-            category = CATEGORIES.index(label.get("following", "plain"))
+            category = CATEGORIES.index(category)
             self.prompts[category] += 1
             self.prompts_passed[category] += all(verdicts)
 
