@@ -275,3 +275,30 @@ def test_bench_following_scores_real_clips_and_their_mirror_images(shared_motion
     with pytest.raises(SystemExit) as exit_info:
         main(["bench", "following", "--input", str(tmp_path), "--label", "style"])
     assert exit_info.value.code == 2 and "no clip has a 'style' label" in capsys.readouterr().err
+
+
+def test_a_validation_pass_scores_generated_and_real_motions_by_label(shared_motion, tmp_path):
+    """evaluate() on a prompt set drawn from labelled clips, with no evaluator: a generator that
+    returns each prompt's real motion scores as the real motions do (real/following)."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.shards import ShardWriter
+    from omg.evaluation import evaluate, prompt_set
+    from omg.io.read import read_motion
+    from omg.motion import get_representation
+    from omg.retarget import retarget
+
+    clips = []
+    for name in ("wave-right-hand_normal_015", "walk-turn-left_exhausted_038", "run_exhausted_030"):
+        path = shared_motion / "human/bandai2" / f"dataset-2_{name}.bvh"
+        clips.append(retarget(read_motion(path), "smpl22", fps=FPS, id=name, texts=[name],
+                              labels={"content": name.split("_")[0]}))
+    ShardWriter(tmp_path / "val", get_representation("humanml3d263", SMPL22), fps=FPS, log=lambda m: None).write(clips)
+    data = MotionDataModule(val=str(tmp_path / "val"), max_len=300, clips="whole", num_workers=0)
+    prompts = prompt_set(data.val_clips().samples, 6, seed=0, windows=data.windows)
+    replay = iter(prompts.slice(0, 6).motions.split(6))
+    values = evaluate(lambda texts, lengths, seed: next(replay), None, prompts, {"following": {}}, seed=0,
+                      spec=data.spec)
+    assert values["following"] == values["real/following"] == 1.0
+    assert values["following/sidedness"] == 1.0 and values["following/plain"] == 1.0
+    with pytest.raises(UsageError, match="fid reads the evaluator's embeddings"):
+        evaluate(lambda *a: None, None, prompts, {"fid": {}}, seed=0, spec=data.spec)
