@@ -68,7 +68,7 @@ ACTIONS = ("raise", "wave")
 TURNS = ("left", "right", "around")
 TRAVELS = ("forward", "backward", "left", "right")
 PACES = ("still", "moving", "walk", "run")
-KINDS = ("hand", "turn", "travel", "pace")  # what a part tests: its first key of these
+KINDS = ("hand", "turn", "travel", "pace")  # what a part tests: the one of these keys it has
 CATEGORIES = ("plain", "sidedness", "paraphrases", "combinations")
 DEFAULT_PROMPTS = Path(__file__).with_name("following.yaml")
 
@@ -113,8 +113,8 @@ def body_size(joints: Tensor, at: Joints) -> float:
 
 
 def facing(joints: Tensor, at: Joints) -> Tensor:
-    """(T, J, 3) -> (T, 3) unit horizontal facing: up x (right -> left across hips and shoulders)
-    turned to point forward (for a body facing +Z with its left at +X: +Z)."""
+    """(T, J, 3) -> (T, 3) unit horizontal facing: (the right -> left vector across the hips and
+    the shoulders) x up, which points forward (+Z for a body facing +Z with its left at +X)."""
     across = (joints[:, at["left_hip"]] - joints[:, at["right_hip"]]
               + joints[:, at["left_shoulder"]] - joints[:, at["right_shoulder"]])  # (T, 3) towards the left
     forward = torch.linalg.cross(across, _UP.to(across).expand_as(across))  # left x up = forward
