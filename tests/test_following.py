@@ -162,6 +162,7 @@ def test_the_registered_metric_scores_parts_and_categories(takes):
     assert out["following/sidedness"] == pytest.approx(0.5) and out["following/combinations"] == 0.0
     assert out["following/parts"] == pytest.approx(2 / 4) and out["following/pace"] == 1.0
     assert out["following/hand"] == pytest.approx(1 / 3)
+    assert out["following/combinations/parts"] == 0.5 and out["following/sidedness/parts"] == 0.5
 
 
 def test_validation_clips_are_scored_by_their_action_label(takes):

@@ -310,7 +310,8 @@ class PromptFollowing(GenerationMetric, Metric):
     scored too (``real/following``: the check's own error on that set). Other rows are left out.
 
     ``compute()`` returns ``following`` (prompts whose every part passes, over all prompts),
-    ``following/<category>``, ``following/parts`` (parts passed over parts) and
+    ``following/<category>``, ``following/parts`` and ``following/<category>/parts`` (parts
+    passed over parts: a two-part prompt done by half is 0.5 there, 0 in ``following``) and
     ``following/<kind>`` (hand, turn, travel, pace) for what was fed.
     """
 
@@ -332,8 +333,11 @@ class PromptFollowing(GenerationMetric, Metric):
         zeros = torch.zeros
         self.add_state("prompts_passed", zeros(len(CATEGORIES), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("prompts", zeros(len(CATEGORIES), dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("parts_passed", zeros(len(KINDS), dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("parts", zeros(len(KINDS), dtype=torch.float64), dist_reduce_fx="sum")
+        # parts by (category, kind): how many parts of a category's prompts pass shows whether a
+        # two-part prompt gets one part right or none
+        shape = (len(CATEGORIES), len(KINDS))
+        self.add_state("parts_passed", zeros(shape, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("parts", zeros(shape, dtype=torch.float64), dist_reduce_fx="sum")
 
     def update(self, joints: Tensor, mask: Tensor | None, labels: Sequence[dict]) -> None:
         """joints: (B, T, J, 3); mask: (B, T) True on real frames; labels: each row's clip labels."""
@@ -346,13 +350,13 @@ class PromptFollowing(GenerationMetric, Metric):
                 sided = any(v in ("left", "right") for t in targets for v in t.values())
                 category = "sidedness" if sided else "plain"
             frames = int(mask[b].sum()) if mask is not None else joints.shape[1]
+            category = CATEGORIES.index(category)
             verdicts = []
             for target in targets:
                 kind = KINDS.index(check_target(target))
                 verdicts.append(passes(joints[b, :frames], target, self.fps, self.at))
-                self.parts[kind] += 1
-                self.parts_passed[kind] += verdicts[-1]
-            category = CATEGORIES.index(category)
+                self.parts[category, kind] += 1
+                self.parts_passed[category, kind] += verdicts[-1]
             self.prompts[category] += 1
             self.prompts_passed[category] += all(verdicts)
 
@@ -365,9 +369,11 @@ class PromptFollowing(GenerationMetric, Metric):
         for i, name in enumerate(CATEGORIES):
             if self.prompts[i]:
                 out[f"following/{name}"] = self.prompts_passed[i] / self.prompts[i]
+                out[f"following/{name}/parts"] = self.parts_passed[i].sum() / self.parts[i].sum()
         if self.parts.sum():
             out["following/parts"] = self.parts_passed.sum() / self.parts.sum()
-        for i, name in enumerate(KINDS):
-            if self.parts[i]:
-                out[f"following/{name}"] = self.parts_passed[i] / self.parts[i]
+        passed, parts = self.parts_passed.sum(0), self.parts.sum(0)  # (K,) by kind
+        for k, name in enumerate(KINDS):
+            if parts[k]:
+                out[f"following/{name}"] = passed[k] / parts[k]
         return out
