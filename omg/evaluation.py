@@ -92,11 +92,12 @@ def check_evaluator_spec(evaluator: nn.Module, data_spec: DataSpec, key: str = "
 @dataclass
 class PromptSet:
     """Captions with the real motions they describe: texts (N), lengths (N,), motions (N, T, D)
-    un-normalised and zero beyond each length, categories (N), offsets (N, J, 3) or None."""
+    un-normalised and zero beyond each length, categories (N), offsets (N, J, 3) or None.
+    ``motions`` is None for a prompt file (``file_prompt_set``): prompts with targets, no real motion."""
 
     texts: list[str]
     lengths: Tensor
-    motions: Tensor
+    motions: Tensor | None
     categories: list[str]
     offsets: Tensor | None = None
     labels: list[dict] | None = None  # each clip's labels ({content, style, ...}), {} when it has none
@@ -106,14 +107,16 @@ class PromptSet:
 
     def slice(self, start: int, stop: int) -> PromptSet:
         T = int(self.lengths[start:stop].max())
-        return PromptSet(self.texts[start:stop], self.lengths[start:stop], self.motions[start:stop, :T],
+        motions = None if self.motions is None else self.motions[start:stop, :T]
+        return PromptSet(self.texts[start:stop], self.lengths[start:stop], motions,
                          self.categories[start:stop], None if self.offsets is None else self.offsets[start:stop],
                          None if self.labels is None else self.labels[start:stop])
 
     def repeat(self, count: int, repeats: int) -> PromptSet:
         """The first ``count`` prompts, each ``repeats`` times in a row (MultiModality's generations)."""
         index = torch.arange(min(count, len(self))).repeat_interleave(repeats)
-        return PromptSet([self.texts[i] for i in index], self.lengths[index], self.motions[index],
+        return PromptSet([self.texts[i] for i in index], self.lengths[index],
+                         None if self.motions is None else self.motions[index],
                          [self.categories[i] for i in index], None if self.offsets is None else self.offsets[index],
                          None if self.labels is None else [self.labels[i] for i in index])
 
@@ -143,6 +146,17 @@ def prompt_set(samples: Sequence[dict], num: int, seed: int, windows: WindowSamp
     has_offsets = all(o is not None for o in offsets)
     return PromptSet(texts, lengths, motions, categories,
                      torch.tensor(np.array(offsets), dtype=torch.float32) if has_offsets else None, labels)
+
+
+def file_prompt_set(prompts: Sequence[dict], samples_per_prompt: int, fps: float, max_len: int) -> PromptSet:
+    """A prompt file's prompts (``omg.metrics.following.load_prompts``: text, category, seconds,
+    targets), each ``samples_per_prompt`` times in a row, ``seconds`` long at ``fps`` (at most
+    ``max_len`` frames, at least 2); each row's labels carry its ``targets`` and its category as
+    ``following``, which the metrics that read targets score. No real motions."""
+    rows = [p for p in prompts for _ in range(samples_per_prompt)]
+    lengths = torch.tensor([min(max_len, max(2, round(p["seconds"] * fps))) for p in rows])
+    labels = [{"following": p["category"], "targets": p["targets"]} for p in rows]
+    return PromptSet([p["text"] for p in rows], lengths, None, ["" for _ in rows], None, labels)
 
 
 # -- metrics ------------------------------------------------------------------------------
@@ -228,46 +242,60 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
     ``spec`` (the data's representation, skeleton, fps) decodes joint positions for the metrics
     that need them (FootSkating)."""
     device, settings = torch.device(device), settings or EvalSettings()
-    evaluator.to(device)
+    has_real = prompts.motions is not None
+    for name in metrics:  # a prompt file has no real motions; only an evaluator gives embeddings
+        cls = METRICS.get(name)
+        if not has_real and getattr(cls, "needs_real", True):
+            raise UsageError(f"metric {name} compares with real motions, which a prompt file does not have; "
+                             "score a prompt file with following, diversity, multimodality or foot_skating")
+        if evaluator is None and getattr(cls, "needs_embeddings", True):
+            raise UsageError(f"metric {name} reads the evaluator's embeddings: set an evaluator")
+    if evaluator is not None:
+        evaluator.to(device)
     categories = sorted(set(prompts.categories))
-    probe = evaluator.encode_text([prompts.texts[0]])
     label_values: dict[str, set] = {}
     for labels in prompts.labels or []:
         for key, value in labels.items():
-            label_values.setdefault(key, set()).add(str(value))
-    context = {"num_features": probe.shape[-1], "categories": categories, "seed": seed + replication,
+            if key != "targets":  # a prompt file's targets are not class values
+                label_values.setdefault(key, set()).add(str(value))
+    context = {"categories": categories, "seed": seed + replication,
                "labels": {key: sorted(values) for key, values in label_values.items()}}
+    if evaluator is not None:
+        context["num_features"] = evaluator.encode_text([prompts.texts[0]]).shape[-1]
     representation = None
     if spec is not None:
         context |= {"skeleton": spec.skeleton, "fps": spec.fps}
         representation = get_representation(spec.representation, get_skeleton(spec.skeleton))
     built = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()}
     reference = {name: build_metric(name, opts, context).to(device) for name, opts in metrics.items()
-                 if settings.reference and getattr(built[name], "reference", False)}
+                 if settings.reference and has_real and getattr(built[name], "reference", False)}
+    embeds = any(getattr(m, "needs_embeddings", True) for m in built.values())
     needs_joints = any(getattr(m, "needs_joints", False) for m in built.values())
     if needs_joints and representation is None:
         raise UsageError("joint-position metrics (foot_skating) need the data spec (representation, skeleton, fps) "
                          "to decode joint positions")
     category_index = {c: i for i, c in enumerate(categories)}
 
-    def embed(motion: Tensor, mask: Tensor) -> Tensor:
-        return evaluator.encode_motion(motion.to(device), mask).float()
+    def embed(motion: Tensor | None, mask: Tensor) -> Tensor | None:
+        return evaluator.encode_motion(motion.to(device), mask).float() if embeds and motion is not None else None
 
-    def decode(motion: Tensor, part: PromptSet) -> Tensor:
+    def decode(motion: Tensor | None, part: PromptSet) -> Tensor | None:
+        if not needs_joints or motion is None:
+            return None
         offsets = None if part.offsets is None else part.offsets.to(device)
         return representation.decode(motion.float(), offsets)
 
     for b, start, stop in _my_batches(len(prompts), settings.batch_size, rank, world_size):
         part = prompts.slice(start, stop)
         lengths = part.lengths.to(device)
-        gen = generate(part.texts, lengths, batch_seed(seed, replication, 0, b))[:, : part.motions.shape[1]]
-        real = part.motions.to(device)
-        mask = length_mask(lengths, real.shape[1])  # (B, T) real frames, shared by both sets
+        frames = int(part.lengths.max())
+        gen = generate(part.texts, lengths, batch_seed(seed, replication, 0, b))[:, :frames]
+        real = part.motions.to(device) if has_real else None
+        mask = length_mask(lengths, frames)  # (B, T) real frames, shared by both sets
         out = EvalBatch(
-            text=evaluator.encode_text(part.texts).float().to(device), real=embed(real, mask), gen=embed(gen, mask),
-            category=torch.tensor([category_index[c] for c in part.categories], device=device), mask=mask,
-            real_joints=decode(real, part) if needs_joints else None,
-            gen_joints=decode(gen, part) if needs_joints else None, labels=part.labels)
+            text=evaluator.encode_text(part.texts).float().to(device) if embeds else None, real=embed(real, mask),
+            gen=embed(gen, mask), category=torch.tensor([category_index[c] for c in part.categories], device=device),
+            mask=mask, real_joints=decode(real, part), gen_joints=decode(gen, part), labels=part.labels)
         for metric in built.values():
             if not getattr(metric, "repeated", False):
                 metric.eval_update(out)
@@ -281,7 +309,7 @@ def evaluate(generate: Generate, evaluator: nn.Module, prompts: PromptSet, metri
         for b, start, stop in _my_batches(len(repeated), settings.batch_size, rank, world_size):
             part = repeated.slice(start, stop)
             gen = generate(part.texts, part.lengths.to(device), batch_seed(seed, replication, 1, b))
-            frames = part.motions.shape[1]
+            frames = int(part.lengths.max())
             out = EvalBatch(mm=embed(gen[:, :frames], length_mask(part.lengths, frames, device)),
                           mm_ids=ids[start:stop].to(device))
             for metric in mm_metrics:

@@ -132,6 +132,13 @@ def sixd_to_matrix(d6: Tensor) -> Tensor:
     return torch.stack((b1, b2, b3), dim=-1)
 
 
+# The 6D rotation (first two matrix columns) of a rotation seen in a mirror x -> -x: M R M with
+# M = diag(-1, 1, 1) has columns -M c0 and M c1, so each entry keeps or flips its sign. The map is
+# linear and exact, also on features off the rotation manifold (a generated motion's).
+SIXD_REFLECT_X = (1.0, -1.0, -1.0, -1.0, 1.0, 1.0)
+REFLECT_X = (-1.0, 1.0, 1.0)  # a position, velocity or offset seen in the same mirror
+
+
 def quat_to_6d(q: Tensor) -> Tensor:
     return matrix_to_6d(quat_to_matrix(q))
 

@@ -72,6 +72,16 @@ class Skeleton:
         except ValueError:
             raise KeyError(f"skeleton {self.name!r} has no joint {joint_name!r}") from None
 
+    def mirror(self, vectors):
+        """(..., J, 3) positions, velocities or bone offsets -> their mirror image: reflected across
+        the body's sagittal plane (x -> -x, the left side is +X) with each joint swapped for its
+        mirror joint (``symmetry``). An involution; numpy arrays and tensors alike."""
+        if not self.symmetry:
+            raise ValueError(f"skeleton {self.name!r} has no symmetry: it cannot be mirrored")
+        out = vectors[..., list(self.symmetry), :] * 1.0  # a copy, in floating point
+        out[..., 0] = -out[..., 0]
+        return out
+
     def children(self, j: int) -> list[int]:
         return [c for c, p in enumerate(self.parents) if p == j]
 

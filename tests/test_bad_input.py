@@ -276,6 +276,8 @@ ROWS = [
     ("test-evaluator-other-kind", ["test", "--config", "{eval_animal}", "--trainer.default_root_dir", "{out}",
                                    "--model.init_args.pretrained", "{pre}", "--model.init_args.text_encoder", "hash",
                                    "--model.init_args.moc", "{{d_c: 16, num_experts: 2}}"]),
+    ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
+    ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -321,6 +323,13 @@ ROWS = [
     ("bench-sample-flavor-banana", [*BENCH_SAMPLE, "--flavor", "banana"]),
     ("bench-sample-text-encoder-banana", [*BENCH_SAMPLE, "--text_encoder", "banana"]),
     ("bench-sample-precision-banana", [*BENCH_SAMPLE, "--precision", "banana"]),
+    ("bench-following-input-missing", ["bench", "following", "--input", "{in}/nope"]),
+    ("bench-following-input-no-labels", ["bench", "following", "--input", "{in}"]),
+    ("bench-following-prompts-missing", ["bench", "following", "--input", "{in}", "--prompts", "{in}/nope.yaml"]),
+    ("bench-following-prompts-binary", ["bench", "following", "--input", "{in}", "--prompts", "{in}/elf.bin"]),
+    ("bench-following-fps-nan", ["bench", "following", "--input", "{in}", "--fps", "nan"]),
+    ("bench-sides-manifest-missing", ["bench", "sides", "--manifests", "[{in}/nope.json]", "--encoders", "[hash]"]),
+    ("bench-sides-manifest-binary", ["bench", "sides", "--manifests", "[{in}/elf.bin]", "--encoders", "[hash]"]),
 ]
 
 
@@ -379,7 +388,8 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(name, argv, ckpts, tmp_
 def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
-                        "transfer", "fit", "test", "bench data", "bench train", "bench sample"}
+                        "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
+                        "bench sides"}
     assert set(SAYS) <= {name for name, _ in ROWS}
     assert len({name for name, _ in ROWS}) == len(ROWS)
 

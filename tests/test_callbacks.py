@@ -16,6 +16,7 @@ from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
+from omg.metrics.following import CATEGORIES, load_prompts
 
 MINI = REPO / "shards/mini/human263"
 TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
@@ -212,3 +213,13 @@ def test_omg_fit_versions_runs_and_omg_test_prints_the_protocol(evaluator_ckpt, 
     report = json.loads((tmp_path / "ev/version_0/eval.json").read_text())
     assert report["settings"]["model"] == "ControlNetModule" and report["settings"]["checkpoint"].endswith("last.ckpt")
     assert (tmp_path / "ev/version_0/config.yaml").exists()
+
+    # prompt following with the built-in prompt file: no evaluator, every prompt generated and scored
+    _cli("test", "--config", str(REPO / "configs/small/following.yaml"), *common, "--trainer.default_root_dir=fo",
+         "--ckpt_path=cn/checkpoints/last.ckpt", "--trainer.callbacks.samples_per_prompt=1",
+         "--trainer.callbacks.replications=1", "--trainer.callbacks.steps=2", "--trainer.limit_test_batches=1")
+    report = json.loads((tmp_path / "fo/version_0/eval.json").read_text())
+    assert report["settings"]["prompts"] == len(load_prompts()) and report["settings"]["evaluator"] is None
+    for key in ("following", "following/parts", "foot_skating", *(f"following/{c}" for c in CATEGORIES)):
+        assert 0 <= report["metrics"][key]["mean"] <= 1, key
+    assert "real/following" not in report["metrics"]

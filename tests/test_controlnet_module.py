@@ -155,14 +155,22 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
     evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data().spec)  # untrained: the plumbing
     torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
                 "module_class": "omg.lit.evaluator.EvaluatorModule"}, tmp_path / "evaluator.ckpt")
+    (tmp_path / "prompts.yaml").write_text(
+        "prompts:\n"
+        "  - {text: a person waves the left hand., category: sidedness, seconds: 2, "
+        "targets: [{hand: left, action: wave}]}\n"
+        "  - {text: a person stands still., category: plain, seconds: 2, targets: [{pace: still}]}\n")
     main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),
           "--val", str(MINI / "val"), "--max_len", "60", "--samplers", "[ddim, dpmpp]", "--steps", "[1, 3]",
-          "--replications", "2", "--num_prompts", "8", "--batch_size", "8", "--out", str(tmp_path / "q")])
+          "--replications", "2", "--num_prompts", "8", "--batch_size", "8", "--out", str(tmp_path / "q"),
+          "--prompts", str(tmp_path / "prompts.yaml"), "--samples_per_prompt", "3"])
     rows = list(csv.DictReader(open(tmp_path / "q/quality.csv")))
     assert [(r["sampler"], int(r["steps"])) for r in rows] == [("ddim", 1), ("ddim", 3), ("dpmpp", 1), ("dpmpp", 3)]
     assert all(float(r["s_per_motion"]) > 0 and np.isfinite(float(r["fid_mean"])) for r in rows)
+    assert all(0 <= float(r[f"{k}_mean"]) <= 1 for r in rows for k in ("following", "following/sidedness"))
     # one step: both samplers return the model's x0 of the same noise, so the same motions and metrics
-    assert float(rows[0]["fid_mean"]) == pytest.approx(float(rows[2]["fid_mean"]), rel=1e-4)
+    for key in ("fid_mean", "following_mean", "following/plain_mean"):
+        assert float(rows[0][key]) == pytest.approx(float(rows[2][key]), rel=1e-4)
     assert (tmp_path / "q/quality.png").stat().st_size > 0
     with pytest.raises(SystemExit):
         main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),

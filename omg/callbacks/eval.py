@@ -19,13 +19,15 @@ from omg.evaluation import (
     build_evaluator,
     check_evaluator_spec,
     evaluate,
+    file_prompt_set,
     markdown_table,
     parse_metrics,
     prompt_set,
     protocol,
     write_report,
 )
-from omg.registry import SAMPLERS
+from omg.metrics.following import load_prompts
+from omg.registry import METRICS, SAMPLERS
 
 
 def check_eval_data(data: L.LightningDataModule | None, key: str) -> None:
@@ -75,11 +77,17 @@ class EvalCallback(Callback):
         batch_size: prompts generated at once on each rank.
         seed: seeds the prompt sets and the sampling; a run is deterministic for a seed.
         reference: also report the set-wise metrics of the real motions as ``real/<metric>``.
+        prompts: a prompt file with targets (``omg.metrics.following``: ``following`` for the
+            built-in set, or a YAML path) in place of captions drawn from data.val: each of its
+            prompts is generated ``samples_per_prompt`` times per pass and scored by what the
+            motion does (metrics: following, and others that need no real motion: diversity,
+            multimodality, foot_skating; the evaluator may then be left out).
+        samples_per_prompt: generations of each prompt of a prompt file per pass.
     """
 
     def __init__(
         self,
-        evaluator: str | dict[str, Any] | nn.Module,
+        evaluator: str | dict[str, Any] | nn.Module | None = None,
         metrics: list[str | dict[str, Any]] | None = None,
         num_prompts: int = 1000,
         every_n_steps: int = 0,
@@ -93,18 +101,36 @@ class EvalCallback(Callback):
         batch_size: int = 64,
         seed: int = 0,
         reference: bool = True,
+        prompts: str | None = None,
+        samples_per_prompt: int = 4,
     ):
         key = "EvalCallback"
         for name, value, low in (("num_prompts", num_prompts, 1), ("every_n_steps", every_n_steps, 0),
                                  ("replications", replications, 1), ("mm_prompts", mm_prompts, 1),
-                                 ("mm_repeats", mm_repeats, 2), ("steps", steps, 1), ("batch_size", batch_size, 1)):
+                                 ("mm_repeats", mm_repeats, 2), ("steps", steps, 1), ("batch_size", batch_size, 1),
+                                 ("samples_per_prompt", samples_per_prompt, 1)):
             if not isinstance(value, int) or value < low:
                 raise UsageError(f"{key}.{name} must be an integer >= {low}, got {value!r}")
         if isinstance(evaluator, str) and not Path(evaluator).exists():
             raise UsageError(f"{key}.evaluator: no evaluator checkpoint at {evaluator}")
         self.evaluator_spec = evaluator
         self.metrics = parse_metrics(metrics, key=f"{key}.metrics")
-        self.num_prompts, self.every_n_steps, self.replications = num_prompts, every_n_steps, replications
+        self.prompt_file = None
+        if prompts is not None:
+            self.prompt_file = load_prompts(None if prompts == "following" else prompts)
+            self.samples_per_prompt = samples_per_prompt
+            self.num_prompts = len(self.prompt_file) * samples_per_prompt
+            if wrong := [n for n in self.metrics if getattr(METRICS.get(n), "needs_real", True)]:
+                raise UsageError(f"{key}.metrics: {', '.join(wrong)} compare with real motions, which a prompt file "
+                                 "(EvalCallback.prompts) does not have; use following, diversity, multimodality "
+                                 "or foot_skating")
+        if evaluator is None and (wrong := [n for n in self.metrics if getattr(METRICS.get(n), "needs_embeddings",
+                                                                              True)]):
+            raise UsageError(f"{key}.evaluator: {', '.join(wrong)} read the evaluator's embeddings; set an evaluator "
+                             "checkpoint")
+        self.every_n_steps, self.replications = every_n_steps, replications
+        if self.prompt_file is None:
+            self.num_prompts = num_prompts
         SAMPLERS.get(sampler)  # an unknown name fails here, not after training
         self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
         self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
@@ -119,10 +145,14 @@ class EvalCallback(Callback):
         """The checks that need no trainer: ``omg.lit.cli`` runs them before the run creates its
         folder, ``setup`` again for a Trainer used without the CLI."""
         check_generative(model, "EvalCallback")
-        check_eval_data(data, "EvalCallback")
-        if self.evaluator is None:
+        if self.prompt_file is None:
+            check_eval_data(data, "EvalCallback")
+        elif data is None:
+            raise UsageError("EvalCallback.prompts: the data module is needed for the features' representation and fps")
+        if self.evaluator is None and self.evaluator_spec is not None:
             self.evaluator = build_evaluator(self.evaluator_spec, key="EvalCallback.evaluator")
-        check_evaluator_spec(self.evaluator, data.spec, key="EvalCallback.evaluator")
+        if self.evaluator is not None:
+            check_evaluator_spec(self.evaluator, data.spec, key="EvalCallback.evaluator")
         # generated and real motions are compared at one frame rate: the model's must be the data's
         check_evaluator_spec(model, data.spec, key=f"the model ({type(model).__name__})")
         for name, options in self.metrics.items():  # pool sizes and pair counts the prompt set can fill
@@ -135,11 +165,15 @@ class EvalCallback(Callback):
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         self.preflight(pl_module, trainer.datamodule)
-        self._samples, data = eval_samples(trainer, "EvalCallback")
-        self.spec, self._windows = data.spec, data.windows
+        if self.prompt_file is None:
+            self._samples, _ = eval_samples(trainer, "EvalCallback")
+        self.spec, self._windows = trainer.datamodule.spec, trainer.datamodule.windows
 
     def prompts(self, replication: int) -> PromptSet:
-        """The prompt set of a replication (replication 0 is the fixed set used during fit)."""
+        """The prompt set of a replication (replication 0 is the fixed set used during fit); a
+        prompt file's is the same in every replication, whose sampling seeds differ."""
+        if self.prompt_file is not None:
+            return file_prompt_set(self.prompt_file, self.samples_per_prompt, self.spec.fps, self._windows.max_len)
         return prompt_set(self._samples, self.num_prompts, self.seed + replication, self._windows)
 
     def run_once(self, trainer: L.Trainer, module: L.LightningModule, replication: int) -> dict[str, float]:
@@ -184,6 +218,8 @@ class EvalCallback(Callback):
                     "model": type(pl_module).__name__, "evaluator": self._describe_evaluator(),
                     "replications": self.replications, "num_prompts": self.num_prompts, "seed": self.seed,
                     "mm_prompts": self.settings.mm_prompts, "mm_repeats": self.settings.mm_repeats,
+                    **({"prompts": len(self.prompt_file), "samples_per_prompt": self.samples_per_prompt}
+                       if self.prompt_file is not None else {}),
                     **{f"sampling_{k}": v for k, v in self.sampling.items()}, "metrics": self.metrics}
         self._report(directory, summary, settings)
 
@@ -194,4 +230,4 @@ class EvalCallback(Callback):
 
     def _describe_evaluator(self) -> str:
         spec = self.evaluator_spec
-        return spec if isinstance(spec, str) else type(self.evaluator).__name__
+        return spec if isinstance(spec, str) or spec is None else type(self.evaluator).__name__

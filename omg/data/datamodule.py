@@ -40,9 +40,9 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 from omg.data.deadline import deadline
 from omg.data.mixture import load_mixture
 from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
-from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, pick_text
+from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, mirror_item, pick_text
 from omg.errors import UsageError
-from omg.motion import DataSpec
+from omg.motion import DataSpec, Representation, get_representation
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +119,10 @@ class MotionStream(IterableDataset):
     shuffle buffer of ``ceil(share * shuffle_buffer)`` samples: a sample then waits in its buffer
     about as many draws as in a single set's, and the buffers together hold ``shuffle_buffer``.
     Mixed samples carry ``shard_set``, the index of their set.
+
+    ``mirror`` (a representation) with ``mirror_prob`` > 0: each item is replaced by its mirror
+    image (``windows.mirror_item``) with that probability, drawn from the same seeded generator
+    (no draw at all when it is 0, so the stream without mirroring is unchanged).
     """
 
     def __init__(
@@ -135,7 +139,10 @@ class MotionStream(IterableDataset):
         mean_frames: float | None = None,
         checks: dict[str, dict] | None = None,
         sets: list[StreamSet] | None = None,
+        mirror: Representation | None = None,
+        mirror_prob: float = 0.0,
     ):
+        self.mirror, self.mirror_prob = mirror, mirror_prob if mirror is not None else 0.0
         self.sets = sets or [StreamSet(urls, 1.0, mean_frames)]
         if sets:
             urls = [url for s in sets for url in s.urls]
@@ -222,6 +229,8 @@ class MotionStream(IterableDataset):
             sample = entry[0]
             start, length = self.windows(len(sample["motion"]), rng)
             item = make_item(sample, start, length, pick_text(sample["texts"], rng))
+            if self.mirror_prob and rng.random() < self.mirror_prob:
+                item = mirror_item(item, self.mirror)
             if not single:
                 item["shard_set"] = index
             yield item
@@ -433,6 +442,10 @@ class MotionDataModule(L.LightningDataModule):
             with data workers or without (``omg.data.deadline``).
         verify_shards: check each shard against its manifest (size, sample count, sha256) before
             any of its samples is used; a shard that fails is skipped whole and counted as bad.
+        mirror_prob: mirror augmentation: the probability that a training sample is replaced by
+            its mirror image, left and right swapped in the motion (exactly, by the representation's
+            ``mirror``: humanml3d263, maa) and in its caption (``omg.text.sides``). Default 0 (off)
+            until its effect on a recipe is measured; validation and test sets are never mirrored.
     """
 
     def __init__(
@@ -451,6 +464,7 @@ class MotionDataModule(L.LightningDataModule):
         max_bad_fraction: float = 0.01,
         timeout: float = 600.0,
         verify_shards: bool = True,
+        mirror_prob: float = 0.0,
     ):
         # this call's arguments, explicitly: Lightning's frame inspection would also collect those of
         # an enclosing __init__ (a LightningModule that builds a second data module, as OmniMotionGPT does)
@@ -470,6 +484,8 @@ class MotionDataModule(L.LightningDataModule):
                              f"got min_len={min_len}, max_len={max_len}")
         if clips not in ("auto", *CLIP_MODES):
             raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
+        if not 0.0 <= mirror_prob <= 1.0:  # also NaN
+            raise UsageError(f"data.mirror_prob is a probability in [0, 1], got {mirror_prob}")
         self.save_hyperparameters(arguments)
         if not train and not val:
             raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
@@ -494,6 +510,10 @@ class MotionDataModule(L.LightningDataModule):
         mean, std = (np.asarray(self._spec.mean, np.float32), np.asarray(self._spec.std, np.float32)) \
             if normalize else (None, None)
         self.collate = Collate(mean, std)
+        self.mirror = None
+        if mirror_prob > 0:  # a representation that cannot mirror fails here, not in a data worker
+            self.mirror = get_representation(self.representation, self.skeleton)
+            self.mirror.mirror_map()
 
     # what models need to know about the data
     @property
@@ -560,6 +580,8 @@ class MotionDataModule(L.LightningDataModule):
             checks=self.shard_checks,
             mean_frames=manifest["num_frames"] / max(1, manifest["num_clips"]),
             sets=sets,
+            mirror=self.mirror,
+            mirror_prob=h.mirror_prob,
         )
         return StreamLoader(stream, epoch_fn=epoch_fn, num_workers=h.num_workers, collate_fn=self.collate,
                             persistent_workers=False, fetch_timeout=h.timeout, worker_init_fn=exit_on_sigterm)

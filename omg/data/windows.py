@@ -19,6 +19,7 @@ import torch
 
 from omg.errors import UsageError
 from omg.motion import length_mask
+from omg.text.sides import mirror_caption
 
 CLIP_MODES = ("windows", "whole")
 
@@ -87,6 +88,18 @@ def make_item(sample: dict, start: int, length: int, text: str) -> dict:
     if "offsets" in meta:
         item["offsets"] = np.asarray(meta["offsets"], dtype=np.float32)  # (J, 3)
     return item
+
+
+def mirror_item(item: dict, representation) -> dict:
+    """A training item seen in a mirror: its features and offsets mirrored exactly
+    (``Representation.mirror``), left and right swapped in its caption and in its string labels
+    ("walk-left" -> "walk-right"), so the pair stays exactly labelled."""
+    motion, offsets = representation.mirror(item["motion"], item.get("offsets"))
+    labels = {k: mirror_caption(v) if isinstance(v, str) else v for k, v in item["labels"].items()}
+    out = item | {"motion": motion, "text": mirror_caption(item["text"]), "labels": labels}
+    if offsets is not None:
+        out["offsets"] = offsets.astype(np.float32)
+    return out
 
 
 def pick_text(texts: list[str], rng: np.random.Generator) -> str:

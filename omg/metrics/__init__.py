@@ -8,6 +8,7 @@ lists), so ``compute()`` gives the same result on every rank as one process seei
 from omg.metrics.base import EvalBatch, GenerationMetric
 from omg.metrics.distribution import FID, FIDOOD, IntraFID, OneNNA, frechet_distance
 from omg.metrics.diversity import Diversity, MultiModality
+from omg.metrics.following import PromptFollowing
 from omg.metrics.habit import CrossCategoryFID
 from omg.metrics.joints import MPJPE, FootSkating
 from omg.metrics.text_motion import CLIPScore, LabelAccuracy, MMDist, RPrecision
@@ -27,6 +28,7 @@ __all__ = [
     "MPJPE",
     "MultiModality",
     "OneNNA",
+    "PromptFollowing",
     "RPrecision",
     "frechet_distance",
 ]

@@ -47,13 +47,18 @@ class GenerationMetric:
     - ``repeated``: it is fed the repeated generations of the first prompts (MultiModality)
       instead of the prompt batches;
     - ``needs_joints``: it reads decoded joint positions;
-    - ``from_prompts``: False for a metric that needs inputs a prompt set cannot give.
+    - ``from_prompts``: False for a metric that needs inputs a prompt set cannot give;
+    - ``needs_real``: it compares with the real motions of the prompts (False: it can score a
+      prompt file, whose prompts have none);
+    - ``needs_embeddings``: it reads the evaluator's embeddings (False: it needs no evaluator).
     """
 
     reference: ClassVar[bool] = False
     repeated: ClassVar[bool] = False
     needs_joints: ClassVar[bool] = False
     from_prompts: ClassVar[bool] = True
+    needs_real: ClassVar[bool] = True
+    needs_embeddings: ClassVar[bool] = True
 
     def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
         raise NotImplementedError(f"{type(self).__name__} does not say how an evaluation batch feeds it")

@@ -40,6 +40,7 @@ class Diversity(GenerationMetric, Metric):
         self.features.append(features.detach().double())
 
     reference = True
+    needs_real = False  # the spread of the generated motions alone
 
     def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
         self.update(batch.motion(real))
@@ -81,6 +82,7 @@ class MultiModality(GenerationMetric, Metric):
         self.text_ids.append(text_ids.detach().long())
 
     repeated = True
+    needs_real = False
 
     def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
         if batch.mm is not None and len(batch.mm):

@@ -105,6 +105,8 @@ class FootSkating(GenerationMetric, Metric):
 
     reference = True
     needs_joints = True
+    needs_real = False
+    needs_embeddings = False
 
     def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
         self.update(batch.joints(real), batch.mask)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 import torch
 
+from omg.errors import UsageError
 from omg.skeleton import Skeleton, get_skeleton
 
 
@@ -86,6 +88,21 @@ class Representation(ABC):
     def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
         """(..., T', D) features -> (..., T', J, 3) joint positions."""
 
+    def mirror_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """(D,) source feature and (D,) sign of each feature of the mirror image: the features of
+        a motion seen in a mirror across the body's sagittal plane (x -> -x, left <-> right) are a
+        signed permutation of its own (``mirror``). Representations that cannot say raise."""
+        raise UsageError(f"representation {self.name!r} does not define its mirror image (mirror_map)")
+
+    def mirror(self, features, offsets=None):
+        """(..., T', D) features (numpy or torch) and the clip's (J, 3) offsets (or None) -> those of
+        the motion's mirror image, exactly: applying it twice gives the input back."""
+        index, sign = self.mirror_map()
+        if isinstance(features, torch.Tensor):
+            sign = torch.as_tensor(sign, dtype=features.dtype, device=features.device)
+        mirrored = features[..., index] * (sign if isinstance(features, torch.Tensor) else sign.astype(features.dtype))
+        return mirrored, (None if offsets is None else self.skeleton.mirror(offsets))
+
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor | None:
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None
@@ -96,6 +113,27 @@ class Representation(ABC):
         The default floors the std so that constant features do not blow up.
         """
         return mean.astype(np.float32), np.maximum(std, 1e-4).astype(np.float32)
+
+
+def mirror_block(symmetry: Sequence[int], start: int, joints: Sequence[int], signs: Sequence[float]
+                 ) -> tuple[list[int], list[float]]:
+    """The mirror map of a block of per-joint values at ``start``, one slot of len(signs) values
+    for each of ``joints`` in order: each slot reads its mirror joint's slot (``symmetry``) with
+    ``signs`` (``rotations.REFLECT_X`` for vectors, ``rotations.SIXD_REFLECT_X`` for 6D rotations)."""
+    width, slot = len(signs), {j: k for k, j in enumerate(joints)}
+    index, sign = [], []
+    for j in joints:
+        source = start + slot[symmetry[j]] * width
+        index.extend(range(source, source + width))
+        sign.extend(signs)
+    return index, sign
+
+
+def check_mirrorable(rep: Representation) -> Sequence[int]:
+    """The skeleton's symmetry, or a UsageError for a skeleton that has none."""
+    if not rep.skeleton.symmetry:
+        raise UsageError(f"skeleton {rep.skeleton.name!r} has no symmetry: {rep.name} features cannot be mirrored")
+    return rep.skeleton.symmetry
 
 
 def length_mask(lengths, frames: int | None = None, device: torch.device | str | None = None) -> torch.Tensor:

@@ -42,9 +42,11 @@ import torch.nn.functional as F
 
 from omg.errors import UsageError
 from omg.kinematics import foot_contacts
-from omg.motion.base import Clip, Representation
+from omg.motion.base import Clip, Representation, check_mirrorable, mirror_block
 from omg.registry import REPRESENTATIONS
 from omg.rotations import (
+    REFLECT_X,
+    SIXD_REFLECT_X,
     quat_apply,
     quat_between,
     quat_conjugate,
@@ -229,6 +231,20 @@ class HumanML3D263(Representation):
 
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
         return features[..., 259:263]
+
+    def mirror_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The mirror image in HumanML3D's canonical frame (x -> -x, left <-> right joints): the root's
+        yaw velocity and sideways velocity flip, its forward velocity and height stay; ric positions
+        and local velocities reflect (x flips) and swap joints; the 6D rotations reflect (M R M,
+        valid since the rest directions of mirror joints mirror each other) and swap; the left and
+        right foot contacts swap."""
+        symmetry = check_mirrorable(self)
+        index, sign = [0, 1, 2, 3], [-1.0, -1.0, 1.0, 1.0]
+        for start, joints, signs in ((4, range(1, 22), REFLECT_X), (67, range(1, 22), SIXD_REFLECT_X),
+                                     (193, range(22), REFLECT_X), (259, FEET_LEFT + FEET_RIGHT, (1.0,))):
+            block = mirror_block(symmetry, start, joints, signs)
+            index, sign = index + block[0], sign + block[1]
+        return np.asarray(index), np.asarray(sign)
 
     def finalize_stats(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """HumanML3D's cal_mean_variance: one std per feature group (its mean over the group)."""

@@ -7,9 +7,9 @@ import torch
 
 from omg import kinematics
 from omg.errors import UsageError
-from omg.motion.base import Clip, Representation
+from omg.motion.base import Clip, Representation, check_mirrorable, mirror_block
 from omg.registry import REPRESENTATIONS
-from omg.rotations import quat_to_6d, sixd_to_quat
+from omg.rotations import REFLECT_X, SIXD_REFLECT_X, quat_to_6d, sixd_to_quat
 from omg.skeleton import Skeleton
 
 
@@ -72,6 +72,15 @@ class MAA(Representation):
         root = np.asarray(clip.positions[:, 0], dtype=np.float64)  # (T, 3)
         features = np.concatenate([sixd.numpy(), root, np.zeros((T, 3))], axis=1)
         return features.astype(np.float32), {"offsets": offsets.tolist()}
+
+    def mirror_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The mirror image across the sagittal plane (x -> -x): every local rotation reflects
+        (M R M) onto its mirror joint (the skeleton's ``symmetry``: SMPL-22's or SMAL-35's), the
+        root position's x flips; the offsets mirror beside them (``Representation.mirror``)."""
+        symmetry = check_mirrorable(self)
+        J = self.skeleton.num_joints
+        index, sign = mirror_block(symmetry, 0, range(J), SIXD_REFLECT_X)
+        return np.asarray(index + list(range(J * 6, J * 6 + 6))), np.asarray(sign + [*REFLECT_X, 1.0, 1.0, 1.0])
 
     def rotations_and_root(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., T, (J + 1) * 6) features -> local rotations (..., T, J, 4) and root positions (..., T, 3)."""

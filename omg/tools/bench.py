@@ -482,6 +482,8 @@ def bench_quality(
     seed: NonNegativeInt = 0,
     out: Path = Path("out/quality"),
     command: str = "omg bench quality",
+    prompts: str | None = None,
+    samples_per_prompt: PositiveInt = 4,
 ) -> list[dict]:
     """FID and R-precision against sampling steps and seconds per motion, for each sampler: the
     evaluation protocol of ``omg test`` (seeded prompt sets from the validation shards, a frozen
@@ -502,6 +504,9 @@ def bench_quality(
         seed: the protocol's seed
         out: folder for quality.csv and quality.png
         command: the command line, recorded with the results
+        prompts: also score prompt following (``omg.metrics.following``) on a prompt file with
+            targets: ``following`` (the built-in set) or a YAML path; adds the following columns
+        samples_per_prompt: generations of each prompt of the prompt file per replication
 
     Returns:
         One row per (sampler, steps): seconds per motion and each metric's mean and CI.
@@ -509,10 +514,19 @@ def bench_quality(
     import csv
 
     from omg.data.datamodule import MotionDataModule
-    from omg.evaluation import build_evaluator, check_evaluator_spec, evaluate, parse_metrics, prompt_set, summarize
+    from omg.evaluation import (
+        build_evaluator,
+        check_evaluator_spec,
+        evaluate,
+        file_prompt_set,
+        parse_metrics,
+        prompt_set,
+        summarize,
+    )
     from omg.files import check_output_dir
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
+    from omg.metrics.following import CATEGORIES, load_prompts
     from omg.registry import SAMPLERS
 
     for name in samplers:
@@ -526,6 +540,10 @@ def bench_quality(
     model = build_evaluator(evaluator, key="--evaluator")
     check_evaluator_spec(model, data.spec, key="--evaluator")
     metrics = parse_metrics(["fid", {"r_precision": {"pool_size": min(32, num_prompts)}}])
+    following = None
+    if prompts is not None:
+        entries = load_prompts(None if prompts == "following" else prompts)
+        following = file_prompt_set(entries, samples_per_prompt, data.spec.fps, max_len)
     rows = []
     for name in samplers:
         for n in steps:
@@ -542,11 +560,17 @@ def bench_quality(
                              replication=r, spec=data.spec) for r in range(replications)]
             summary = summarize(runs)
             row = {"sampler": name, "steps": n, "s_per_motion": seconds / motions}
-            for key in ("fid", "r_precision/top1", "r_precision/top3"):
+            keys = ["fid", "r_precision/top1", "r_precision/top3"]
+            if following is not None:
+                summary |= summarize([evaluate(generate, None, following, {"following": {}}, seed=seed, replication=r,
+                                               spec=data.spec) for r in range(replications)])
+                keys += [k for k in ("following", *(f"following/{c}" for c in CATEGORIES)) if k in summary]
+            for key in keys:
                 row[f"{key}_mean"], row[f"{key}_ci95"] = summary[key]["mean"], summary[key]["ci95"]
             rows.append(row)
+            extra = f" {row['following_mean']:.3f} ± {row['following_ci95']:.3f} |" if following is not None else ""
             print(f"| {name} | {n} | {row['s_per_motion']:.3f} | {row['fid_mean']:.3f} ± {row['fid_ci95']:.3f} "
-                  f"| {row['r_precision/top3_mean']:.3f} ± {row['r_precision/top3_ci95']:.3f} |", flush=True)
+                  f"| {row['r_precision/top3_mean']:.3f} ± {row['r_precision/top3_ci95']:.3f} |{extra}", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "quality.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -594,8 +618,104 @@ def plot_quality(rows: list[dict], path: Path, command: str) -> None:
     plt.close(fig)
 
 
+# -- prompt following on real clips ------------------------------------------------------------
+def bench_following(input: Path, prompts: Path | None = None, label: str = "content",
+                    fps: PositiveFiniteFloat = 20.0, mirror: bool = False) -> list[dict]:
+    """The prompt-following check (``omg.metrics.following``) on real clips: every clip of a folder
+    (the bvh-dir source: motion files with a manifest.json of labels) whose ``label`` has targets
+    under the prompt file's ``labels:`` is read onto SMPL-22 and scored. Real clips of a class
+    should pass their own targets: the fraction that does bounds the check's own error. Prints
+    one Markdown row per label value and the overall fraction.
+
+    Args:
+        input: a folder of motion files with a manifest.json (e.g. ../shared/data/bandai1)
+        prompts: the prompt file whose ``labels:`` give the targets (default: the built-in set)
+        label: the clip label that names the action (a Bandai-Namco take's ``content``)
+        fps: the rate the clips are resampled to
+        mirror: score each clip's mirror image against its mirrored label ("walk-left" -> "walk-right")
+
+    Returns:
+        One row per label value: label, passed, clips, failed (the ids of the clips that fail).
+    """
+    import torch
+
+    from omg.data.sources.bvh_dir import bvh_dir_source
+    from omg.metrics.following import Joints, label_targets, passes
+    from omg.skeleton import SMPL22
+    from omg.text.sides import mirror_caption
+
+    table, at = label_targets(prompts), Joints()
+    rows: dict[str, dict] = {}
+    for item in bvh_dir_source(str(input), SMPL22, fps):
+        clip = item() if callable(item) else item
+        if clip is None or isinstance(clip, Exception):
+            continue
+        value = str(clip.labels.get(label))
+        joints = torch.from_numpy(clip.positions)
+        if mirror:
+            value, joints = mirror_caption(value), SMPL22.mirror(joints)
+        if value not in table:
+            continue
+        ok = all(passes(joints, target, fps, at) for target in table[value])
+        row = rows.setdefault(value, {"label": value, "passed": 0, "clips": 0, "failed": []})
+        row["passed"], row["clips"] = row["passed"] + ok, row["clips"] + 1
+        if not ok:
+            row["failed"].append(clip.id)
+    if not rows:
+        raise UsageError(f"--input {input}: no clip has a {label!r} label with targets in the prompt file "
+                         f"(labels: {', '.join(table)})")
+    print(f"| {label} | targets | real clips passing |\n|---|---|---:|")
+    for value, row in sorted(rows.items()):
+        targets = "; ".join(", ".join(f"{k}: {v}" for k, v in t.items()) for t in table[value])
+        print(f"| {value} | {targets} | {row['passed']}/{row['clips']} |")
+    passed, clips = sum(r["passed"] for r in rows.values()), sum(r["clips"] for r in rows.values())
+    print(f"| all | | {passed}/{clips} ({passed / clips:.2f}) |")
+    return list(rows.values())
+
+
+# -- sides in the text features -----------------------------------------------------------------
+def bench_sides(manifests: tuple[Path, ...], encoders: tuple[str, ...] = ("minilm",)) -> list[dict]:
+    """Does sidedness survive in the text features? For each text encoder, the cosine distance
+    between every caption that names a side and its mirror image (left <-> right), against the
+    distance between captions of different actions (``omg.text.sides.side_separation``), for the
+    sentence feature and the token features. Prints one Markdown row per (encoder, feature).
+
+    Args:
+        manifests: clip manifests (``{"clips": [{texts, labels: {content}}]}``), e.g.
+            ../shared/data/bandai1/manifest.json; the action of a caption is its clip's content label
+        encoders: registered text encoders (minilm, clip, bge, hash), a list such as [minilm, clip]
+
+    Returns:
+        One row per (encoder, feature): side, same_action, action, ratio, rank, captions.
+    """
+    from omg.text import build_text_encoder
+    from omg.text.sides import side_separation
+
+    captions = []
+    for path in manifests:
+        try:
+            clips = json.loads(Path(path).read_text())["clips"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise UsageError(f"--manifests: {path} is not a clip manifest ({{\"clips\": [...]}}): {e}") from None
+        captions += [(t, str((c.get("labels") or {}).get("content", t))) for c in clips for t in c.get("texts") or []]
+    rows = []
+    print("| encoder | feature | captions | d(left, right) | d(same action, other style) | "
+          "d(other action) | ratio | other actions nearer than the mirror |\n|---|---|---:|---:|---:|---:|---:|---:|")
+    for name in encoders:
+        encoder = build_text_encoder(name)
+        try:
+            result = side_separation(encoder, captions)
+        except ValueError as e:
+            raise UsageError(f"--manifests: {e}") from None
+        for feature, r in result.items():
+            rows.append({"encoder": name, "feature": feature, **r})
+            print(f"| {name} | {feature} | {r['captions']} | {r['side']:.4f} | {r['same_action']:.4f} "
+                  f"| {r['action']:.4f} | {r['ratio']:.3f} | {r['rank']:.3f} |", flush=True)
+    return rows
+
+
 BENCHMARKS = {"data": (bench_data, {}), "train": (bench_train, {}), "sample": (bench_sample, {}),
-              "quality": (bench_quality, {})}
+              "quality": (bench_quality, {}), "following": (bench_following, {}), "sides": (bench_sides, {})}
 
 
 def main(argv: list[str]) -> None:
