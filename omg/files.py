@@ -94,3 +94,19 @@ def npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=False)
     return buf.getvalue()
+
+
+def read_text(path: str | Path, what: str) -> str:
+    """A UTF-8 text file's contents; a missing file, a folder or another encoding is a UsageError."""
+    path = Path(path)
+    if problem := file_problem(path):  # a FIFO would block the read forever
+        raise UsageError(f"{what} {path}: {problem}")
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise UsageError(f"{what} {path}: cannot be read ({e.strerror or e})") from None
+    try:
+        return data.decode("utf-8-sig")  # a byte-order mark (Windows editors) is not part of the text
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{what} {path}: not a UTF-8 text file (byte 0x{data[e.start]:02x} at offset {e.start}); "
+                         "save it as UTF-8") from None

@@ -9,8 +9,10 @@ the argument handling is under test, so nothing needs training.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -232,9 +234,8 @@ ROWS = [
                                "--out", "{out}"]),
     ("transfer-ckpt-binary", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{in}/random.bin",
                               "--out", "{out}"]),
-    ("transfer-out-is-file", ["transfer", "{in}/bvh/tiny.bvh", "--to", "horse", "--ckpt", "{cn}",
-                              "--out", "{in}/afile"]),
-    ("transfer-no-to", ["transfer", "{in}/bvh/tiny.bvh", "--ckpt", "{cn}", "--out", "{out}"]),
+    ("transfer-out-is-file", [*TRANSFER, "{in}/still.npy", "--out", "{in}/afile"]),
+    ("transfer-no-to", ["transfer", "{in}/still.npy", "--ckpt", "{habit}", "--out", "{out}"]),
     ("transfer-out-in-proc", [*TRANSFER, "{in}/still.npy", "--out", "/proc/omg-out"]),
     ("transfer-source-nan", [*TRANSFER, "{in}/nan.npy", "--out", "{out}"]),
     ("transfer-source-dir", [*TRANSFER, "{in}/empty", "--out", "{out}"]),
@@ -333,24 +334,202 @@ ROWS = [
 ]
 
 
-# words the line of a row must hold, where a wrong one would mislead
+# what the line of each row must hold: the key or file it names and the reason, so that a row that
+# fails for another reason (a path of the config relative to the repository, a missing fixture, a
+# check that runs first) does not pass. Formatted as the argv ({in}, {out}, the checkpoints).
+ANIMAL_TRAIN = str(REPO / "shards/mini/animal_maa/train")
+ANIMAL_VAL = str(REPO / "shards/mini/animal_maa/val")
+SPECS_DIFFER = "differ: representation humanml3d263 vs maa"
 SAYS = {
-    "build-config-syntax": "syntax.yaml: not valid YAML at line 4",
-    "build-config-empty": "empty.yaml: the file is empty",
-    "fit-config-syntax": "syntax.yaml: not valid YAML at line 4",
-    "fit-config-empty": "empty.yaml: the file is empty",
-    "merge-part-twice": "given twice",
-    "merge-part-twice-other-spelling": "given twice",
-    "merge-parts-overlap": "both hold clip",
-    "transfer-source-nan": "nan.npy: holds NaN or inf",
-    "transfer-source-dir": "is a directory; a file is expected",
-    "transfer-source-fifo": "not a regular file",
-    "fit-ema-decay-over-1": "model.ema_decay",
-    "fit-root-dir-is-file": "trainer.default_root_dir",
-    "fit-root-dir-in-proc": "trainer.default_root_dir",
-    "fit-max-bad-fraction-over-1": "data.max_bad_fraction",
-    "fit-val-other-representation": "data.train (",
-    "test-evaluator-other-kind": "EvalCallback.evaluator differ",
+    "gen-prompts-latin1": "--prompts_file {in}/latin1.txt: not a UTF-8 text file (byte 0xe9",
+    "gen-prompts-binary": "--prompts_file {in}/elf.bin: not a UTF-8 text file (byte 0xff",
+    "gen-prompts-nul": "--prompts_file {in}/nul.txt: line 1 holds the control character",
+    "gen-prompts-dir": "--prompts_file {in}: is a directory; a file is expected",
+    "gen-prompts-missing": "--prompts_file {in}/nope.txt: no such file",
+    "gen-length-nan": "length: expected a number of seconds in (0, 60], got 'nan'",
+    "gen-length-inf": "length: expected a number of seconds in (0, 60], got 'inf'",
+    "gen-length-neg": "length: expected a number of seconds in (0, 60], got '-1'",
+    "gen-guidance-nan": "guidance: expected a finite number, got 'nan'",
+    "gen-guidance-inf": "guidance: expected a finite number, got 'inf'",
+    "gen-guidance-overflow": "NaN or inf motions: a diverged checkpoint ({cn}) or --guidance 1e+308 too large",
+    "gen-device-banana": "--device 'banana': not a device",
+    "gen-device-cuda99": "--device cuda:99: ",  # the reason depends on the GPUs this machine has
+    "gen-out-is-file": "--out {in}/afile: not a folder",
+    "gen-out-under-file": "--out {in}/afile/sub: not a folder (its parent {in}/afile is a file)",
+    "gen-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
+    "gen-steps-too-many": "--steps must be in 1..1000 (the checkpoint's diffusion steps), got 100000",
+    "gen-steps-zero": "steps: expected an integer >= 1, got '0'",
+    "gen-seed-neg": "seed: expected an integer in [0, 2^63), got '-1'",
+    "gen-seed-overflow": "seed: expected an integer in [0, 2^63), got '99999999999999999999999'",
+    "gen-num-samples-neg": "num_samples: expected an integer >= 1, got '-2'",
+    "gen-batch-size-zero": "batch_size: expected an integer >= 1, got '0'",
+    "gen-nan-weights": "the model produced NaN or inf motions: a diverged checkpoint ({nanck})",
+    "gen-ckpt-bare-state-dict": "{in}/bare.ckpt is a bare state dict: it holds weights without the module's hyper",
+    "gen-fails-in-user-folder": "the model produced NaN or inf motions: a diverged checkpoint ({nanck})",
+    "export-fps-nan": "fps: expected a finite number > 0, got 'nan'",
+    "export-fps-inf": "fps: expected a finite number > 0, got 'inf'",
+    "export-fps-neg": "fps: expected a finite number > 0, got '-3'",
+    "export-scale-nan": "scale: expected a finite number > 0, got 'nan'",
+    "export-scale-inf": "scale: expected a finite number > 0, got 'inf'",
+    "export-scale-zero": "scale: expected a finite number > 0, got '0'",
+    "export-scale-neg": "scale: expected a finite number > 0, got '-100'",
+    "export-representation-unknown": "unknown representation 'banana'; known representations:",
+    "export-settings-binary": "settings file {in}/gen_binary/generation.json: not a UTF-8 text file",
+    "export-settings-list": "{in}/gen_list/generation.json: expected a JSON object (omg generate's settings), got a "
+                            "JSON list",
+    "export-settings-types": "{in}/gen_types/generation.json: 'skeleton' must be a name, got 5",
+    "export-settings-nan": "{in}/gen_nan/generation.json: 'fps' must be a positive number, got nan",
+    "export-settings-dir": "settings file {in}/gen_dir/generation.json: is a directory; a file is expected",
+    "export-bvh-is-dir": "{in}/gen_bvhdir/sample_000.bvh: a folder is in the way of the output file",
+    "export-input-binary": "{in}/random.bin: not a directory or an existing .npy file",
+    "build-fps-nan": "fps: expected a number of frames per second in (0, 1000], got 'nan'",
+    "build-fps-inf": "fps: expected a number of frames per second in (0, 1000], got 'inf'",
+    "build-fps-neg": "fps: expected a number of frames per second in (0, 1000], got '-20'",
+    "build-max-mb-nan": "max_mb: expected a finite number > 0, got 'nan'",
+    "build-max-mb-inf": "max_mb: expected a finite number > 0, got 'inf'",
+    "build-max-clips-neg": "max_clips: expected an integer >= 1, got '-1'",
+    "build-val-fraction-nan": "val_fraction: expected a number in [0, 1), got 'nan'",
+    "build-val-where-no-value": "val_where: expected a mapping such as {{key: value}}, got 'style'",
+    "build-val-where-empty": "--val_where.style: give the label values that go to out/val",
+    "build-val-where-and-fraction": "give --val_fraction (a random split) or --val_where (a split by label), not both",
+    "build-shuffle-buffer-neg": "shuffle_buffer: expected an integer >= 0, got '-1'",
+    "build-out-is-file": "--out {in}/afile: not a folder",
+    "build-out-under-file": "--out {in}/afile/x: not a folder (its parent {in}/afile is a file)",
+    "build-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
+    "build-config-binary": "--config {in}/random.bin: not a UTF-8 text file (byte 0x81",
+    "build-config-latin1": "--config {in}/latin1.yaml: not a UTF-8 text file (byte 0xe9",
+    "build-config-dir": "--config {in}: is a directory; a file is expected",
+    "build-config-nan": "fps: expected a number of frames per second in (0, 1000], got nan",
+    "build-config-wrong-type": "out: expected a path, got [1, 2]",
+    "build-config-syntax": "--config {in}/syntax.yaml: not valid YAML at line 4",
+    "build-config-empty": "--config {in}/empty.yaml: the file is empty",
+    "build-option-nan": "--option.num_clips 'nan': the synth source expects an integer",
+    "build-option-neg-seed": "--option.seed -1: expected a finite number >= 0",
+    "build-option-unknown": "--option.banana: the synth source has no such option; its options: num_clips, seed",
+    "build-option-no-key": "--option. 3: the key must be a name",
+    "build-option-not-mapping": "option: expected a mapping such as {{key: value}}, got 'num_clips=2'",
+    "build-option-bad-yaml": "option: expected a mapping such as {{key: value}}, got '{{seed: [1, 2'",
+    "build-option-neg-count": "--option.num_clips -1: expected a finite number >= 0",
+    "build-joint-map-binary": "--option.joint_map {in}/random.bin: not a UTF-8 text file",
+    "build-empty-source": "no clip could be written to {out}/a/b (the source was empty)",
+    "build-fails-in-user-folder": "no clip could be written to {in}/user/val (none of the 1 source items went to it)",
+    "build-workers-zero": "workers: expected an integer >= 1, got '0'",
+    "build-part-out-of-range": "--part must be in [0, --parts), i.e. 0 to 1, got 2",
+    "build-part-without-parts": "--part must be in [0, --parts), i.e. 0 to 0, got 1",
+    "merge-no-parts": "the following arguments are required: merge.parts",
+    "merge-part-missing": "{in}/nope: no such folder (a part built with omg shards build",
+    "merge-part-not-a-set": "{in}/empty: neither a shard set (manifest.json) nor a folder of them",
+    "merge-mismatched-parts": f"cannot merge {ANIMAL_TRAIN}: representation 'maa', but {MINI_SHARDS} has "
+                              "'humanml3d263'",
+    "merge-part-twice": f"cannot merge {MINI_VAL}: the same part as {MINI_VAL}, given twice",
+    "merge-part-twice-other-spelling": f"cannot merge {MINI_VAL}/../val: the same part as {MINI_VAL}, given twice",
+    "merge-parts-overlap": f"cannot merge {{in}}/val_copy and {MINI_VAL}: they overlap (both hold clip",
+    "transfer-ckpt-other-class": "{cn} holds a omg.lit.controlnet.ControlNetModule checkpoint, not a "
+                                 "omg.lit.habit.HabitVQModule",
+    "transfer-ckpt-missing": "{in}/nope.ckpt: no such file or directory; expected a Lightning .ckpt file",
+    "transfer-ckpt-binary": "{in}/random.bin is not a checkpoint; expected a Lightning .ckpt file",
+    "transfer-out-is-file": "--out {in}/afile: not a folder",
+    "transfer-no-to": "the following arguments are required: to; see `omg transfer --help`",
+    "transfer-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
+    "transfer-source-nan": "SOURCE {in}/nan.npy: holds NaN or inf values",
+    "transfer-source-dir": "SOURCE {in}/empty: is a directory; a file is expected",
+    "transfer-source-fifo": "SOURCE {in}/fifo.npy: not a regular file (a FIFO",
+    "gen-animal-on-controlnet": "--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {cn} holds "
+                                "a ControlNetModule",
+    "gen-from-motion-on-controlnet": "--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {cn} "
+                                     "holds a ControlNetModule",
+    "inspect-mixture-negative-weight": f"{{in}}/mix_negative.yaml: data.train[0] ({MINI_SHARDS}): 'weight' must be a "
+                                       "positive number, got -1",
+    "inspect-mixture-unknown-key": "{in}/mix_unknown_key.yaml: data.train[0]: unknown key 'pat'",
+    "inspect-mixture-mismatched-sets": f"{{in}}/mix_mismatched.yaml: data.train[0] ({MINI_SHARDS}) and data.train[1] "
+                                       f"({ANIMAL_TRAIN}) {SPECS_DIFFER}",
+    "synth-scale-nan": "scale: expected a finite number > 0, got 'nan'",
+    "synth-scale-neg": "scale: expected a finite number > 0, got '-1'",
+    "synth-fps-nan": "fps: expected a number of frames per second in (0, 1000], got 'nan'",
+    "synth-seed-neg": "seed: expected an integer in [0, 2^63), got '-1'",
+    "synth-out-is-file": "--out {in}/afile: not a folder",
+    "fit-config-elf": "--config {in}/elf.bin: not a UTF-8 text file (byte 0xff",
+    "fit-config-random": "--config {in}/random.bin: not a UTF-8 text file (byte 0x81",
+    "fit-config-random-eq": "--config {in}/random.bin: not a UTF-8 text file (byte 0x81",
+    "fit-config-latin1": "--config {in}/latin1.yaml: not a UTF-8 text file (byte 0xe9",
+    "fit-config-syntax": "--config {in}/syntax.yaml: not valid YAML at line 4",
+    "fit-config-empty": "--config {in}/empty.yaml: the file is empty",
+    "fit-data-config-binary": "--data {in}/random.bin: not a UTF-8 text (YAML) file",
+    "fit-ckpt-hpc-pickled": "--ckpt_path hpc: {in}/hpc_pickled/hpc_ckpt_1.ckpt holds pickled Python objects "
+                            "(argparse.Namespace)",
+    "fit-ckpt-hpc-torn": "--ckpt_path hpc: {in}/hpc_torn/hpc_ckpt_2.ckpt is corrupt",
+    "fit-ckpt-hpc-none": "--ckpt_path hpc: {in}/empty holds no hpc_ckpt_N.ckpt",
+    "fit-ema-decay-over-1": "model.ema_decay must be in [0, 1) (0: no EMA), got 1.5",
+    "fit-vel-weight-neg": "model.vel_weight must be a finite number >= 0, got -1.0",
+    "fit-root-dir-is-file": "trainer.default_root_dir {in}/afile: not a folder",
+    "fit-root-dir-in-proc": "trainer.default_root_dir /proc/omg-runs: cannot write in /proc",
+    "fit-max-bad-fraction-over-1": "data.max_bad_fraction must be in [0, 1], got 2.0",
+    "fit-max-bad-fraction-neg": "data.max_bad_fraction must be in [0, 1], got -1.0",
+    "fit-min-len-over-max-len": "data.min_len and data.max_len must satisfy 1 <= min_len <= max_len, got min_len=200, "
+                                "max_len=120",
+    "fit-val-other-representation": f"data.train ({MINI_SHARDS}) and data.val ({ANIMAL_VAL}) {SPECS_DIFFER}",
+    "test-evaluator-other-kind": f"the data and EvalCallback.evaluator {SPECS_DIFFER}",
+    "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
+    "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
+    "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",
+    "bench-train-peak-nan": "peak_tflops: expected a finite number > 0, got 'nan'",
+    "bench-sample-frames-neg": "frames: expected an integer >= 1, got '-1'",
+    "bench-data-batches-zero": "batches: expected an integer >= 1, got '0'",
+    "bench-data-batches-nan": "batches: expected an integer >= 1, got 'nan'",
+    "bench-data-batch-size-zero": "batch_size: expected an integer >= 1, got '0'",
+    "bench-data-clips-zero": "clips: expected an integer >= 1, got '0'",
+    "bench-data-clips-below-batch": "--clips gives 3 clips, fewer than --batch_size 4",
+    "bench-data-feature-dim-zero": "feature_dim: expected an integer >= 1, got '0'",
+    "bench-data-workers-neg": "workers: expected an integer >= 0, got '-1'",
+    "bench-data-max-len-zero": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark cuts), "
+                               "got '0'",
+    "bench-data-max-len-below-window": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark "
+                                       "cuts), got '40'",
+    "bench-data-shards-missing": "--shards: shards '{in}/nope': no such directory or file",
+    "bench-data-shards-not-shards": "--shards: no manifest.json in {in}/empty;",
+    "bench-data-shards-file": "--shards {in}/afile: no manifest.json in {in};",  # a file is read as a shard pattern
+    "bench-data-shards-below-batch": f"--shards {MINI_SHARDS} (its manifest) gives 90 clips, fewer than --batch_size "
+                                     "100000",
+    "bench-train-steps-zero": "steps: expected an integer >= 1, got '0'",
+    "bench-train-steps-nan": "steps: expected an integer >= 1, got 'nan'",
+    "bench-train-batch-zero": "batch_size: expected an integer >= 1, got '0'",
+    "bench-train-frames-zero": "frames: expected an integer >= 1, got '0'",
+    "bench-train-warmup-neg": "warmup: expected an integer >= 0, got '-1'",
+    "bench-train-peak-zero": "peak_tflops: expected a finite number > 0, got '0'",
+    "bench-train-peak-inf": "peak_tflops: expected a finite number > 0, got 'inf'",
+    "bench-train-peak-neg": "peak_tflops: expected a finite number > 0, got '-5'",
+    "bench-train-precision-banana": "precision: expected one of 32-true, ",  # then the rest of Lightning's list
+    "bench-train-strategy-banana": "--strategy 'banana': not one of Lightning's strategies",
+    "bench-train-flavor-banana": "flavor: expected one of mini, base, large, huge, giant, got 'banana'",
+    "bench-sample-batch-sizes-letters": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                        "got '[a, b]'",
+    "bench-sample-batch-sizes-zero": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                     "got '[0]'",
+    "bench-sample-batch-sizes-neg": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                    "got '[1, -8]'",
+    "bench-sample-batch-sizes-gap": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                    "got '[1,,8]'",
+    "bench-sample-batch-sizes-not-list": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                         "got '1,8'",
+    "bench-sample-batch-sizes-empty": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                      "got ''",
+    "bench-sample-batch-sizes-nan": "batch_sizes: expected a list such as [a, b] with each item an integer >= 1, "
+                                    "got '[nan]'",
+    "bench-sample-steps-zero": "--steps 0 times nothing: give --steps 1 or more, or --token_steps N",
+    "bench-sample-steps-too-many": "--steps must be in 1..1000 (the model's diffusion steps), got 100000",
+    "bench-sample-steps-nan": "steps: expected an integer >= 0, got 'nan'",
+    "bench-sample-frames-zero": "frames: expected an integer >= 1, got '0'",
+    "bench-sample-token-steps-neg": "token_steps: expected an integer >= 0, got '-1'",
+    "bench-sample-flavor-banana": "flavor: expected one of mini, base, large, huge, giant, got 'banana'",
+    "bench-sample-text-encoder-banana": "unknown text encoder 'banana'; known text encoders:",
+    "bench-sample-precision-banana": "precision: expected one of fp32, bf16-mixed, bf16, got 'banana'",
+    "bench-following-input-missing": "the bvh-dir source needs --input FOLDER with motion files, got '{in}/nope'",
+    "bench-following-input-no-labels": "--input {in}: no clip has a 'content' label with targets in the prompt file",
+    "bench-following-prompts-missing": "the prompt file {in}/nope.yaml: no such file",
+    "bench-following-prompts-binary": "the prompt file {in}/elf.bin: not a UTF-8 text file (byte 0xff",
+    "bench-following-fps-nan": "fps: expected a finite number > 0, got 'nan'",
+    "bench-sides-manifest-missing": "--manifests: {in}/nope.json is not a clip manifest",
+    "bench-sides-manifest-binary": "--manifests: {in}/elf.bin is not a clip manifest",
 }
 
 
@@ -372,7 +551,8 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(name, argv, ckpts, tmp_
     monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
     _write_inputs(tmp_path / "in", tmp_path / "out")
     before = _tree(tmp_path)
-    argv = [a.format(**{"in": tmp_path / "in", "out": tmp_path / "out", **ckpts}) for a in argv]
+    fields = {"in": tmp_path / "in", "out": tmp_path / "out", **ckpts}
+    argv = [a.format(**fields) for a in argv]
 
     with pytest.raises(SystemExit) as e:
         main(argv)
@@ -381,7 +561,7 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(name, argv, ckpts, tmp_
     assert e.value.code == 2, captured.err[-3000:]
     assert "Traceback" not in captured.out + captured.err
     assert len(lines) == 1 and lines[0].startswith("omg: error: "), captured.err[-3000:]
-    assert SAYS.get(name, "") in lines[0]
+    assert SAYS[name].format(**fields) in lines[0], "not the check the row is for"
     assert _tree(tmp_path) == before, "the failed run left files behind or changed them"
 
 
@@ -390,8 +570,31 @@ def test_the_table_covers_every_command():
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
                         "bench sides"}
-    assert set(SAYS) <= {name for name, _ in ROWS}
     assert len({name for name, _ in ROWS}) == len(ROWS)
+    assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
+
+
+def _group(argv: list[str]) -> str:
+    return {"test": "fit"}.get(argv[0], argv[0])  # shards build|synth|merge|inspect: one group
+
+
+def _names_key(fragment: str, argv: list[str]) -> bool:
+    """The fragment starts with an option the row gives (``--out …``, ``steps: …``)."""
+    key = re.match(r"(?:--)?([A-Za-z_][\w.]*)", fragment)
+    return key is not None and f"--{key.group(1)}" in {a.partition("=")[0] for a in argv}
+
+
+def test_the_expected_words_tell_the_checks_apart():
+    """Rows of different commands may not expect the same words (or words one of the other holds)
+    unless both name the option the row gives: generic words ("not a folder", "is a directory")
+    would pass for another command's check."""
+    rows = dict(ROWS)
+    for (a, argv_a), (b, argv_b) in itertools.combinations(ROWS, 2):
+        says_a, says_b = SAYS[a], SAYS[b]
+        if _group(argv_a) == _group(argv_b) or (says_a not in says_b and says_b not in says_a):
+            continue
+        assert _names_key(says_a, rows[a]) and _names_key(says_b, rows[b]), (a, b, says_a)
+    assert all(len(says.strip()) >= 15 for says in SAYS.values())
 
 
 def test_good_input_still_works(ckpts, tmp_path, capsys, monkeypatch):

@@ -182,7 +182,7 @@ def test_validation_clips_are_scored_by_their_action_label(takes):
     assert out["following/sidedness"] == pytest.approx(2 / 3) and out["following/plain"] == 1.0
     assert out["following"] == pytest.approx(3 / 4)
     assert out["following/turn"] == 1.0 and out["following/hand"] == pytest.approx(1 / 2)
-    with pytest.raises(UsageError, match="cannot read the prompt file"):
+    with pytest.raises(UsageError, match="the prompt file .*: no such file"):
         PromptFollowing(targets_file="/nonexistent/prompts.yaml")
 
 

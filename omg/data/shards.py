@@ -572,8 +572,8 @@ class ShardWriter:
             self._flush()
         state = self._state
         if not state["shards"]:
-            raise UsageError(f"no clip could be written to {self.out_dir} "
-                             f"({state['skipped'] or 'the source was empty'})")
+            why = f"none of the {self._position} source items went to it" if self._position else "the source was empty"
+            raise UsageError(f"no clip could be written to {self.out_dir} ({state['skipped'] or why})")
         self._write_manifest(state)
         (self.out_dir / BUILD_STATE).unlink()
         return BuildSummary(

@@ -47,6 +47,7 @@ from torch import Tensor
 from torchmetrics import Metric
 
 from omg.errors import UsageError
+from omg.files import read_text
 from omg.kinematics import ground_contacts
 from omg.metrics.base import EvalBatch, GenerationMetric
 from omg.registry import METRICS
@@ -249,10 +250,11 @@ def passes(joints: Tensor, target: dict[str, Any], fps: float, at: Joints | None
 def _read(path: Path) -> Any:
     import yaml
 
+    text = read_text(path, "the prompt file")
     try:
-        return yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise UsageError(f"{path}: cannot read the prompt file: {e}") from None
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise UsageError(f"the prompt file {path}: not valid YAML ({str(e).splitlines()[0]})") from None
 
 
 def load_prompts(path: str | Path | None = None) -> list[dict[str, Any]]:

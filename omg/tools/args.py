@@ -32,7 +32,7 @@ from jsonargparse import ActionConfigFile, ActionSubCommands, ActionYesNo, Argum
 from jsonargparse.typing import NonNegativeInt, PositiveInt, restricted_number_type
 
 from omg.errors import UsageError
-from omg.tools.common import read_text
+from omg.files import read_text
 
 # -- numbers ----------------------------------------------------------------------------------
 WANTED: dict[type, str] = {PositiveInt: "an integer >= 1", NonNegativeInt: "an integer >= 0"}  # type -> its wording

@@ -1,5 +1,6 @@
 """Helpers the tool commands share: output folders removed again when a command fails (checked
-before anything is written by ``omg.files.check_output_dir``), UTF-8 text files read with one-line errors."""
+before anything is written by ``omg.files.check_output_dir``); UTF-8 text files are read by
+``omg.files.read_text``."""
 
 from __future__ import annotations
 
@@ -7,25 +8,6 @@ import contextlib
 import shutil
 from pathlib import Path
 from typing import Iterator
-
-from omg.errors import UsageError
-from omg.files import file_problem
-
-
-def read_text(path: str | Path, what: str) -> str:
-    """A UTF-8 text file's contents; a missing file, a folder or another encoding is a UsageError."""
-    path = Path(path)
-    if problem := file_problem(path):  # a FIFO would block the read forever
-        raise UsageError(f"{what} {path}: {problem}")
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise UsageError(f"{what} {path}: cannot be read ({e.strerror or e})") from None
-    try:
-        return data.decode("utf-8-sig")  # a byte-order mark (Windows editors) is not part of the text
-    except UnicodeDecodeError as e:
-        raise UsageError(f"{what} {path}: not a UTF-8 text file (byte 0x{data[e.start]:02x} at offset {e.start}); "
-                         "save it as UTF-8") from None
 
 
 def last_line(message: str) -> str:

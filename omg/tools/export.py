@@ -19,11 +19,10 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import check_output_dir
+from omg.files import check_output_dir, read_text
 from omg.io.export import EULER_ORDERS, export_motion
 from omg.skeleton import Skeleton, get_skeleton
 from omg.tools.args import PositiveFiniteFloat, run
-from omg.tools.common import read_text
 
 DEFAULT_FPS = 20.0
 DEFAULT_SKELETON = "smpl22"

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import atomic_write, check_output_dir, npy_bytes, write_json
+from omg.files import atomic_write, check_output_dir, npy_bytes, read_text, write_json
 from omg.registry import SAMPLERS
 from omg.tools.args import FiniteFloat, PositiveInt, Seed, number_type, run
-from omg.tools.common import read_text, removing_created
+from omg.tools.common import removing_created
 
 AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
 MAX_SECONDS = 60.0
