@@ -38,7 +38,7 @@ from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_veloc
 from omg.motion import Clip, DataSpec, get_representation, length_mask
 from omg.skeleton import get_skeleton
 from omg.text import build_text_encoder
-from omg.text.subjects import find_animal, to_animal, to_person
+from omg.text.subjects import about_animal, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
 
@@ -345,9 +345,10 @@ class OmniMotionModule(OmgModule):
     def translate(self, texts: Sequence[str], human: Tensor, human_offsets: Tensor, lengths: Tensor | Sequence[int],
                   animals: Sequence[str], use_ema: bool = True) -> Tensor:
         """Human maa (B, T, 138) un-normalised + offsets (B, 22, 3), prompts about the animals and
-        the animal names (B) -> animal maa (B, T, 216) un-normalised, on each animal's mean offsets."""
+        the animal names (B) -> animal maa (B, T, 216) un-normalised, on each animal's mean offsets; each
+        prompt is made about its animal ("a dog jumps" for the cat: "a cat jumps")."""
         mask = length_mask(lengths, human.shape[1], device=self.device)
-        prompts = [t if find_animal(t, [a]) else to_animal(t, a) for t, a in zip(texts, animals)]
+        prompts = [about_animal(t, a, self.animal_names) for t, a in zip(texts, animals)]
         offsets = torch.stack([self.animal_offsets(a) for a in animals])
         weights = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext()
         with modes_restored(self), weights:
@@ -361,19 +362,18 @@ class OmniMotionModule(OmgModule):
                human_offsets: Tensor | None = None, **sampling) -> Tensor:
         """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa.
 
-        The animal is the one each prompt names (else ``animal``, else the first known); the human
-        motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from ``human_source``.
+        The animal is ``animal`` when given, else the one each prompt names (``choose_animal``, the rule of
+        ``omg generate``); the human motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from
+        ``human_source``.
         ``sampling`` (steps, guidance, sampler, ...) goes to a human generator, where one is used.
         """
         if not texts:
             raise UsageError("OmniMotionGPT generates from prompts: give at least one")
         lengths = torch.as_tensor(lengths, device=self.device)
         names = self.animal_names
-        if animal is not None:
-            self.animal_offsets(animal)  # an unknown name is one line listing the known ones
         if not names:
             raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [find_animal(t, names) or animal or names[0] for t in texts]
+        chosen = [choose_animal(t, names, animal) for t in texts]
         if human is None:
             human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, seed, **sampling)
         return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=use_ema)
@@ -387,7 +387,7 @@ class OmniMotionModule(OmgModule):
             from omg.lit.controlnet import ControlNetModule
 
             self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
-        return generate_human(self.human_generator, prompts, lengths, seed, **sampling)
+        return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
 
     def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
         """The human validation clips whose captions are nearest the prompts (one of the top k, drawn
@@ -432,25 +432,36 @@ def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, n
     return features, np.asarray(meta["offsets"], dtype=np.float32)
 
 
-def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int,
+def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int, fps: float,
                    **sampling) -> tuple[Tensor, Tensor]:
-    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3).
+    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
+    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames).
 
     ``generator``: an OMG ControlNet module; its features (humanml3d263) are decoded to joint
-    positions and turned into rotations by IK."""
+    positions and turned into rotations by IK. A generator at another rate makes the same durations
+    at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
+    animal moves at the speed the human did."""
+    from omg.data.sources.amass import resample
+
     if generator.spec.skeleton != HUMAN_SKELETON:
         raise UsageError(f"the human generator makes {generator.spec.skeleton} motion; OmniMotionGPT needs "
                          f"{HUMAN_SKELETON}")
     if generator.spec.fps <= 0:
         raise UsageError("the human generator's checkpoint records no frame rate")
+    source_fps = generator.spec.fps
+    lengths = torch.as_tensor(lengths).cpu()
+    source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
     allowed = {k: v for k, v in sampling.items() if k in ("steps", "guidance", "sampler") and v is not None}
-    features = generator.sample(list(prompts), lengths, seed=seed, use_ema=False, **allowed)
+    features = generator.sample(list(prompts), source_lengths, seed=seed, use_ema=False, **allowed)
     joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
-    T = int(torch.as_tensor(lengths).max())
+    T = int(lengths.max())
     motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)
     offsets = []
-    for b, n in enumerate(torch.as_tensor(lengths).tolist()):
-        maa, off = maa_from_positions(joints[b, : max(2, n)], generator.spec.fps)
+    for b, n in enumerate(lengths.tolist()):
+        positions = joints[b, : source_lengths[b]]
+        if abs(source_fps - fps) > 1e-6:
+            positions = resample(positions, source_fps, fps)
+        maa, off = maa_from_positions(positions[: max(2, n)], fps)
         maa = torch.from_numpy(maa)[:T]
         motion[b, : len(maa)] = maa
         motion[b, len(maa):] = maa[-1]
