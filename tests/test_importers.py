@@ -123,6 +123,19 @@ def test_humanml3d_split_and_options(hml_root):
     assert "000002" in _split(_hml(hml_root, max_frames=0))[0]
 
 
+def test_humanml3d_keeps_the_papers_lengths(tmp_path):
+    """20 to 196 feature frames, both ends included (HumanML3D's loader kept 40 <= T < 200)."""
+    for d in ("new_joint_vecs", "texts"):
+        (tmp_path / d).mkdir()
+    for frames in (19, 20, 196, 197):
+        features = np.concatenate([_hml_motion(frames, 81)[0]] * 3)[:frames]
+        np.save(tmp_path / "new_joint_vecs" / f"{frames:06d}.npy", features)
+        (tmp_path / "texts" / f"{frames:06d}.txt").write_text("a person walks#a/DET person/NOUN walk/VERB#0.0#0.0\n")
+    clips, errors = _split(_hml(tmp_path))
+    assert sorted(clips) == ["000020", "000196"]
+    assert sorted(e.split(":")[0] for e in errors) == ["humanml3d length outside [20, 196] frames"] * 2
+
+
 def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
     out = tmp_path / "shards"
     main(["shards", "build", "--source", "humanml3d", "--input", str(hml_root), "--out", str(out),
@@ -134,7 +147,7 @@ def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
     np.testing.assert_array_equal(manifest.std, np.load(hml_root / "Std.npy"))
     assert manifest["stats_origin"] == "source"
     assert set(manifest["skipped"]) == {"humanml3d NaN or inf in motion", "humanml3d unreadable file",
-                                        "humanml3d length outside [40, 200) frames"}
+                                        "humanml3d length outside [20, 196] frames"}
     samples = _samples(out)
     assert set(samples) == {"000001", "000001@0.5-3", "000002", "000003", "000004"}
     np.testing.assert_array_equal(samples["000001@0.5-3"]["motion"],
