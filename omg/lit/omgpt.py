@@ -1,16 +1,17 @@
 """OmniMotionGPT: joint human + animal motion autoencoders aligned through text space.
 
-Trained end to end on two streams at once (§3.4): the animal set is the run's ``data:``, the
-human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``). Per domain d:
+Trained end to end on two streams at once (losses §3.1-3.2, implementation details §5): the animal
+set is the run's ``data:``, the human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``).
+Per domain d (§3.1):
 
     L_ae^d = L_jrec (‖P − D(E(P, S), S)‖²) + w_clip · (1 − cos(E_t(Z), C)) + w_trec · ‖P − D(D_t(C, Z), S)‖²
 
-and across domains, with the human caption's subject replaced by the paired animal's name (C̃^a):
+and across domains (§3.2), with the human caption's subject replaced by the paired animal's species (C̃^a):
 
     L_cross = w_cons · ‖Z^h − E^a(D^a(D_t^a(C̃^a, Z^h), S^a), S^a)‖² + w_cross_clip · (1 − cos(E_t^a(Z^h), C̃^a))
               + w_ee · ‖V^h − Ṽ^a‖²   (end-effector velocities by forward kinematics on both skeletons)
 
-plus w_translation · the root-translation error of the joint and the text paths. The feature
+plus w_translation · the root-translation error of the joint and the text paths (Appendix C). The feature
 errors are in the autoencoders' own units (``standardize``: each maa number divided by its std over
 the training data; with ``config.root_velocity`` the root's ground position as per-frame
 displacement in m/s), the latent and velocity errors as they come. Inference
@@ -95,7 +96,7 @@ class OmniMotionModule(OmgModule):
         ema_decay: weight EMA (paper: 0.99); 0 disables it.
         jrec_weight, clip_weight, trec_weight: the per-domain loss weights (paper: 1.0, 1.0, 1.0).
         cons_weight, cross_clip_weight, ee_weight: the cross-domain weights (paper: 0.1, 1.0, 100).
-        translation_weight: the global-translation loss (paper: 1.0).
+        translation_weight: the global-translation loss (paper: 1.0, Appendix C).
         standardize: the autoencoders read and write features standardised by the training data's
             per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
             compare standardised features; without it (``false``) both see raw maa, where the many
