@@ -251,6 +251,18 @@ def test_whole_clips_shorter_than_min_len_are_not_trained_on(toy_shards):
         _epoch(_datamodule(toy_shards, clips="whole", max_len=90, min_len=80).train_dataloader())
 
 
+def test_batch_composition_draws_every_clip_however_short(tmp_path):
+    """`omg shards inspect`'s batch report draws as training does, but from every clip (no min_len)."""
+    from conftest import JointPositions
+    from omg.data.shards import ShardWriter
+    from omg.skeleton import SMPL22
+    from omg.tools.shards import batch_composition
+
+    ShardWriter(tmp_path, JointPositions(SMPL22), fps=20.0, max_clips=5, log=lambda m: None).write(
+        toy_clip(i, frames=12) for i in range(10))
+    assert "captions" in batch_composition(tmp_path, batch_size=4, shuffle_buffer=8, batches=5)
+
+
 def test_clips_auto_follows_what_the_model_asks_for(toy_shards):
     dm = _datamodule(toy_shards)  # clips: auto
     assert dm.windows.mode == "windows"  # no model: sliding windows
