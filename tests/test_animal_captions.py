@@ -11,10 +11,17 @@ import pytest
 
 from conftest import REPO
 from omg.errors import UsageError
-from omg.text import subjects
-from omg.text.subjects import about_animal, animal_subjects, animal_words, choose_animal, find_animal, species_of
-
-animal_table, to_animal, to_person = subjects.animal_table, subjects.to_animal, subjects.to_person
+from omg.text.subjects import (
+    about_animal,
+    animal_subjects,
+    animal_table,
+    animal_words,
+    choose_animal,
+    find_animal,
+    species_of,
+    to_animal,
+    to_person,
+)
 
 ANIMALML3D = REPO.parent / "shared" / "data" / "animalml3d"
 
