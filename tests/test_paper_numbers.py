@@ -15,11 +15,8 @@ from omg.data.datamodule import MotionDataModule
 from omg.lit.habit import HabitVQModule, masked_smooth_l1
 from omg.lit.omgpt import OmniMotionModule
 from test_configs import parse
-
-MINI = REPO / "shards/mini"
-TINY = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32,
-        "latent_layers": 1, "dropout": 0.0}
-CATEGORIES = ["dog", "cat", "fox", "horse", "cow", "deer", "sheep"]
+from test_habit import CATEGORIES, QUATVEL
+from test_omgpt import MINI, TINY, _data
 
 OMGPT_WEIGHTS = {"jrec": 1.0, "clip": 1.0, "trec": 1.0, "cons": 0.1, "cross_clip": 1.0, "ee": 100.0,
                  "translation": 1.0}
@@ -28,11 +25,6 @@ HABIT_MIX = {"alpha": 0.5, "beta": 0.02, "lr": 2e-4, "lr_after": 1e-5, "lr_switc
 
 def _defaults(cls) -> dict:
     return {k: p.default for k, p in inspect.signature(cls).parameters.items()}
-
-
-def _data(path, **kw):
-    args = dict(batch_size=4, max_len=32, min_len=10, num_workers=0, shuffle_buffer=32, clips="whole")
-    return MotionDataModule(str(path), **{**args, **kw})
 
 
 def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
@@ -62,7 +54,7 @@ def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
 
 @pytest.fixture(scope="module")
 def quatvel():
-    return MotionDataModule(str(MINI / "animal_quatvel/train"), batch_size=8, max_len=64, min_len=64,
+    return MotionDataModule(str(QUATVEL / "train"), batch_size=8, max_len=64, min_len=64,
                             clips="windows", batches_per_epoch=8, num_workers=0, shuffle_buffer=32,
                             verify_shards=False)
 
