@@ -29,7 +29,8 @@ PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
                 "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml"}
 
 # an overlay -> the config it completes
-OVERLAYS = {"omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml"}
+OVERLAYS = {"omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
+            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml"}
 
 
 def maa_spec(skeleton: str, dim: int) -> dict:

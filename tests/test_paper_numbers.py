@@ -9,6 +9,7 @@ import inspect
 import lightning as L
 import pytest
 import torch
+import yaml
 
 from conftest import REPO
 from omg.data.datamodule import MotionDataModule
@@ -120,3 +121,25 @@ def test_habit_configs_have_the_papers_numbers():
     assert (base.habit_layers, base.habit_width, base.habit_heads) == (4, 512, 8)
     prior = parse(REPO / "configs/habit_prior.yaml")
     assert prior.model.init_args.lr == 2e-4 and prior.data.batch_size == 32
+
+
+def _omgpt_switches(path) -> dict:
+    """The three switches omg adds to OmniMotionGPT, as the config resolves them (defaults included)."""
+    from omg.models.omgpt import OmniMotionConfig
+
+    args = parse(path).model.init_args
+    config = OmniMotionConfig.from_name(args.flavor, **(args.config or {}))
+    standardize = args.get("standardize", _defaults(OmniMotionModule)["standardize"])
+    return {"latent_shift": config.latent_shift, "root_velocity": config.root_velocity, "standardize": standardize}
+
+
+def test_omgpt_paper_config_is_the_paper_and_the_variant_is_named():
+    """configs/omgpt.yaml: unshifted D_t, absolute root translation, raw maa (§3.1); omg's variant is its own
+    overlay (configs/omgpt_variant.yaml) with all three on, and the mini run says it trains the variant."""
+    assert _omgpt_switches(REPO / "configs/omgpt.yaml") == dict.fromkeys(("latent_shift", "root_velocity",
+                                                                         "standardize"), False)
+    variant = dict.fromkeys(("latent_shift", "root_velocity", "standardize"), True)
+    assert _omgpt_switches(REPO / "configs/omgpt_variant.yaml") == variant
+    assert _omgpt_switches(REPO / "configs/mini/omgpt.yaml") == variant
+    mini = yaml.safe_load((REPO / "configs/mini/omgpt.yaml").read_text())["model"]["init_args"]
+    assert {*mini["config"], "standardize"} >= set(variant) and mini["standardize"]  # said, not inherited

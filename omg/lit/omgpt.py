@@ -101,7 +101,10 @@ class OmniMotionModule(OmgModule):
             per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
             compare standardised features; without it (``false``) both see raw maa, where the many
             near-constant 6D numbers let a network that outputs the mean pose reach a small loss.
-            The paper does not say; omg's default is on.
+            Not in the paper (raw maa: ``false``, configs/omgpt.yaml); omg's variant (default on,
+            configs/omgpt_variant.yaml). It moves the balance the paper's weights were set for:
+            reconstruction is then in std units while L_ee (end-effector velocity, x100) and the
+            translation loss stay in metres per frame.
         human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
             human validation clip whose caption is nearest the prompt made about "a person",
             among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
