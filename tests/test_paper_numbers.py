@@ -100,7 +100,7 @@ def test_omgpt_config_has_the_papers_numbers():
     args = cfg.model.init_args
     assert {k: args[f"{k}_weight"] for k in OMGPT_WEIGHTS} == OMGPT_WEIGHTS  # §3.1-3.2, Appendix C
     assert (args.lr, tuple(args.betas), args.weight_decay, args.ema_decay) == (1e-4, (0.9, 0.999), 0.0, 0.99)  # §5
-    assert args.text_encoder == "clip-vit-l-14" and args.flavor == "paper"
+    assert (args.text_encoder, args.text_feature, args.flavor) == ("clip-vit-l-14", "projected", "paper")
     assert cfg.trainer.max_steps == 30000 and cfg.data.batch_size == args.human_data["batch_size"] == 256
     # whole clips of the papers' lengths: AnimalML3D 10-196, HumanML3D 20-196 frames
     assert (cfg.data.clips, cfg.data.min_len, cfg.data.max_len) == ("whole", 10, 196)

@@ -90,6 +90,11 @@ class OmniMotionModule(OmgModule):
         flavor, config: network sizes, a preset (``paper``, ``mini``) and field overrides
             (``omg.models.omgpt.OmniMotionConfig``).
         text_encoder, text_encoder_args: the registered sentence encoder (paper: CLIP ViT-L/14).
+        text_feature: the sentence feature C of L_CLIP, cross L_CLIP, D_t and the self-evaluation:
+            ``projected`` (the paper's "CLIP feature": CLIP's ``encode_text``, the EOT token projected
+            into the joint image-text space) or ``eot`` (the EOT token before that projection, what
+            omg used before). Encoders without a projection of their own (MiniLM, hash) give the EOT
+            feature either way.
         lr, betas, weight_decay: Adam (paper: 1e-4, (0.9, 0.999), 0).
         schedule: ``constant`` (the paper names no schedule) or ``cosine`` (omg's warm-up + cosine).
         warmup_steps: linear warm-up steps of the cosine schedule.
@@ -125,6 +130,7 @@ class OmniMotionModule(OmgModule):
         config: dict[str, Any] | None = None,
         text_encoder: str = "clip-vit-l-14",
         text_encoder_args: dict[str, Any] | None = None,
+        text_feature: str = "projected",
         lr: float = 1e-4,
         betas: tuple[float, float] = (0.9, 0.999),
         weight_decay: float = 0.0,
@@ -152,6 +158,9 @@ class OmniMotionModule(OmgModule):
                              f"in [0, 1); got {lr}, {weight_decay}, {warmup_steps}, {ema_decay}")
         if schedule not in ("constant", "cosine"):
             raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
+        if text_feature not in ("projected", "eot"):
+            raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
+        self.text_feature = text_feature
         self.companion = None
         if human_spec is None:
             if not human_data:
@@ -206,9 +215,12 @@ class OmniMotionModule(OmgModule):
         return self.model
 
     def sentence(self, texts: Sequence[str]) -> Tensor:
-        """(B, D_text) sentence features C (the encoder's EOT / pooled feature), frozen."""
+        """(B, D_text) sentence features C (``text_feature``: CLIP's projected embedding or the EOT token), frozen."""
         with torch.no_grad():
-            return self.text_encoder(list(texts)).to(self.device).eot_embedding().float()
+            features = self.text_encoder(list(texts)).to(self.device)
+            if self.text_feature == "projected":
+                return self.text_encoder.sentence_embedding(features).float()
+            return features.eot_embedding().float()
 
     def raw(self, batch: dict, domain: str) -> Tensor:
         """The batch's maa features un-normalised (the model reads and writes raw maa), zero at padding."""
