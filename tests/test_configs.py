@@ -29,8 +29,8 @@ PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
                 "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml"}
 
 # an overlay -> the config it completes
-OVERLAYS = {"omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
-            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml"}
+OVERLAYS = {"mini/omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
+            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml", "omgpt_eval.yaml": REPO / "configs/omgpt.yaml"}
 
 
 def maa_spec(skeleton: str, dim: int) -> dict:
@@ -47,7 +47,8 @@ def parse(path: Path):
     parser.add_lightning_class_args(MotionDataModule, "data")
     # a data-only config (configs/data/) or an overlay follows the config it completes, as
     # `omg fit --config A --config B` composes them
-    base = REPO / "configs/pretrain_base.yaml" if path.parent.name == "data" else OVERLAYS.get(path.name)
+    overlay = OVERLAYS.get(path.relative_to(REPO / "configs").as_posix())
+    base = REPO / "configs/pretrain_base.yaml" if path.parent.name == "data" else overlay
     return parser.parse_args([*(["--config", str(base)] if base else []), "--config", str(path)])
 
 

@@ -110,10 +110,16 @@ class OmniMotionModule(OmgModule):
             configs/omgpt_variant.yaml). It moves the balance the paper's weights were set for:
             reconstruction is then in std units while L_ee (end-effector velocity, x100) and the
             translation loss stay in metres per frame.
-        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
-            human validation clip whose caption is nearest the prompt made about "a person",
-            among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
-            text-to-motion, from the prompt made about "a person").
+        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (a
+            human validation clip whose caption is near the prompt made about "a person", drawn
+            among the ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
+            checkpoint (omg's own text-to-motion, from the prompt made about "a person").
+        retrieval_draw: how retrieval draws among the top k: ``uniform`` (each equally likely: with
+            k = 3, repeated generations of a prompt come from 3 human clips at most) or
+            ``similarity`` (clip i with probability softmax(similarity_i / retrieval_temperature),
+            so a large k lets repeated generations differ while near captions stay likelier).
+            The paper generates human motion with a text-to-motion model; retrieval is omg's
+            stand-in.
         animals: each animal category's mean bone offsets; filled from the animal training set
             when training starts and kept in checkpoints (what ``--animal`` accepts).
         human_spec, spec: the human and the animal data's specs (filled from the shards).
@@ -148,6 +154,8 @@ class OmniMotionModule(OmgModule):
         std_floor: float = 0.05,
         human_source: str = "retrieval",
         retrieval_top_k: int = 3,
+        retrieval_draw: str = "uniform",
+        retrieval_temperature: float = 0.1,
         animals: dict[str, list] | None = None,
         human_spec: DataSpec | dict | None = None,
         spec: DataSpec | dict | None = None,
@@ -158,6 +166,11 @@ class OmniMotionModule(OmgModule):
                              f"in [0, 1); got {lr}, {weight_decay}, {warmup_steps}, {ema_decay}")
         if schedule not in ("constant", "cosine"):
             raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
+        if retrieval_top_k < 1 or retrieval_draw not in ("uniform", "similarity") or retrieval_temperature <= 0:
+            raise UsageError("model.retrieval_top_k must be >= 1, model.retrieval_draw uniform or similarity and "
+                             f"model.retrieval_temperature > 0; got {retrieval_top_k}, {retrieval_draw!r}, "
+                             f"{retrieval_temperature}")
+        self.retrieval_draw, self.retrieval_temperature = retrieval_draw, retrieval_temperature
         if text_feature not in ("projected", "eot"):
             raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
         self.text_feature = text_feature
@@ -406,8 +419,8 @@ class OmniMotionModule(OmgModule):
         return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
 
     def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
-        """The human validation clips whose captions are nearest the prompts (one of the top k, drawn
-        with ``seed``), each cut or held at its last frame to the prompt's length."""
+        """The human validation clips whose captions are nearest the prompts (one of the top k distinct
+        clips, drawn with ``seed`` by ``retrieval_draw``), each cut or held at its last frame to the prompt's length."""
         if self._bank is None:
             if self.companion is None:
                 self.companion = CompanionStream(dict(self.hparams.human_data or {}))
@@ -431,7 +444,12 @@ class OmniMotionModule(OmgModule):
                     seen.append(owner)
                 if len(seen) == self.retrieval_top_k:
                     break
-            sample = bank["samples"][seen[int(torch.randint(len(seen), (1,), generator=gen))]]
+            if self.retrieval_draw == "similarity":  # each clip scored by its nearest caption
+                best = torch.stack([row[bank["owner"] == owner].max() for owner in seen])
+                pick = int(torch.multinomial(torch.softmax(best / self.retrieval_temperature, 0), 1, generator=gen))
+            else:
+                pick = int(torch.randint(len(seen), (1,), generator=gen))
+            sample = bank["samples"][seen[pick]]
             clip = torch.from_numpy(sample["motion"])[:T]
             motion[b, : len(clip)] = clip
             motion[b, len(clip):] = clip[-1]
@@ -494,25 +512,32 @@ class OmniMotionSelfEvaluator(torch.nn.Module):
     The evaluation passes motions without their offsets: S is the mean of the known animals'
     bone offsets. Unlike omg's contrastive evaluator it shares the generator's encoders, so it
     rewards the generator's own view of text; report it beside the independent one.
+
+    ``unit``: both features as unit vectors (omg's default: E_t is trained on 1 − cos(E_t(Z), C), so
+    its output's length is arbitrary and Euclidean distances would mostly measure it), or as the
+    networks give them (``false``: the paper's scale, where Diversity, MModality, MM-Dist and FID
+    are comparable with its tables). The two scales differ most in Diversity and MModality.
     """
 
-    def __init__(self, checkpoint: str):
+    def __init__(self, checkpoint: str, unit: bool = True):
         super().__init__()
+        self.unit = unit
         from omg.lit.checkpoint import load_module
 
         self.module = load_module(checkpoint, expect=OmniMotionModule)  # EMA weights where kept
         self.spec = self.module.spec
         self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
 
-    # both features are unit vectors, as omg's evaluator's: E_t is trained on 1 − cos(E_t(Z), C), so its
-    # output's length is arbitrary and Euclidean distances (FID, MM-Dist, R-precision) would mostly measure it
+    def _scaled(self, features: Tensor) -> Tensor:
+        return F.normalize(features, dim=-1) if self.unit else features
+
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
-        return F.normalize(self.module.sentence(list(texts)).to(self.offsets.device), dim=-1)
+        return self._scaled(self.module.sentence(list(texts)).to(self.offsets.device))
 
     @torch.no_grad()
     def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
         animal = self.module.model.animal
         offsets = self.offsets.expand(len(motion), -1, -1)
         z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
-        return F.normalize(animal["text_encoder"](z, z_mask), dim=-1)
+        return self._scaled(animal["text_encoder"](z, z_mask))
