@@ -234,6 +234,35 @@ def test_captioned_clips_are_used_whole_up_to_the_cap(toy_shards):
         assert n == min(lengths[f"clip.{int(text.split()[1]):04d}"], 60)
 
 
+def test_whole_clips_shorter_than_min_len_are_not_trained_on(toy_shards):
+    """min_len filters whole clips, in the stream and in memory (the papers' length filters: the toy
+    clips have 20..79 frames); a set with no clip that long is one line, not an endless loop."""
+    from omg.data.datamodule import in_memory_loader
+
+    lengths = {f"clip.{i:04d}": len(toy_clip(i)) for i in range(40)}
+    dm = _datamodule(toy_shards, clips="whole", max_len=60, min_len=50, batches_per_epoch=20)
+    seen = [(clip_id, n) for batch in _epoch(dm.train_dataloader())
+            for clip_id, n in zip(batch["id"], batch["lengths"].tolist())]
+    assert {lengths[c] >= 50 for c, _ in seen} == {True} and len({c for c, _ in seen}) > 5
+    assert all(n == min(lengths[c], 60) for c, n in seen)
+    memory = in_memory_loader(dm.train_urls, dm.feature_dim, dm.windows, 4, 0, dm.collate)
+    assert {lengths[s["meta"]["id"]] >= 50 for s in memory.dataset.samples} == {True}
+    with pytest.raises(UsageError, match="data.min_len=80: no clip of the shards"):
+        _epoch(_datamodule(toy_shards, clips="whole", max_len=90, min_len=80).train_dataloader())
+
+
+def test_batch_composition_draws_every_clip_however_short(tmp_path):
+    """`omg shards inspect`'s batch report draws as training does, but from every clip (no min_len)."""
+    from conftest import JointPositions
+    from omg.data.shards import ShardWriter
+    from omg.skeleton import SMPL22
+    from omg.tools.shards import batch_composition
+
+    ShardWriter(tmp_path, JointPositions(SMPL22), fps=20.0, max_clips=5, log=lambda m: None).write(
+        toy_clip(i, frames=12) for i in range(10))
+    assert "captions" in batch_composition(tmp_path, batch_size=4, shuffle_buffer=8, batches=5)
+
+
 def test_clips_auto_follows_what_the_model_asks_for(toy_shards):
     dm = _datamodule(toy_shards)  # clips: auto
     assert dm.windows.mode == "windows"  # no model: sliding windows

@@ -123,6 +123,19 @@ def test_humanml3d_split_and_options(hml_root):
     assert "000002" in _split(_hml(hml_root, max_frames=0))[0]
 
 
+def test_humanml3d_keeps_the_papers_lengths(tmp_path):
+    """20 to 196 feature frames, both ends included (HumanML3D's loader kept 40 <= T < 200)."""
+    for d in ("new_joint_vecs", "texts"):
+        (tmp_path / d).mkdir()
+    for frames in (19, 20, 196, 197):
+        features = np.concatenate([_hml_motion(frames, 81)[0]] * 3)[:frames]
+        np.save(tmp_path / "new_joint_vecs" / f"{frames:06d}.npy", features)
+        (tmp_path / "texts" / f"{frames:06d}.txt").write_text("a person walks#a/DET person/NOUN walk/VERB#0.0#0.0\n")
+    clips, errors = _split(_hml(tmp_path))
+    assert sorted(clips) == ["000020", "000196"]
+    assert sorted(e.split(":")[0] for e in errors) == ["humanml3d length outside [20, 196] frames"] * 2
+
+
 def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
     out = tmp_path / "shards"
     main(["shards", "build", "--source", "humanml3d", "--input", str(hml_root), "--out", str(out),
@@ -134,7 +147,7 @@ def test_humanml3d_shards_through_cli(hml_root, tmp_path, capsys):
     np.testing.assert_array_equal(manifest.std, np.load(hml_root / "Std.npy"))
     assert manifest["stats_origin"] == "source"
     assert set(manifest["skipped"]) == {"humanml3d NaN or inf in motion", "humanml3d unreadable file",
-                                        "humanml3d length outside [40, 200) frames"}
+                                        "humanml3d length outside [20, 196] frames"}
     samples = _samples(out)
     assert set(samples) == {"000001", "000001@0.5-3", "000002", "000003", "000004"}
     np.testing.assert_array_equal(samples["000001@0.5-3"]["motion"],
@@ -207,29 +220,43 @@ def _animal_motion(seed: int, frames: int, offsets: np.ndarray) -> tuple[np.ndar
     return P.numpy(), np.concatenate([sixd, root6], 1).astype(np.float32)
 
 
+def _write_animal(root: Path, animal: str, action: str, frames: int, offsets: np.ndarray, seed: int = 0,
+                  caption: str | None = None) -> np.ndarray:
+    """One clip in the release's layout (motion, and captions unless ``caption`` is ""); its joint positions."""
+    positions, maa = _animal_motion(seed, frames, offsets)
+    name = f"{animal}_{action}"
+    (root / "animals_maa_motions").mkdir(parents=True, exist_ok=True)
+    np.save(root / "animals_maa_motions" / f"{name}.npy", maa)
+    if caption != "":
+        (root / "motion_captions" / name).mkdir(parents=True)
+        (root / "motion_captions" / name / "screenshots.txt").write_text(
+            caption or f"the {animal} moves\n\nan animal {action.lower()}s#x\n")
+    return positions
+
+
+def _write_offsets(root: Path, animal: str, offsets: np.ndarray) -> None:
+    (root / "animals_maa_offsets" / animal).mkdir(parents=True)
+    with open(root / "animals_maa_offsets" / animal / "offset.pkl", "wb") as f:
+        pickle.dump(offsets, f)
+    np.save(root / "animals_maa_offsets" / animal / "mean.npy", np.zeros((36, 6)))
+    np.save(root / "animals_maa_offsets" / animal / "std.npy", np.ones((36, 6)))
+
+
+# real identities of the release: bearPDD's captions call it a pig, deerA4K a deer, foxXAT a fox, canieLTT a wolf
 @pytest.fixture(scope="module")
 def animal_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("AnimalML3D")
     rng = np.random.default_rng(1)
-    for animal in ("bear3EP", "deer1", "fox2", "wolf9"):
+    for animal in ("bearPDD", "deerA4K", "foxXAT", "canieLTT"):
         offsets = SMAL35.rest_offsets.astype(np.float64) * rng.uniform(0.5, 2.0)
-        if animal != "wolf9":  # wolf9 has no offsets: skipped
-            (root / "animals_maa_offsets" / animal).mkdir(parents=True)
-            with open(root / "animals_maa_offsets" / animal / "offset.pkl", "wb") as f:
-                pickle.dump(offsets, f)
-            np.save(root / "animals_maa_offsets" / animal / "mean.npy", np.zeros((36, 6)))
-            np.save(root / "animals_maa_offsets" / animal / "std.npy", np.ones((36, 6)))
+        if animal != "canieLTT":  # canieLTT has no offsets: skipped
+            _write_offsets(root, animal, offsets)
         for k, action in enumerate(("Walk", "RunFast")):
-            positions, maa = _animal_motion(k, 30 + k, offsets)
             name = f"{animal}_{action}"
-            (root / "animals_maa_motions").mkdir(exist_ok=True)
-            np.save(root / "animals_maa_motions" / f"{name}.npy", maa)
+            positions = _write_animal(root, animal, action, 30 + k, offsets, seed=k,
+                                      caption="" if name == "foxXAT_RunFast" else None)  # no captions: skipped
             np.save(root / f"expected_{name}.npy", positions)
-            if name != "fox2_RunFast":  # no captions: skipped
-                (root / "motion_captions" / name).mkdir(parents=True)
-                (root / "motion_captions" / name / "screenshots.txt").write_text(
-                    f"the {animal} moves\n\nan animal {action.lower()}s#x\n")
-    np.save(root / "animals_maa_motions" / "deer1_Broken.npy", np.zeros((30, 12)))
+    np.save(root / "animals_maa_motions" / "deerA4K_Broken.npy", np.zeros((30, 12)))
     return root
 
 
@@ -239,13 +266,14 @@ def _animals(root, **options):
 
 def test_animalml3d_layout_and_offsets(animal_root):
     clips, errors = _split(_animals(animal_root))
-    assert set(clips) == {"bear3EP_Walk", "bear3EP_RunFast", "deer1_Walk", "deer1_RunFast", "fox2_Walk"}
-    clip = clips["deer1_RunFast"]
-    assert clip.category == "deer1" and clip.labels == {"animal": "deer1", "action": "RunFast"}
-    assert clip.texts == ["the deer1 moves", "an animal runfasts"] and clip.fps == 20.0
-    with open(animal_root / "animals_maa_offsets" / "deer1" / "offset.pkl", "rb") as f:
+    assert set(clips) == {"bearPDD_Walk", "bearPDD_RunFast", "deerA4K_Walk", "deerA4K_RunFast", "foxXAT_Walk"}
+    clip = clips["deerA4K_RunFast"]
+    assert clip.category == "deer" and clip.labels == {"identity": "deerA4K", "species": "deer", "action": "RunFast"}
+    assert clips["bearPDD_Walk"].category == "pig"  # the word of its captions, not of its name
+    assert clip.texts == ["the deerA4K moves", "an animal runfasts"] and clip.fps == 20.0
+    with open(animal_root / "animals_maa_offsets" / "deerA4K" / "offset.pkl", "rb") as f:
         np.testing.assert_allclose(clip.offsets, pickle.load(f), rtol=1e-6)
-    expected = np.load(animal_root / "expected_deer1_RunFast.npy")
+    expected = np.load(animal_root / "expected_deerA4K_RunFast.npy")
     np.testing.assert_allclose(clip.positions, expected, atol=1e-5)  # OmniMotionGPT's chain FK
     # the re-solved local rotations give the same positions through omg's FK, and through maa
     fk = SMAL35.forward_kinematics(torch.from_numpy(clip.rotations).double(),
@@ -256,17 +284,17 @@ def test_animalml3d_layout_and_offsets(animal_root):
     features, extra = maa.encode(clip)
     decoded = maa.decode(torch.from_numpy(features).double(), torch.tensor(extra["offsets"], dtype=torch.float64))
     np.testing.assert_allclose(decoded.numpy(), expected, atol=1e-4)
-    for reason, file in [("animalml3d missing captions", "fox2_RunFast"), ("animalml3d missing offsets", "wolf9"),
-                         ("animalml3d wrong array shape", "deer1_Broken")]:
+    for reason, file in [("animalml3d missing captions", "foxXAT_RunFast"), ("animalml3d missing offsets", "canieLTT"),
+                         ("animalml3d wrong array shape", "deerA4K_Broken")]:
         assert any(e.startswith(reason) and file in e for e in errors), (reason, errors)
 
 
 def test_animalml3d_split_by_identity(animal_root):
-    ids = lambda **o: {c.category for c in _split(_animals(animal_root, **o))[0].values()}  # noqa: E731
-    assert ids(split="test", test_animals="deer1,fox2") == {"deer1", "fox2"}
-    assert ids(split="train", test_animals=["deer1", "fox2"]) == {"bear3EP"}
+    ids = lambda **o: {c.labels["identity"] for c in _split(_animals(animal_root, **o))[0].values()}  # noqa: E731
+    assert ids(split="test", test_animals="deerA4K,foxXAT") == {"deerA4K", "foxXAT"}
+    assert ids(split="train", test_animals=["deerA4K", "foxXAT"]) == {"bearPDD"}
     train, test = ids(split="train"), ids(split="test")
-    assert not train & test and train | test == {"bear3EP", "deer1", "fox2"}
+    assert not train & test and train | test == {"bearPDD", "deerA4K", "foxXAT"}
     assert test == ids(split="test")  # deterministic
     with pytest.raises(UsageError, match="cat"):
         _animals(animal_root, split="test", test_animals="cat")
@@ -280,8 +308,28 @@ def test_animalml3d_shards_count_skips(animal_root, tmp_path):
     assert summary.clips == 5
     assert summary.skipped == {"animalml3d missing captions": 1, "animalml3d missing offsets": 2,
                                "animalml3d wrong array shape": 1}
-    sample = _samples(tmp_path)["bear3EP_Walk"]
-    assert len(sample["meta"]["offsets"]) == 35 and sample["meta"]["category"] == "bear3EP"
+    sample = _samples(tmp_path)["bearPDD_Walk"]
+    assert len(sample["meta"]["offsets"]) == 35 and sample["meta"]["category"] == "pig"
+    assert sample["meta"]["labels"] == {"identity": "bearPDD", "species": "pig", "action": "Walk"}
+
+
+def test_animalml3d_keeps_the_papers_lengths_and_names_unknown_identities(tmp_path):
+    """The paper's AnimalML3D filter keeps 10 to 196 frames, both ends included; an identity outside the
+    release's table is a counted skip until --option.species names its animal."""
+    offsets = SMAL35.rest_offsets.astype(np.float64)
+    for animal in ("foxXAT", "unicorn7"):
+        _write_offsets(tmp_path, animal, offsets)
+    for frames in (9, 10, 196, 197):
+        _write_animal(tmp_path, "foxXAT", f"Len{frames}", frames, offsets)
+    _write_animal(tmp_path, "unicorn7", "Walk", 30, offsets)
+    clips, errors = _split(_animals(tmp_path))
+    assert set(clips) == {"foxXAT_Len10", "foxXAT_Len196"}
+    assert sorted(e.split(":")[0] for e in errors) == ["animalml3d length outside [10, 196] frames"] * 2 + [
+        "animalml3d unknown identity"]
+    clips, errors = _split(_animals(tmp_path, species={"unicorn7": "unicorn"}, min_frames=20))
+    assert set(clips) == {"foxXAT_Len196", "unicorn7_Walk"} and clips["unicorn7_Walk"].category == "unicorn"
+    with pytest.raises(UsageError, match="species must map identities to species words"):
+        _animals(tmp_path, species={"unicorn7": ""})
 
 
 # ---------------------------------------------------------------- amass

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from conftest import REPO
+from omg.errors import UsageError
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
 from omg.motion import get_representation
 from omg.rotations import quat_normalize, quat_to_6d
@@ -275,6 +276,21 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     assert human_joints.shape == (30, 22, 3) and np.isfinite(human_joints).all()
     assert np.load(out / "sample_001.joints.npy").shape == (30, 35, 3)
 
+    # a human generator at another frame rate: the same duration at its rate, resampled to the animal model's
+    from dataclasses import replace
+
+    from omg.lit.checkpoint import load_module
+    from omg.lit.omgpt import generate_human, maa_from_positions
+
+    generator = load_module(tmp_path / "controlnet.ckpt", expect=ControlNetModule)
+    generator.spec = replace(generator.spec, fps=40.0)  # as if trained on 40 fps shards
+    prompts, lengths = ["a person jumps forward"], torch.tensor([30])
+    human, _ = generate_human(generator, prompts, lengths, 7, 20.0, steps=3)
+    own = generator.representation.decode(generator.sample(prompts, [59], seed=7, use_ema=False, steps=3).float())
+    expected, _ = maa_from_positions(own[0, ::2].numpy(), 20.0)  # 40 -> 20 fps: every other frame, 1.5 s
+    assert human.shape == (1, 30, 23 * 6)
+    torch.testing.assert_close(human[0], torch.from_numpy(expected), atol=1e-5, rtol=1e-4)
+
 
 def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
     """`omg test` with configs/mini/omgpt_eval.yaml (scaled down): ID and OOD reports from an animal evaluator."""
@@ -327,8 +343,8 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["--animal", "dog", "--from_motion", "{tmp}/missing.bvh"], "--from_motion {tmp}/missing.bvh: no such file"),
     (["--animal", "dog", "--from_motion", "x.bvh", "--human_ckpt", "y.ckpt"], "give --from_motion"),
-    ([], "prompt 1 names no animal this checkpoint knows; pass --animal (known: cat, cow, deer, dog, fox, horse, "
-         "sheep)"),
+    ([], "the prompt 'a unicorn jumps' names no animal this checkpoint knows; pass --animal (known: cat, cow, deer, "
+         "dog, fox, horse, sheep)"),
 ])
 def test_bad_animal_generation_input_is_one_line(omgpt_ckpt, tmp_path, capsys, extra, message):
     extra, message = [e.format(tmp=tmp_path) for e in extra], message.format(tmp=tmp_path)
@@ -337,6 +353,35 @@ def test_bad_animal_generation_input_is_one_line(omgpt_ckpt, tmp_path, capsys, e
         _cli("generate", "a unicorn jumps", "--ckpt", str(omgpt_ckpt), *extra, "--out", str(tmp_path / "out"))
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and message in err and not (tmp_path / "out").exists()
+
+
+def test_animal_and_prompt_follow_one_rule_in_generate_and_sample(omgpt_ckpt, tmp_path):
+    """`omg generate --animal cat "a dog ..."` and ``sample(animal="cat")`` both make the cat, from the prompt
+    made about the cat, and the human prompt about a person; the prompt's own animal without --animal."""
+    from omg.lit.checkpoint import load_module
+    from omg.tools.animal import read_human_motion
+
+    rng = np.random.default_rng(0)
+    joints = SMPL22.rest_positions()[None] + 0.02 * rng.standard_normal((30, 22, 3))
+    np.save(tmp_path / "human.joints.npy", joints.astype(np.float32))
+    out = tmp_path / "cat"
+    _cli("generate", "a dog jumps over a log", "--ckpt", str(omgpt_ckpt), "--animal", "cat", "--from_motion",
+         str(tmp_path / "human.joints.npy"), "--no_preview", "--out", str(out))
+    record = json.loads((out / "generation.json").read_text())["samples"][0]
+    assert (record["animal"], record["animal_prompt"], record["human_prompt"]) == (
+        "cat", "a cat jumps over a log", "a person jumps over a log")
+    module = load_module(omgpt_ckpt)
+    human, offsets = (torch.from_numpy(a)[None] for a in read_human_motion(tmp_path / "human.joints.npy", 20.0))
+    sampled = module.sample(["a dog jumps over a log"], [30], animal="cat", human=human, human_offsets=offsets,
+                            use_ema=False)
+    np.testing.assert_allclose(sampled[0].numpy(), np.load(out / "sample_000.features.npy"), atol=1e-5)
+    cat = module.translate(["a cat jumps over a log"], human, offsets, [30], ["cat"], use_ema=False)
+    dog = module.translate(["a dog jumps over a log"], human, offsets, [30], ["dog"], use_ema=False)
+    torch.testing.assert_close(sampled, cat)
+    torch.testing.assert_close(module.sample(["a dog jumps over a log"], [30], human=human, human_offsets=offsets,
+                                             use_ema=False), dog)
+    with pytest.raises(UsageError, match="names no animal this checkpoint knows"):
+        module.sample(["a unicorn jumps"], [30], human=human, human_offsets=offsets)
 
 
 def test_generated_motion_depends_on_the_text_and_on_the_human_motion(omgpt_ckpt):

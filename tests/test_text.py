@@ -206,6 +206,34 @@ def test_clip_matches_open_clip_text_tower(random_clip):
     assert long.eot.tolist() == [76]
 
 
+def test_omnimotiongpt_clip_feature_is_encode_text_and_eot_is_an_option(random_clip):
+    """OmniMotionGPT's sentence feature C is CLIP's text embedding (open_clip's encode_text, the real ViT-L/14
+    code on random weights); text_feature="eot" is the EOT token before the text projection."""
+    import open_clip
+
+    from omg.lit.omgpt import OmniMotionModule
+    from test_omgpt import MINI, TINY, _data
+
+    model, path = random_clip
+    specs = dict(spec=_data(MINI / "animal_maa/train").spec, human_spec=_data(MINI / "human_maa/train").spec)
+    ids = open_clip.get_tokenizer("ViT-L-14")(TEXTS)
+    with torch.no_grad():
+        embedding = model.encode_text(ids)  # (3, 768), unnormalised
+        x = model.ln_final(model.transformer(model.token_embedding(ids) + model.positional_embedding,
+                                             attn_mask=model.attn_mask))
+    eot = x[torch.arange(len(TEXTS)), ids.argmax(-1)]
+    assert not torch.allclose(embedding, eot, atol=1e-2)  # the projection is not the identity
+    for feature, expected in (("projected", embedding), ("eot", eot)):
+        module = OmniMotionModule(flavor="mini", config=TINY, text_encoder="clip-vit-l-14", ema_decay=0,
+                                  text_encoder_args={"pretrained": str(path)}, **specs,
+                                  **({} if feature == "projected" else {"text_feature": feature}))
+        assert module.text_feature == feature
+        torch.testing.assert_close(module.sentence(TEXTS), expected, atol=1e-4, rtol=1e-4)
+        del module
+    with pytest.raises(UsageError, match="model.text_feature must be projected or eot"):
+        OmniMotionModule(flavor="mini", config=TINY, text_encoder="hash", text_feature="pooled", **specs)
+
+
 def test_clip_checkpoint_layouts_and_bad_files(tmp_path):
     """The key handling of the loader, on a two-module stand-in for the 123M-parameter tower."""
     from safetensors.torch import save_file

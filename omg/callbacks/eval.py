@@ -83,7 +83,12 @@ class EvalCallback(Callback):
             motion does (metrics: following, and others that need no real motion: diversity,
             multimodality, foot_skating; the evaluator may then be left out).
         samples_per_prompt: generations of each prompt of a prompt file per pass.
+        name: the report's file name and the logged keys' prefix (default ``eval``: ``eval.json``,
+            ``eval/<metric>``; ``OODEvalCallback``: ``eval_ood.json``), so that two evaluations of
+            one run (e.g. two feature scales) keep apart.
     """
+
+    report_name = "eval"
 
     def __init__(
         self,
@@ -103,14 +108,15 @@ class EvalCallback(Callback):
         reference: bool = True,
         prompts: str | None = None,
         samples_per_prompt: int = 4,
+        name: str | None = None,
     ):
         key = "EvalCallback"
-        for name, value, low in (("num_prompts", num_prompts, 1), ("every_n_steps", every_n_steps, 0),
-                                 ("replications", replications, 1), ("mm_prompts", mm_prompts, 1),
-                                 ("mm_repeats", mm_repeats, 2), ("steps", steps, 1), ("batch_size", batch_size, 1),
-                                 ("samples_per_prompt", samples_per_prompt, 1)):
+        for option, value, low in (("num_prompts", num_prompts, 1), ("every_n_steps", every_n_steps, 0),
+                                   ("replications", replications, 1), ("mm_prompts", mm_prompts, 1),
+                                   ("mm_repeats", mm_repeats, 2), ("steps", steps, 1), ("batch_size", batch_size, 1),
+                                   ("samples_per_prompt", samples_per_prompt, 1)):
             if not isinstance(value, int) or value < low:
-                raise UsageError(f"{key}.{name} must be an integer >= {low}, got {value!r}")
+                raise UsageError(f"{key}.{option} must be an integer >= {low}, got {value!r}")
         if isinstance(evaluator, str) and not Path(evaluator).exists():
             raise UsageError(f"{key}.evaluator: no evaluator checkpoint at {evaluator}")
         self.evaluator_spec = evaluator
@@ -136,6 +142,9 @@ class EvalCallback(Callback):
         self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
                                      reference=reference)
         self.seed = seed
+        self.log_prefix = name or "eval"
+        if name:
+            self.report_name = name
         self.evaluator: nn.Module | None = None
         self._samples: list[dict] | None = None
         self._fixed: PromptSet | None = None
@@ -196,7 +205,7 @@ class EvalCallback(Callback):
         if self.every_n_steps and step % self.every_n_steps == 0 and step != self._last_step:
             self._last_step = step  # several batches share a step under gradient accumulation
             values = self.run_once(trainer, pl_module, 0)
-            log_scalars(trainer, {f"eval/{k}": v for k, v in values.items()})
+            log_scalars(trainer, {f"{self.log_prefix}/{k}": v for k, v in values.items()})
 
     # -- test: the protocol -----------------------------------------------------------------
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -211,8 +220,8 @@ class EvalCallback(Callback):
                        f"({self.sampling.get('steps')} sampling steps)")
         summary = protocol(replication, self.replications)
         for key, s in summary.items():
-            pl_module.log(f"eval/{key}", s["mean"])
-            pl_module.log(f"eval/{key}_ci95", s["ci95"])
+            pl_module.log(f"{self.log_prefix}/{key}", s["mean"])
+            pl_module.log(f"{self.log_prefix}/{key}_ci95", s["ci95"])
         directory = run_dir(trainer)
         settings = {"checkpoint": str(trainer.ckpt_path) if trainer.ckpt_path else None,
                     "model": type(pl_module).__name__, "evaluator": self._describe_evaluator(),
@@ -225,7 +234,7 @@ class EvalCallback(Callback):
 
     @rank_zero_only
     def _report(self, directory: Path, summary: dict, settings: dict) -> None:
-        json_path, md_path = write_report(directory, summary, settings)
+        json_path, md_path = write_report(directory, summary, settings, name=self.report_name)
         print(f"\n{markdown_table(summary, self.replications)}\n\nwritten to {json_path} and {md_path}")
 
     def _describe_evaluator(self) -> str:

@@ -215,9 +215,21 @@ class MotionStream(IterableDataset):
         samples = self._samples(rng) if single else self._samples(rng, stream_set.urls)
         size = self.shuffle_buffer if single else max(1, math.ceil(stream_set.share * self.shuffle_buffer))
         buffer: list[list] = []  # [sample, samples it still yields]
+        # whole clips shorter than min_len are passed over: a set read many times over without one
+        # long enough would otherwise loop forever
+        set_samples = sum(self.checks.get(url, {}).get("samples", 0) for url in stream_set.urls) or 1000
+        too_short = 0
         while True:
             while len(buffer) < size:
                 sample = next(samples)
+                if not self.windows.keeps(len(sample["motion"])):
+                    too_short += 1
+                    if too_short > 20 * set_samples:
+                        raise UsageError(f"data.min_len={self.windows.min_len}: no clip of the shards of "
+                                         f"{stream_set.urls[0]} is that long, and shorter whole clips are not "
+                                         "trained on; lower data.min_len")
+                    continue
+                too_short = 0
                 if visits := self.windows.visits(len(sample["motion"]), stream_set.mean_frames, rng):
                     buffer.append([sample, visits])
             i = int(rng.integers(len(buffer)))
@@ -427,7 +439,9 @@ class MotionDataModule(L.LightningDataModule):
         val: the same for validation (a small set: it is loaded into memory), or None.
         batch_size: samples per batch on each rank.
         max_len / min_len: sample length bounds in frames (OMG pretraining: windows of up to 300
-            frames; HumanML3D fine-tuning: whole clips of up to 196 frames at 20 fps).
+            frames; HumanML3D fine-tuning: whole clips of up to 196 frames at 20 fps). Whole clips
+            shorter than ``min_len`` are not trained on (the papers' filters: HumanML3D 20, AnimalML3D
+            10 frames); windows use a shorter clip whole.
         clips: how samples are cut from clips: ``windows`` (sliding random windows, long takes
             sampled in proportion to their length: unlabeled pretraining), ``whole`` (the whole
             clip, a random ``max_len`` crop when longer: captioned data), or ``auto``: what the
@@ -605,5 +619,6 @@ def in_memory_loader(urls: list[str], feature_dim: int, windows: WindowSampler, 
                      collate: Collate) -> DataLoader:
     """The MDM-style baseline: every clip in RAM, random windows, shuffled each epoch."""
     dataset = ClipDataset.from_shards(urls, feature_dim, windows, random_windows=True)
+    dataset.samples = [s for s in dataset.samples if windows.keeps(len(s["motion"]))]  # min_len of whole clips
     return DataLoader(dataset, batch_size=batch_size, shuffle=True, num_workers=num_workers, collate_fn=collate,
                       drop_last=True)

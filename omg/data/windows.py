@@ -7,7 +7,9 @@ Two ways to cut, chosen by what the model learns from:
   yields proportionally more windows than a short clip (``visits``), so every frame of the
   data is equally likely to be trained on. Clips shorter than ``min_len`` are used whole.
 - ``whole`` (captioned data: a caption describes its whole clip): the clip itself, cropped at
-  a random start to ``max_len`` only when longer, as HumanML3D's loaders do (196 frames).
+  a random start to ``max_len`` only when longer, as HumanML3D's loaders do (196 frames);
+  clips shorter than ``min_len`` are not trained on (the papers' length filters: HumanML3D
+  20, AnimalML3D 10 frames), whatever bounds the shards were built with.
 """
 
 from __future__ import annotations
@@ -48,6 +50,10 @@ class WindowSampler:
         length = int(rng.integers(low, high + 1))
         start = int(rng.integers(0, num_frames - length + 1))
         return start, length
+
+    def keeps(self, num_frames: int) -> bool:
+        """Whether a clip is trained on: a whole clip needs ``min_len`` frames; windows use a short clip whole."""
+        return self.mode == "windows" or num_frames >= self.min_len
 
     def whole(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
         """(start, length): the whole clip, or a random ``max_len`` crop of a longer one."""

@@ -251,13 +251,21 @@ class HabitVQModule(OmgModule):
 
     # -- transfer --------------------------------------------------------------------------
     @torch.no_grad()
-    def transfer(self, motion: Tensor, target: int, z: Tensor, seed: int = 0, quantizer: str | None = None) -> Tensor:
+    def transfer(self, motion: Tensor, target: int, z: Tensor, seed: int = 0, quantizer: str | None = None,
+                 text: Tensor | None = None) -> Tensor:
         """(B, T, D) un-normalised quatvel features -> the same motion with category ``target``'s habit
         latents z (B, Z): encoded with the target's condition, quantized (sampled with ``seed``, or by
-        ``quantizer``), decoded. Returns (B, T, D) un-normalised."""
+        ``quantizer``), decoded. Returns (B, T, D) un-normalised.
+
+        ``text``: the condition's description embedding (E,); default the category's. An unseen species
+        passes its own description's, so that only the habit latent is the retrieved category's (the
+        paper's transfer)."""
         gen = torch.Generator(device="cpu").manual_seed(seed)
         B, T, _ = motion.shape
-        text = self.category_text[torch.full((B,), target, device=self.device)]
+        if text is None:
+            text = self.category_text[torch.full((B,), target, device=self.device)]
+        else:
+            text = torch.as_tensor(text, dtype=self.category_text.dtype, device=self.device).expand(B, -1)
         x = self.vqvae.pad(self.normalize(motion.to(self.device)))
         latents = self.vqvae.encode(x, z.to(self.device), text)  # (B, C, T')
         C = latents.shape[1]

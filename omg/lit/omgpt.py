@@ -1,16 +1,17 @@
 """OmniMotionGPT: joint human + animal motion autoencoders aligned through text space.
 
-Trained end to end on two streams at once (§3.4): the animal set is the run's ``data:``, the
-human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``). Per domain d:
+Trained end to end on two streams at once (losses §3.1-3.2, implementation details §5): the animal
+set is the run's ``data:``, the human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``).
+Per domain d (§3.1):
 
     L_ae^d = L_jrec (‖P − D(E(P, S), S)‖²) + w_clip · (1 − cos(E_t(Z), C)) + w_trec · ‖P − D(D_t(C, Z), S)‖²
 
-and across domains, with the human caption's subject replaced by the paired animal's name (C̃^a):
+and across domains (§3.2), with the human caption's subject replaced by the paired animal's species (C̃^a):
 
     L_cross = w_cons · ‖Z^h − E^a(D^a(D_t^a(C̃^a, Z^h), S^a), S^a)‖² + w_cross_clip · (1 − cos(E_t^a(Z^h), C̃^a))
               + w_ee · ‖V^h − Ṽ^a‖²   (end-effector velocities by forward kinematics on both skeletons)
 
-plus w_translation · the root-translation error of the joint and the text paths. The feature
+plus w_translation · the root-translation error of the joint and the text paths (Appendix C). The feature
 errors are in the autoencoders' own units (``standardize``: each maa number divided by its std over
 the training data; with ``config.root_velocity`` the root's ground position as per-frame
 displacement in m/s), the latent and velocity errors as they come. Inference
@@ -38,7 +39,7 @@ from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_veloc
 from omg.motion import Clip, DataSpec, get_representation, length_mask
 from omg.skeleton import get_skeleton
 from omg.text import build_text_encoder
-from omg.text.subjects import find_animal, to_animal, to_person
+from omg.text.subjects import about_animal, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
 
@@ -89,23 +90,38 @@ class OmniMotionModule(OmgModule):
         flavor, config: network sizes, a preset (``paper``, ``mini``) and field overrides
             (``omg.models.omgpt.OmniMotionConfig``).
         text_encoder, text_encoder_args: the registered sentence encoder (paper: CLIP ViT-L/14).
+        text_feature: the sentence feature C of L_CLIP, cross L_CLIP, D_t and the self-evaluation:
+            ``projected`` (the paper's "CLIP feature": CLIP's ``encode_text``, the EOT token projected
+            into the joint image-text space) or ``eot`` (the EOT token before that projection, what
+            omg used before). Encoders without a projection of their own (MiniLM, hash) give the EOT
+            feature either way.
         lr, betas, weight_decay: Adam (paper: 1e-4, (0.9, 0.999), 0).
         schedule: ``constant`` (the paper names no schedule) or ``cosine`` (omg's warm-up + cosine).
         warmup_steps: linear warm-up steps of the cosine schedule.
         ema_decay: weight EMA (paper: 0.99); 0 disables it.
         jrec_weight, clip_weight, trec_weight: the per-domain loss weights (paper: 1.0, 1.0, 1.0).
         cons_weight, cross_clip_weight, ee_weight: the cross-domain weights (paper: 0.1, 1.0, 100).
-        translation_weight: the global-translation loss (paper: 1.0).
+        translation_weight: the global-translation loss (paper: 1.0, Appendix C).
         standardize: the autoencoders read and write features standardised by the training data's
             per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
             compare standardised features; without it (``false``) both see raw maa, where the many
             near-constant 6D numbers let a network that outputs the mean pose reach a small loss.
-            The paper does not say; omg's default is on.
-        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (the
-            human validation clip whose caption is nearest the prompt made about "a person",
-            among the ``retrieval_top_k`` nearest) or an OMG ControlNet checkpoint (omg's own
-            text-to-motion, from the prompt made about "a person"). A file, so not taken from a
-            checkpoint: a loaded checkpoint retrieves unless the config (or ``--human_ckpt``) names one.
+            Not in the paper (raw maa: ``false``, configs/omgpt.yaml); omg's variant (default on,
+            configs/omgpt_variant.yaml). It moves the balance the paper's weights were set for:
+            reconstruction is then in std units while L_ee (end-effector velocity, x100) and the
+            translation loss stay in metres per frame.
+        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (a
+            human validation clip whose caption is near the prompt made about "a person", drawn
+            among the ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
+            checkpoint (omg's own text-to-motion, from the prompt made about "a person"). A file,
+            so not taken from a checkpoint: a loaded checkpoint retrieves unless the config (or
+            ``--human_ckpt``) names one.
+        retrieval_draw: how retrieval draws among the top k: ``uniform`` (each equally likely: with
+            k = 3, repeated generations of a prompt come from 3 human clips at most) or
+            ``similarity`` (clip i with probability softmax(similarity_i / retrieval_temperature),
+            so a large k lets repeated generations differ while near captions stay likelier).
+            The paper generates human motion with a text-to-motion model; retrieval is omg's
+            stand-in.
         animals: each animal category's mean bone offsets; filled from the animal training set
             when training starts and kept in checkpoints (what ``--animal`` accepts).
         human_spec, spec: the human and the animal data's specs (filled from the shards and kept
@@ -132,6 +148,7 @@ class OmniMotionModule(OmgModule):
         config: dict[str, Any] | None = None,
         text_encoder: str = "clip-vit-l-14",
         text_encoder_args: dict[str, Any] | None = None,
+        text_feature: str = "projected",
         lr: float = 1e-4,
         betas: tuple[float, float] = (0.9, 0.999),
         weight_decay: float = 0.0,
@@ -149,6 +166,8 @@ class OmniMotionModule(OmgModule):
         std_floor: float = 0.05,
         human_source: str = "retrieval",
         retrieval_top_k: int = 3,
+        retrieval_draw: str = "uniform",
+        retrieval_temperature: float = 0.1,
         animals: dict[str, list] | None = None,
         human_spec: DataSpec | dict | None = None,
         spec: DataSpec | dict | None = None,
@@ -160,6 +179,14 @@ class OmniMotionModule(OmgModule):
                              f"in [0, 1); got {lr}, {weight_decay}, {warmup_steps}, {ema_decay}")
         if schedule not in ("constant", "cosine"):
             raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
+        if retrieval_top_k < 1 or retrieval_draw not in ("uniform", "similarity") or retrieval_temperature <= 0:
+            raise UsageError("model.retrieval_top_k must be >= 1, model.retrieval_draw uniform or similarity and "
+                             f"model.retrieval_temperature > 0; got {retrieval_top_k}, {retrieval_draw!r}, "
+                             f"{retrieval_temperature}")
+        self.retrieval_draw, self.retrieval_temperature = retrieval_draw, retrieval_temperature
+        if text_feature not in ("projected", "eot"):
+            raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
+        self.text_feature = text_feature
         self.companion = None
         if human_spec is None:
             if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
@@ -220,9 +247,12 @@ class OmniMotionModule(OmgModule):
         return self.model
 
     def sentence(self, texts: Sequence[str]) -> Tensor:
-        """(B, D_text) sentence features C (the encoder's EOT / pooled feature), frozen."""
+        """(B, D_text) sentence features C (``text_feature``: CLIP's projected embedding or the EOT token), frozen."""
         with torch.no_grad():
-            return self.text_encoder(list(texts)).to(self.device).eot_embedding().float()
+            features = self.text_encoder(list(texts)).to(self.device)
+            if self.text_feature == "projected":
+                return self.text_encoder.sentence_embedding(features).float()
+            return features.eot_embedding().float()
 
     def raw(self, batch: dict, domain: str) -> Tensor:
         """The batch's maa features un-normalised (the model reads and writes raw maa), zero at padding."""
@@ -394,9 +424,10 @@ class OmniMotionModule(OmgModule):
     def translate(self, texts: Sequence[str], human: Tensor, human_offsets: Tensor, lengths: Tensor | Sequence[int],
                   animals: Sequence[str], use_ema: bool = True) -> Tensor:
         """Human maa (B, T, 138) un-normalised + offsets (B, 22, 3), prompts about the animals and
-        the animal names (B) -> animal maa (B, T, 216) un-normalised, on each animal's mean offsets."""
+        the animal names (B) -> animal maa (B, T, 216) un-normalised, on each animal's mean offsets; each
+        prompt is made about its animal ("a dog jumps" for the cat: "a cat jumps")."""
         mask = length_mask(lengths, human.shape[1], device=self.device)
-        prompts = [t if find_animal(t, [a]) else to_animal(t, a) for t, a in zip(texts, animals)]
+        prompts = [about_animal(t, a, self.animal_names) for t, a in zip(texts, animals)]
         offsets = torch.stack([self.animal_offsets(a) for a in animals])
         weights = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext()
         with modes_restored(self), weights:
@@ -410,19 +441,18 @@ class OmniMotionModule(OmgModule):
                human_offsets: Tensor | None = None, **sampling) -> Tensor:
         """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa.
 
-        The animal is the one each prompt names (else ``animal``, else the first known); the human
-        motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from ``human_source``.
+        The animal is ``animal`` when given, else the one each prompt names (``choose_animal``, the rule of
+        ``omg generate``); the human motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from
+        ``human_source``.
         ``sampling`` (steps, guidance, sampler, ...) goes to a human generator, where one is used.
         """
         if not texts:
             raise UsageError("OmniMotionGPT generates from prompts: give at least one")
         lengths = torch.as_tensor(lengths, device=self.device)
         names = self.animal_names
-        if animal is not None:
-            self.animal_offsets(animal)  # an unknown name is one line listing the known ones
         if not names:
             raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [find_animal(t, names) or animal or names[0] for t in texts]
+        chosen = [choose_animal(t, names, animal) for t in texts]
         if human is None:
             human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, seed, **sampling)
         return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=use_ema)
@@ -436,11 +466,11 @@ class OmniMotionModule(OmgModule):
             from omg.lit.controlnet import ControlNetModule
 
             self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
-        return generate_human(self.human_generator, prompts, lengths, seed, **sampling)
+        return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
 
     def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
-        """The human validation clips whose captions are nearest the prompts (one of the top k, drawn
-        with ``seed``), each cut or held at its last frame to the prompt's length."""
+        """The human validation clips whose captions are nearest the prompts (one of the top k distinct
+        clips, drawn with ``seed`` by ``retrieval_draw``), each cut or held at its last frame to the prompt's length."""
         if self._bank is None:
             bank = self.hparams.get("human_bank")
             if not bank or getattr(self, "human_bank_motion", None) is None:
@@ -467,7 +497,12 @@ class OmniMotionModule(OmgModule):
                     seen.append(owner)
                 if len(seen) == self.retrieval_top_k:
                     break
-            sample = bank["samples"][seen[int(torch.randint(len(seen), (1,), generator=gen))]]
+            if self.retrieval_draw == "similarity":  # each clip scored by its nearest caption
+                best = torch.stack([row[bank["owner"] == owner].max() for owner in seen])
+                pick = int(torch.multinomial(torch.softmax(best / self.retrieval_temperature, 0), 1, generator=gen))
+            else:
+                pick = int(torch.randint(len(seen), (1,), generator=gen))
+            sample = bank["samples"][seen[pick]]
             clip = sample["motion"][:T]
             motion[b, : len(clip)] = clip
             motion[b, len(clip):] = clip[-1]
@@ -493,25 +528,36 @@ def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, n
     return features, np.asarray(meta["offsets"], dtype=np.float32)
 
 
-def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int,
+def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int, fps: float,
                    **sampling) -> tuple[Tensor, Tensor]:
-    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3).
+    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
+    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames).
 
     ``generator``: an OMG ControlNet module; its features (humanml3d263) are decoded to joint
-    positions and turned into rotations by IK."""
+    positions and turned into rotations by IK. A generator at another rate makes the same durations
+    at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
+    animal moves at the speed the human did."""
+    from omg.data.sources.amass import resample
+
     if generator.spec.skeleton != HUMAN_SKELETON:
         raise UsageError(f"the human generator makes {generator.spec.skeleton} motion; OmniMotionGPT needs "
                          f"{HUMAN_SKELETON}")
     if generator.spec.fps <= 0:
         raise UsageError("the human generator's checkpoint records no frame rate")
+    source_fps = generator.spec.fps
+    lengths = torch.as_tensor(lengths).cpu()
+    source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
     allowed = {k: v for k, v in sampling.items() if k in ("steps", "guidance", "sampler") and v is not None}
-    features = generator.sample(list(prompts), lengths, seed=seed, use_ema=False, **allowed)
+    features = generator.sample(list(prompts), source_lengths, seed=seed, use_ema=False, **allowed)
     joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
-    T = int(torch.as_tensor(lengths).max())
+    T = int(lengths.max())
     motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)
     offsets = []
-    for b, n in enumerate(torch.as_tensor(lengths).tolist()):
-        maa, off = maa_from_positions(joints[b, : max(2, n)], generator.spec.fps)
+    for b, n in enumerate(lengths.tolist()):
+        positions = joints[b, : source_lengths[b]]
+        if abs(source_fps - fps) > 1e-6:
+            positions = resample(positions, source_fps, fps)
+        maa, off = maa_from_positions(positions[: max(2, n)], fps)
         maa = torch.from_numpy(maa)[:T]
         motion[b, : len(maa)] = maa
         motion[b, len(maa):] = maa[-1]
@@ -528,25 +574,32 @@ class OmniMotionSelfEvaluator(torch.nn.Module):
     The evaluation passes motions without their offsets: S is the mean of the known animals'
     bone offsets. Unlike omg's contrastive evaluator it shares the generator's encoders, so it
     rewards the generator's own view of text; report it beside the independent one.
+
+    ``unit``: both features as unit vectors (omg's default: E_t is trained on 1 − cos(E_t(Z), C), so
+    its output's length is arbitrary and Euclidean distances would mostly measure it), or as the
+    networks give them (``false``: the paper's scale, where Diversity, MModality, MM-Dist and FID
+    are comparable with its tables). The two scales differ most in Diversity and MModality.
     """
 
-    def __init__(self, checkpoint: str):
+    def __init__(self, checkpoint: str, unit: bool = True):
         super().__init__()
+        self.unit = unit
         from omg.lit.checkpoint import load_module
 
         self.module = load_module(checkpoint, expect=OmniMotionModule)  # EMA weights where kept
         self.spec = self.module.spec
         self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
 
-    # both features are unit vectors, as omg's evaluator's: E_t is trained on 1 − cos(E_t(Z), C), so its
-    # output's length is arbitrary and Euclidean distances (FID, MM-Dist, R-precision) would mostly measure it
+    def _scaled(self, features: Tensor) -> Tensor:
+        return F.normalize(features, dim=-1) if self.unit else features
+
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
-        return F.normalize(self.module.sentence(list(texts)).to(self.offsets.device), dim=-1)
+        return self._scaled(self.module.sentence(list(texts)).to(self.offsets.device))
 
     @torch.no_grad()
     def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
         animal = self.module.model.animal
         offsets = self.offsets.expand(len(motion), -1, -1)
         z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
-        return F.normalize(animal["text_encoder"](z, z_mask), dim=-1)
+        return self._scaled(animal["text_encoder"](z, z_mask))

@@ -5,11 +5,11 @@ Per frame the motion is the ``maa`` representation seen as J + 1 tokens of 6 num
 joints' local rotations (6D; the root's is the global rotation) and the root translation padded
 to 6. The static part S is the (J, 3) bone offsets, zero-padded to (J + 1, 3).
 
-``MotionAutoencoder`` (one per domain, §3.2): a joint transformer over each pose's tokens (pose ⊕
+``MotionAutoencoder`` (one per domain, §3.1): a joint transformer over each pose's tokens (pose ⊕
 offsets) -> F_j, a second joint transformer over the offsets -> F_o, a temporal transformer over
 frames of F_j ⊕ F_o, temporal pooling by l and primal-joint pooling to Z (B, T/l, 7, C_j). The
 decoder mirrors it with the target's offsets. ``LatentTextEncoder`` E_t maps Z to the sentence
-feature; ``LatentTextDecoder`` D_t maps (sentence feature, Z) back to a latent (§3.3).
+feature; ``LatentTextDecoder`` D_t maps (sentence feature, Z) back to a latent (§3.1-3.2).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ NUM_PRIMAL = 7  # root, both leg ends, head, both arm (front leg) ends, chest br
 
 @dataclass(frozen=True)
 class OmniMotionConfig:
-    """Sizes of the OmniMotionGPT networks; ``paper`` is §4.1's (see configs/omgpt.yaml)."""
+    """Sizes of the OmniMotionGPT networks; ``paper`` is §5's implementation details (see configs/omgpt.yaml)."""
 
     name: str = "paper"
     joint_dim: int = 16  # joint transformers: width 16 ...

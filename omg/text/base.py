@@ -119,6 +119,11 @@ class TextEncoder(nn.Module):
 
     # no_grad, not inference_mode: the features feed trainable layers that save them for backward
     @torch.no_grad()
+    def sentence_embedding(self, features: TextFeatures) -> Tensor:
+        """(B, D) the encoder's sentence embedding of a batch it encoded: the EOT feature, unless the
+        encoder has a projection of its own into a joint space (CLIP's ``encode_text``)."""
+        return features.eot_embedding()
+
     def forward(self, texts: Sequence[str]) -> TextFeatures:
         if isinstance(texts, str):
             raise TypeError(f"{self.name} encodes a list of texts, got the single string {texts!r}")

@@ -1,9 +1,11 @@
 """``clip-vit-l-14``: the CLIP ViT-L/14 text tower (open_clip), OMG's text encoder.
 
 Token features are the transformer's output after ``ln_final`` (before the projection into
-the joint image-text space), 768-d over a 77-token context; the EOT token (the highest id,
-where open_clip pools) summarises the sentence. Only the text tower is built: 123M
-parameters instead of CLIP's 428M.
+the joint image-text space), 768-d over a 77-token context: what OMG's ControlNet reads. The EOT
+token (the highest id, where open_clip pools) summarises the sentence; ``sentence_embedding``
+projects it into the joint image-text space, CLIP's ``encode_text`` (768-d for ViT-L/14): the
+"CLIP feature" OmniMotionGPT uses. Only the text tower is built: 124M parameters instead of
+CLIP's 428M.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from torch import Tensor
 
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
-from omg.text.base import TextEncoder, building_on_meta
+from omg.text.base import TextEncoder, TextFeatures, building_on_meta
 
 ARCH = "ViT-L-14"
 CONFIG_KEY = "model.init_args.text_encoder_args.pretrained"
@@ -23,7 +25,8 @@ CONFIG_KEY = "model.init_args.text_encoder_args.pretrained"
 
 @TEXT_ENCODERS.register("clip-vit-l-14")
 class ClipTextEncoder(TextEncoder):
-    """CLIP ViT-L/14 text tower (open_clip): 768-d token features after ln_final, 77 tokens.
+    """CLIP ViT-L/14 text tower (open_clip): 768-d token features after ln_final, 77 tokens, and the
+    sentence embedding of ``encode_text`` (``sentence_embedding``).
 
     Args:
         pretrained: a local checkpoint file (a state dict or open_clip checkpoint of the full
@@ -53,8 +56,8 @@ class ClipTextEncoder(TextEncoder):
         # find the file first: a missing one fails at once, not after building the tower
         path = None if pretrained is None or building_on_meta() else _weights_file(pretrained, tag)
         cfg = open_clip.get_model_config(ARCH)
-        # no projection: we want token features, not CLIP's joint-space sentence embedding
-        self.tower = _build_text_tower(cfg["embed_dim"], {**cfg["text_cfg"], "proj_type": "none"}, quick_gelu)
+        # with its text projection: token features come before it, the sentence embedding after it
+        self.tower = _build_text_tower(cfg["embed_dim"], cfg["text_cfg"], quick_gelu)
         if path is not None:
             _load_tower(self.tower, path)
         self.tokenizer = open_clip.get_tokenizer(ARCH)
@@ -68,6 +71,12 @@ class ClipTextEncoder(TextEncoder):
             self._warn_truncated(text)
             ids = ids[: self.max_tokens - 1] + [tok.eot_token_id]
         return ids
+
+    def sentence_embedding(self, features: TextFeatures) -> Tensor:
+        """(B, 768) CLIP's sentence embedding, ``encode_text`` (unnormalised): the EOT feature projected."""
+        eot = features.eot_embedding().to(self.device)
+        projection = self.tower.text_projection
+        return projection(eot) if isinstance(projection, torch.nn.Linear) else eot @ projection
 
     def _encode(self, texts: list[str]) -> list[Tensor]:
         ids = [self.token_ids(t) for t in texts]

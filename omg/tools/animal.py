@@ -60,19 +60,14 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
                     out: Path, command: str) -> dict:
     from omg.io.bvh import write_bvh
     from omg.lit.omgpt import generate_human
-    from omg.text.subjects import find_animal, to_person
+    from omg.text.subjects import about_animal, choose_animal, to_person
 
     if not prompts:
         raise UsageError("an OmniMotionGPT checkpoint generates from prompts: give one (\"a dog jumps over a log\")")
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
     names = module.animal_names
-    if animal is not None:
-        module.animal_offsets(animal)  # an unknown name: one line listing the known ones
-    chosen = [animal or find_animal(p, names) for p in prompts]
-    if None in chosen:
-        raise UsageError(f"prompt {chosen.index(None) + 1} names no animal this checkpoint knows; pass --animal "
-                         f"(known: {', '.join(names)})")
+    chosen = [choose_animal(p, names, animal) for p in prompts]  # the rule of OmniMotionModule.sample
     fps = module.spec.fps
     frames = round(length * fps)
     module = module.to(device).eval()
@@ -101,7 +96,7 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
                 human = torch.from_numpy(human_file[0][:frames])[None]
                 human_offsets = torch.from_numpy(human_file[1])[None]
             elif generator is not None:
-                human, human_offsets = generate_human(generator, [person], lengths, seed + index, steps=steps,
+                human, human_offsets = generate_human(generator, [person], lengths, seed + index, fps, steps=steps,
                                                       guidance=guidance, sampler=sampler)
             else:
                 human, human_offsets = module.human_motion([person], lengths.to(device), seed + index)
@@ -119,7 +114,8 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
             atomic_write(out / f"{stem}.joints.npy", npy_bytes(joints))
             atomic_write(out / f"{stem}.human.joints.npy", npy_bytes(human_joints.astype(np.float32)))
             write_bvh(out / f"{stem}.bvh", skeleton, rotations.numpy(), root.numpy(), fps, offsets.numpy())
-            records.append({"file": stem, "prompt": prompt, "animal": name, "human_prompt": person, "repeat": k})
+            records.append({"file": stem, "prompt": prompt, "animal": name, "human_prompt": person, "repeat": k,
+                            "animal_prompt": about_animal(prompt, name, names)})
             previews.append((joints, f"{prompt} ({name})"))
         settings = {
             "command": command, "ckpt": str(ckpt), "module": type(module).__name__, "prompts": prompts,

@@ -79,7 +79,8 @@ def generate(
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
         compile: run the network through torch.compile (a one-off compilation, then faster steps)
-        animal: OmniMotionGPT checkpoints: the animal category (default: the one the prompt names)
+        animal: OmniMotionGPT checkpoints: the animal (a species the checkpoint knows); it wins over the animal
+            the prompt names, and the prompt is made about it (default: the one the prompt names)
         from_motion: OmniMotionGPT: the human motion to turn into the animal's (BVH, ASF/AMC or DeepMimic
             file retargeted to smpl22, a .joints.npy (T, 22, 3), or a features .npy in smpl22 maa or
             humanml3d263); one motion per prompt

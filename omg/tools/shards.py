@@ -400,7 +400,7 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
 
     data = MotionDataModule(str(shard_dir), verify_shards=False)
     stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size,
-                          windows=WindowSampler(mode="whole"), feature_dim=data.feature_dim,
+                          windows=WindowSampler(min_len=1, mode="whole"), feature_dim=data.feature_dim,  # every clip
                           shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
     # `inspect` has reported every bad sample once already; the stream would warn at each of its visits
     data_log = logging.getLogger(MotionStream.__module__)

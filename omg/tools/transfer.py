@@ -4,8 +4,9 @@ The source (BVH, DeepMimic or ``.npy``) is retargeted onto SMAL-35 and encoded a
 features; the habit VQ-VAE re-encodes it with the target category's habit latent (a sample of
 its flow prior, or without ``--prior_ckpt`` the mean of its posterior) and text embedding and
 decodes it. A target the model does not know is described by the species book (or by the text
-given) and replaced by the known category whose description is nearest (Euclidean, the paper's
-retrieval); the output says which and at what distance. Written to ``--out``:
+given); its habit latent is that of the known category whose description is nearest (Euclidean, the
+paper's retrieval), while its own description's embedding stays the condition (the paper swaps only
+the habit latent); the output says which category and at what distance. Written to ``--out``:
 ``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3) with the target category's
 mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions), ``source.joints.npy``,
 ``preview.gif`` (source and result side by side) and ``transfer.json`` (every setting).
@@ -65,8 +66,9 @@ def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.nd
 
 def resolve_target(module, to: str, species_file: Path | None) -> dict:
     """The category whose habits are used: ``to`` itself when known, else the known category whose
-    description is nearest ``to``'s (a species of the book, or a description of 3 words or more)."""
-    from omg.text.species import SpeciesBook, nearest_category, species_key
+    description is nearest ``to``'s (a species of the book, or a description of 3 words or more); an
+    unseen species keeps its own description's embedding as the condition (``embedding``)."""
+    from omg.text.species import SpeciesBook, nearest_category, sentence_embeddings, species_key
 
     if not to or not to.strip():
         raise UsageError("--to is empty: give a species name (e.g. horse) or a description of the animal")
@@ -81,7 +83,10 @@ def resolve_target(module, to: str, species_file: Path | None) -> dict:
     encoder = build_text_encoder(hp.get("text_encoder", "minilm"), **(hp.get("text_encoder_args") or {}))
     known = {name: module.descriptions.get(name) or book.description(name) for name in module.categories}
     name, distance = nearest_category(encoder, description, known)
-    return {"target": to, "description": description, "category": name, "retrieved": True, "distance": distance}
+    with torch.no_grad():
+        embedding = sentence_embeddings(encoder, [description])[0].cpu()  # as the categories' were embedded
+    return {"target": to, "description": description, "category": name, "retrieved": True, "distance": distance,
+            "embedding": embedding}
 
 
 def transfer(
@@ -138,7 +143,9 @@ def transfer(
         z = prior.habit_latents(k, 1, seed=seed, temperature=temperature)
     else:
         z = module.mean_habit(k)[None]
-    result = module.transfer(torch.from_numpy(features)[None], k, z, seed=seed, quantizer=quantizer)[0]
+    # the paper's transfer for an unseen species: the retrieved category's habit latent, the species' own text
+    result = module.transfer(torch.from_numpy(features)[None], k, z, seed=seed, quantizer=quantizer,
+                             text=target.get("embedding"))[0]
     if not torch.isfinite(result).all():
         raise UsageError(f"the model produced NaN or inf motion: a diverged checkpoint ({ckpt})")
     rep, fps = module.representation, module.spec.fps
@@ -149,8 +156,10 @@ def transfer(
     settings = {
         "command": command, "source": str(source), "source_category": source_category, "to": to,
         "category": target["category"], "retrieved": target["retrieved"], "distance": target["distance"],
-        "description": target.get("description"), "ckpt": str(ckpt), "prior_ckpt": str(prior_ckpt) if prior_ckpt
-        else None, "habit": "prior sample" if prior is not None else "posterior mean", "seed": seed,
+        "description": target.get("description"),
+        "condition": "its own description" if target["retrieved"] else f"{target['category']}'s description",
+        "ckpt": str(ckpt), "prior_ckpt": str(prior_ckpt) if prior_ckpt else None,
+        "habit": "prior sample" if prior is not None else "posterior mean", "seed": seed,
         "temperature": temperature, "quantizer": quantizer or module.vqvae.quantizer.mode, "frames": len(joints),
         "fps": fps, "skeleton": rep.skeleton.name, "representation": "quatvel",
         "target_offsets": offsets.tolist(),

@@ -9,11 +9,16 @@ Expected layout under ``--input`` (the unzipped ``data/*.zip`` of USRC-SEA/OmniM
     animals_maa_offsets/<animal>/offset.pkl          (35, 3) pickled float array: the bone offsets
     animals_maa_offsets/<animal>/{mean,std}.npy      per-animal statistics (not used, see below)
 
-The animal identity is the file name up to the first ``_`` (as in OmniMotionGPT); it is the
-clip's ``category``. Clips without captions are skipped and counted, as the released
-training code drops them; so are clips outside ``min_frames <= T < max_frames`` (default
-20 and 196, OmniMotionGPT's loader). Motion is taken to be at 20 fps (OmniMotionGPT trains
-it beside HumanML3D's 20 fps clips).
+The animal identity is the file name up to the first ``_`` (as in OmniMotionGPT): it picks the
+offsets and the split. The clip's ``category`` is the identity's species, the word its captions
+use ("bear3EP" -> "bear", "canieLTT" -> "wolf": ``omg/text/animals.yaml``, every identity of the
+release; option ``species``, a mapping identity -> word, adds or overrides identities), so that
+training, ``find_animal``, the OOD prompts and ``omg generate --animal`` speak of "a bear";
+``labels`` keep ``identity``, ``species`` and ``action``. A clip of an identity without a species
+is skipped and counted. Clips without captions are skipped and counted, as the released
+training code drops them; so are clips outside ``min_frames <= T <= max_frames`` (default
+10 and 196, the paper's AnimalML3D filter). Motion is taken to be at 20 fps (OmniMotionGPT
+trains it beside HumanML3D's 20 fps clips).
 
 Split (option ``split``: ``train``, ``test`` or ``all``, default ``all``): by identity, 23
 train / 13 test in the paper. The official identity lists (``smal_animal_names_v1_train`` in
@@ -48,6 +53,7 @@ from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.rotations import matrix_to_quat, sixd_to_matrix
 from omg.skeleton import SMAL35, Skeleton
+from omg.text.subjects import species_of
 
 FPS = 20.0
 NUM_TEST_OF_36 = 13  # the paper's 23 train / 13 test identities
@@ -147,9 +153,13 @@ def _captions(root: Path, name: str) -> list[str]:
     raise ValueError(f"animalml3d missing captions: {root / 'motion_captions' / name / 'screenshots.txt'}")
 
 
-def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_frames: int) -> Clip:
+def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_frames: int,
+               species: dict[str, str]) -> Clip:
     name = path.stem
     animal, _, action = name.partition("_")
+    if not (word := species.get(animal) or species_of(animal)):
+        raise ValueError(f"animalml3d unknown identity: {path} ({animal!r} has no species word; give "
+                         f"--option.species '{{{animal}: WORD}}')")
     try:
         motion = np.load(path, allow_pickle=False).astype(np.float64)
     except Exception as e:  # noqa: BLE001
@@ -161,8 +171,8 @@ def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_
         raise ValueError(f"animalml3d wrong array shape: {path} is {motion.shape}, expected (T, {J + 1}, 6)")
     if not np.isfinite(motion).all():
         raise ValueError(f"animalml3d NaN or inf in motion: {path}")
-    if len(motion) < min_frames or (max_frames and len(motion) >= max_frames):
-        raise ValueError(f"animalml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: "
+    if len(motion) < min_frames or (max_frames and len(motion) > max_frames):
+        raise ValueError(f"animalml3d length outside [{min_frames}, {max_frames or 'inf'}] frames: "
                          f"{path} has {len(motion)}")
     texts = _captions(root, name)
     offsets = load_offsets(root / "animals_maa_offsets" / animal / "offset.pkl")
@@ -175,8 +185,8 @@ def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_
         rotations=local_rotations(skeleton, bone_rot, offsets).astype(np.float32),
         offsets=offsets.astype(np.float32),
         texts=texts,
-        labels={"animal": animal, "action": action},
-        category=animal,
+        labels={"identity": animal, "species": word, "action": action},
+        category=word,
         source="animalml3d",
     )
 
@@ -188,8 +198,9 @@ def animalml3d_source(
     fps: float,
     split: str = "all",
     test_animals: str | list[str] | None = None,
-    min_frames: int = 20,
+    min_frames: int = 10,
     max_frames: int = 196,
+    species: dict[str, str] | None = None,
 ) -> Iterator[Clip | Exception]:
     """Captioned SMAL-35 animal clips of AnimalML3D; see the module docstring."""
     motions = Path(input or "") / "animals_maa_motions"
@@ -200,6 +211,10 @@ def animalml3d_source(
         raise UsageError(f"animalml3d motion is on smal35, not {skeleton.name!r}; use --skeleton smal35")
     if abs(fps - FPS) > 1e-6:
         raise UsageError(f"animalml3d motion is at {FPS:g} fps; use --fps {FPS:g}")
+    species = species or {}
+    if not isinstance(species, dict) or not all(isinstance(w, str) and w.strip() for w in species.values()):
+        raise UsageError(f"animalml3d: --option.species must map identities to species words, got {species!r}")
+    species = {str(k): v.strip() for k, v in species.items()}
     if split not in ("train", "test", "all"):
         raise UsageError(f"animalml3d: --option.split {split!r}; choose train, test or all")
     paths = sorted(motions.glob("*.npy"))
@@ -217,7 +232,7 @@ def animalml3d_source(
         for path in paths:
             if path.stem.split("_")[0] in keep:
                 try:
-                    yield _read_clip(Path(input), path, skeleton, min_frames, max_frames)
+                    yield _read_clip(Path(input), path, skeleton, min_frames, max_frames, species)
                 except ValueError as e:
                     yield e
 

@@ -10,8 +10,8 @@ Expected layout under ``--input`` (as the HumanML3D scripts write it)::
 
 Options: ``split`` (``train``, ``val``, ``test``, ``train_val`` or ``all``; default ``all``,
 which reads every id in ``new_joint_vecs``/``new_joints``), ``min_frames`` and
-``max_frames`` (default 40 and 200: HumanML3D's loader keeps clips with
-``40 <= frames < 200``; set ``max_frames=0`` to keep long clips).
+``max_frames`` (default 20 and 196, both kept: the papers' HumanML3D filter keeps clips with
+``20 <= frames <= 196`` feature frames; set ``max_frames=0`` to keep long clips).
 
 As in HumanML3D's ``Text2MotionDataset``: a caption whose start/end (seconds) are not both
 zero describes the span ``[int(start * 20), int(end * 20))`` of the motion and becomes its
@@ -122,11 +122,11 @@ def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int,
     motion_path = vec_path if features is not None else joint_path
 
     def bad_length(length: int) -> bool:
-        return length < min_frames or bool(max_frames and length >= max_frames)
+        return length < min_frames or bool(max_frames and length > max_frames)
 
     # as in HumanML3D's loader, the whole motion must pass the length filter, sub-clips too
     if bad_length(frames):
-        yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: "
+        yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}] frames: "
                          f"{motion_path} has {frames}")
         return
     for (start, end), captions in sorted(spans.items()):
@@ -134,7 +134,7 @@ def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int,
         a, b = (0, frames) if whole else (int(start * FPS), min(int(end * FPS), frames))
         clip_id = name if whole else f"{name}@{start:g}-{end:g}"
         if bad_length(b - a):
-            yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}) frames: "
+            yield ValueError(f"humanml3d length outside [{min_frames}, {max_frames or 'inf'}] frames: "
                              f"{clip_id} has {b - a} ({motion_path})")
             continue
         if features is not None:
@@ -166,8 +166,8 @@ def humanml3d_source(
     skeleton: Skeleton,
     fps: float,
     split: str = "all",
-    min_frames: int = 40,
-    max_frames: int = 200,
+    min_frames: int = 20,
+    max_frames: int = 196,
 ) -> SourceItems:
     """Clips (and sub-clips per captioned span) of a HumanML3D folder; see the module docstring."""
     if not input or not Path(input).is_dir():

@@ -1,0 +1,42 @@
+"""An unseen species swaps only the habit latent (Behave Your Motion's transfer): ``omg transfer --to zebra``
+uses the nearest known category's (horse's) habit latent with the zebra's own description as the condition."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from test_habit import CATEGORIES, QUATVEL, _fit
+
+
+def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_latent(tmp_path):
+    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.lit.habit import HabitVQModule
+    from omg.tools.transfer import resolve_target, transfer
+
+    # condition_decoder: the description reaches the decoder too (without it, only the encoder before quantization)
+    vq, path = _fit(lambda spec: HabitVQModule(CATEGORIES, flavor="tiny", condition_decoder=True, spec=spec),
+                    tmp_path / "vq", 12)
+    vq.eval()
+    data = MotionDataModule(str(QUATVEL / "val"), verify_shards=False)
+    dog = next(s for s in ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples
+               if s["meta"]["category"] == "dog")
+    source = tmp_path / "dog.npy"
+    np.save(source, np.asarray(dog["motion"][:64], dtype=np.float32))
+
+    out = {to: transfer(source, to=to, ckpt=path, out=tmp_path / to, preview=False) for to in ("horse", "zebra")}
+    assert out["zebra"]["category"] == "horse" and out["zebra"]["retrieved"]
+    assert out["zebra"]["condition"] == "its own description"
+    motion = {to: np.load(tmp_path / to / "transfer.features.npy") for to in out}
+    assert not np.allclose(motion["zebra"], motion["horse"], atol=1e-4)  # zebra is not horse
+
+    # ... and differs only by the condition: horse's habit latent with the zebra description's embedding
+    zebra = resolve_target(vq, "zebra", None)
+    k = vq.categories.index("horse")
+    features = torch.from_numpy(np.asarray(dog["motion"][:64], dtype=np.float32))[None]
+    with torch.no_grad():
+        expected = vq.transfer(features, k, vq.mean_habit(k)[None], seed=0, text=zebra["embedding"])[0]
+        as_horse = vq.transfer(features, k, vq.mean_habit(k)[None], seed=0)[0]  # the old path: horse's text too
+    np.testing.assert_allclose(motion["zebra"], expected.numpy(), atol=1e-5)
+    np.testing.assert_allclose(motion["horse"], as_horse.numpy(), atol=1e-5)
+    assert not torch.allclose(zebra["embedding"], vq.category_text[k].cpu())

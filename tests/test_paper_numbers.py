@@ -1,0 +1,145 @@
+"""The animal systems' paper numbers: OmniMotionGPT's loss weights (§3.1-3.2, Appendix C) and
+implementation details (§5), Behave Your Motion's stage-1 loss mix and 2e-4 -> 1e-5 step schedule, in
+the modules' total losses and in the paper configs."""
+
+from __future__ import annotations
+
+import inspect
+
+import lightning as L
+import pytest
+import torch
+import yaml
+
+from conftest import REPO
+from omg.data.datamodule import MotionDataModule
+from omg.lit.habit import HabitVQModule, masked_smooth_l1
+from omg.lit.omgpt import OmniMotionModule
+from test_configs import parse
+from test_habit import CATEGORIES, QUATVEL
+from test_omgpt import MINI, TINY, _data
+
+OMGPT_WEIGHTS = {"jrec": 1.0, "clip": 1.0, "trec": 1.0, "cons": 0.1, "cross_clip": 1.0, "ee": 100.0,
+                 "translation": 1.0}
+HABIT_MIX = {"alpha": 0.5, "beta": 0.02, "lr": 2e-4, "lr_after": 1e-5, "lr_switch": 0.5}
+
+
+def _defaults(cls) -> dict:
+    return {k: p.default for k, p in inspect.signature(cls).parameters.items()}
+
+
+def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
+    """L = Σ_d (L_jrec + 1 L_CLIP + 1 L_trec + 1 L_translation) + 0.1 L_cons + 1 L_CLIP~ + 100 L_ee, by default."""
+    torch.manual_seed(0)
+    animal = _data(MINI / "animal_maa/train")
+    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32,
+                                              min_len=20, num_workers=0, shuffle_buffer=32, clips="whole"),
+                              flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0)
+    assert module.weights == OMGPT_WEIGHTS
+    assert {f"{k}_weight": v for k, v in OMGPT_WEIGHTS.items()}.items() <= _defaults(OmniMotionModule).items()
+    module.companion.start()
+    batch, human = next(iter(animal.train_dataloader())), module.companion.next()
+    out = module.losses(batch, human)
+    parts = {k: out[f"{d}/{k}"] for d in ("human", "animal") for k in ("jrec", "clip", "trec", "translation")}
+    assert all(v > 0 for v in parts.values()) and all(out[f"cross/{k}"] > 0 for k in ("cons", "cross_clip", "ee"))
+    expected = sum(out[f"{d}/{k}"] * OMGPT_WEIGHTS[k] for d in ("human", "animal")
+                   for k in ("jrec", "clip", "trec", "translation"))
+    expected = expected + sum(out[f"cross/{k}"] * OMGPT_WEIGHTS[k] for k in ("cons", "cross_clip", "ee"))
+    torch.testing.assert_close(out["loss"], expected)
+    # a weight moves the total by exactly its term: the end-effector velocity term at 100
+    module.weights = {**OMGPT_WEIGHTS, "ee": 0.0}
+    torch.manual_seed(0)
+    without = module.losses(batch, human)
+    torch.testing.assert_close(out["loss"] - without["loss"], 100.0 * out["cross/ee"], rtol=1e-4, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def quatvel():
+    return MotionDataModule(str(QUATVEL / "train"), batch_size=8, max_len=64, min_len=64,
+                            clips="windows", batches_per_epoch=8, num_workers=0, shuffle_buffer=32,
+                            verify_shards=False)
+
+
+def test_habit_stage1_loss_is_the_papers_mix(quatvel):
+    """L = smooth L1 (motion) + 0.5 · smooth L1 (velocity channels) + 0.02 · commitment (+ KL), by default."""
+    assert HABIT_MIX.items() <= _defaults(HabitVQModule).items()
+    torch.manual_seed(0)
+    module = HabitVQModule(CATEGORIES, flavor="tiny", spec=quatvel.spec).eval()
+    batch = next(iter(quatvel.train_dataloader()))
+    out, recon, _ = module.losses(batch)
+    v = module.num_joints * 4  # quatvel: 35 quaternions, then the joint velocities
+    mask = batch["mask"].float()
+    torch.testing.assert_close(out["motion"], masked_smooth_l1(recon, batch["motion"], mask))
+    torch.testing.assert_close(out["velocity"], masked_smooth_l1(recon[..., v:], batch["motion"][..., v:], mask))
+    expected = out["motion"] + 0.5 * out["velocity"] + 0.02 * out["commitment"] + module.kl_weight * out["kl"]
+    torch.testing.assert_close(out["loss"], expected)
+    assert out["velocity"] > 0 and out["commitment"] > 0
+
+
+class _LearningRates(L.Callback):
+    def __init__(self):
+        self.seen: list[float] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self.seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+
+def test_habit_learning_rate_steps_from_2e4_to_1e5_for_the_second_half(quatvel, tmp_path):
+    torch.manual_seed(0)
+    module = HabitVQModule(CATEGORIES, flavor="tiny", spec=quatvel.spec)
+    rates = _LearningRates()
+    trainer = L.Trainer(accelerator="cpu", max_steps=8, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path),
+                        limit_val_batches=0, callbacks=[rates])
+    trainer.fit(module, datamodule=quatvel)
+    assert rates.seen == pytest.approx([2e-4] * 4 + [1e-5] * 4)
+
+
+def test_omgpt_config_has_the_papers_numbers():
+    cfg = parse(REPO / "configs/omgpt.yaml")
+    args = cfg.model.init_args
+    assert {k: args[f"{k}_weight"] for k in OMGPT_WEIGHTS} == OMGPT_WEIGHTS  # §3.1-3.2, Appendix C
+    assert (args.lr, tuple(args.betas), args.weight_decay, args.ema_decay) == (1e-4, (0.9, 0.999), 0.0, 0.99)  # §5
+    assert (args.text_encoder, args.text_feature, args.flavor) == ("clip-vit-l-14", "projected", "paper")
+    assert cfg.trainer.max_steps == 30000 and cfg.data.batch_size == args.human_data["batch_size"] == 256
+    # whole clips of the papers' lengths: AnimalML3D 10-196, HumanML3D 20-196 frames
+    assert (cfg.data.clips, cfg.data.min_len, cfg.data.max_len) == ("whole", 10, 196)
+    human = args.human_data
+    assert (human["clips"], human["min_len"], human["max_len"]) == ("whole", 20, 196)
+
+
+def test_habit_configs_have_the_papers_numbers():
+    from omg.models.habit import HabitConfig
+
+    cfg = parse(REPO / "configs/habit_vqvae.yaml")
+    args = cfg.model.init_args
+    assert {k: args[k] for k in HABIT_MIX} == HABIT_MIX
+    assert (args.quantizer, args.code_reset, args.condition_decoder, args.ema_decay) == ("soft", True, False, 0.99)
+    assert cfg.trainer.max_steps == 200000 and cfg.data.batch_size == 32 and cfg.data.max_len == cfg.data.min_len == 64
+    base = HabitConfig.from_name(args.flavor)
+    assert (base.num_codes, base.down_t, base.dilation_growth, base.width) == (512, 2, 3, 512)
+    assert (base.habit_layers, base.habit_width, base.habit_heads) == (4, 512, 8)
+    prior = parse(REPO / "configs/habit_prior.yaml")
+    assert prior.model.init_args.lr == 2e-4 and prior.data.batch_size == 32
+
+
+def _omgpt_switches(path) -> dict:
+    """The three switches omg adds to OmniMotionGPT, as the config resolves them (defaults included)."""
+    from omg.models.omgpt import OmniMotionConfig
+
+    args = parse(path).model.init_args
+    config = OmniMotionConfig.from_name(args.flavor, **(args.config or {}))
+    standardize = args.get("standardize", _defaults(OmniMotionModule)["standardize"])
+    return {"latent_shift": config.latent_shift, "root_velocity": config.root_velocity, "standardize": standardize}
+
+
+def test_omgpt_paper_config_is_the_paper_and_the_variant_is_named():
+    """configs/omgpt.yaml: unshifted D_t, absolute root translation, raw maa (§3.1); omg's variant is its own
+    overlay (configs/omgpt_variant.yaml) with all three on, and the mini run says it trains the variant."""
+    assert _omgpt_switches(REPO / "configs/omgpt.yaml") == dict.fromkeys(("latent_shift", "root_velocity",
+                                                                         "standardize"), False)
+    variant = dict.fromkeys(("latent_shift", "root_velocity", "standardize"), True)
+    assert _omgpt_switches(REPO / "configs/omgpt_variant.yaml") == variant
+    assert _omgpt_switches(REPO / "configs/mini/omgpt.yaml") == variant
+    mini = yaml.safe_load((REPO / "configs/mini/omgpt.yaml").read_text())["model"]["init_args"]
+    assert {*mini["config"], "standardize"} >= set(variant) and mini["standardize"]  # said, not inherited
