@@ -3,9 +3,16 @@ importing module's own layer or a lower one (the layer order of the README's lay
 
 What counts as an import: every import statement at any depth (``from omg import X`` and relative
 imports read as the submodule X where X is one), ``importlib.import_module`` with a literal name,
-and the module names omg keeps as data and imports by name (the registries' built-in lists, the
-CLI's command table, the checkpoint reader's safe globals). Any other ``import_module`` is an error
-unless ``DYNAMIC`` below allows it with its reason. The packages (``omg.lit``, ``omg.callbacks``,
+and the module names omg keeps as data and imports by name (the CLI's command table, the checkpoint
+reader's safe globals, the registries' built-in lists). Any other ``import_module`` is an error
+unless ``DYNAMIC`` below allows it with its reason.
+
+A registry (``omg.registry.METRICS``) imports its built-in modules on its first lookup, on behalf
+of the module that looks a name up: its list is read as imports of every module that imports that
+registry (``from omg.registry import METRICS`` imports omg.metrics; ``ALL`` imports every list),
+not of omg.registry, which only holds the names. omg.registry is foundation so that any layer can
+register into it (the plugin API); a lookup is a dependency of its caller on the registry's
+built-ins, and that is where this test checks it. The packages (``omg.lit``, ``omg.callbacks``,
 ...) form no cycle; every ``class_path`` of a config under configs/ imports; and the README's
 layout lists every module and package of omg/ under its layer."""
 
@@ -40,8 +47,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 # omg's own data, DATA_TABLES reads them and they are checked as that module's imports
 DYNAMIC: dict[tuple[str, str], str] = {
     ("omg.registry", "Registry._load_builtins"):
-        "a registry's built-in modules, imported on its first lookup: the Registry(kind, (modules...)) "
-        "lists of the module that declares the registry are its imports (DATA_TABLES)",
+        "a registry's built-in modules, imported on its first lookup: each Registry(kind, (modules...)) list "
+        "is read as imports of the modules that import that registry (REGISTRIES)",
     ("omg.cli", "_run"): "the command table: COMMANDS' module:function entries are omg.cli's imports (DATA_TABLES)",
     ("omg.lit.checkpoint", "_globals"):
         "the classes a weights-only checkpoint read allows: the *_SAFE_GLOBALS tuples are its imports (DATA_TABLES)",
@@ -99,11 +106,20 @@ def _strings(node: ast.AST) -> list[str]:
     return [n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
 
 
-def _registry_builtins(tree: ast.AST) -> list[tuple[str, int]]:
-    """The modules of every ``Registry(kind, (module, ...))``."""
-    return [(name, node.lineno) for node in ast.walk(tree)
-            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "Registry" and len(node.args) > 1
-            for name in _strings(node.args[1])]
+def registries(source: str) -> dict[str, list[str]]:
+    """Registry name -> its built-in modules, of every ``NAME = Registry(kind, (module, ...))`` in
+    ``source``; ``ALL`` (the dict of every registry) -> all of them."""
+    found: dict[str, list[str]] = {}
+    for node in ast.walk(ast.parse(source)):
+        if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Call)
+                and getattr(node.value.func, "id", None) == "Registry"):
+            modules = _strings(node.value.args[1]) if len(node.value.args) > 1 else []
+            found.update({target.id: modules for target in node.targets if isinstance(target, ast.Name)})
+    found["ALL"] = [module for modules in found.values() for module in modules]
+    return found
+
+
+REGISTRIES = registries((PACKAGE / "registry.py").read_text())
 
 
 def _command_table(tree: ast.AST) -> list[tuple[str, int]]:
@@ -124,14 +140,15 @@ def _safe_globals(tree: ast.AST) -> list[tuple[str, int]]:
 
 
 # module -> reader of the module names it keeps as data and imports by name
-DATA_TABLES = {"omg.registry": _registry_builtins, "omg.cli": _command_table, "omg.lit.checkpoint": _safe_globals}
+DATA_TABLES = {"omg.cli": _command_table, "omg.lit.checkpoint": _safe_globals}
 
 
 def imports(source: str, name: str, is_package: bool = False,
             dynamic: list[tuple[str, int]] | None = None) -> list[tuple[str, int]]:
     """(imported omg module, line) of every import statement in module ``name``'s source, at any
     depth, of every ``importlib.import_module("omg...")`` with a literal name and of the names
-    ``DATA_TABLES`` reads. ``from P import X`` imports the module P.X where that is a module, else P.
+    ``DATA_TABLES`` reads. ``from P import X`` imports the module P.X where that is a module, else P;
+    ``from omg.registry import R`` imports the built-in modules of registry R as well (``REGISTRIES``).
     Each ``import_module`` with a computed name is appended to ``dynamic`` as (scope, line)."""
     package = name if is_package else name.rpartition(".")[0]
     tree = ast.parse(source)
@@ -148,6 +165,8 @@ def imports(source: str, name: str, is_package: bool = False,
             for alias in node.names:
                 sub = f"{base}.{alias.name}"
                 found.append((sub if is_module(sub) else base, node.lineno))
+                if base == "omg.registry":
+                    found += [(module, node.lineno) for module in REGISTRIES.get(alias.name, [])]
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "import_module" and node.args:
             if isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
                 found.append((node.args[0].value, node.lineno))
@@ -281,16 +300,21 @@ def test_the_checker_sees_lazy_relative_and_dynamic_imports():
     assert [layer_of(m) > layer_of("omg.data.probe") for m in found] == [False, True, False, False, True]
     assert layer_of("omg") == 0 and layer_of("omg.tools.generate") == 5 and layer_of("omg.data.synth.human") == 2
     # the names kept as data are imports of the module that keeps them
-    table = 'COMMANDS = {"x": ("omg.tools.shards:main", "...")}\nS = Registry("s", ("omg.data.sources",))\n'
+    table = 'COMMANDS = {"x": ("omg.tools.shards:main", "...")}\n'
     assert [m for m, _ in imports(table, "omg.cli")] == ["omg.tools.shards"]
-    assert [m for m, _ in imports(table, "omg.registry")] == ["omg.data.sources"]
+    # a registry's built-in list is imported by the module that imports the registry
+    assert registries('S = Registry("s", ("omg.data.sources",))\nT = Registry("t")\n') == {
+        "S": ["omg.data.sources"], "T": [], "ALL": ["omg.data.sources"]}
+    assert [m for m, _ in imports("from omg.registry import METRICS\n", "omg.skeleton")] == ["omg.registry",
+                                                                                          "omg.metrics"]
     assert cycles({("a", "b"): [], ("b", "c"): [], ("c", "a"): [], ("c", "d"): []}) == [["a", "b", "c"]]
 
 
 def test_the_data_tables_are_read():
     edges = {(importer, imported) for importer, imported, _, _ in all_imports()}
     assert ("omg.cli", "omg.tools.generate") in edges and ("omg.cli", "omg.tools.transfer") in edges
-    assert any(importer != "omg.registry" and imported == "omg.metrics" for importer, imported in edges)
+    assert ("omg.callbacks.eval", "omg.metrics") in edges and ("omg.cli", "omg.data.sources") in edges
+    assert REGISTRIES["DATA_SOURCES"] == ["omg.data.sources"] and "omg.samplers" in REGISTRIES["ALL"]
 
 
 # -- configs -------------------------------------------------------------------------------
