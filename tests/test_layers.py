@@ -12,9 +12,11 @@ of the module that looks a name up: its list is read as imports of every module 
 registry (``from omg.registry import METRICS`` imports omg.metrics; ``ALL`` imports every list),
 not of omg.registry, which only holds the names. omg.registry is foundation so that any layer can
 register into it (the plugin API); a lookup is a dependency of its caller on the registry's
-built-ins, and that is where this test checks it. The packages (``omg.lit``, ``omg.callbacks``,
-...) form no cycle; every ``class_path`` of a config under configs/ imports; and the README's
-layout lists every module and package of omg/ under its layer."""
+built-ins, and that is where this test checks it.
+
+The packages (``omg.lit``, ``omg.callbacks``, ...) form no cycle; every ``class_path`` of a config
+under configs/ imports and its registry names exist; and the README's layout lists every module and
+package of omg/ under its layer."""
 
 from __future__ import annotations
 
@@ -335,6 +337,28 @@ def class_paths(node, key: str = "") -> list[tuple[str, str]]:
     return []
 
 
+# config keys whose string values are registry names (omg.registry), and the registry that resolves them
+REGISTRY_KEYS = {"text_encoder": "TEXT_ENCODERS", "metrics": "METRICS", "sampler": "SAMPLERS",
+                 "skeleton": "SKELETONS", "representation": "REPRESENTATIONS", "joint_map": "JOINT_MAPS"}
+
+
+def registry_names(node) -> list[tuple[str, str]]:
+    """(registry, name) of every registry name a loaded YAML document gives under ``REGISTRY_KEYS``
+    (a list of metrics holds names or one-key mappings {name: options})."""
+    found = []
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key in REGISTRY_KEYS:
+                values = value if isinstance(value, list) else [value]
+                names = [next(iter(v)) if isinstance(v, dict) and len(v) == 1 else v for v in values]
+                found += [(REGISTRY_KEYS[key], name) for name in names if isinstance(name, str)]
+            else:
+                found += registry_names(value)
+    elif isinstance(node, list):
+        found = [item for value in node for item in registry_names(value)]
+    return found
+
+
 def resolve(path: str) -> type:
     if "." not in path:
         for package in SHORT_NAMES:
@@ -349,7 +373,8 @@ def resolve(path: str) -> type:
 @pytest.mark.parametrize("config", CONFIGS, ids=lambda p: str(p.relative_to(ROOT / "configs")))
 def test_every_config_class_path_imports(config):
     """A config is an importer that may name any layer's class, but each name must resolve to a
-    public class; an evaluator (read by omg.evaluation) must be one that omg.evaluation may import."""
+    public class; an evaluator (read by omg.evaluation) must be one that omg.evaluation may import;
+    a registry name (``text_encoder: minilm``, ``metrics: [fid]``) must be one its registry holds."""
     problems = []
     for path, key in class_paths(yaml.safe_load(config.read_text())):
         try:
@@ -365,6 +390,11 @@ def test_every_config_class_path_imports(config):
         if key == "evaluator" and cls.__module__.startswith("omg") and layer_of(cls.__module__) > layer_of(
                 "omg.evaluation"):
             problems.append(f"{path}: an evaluator from {cls.__module__}, above omg.evaluation's layer")
+    registry = importlib.import_module("omg.registry")
+    for name, short in registry_names(yaml.safe_load(config.read_text())):
+        if short not in getattr(registry, name):
+            known = ", ".join(getattr(registry, name).names())
+            problems.append(f"{short}: not a name of omg.registry.{name} ({known})")
     assert not problems, f"{config.relative_to(ROOT)}:\n" + "\n".join(problems)
 
 
