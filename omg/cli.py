@@ -76,8 +76,8 @@ def _lightning_cli() -> type:
     (a stalled data read ends as a UsageError of its own: ``omg.data.deadline``)."""
     from lightning.pytorch.cli import LightningArgumentParser
 
-    from omg.lit.cli import OmgLightningCLI
     from omg.tools.args import KeyedErrors, explain
+    from omg.tools.lightning import OmgLightningCLI
 
     class Parser(KeyedErrors, LightningArgumentParser):
         pass

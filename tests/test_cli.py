@@ -155,9 +155,9 @@ def test_cpu_threads_follow_the_trainable_work(tmp_path, monkeypatch):
 
     from omg.data.datamodule import MotionDataModule
     from omg.lit.checkpoint import class_path
-    from omg.lit.cli import pick_cpu_threads
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.pretrain import PretrainModule
+    from omg.tools.lightning import pick_cpu_threads
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec

@@ -10,7 +10,7 @@ own folder (``omg.files.atomic_path``: fsync, then an atomic rename), so ``last.
 always the old file or the whole new one, and a leftover temporary file has a name that says
 whose it is. ``remove_stale_temp_files`` deletes those (and those of omg's other atomic writes:
 shards, manifests, eval.json) whose writer process is gone. ``omg fit|validate|test|predict``
-(``omg.lit.cli``) install both; DeepSpeed checkpoints are directories that DeepSpeed writes itself
+(``omg.tools.lightning``) install both; DeepSpeed checkpoints are directories that DeepSpeed writes itself
 (``CheckpointIO`` is not used), so this does not cover them.
 
 ``TopKHousekeeping``: a ModelCheckpoint with ``save_top_k=k`` deletes the files that fall out of
@@ -144,7 +144,7 @@ def kept_checkpoints(callback: ModelCheckpoint) -> set[Path]:
 
 
 class TopKHousekeeping(Callback):
-    """For a run resumed with ``--ckpt_path last`` or from its SLURM requeue checkpoint (``omg.lit.cli``
+    """For a run resumed with ``--ckpt_path last`` or from its SLURM requeue checkpoint (``omg.tools.lightning``
     adds it then): delete the files of every ``ModelCheckpoint(save_top_k=k)`` (k >= 1) that its
     restored state does not keep, at the start of training (all but the checkpoint resumed from)
     and after each later save (the checkpoint resumed from too, once it falls out of the top k).

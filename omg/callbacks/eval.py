@@ -151,7 +151,7 @@ class EvalCallback(Callback):
         self._last_step = -1
 
     def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None) -> None:
-        """The checks that need no trainer: ``omg.lit.cli`` runs them before the run creates its
+        """The checks that need no trainer: ``omg.tools.lightning`` runs them before the run creates its
         folder, ``setup`` again for a Trainer used without the CLI."""
         check_generative(model, "EvalCallback")
         if self.prompt_file is None:

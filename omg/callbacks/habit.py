@@ -161,7 +161,7 @@ class HabitEvalCallback(Callback):
         self.evaluator: nn.Module | None = None
 
     def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None = None) -> None:
-        """The checks that need no trainer: ``omg.lit.cli`` runs them before the run creates its
+        """The checks that need no trainer: ``omg.tools.lightning`` runs them before the run creates its
         folder, ``setup`` again for a Trainer used without the CLI."""
         if not hasattr(model, "flows") or not hasattr(model, "vq"):
             raise UsageError(f"HabitEvalCallback evaluates a HabitPriorModule, not a {type(model).__name__}")

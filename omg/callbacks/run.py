@@ -56,7 +56,7 @@ class InterruptCheckpoint(Callback):
     """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) or Ctrl-C (SIGINT) save
     ``interrupted.ckpt`` beside the run's checkpoints at the end of the step in which the signal
     came, the point where ModelCheckpoint saves too, so ``--ckpt_path last`` resumes from it exactly
-    (``omg.lit.cli`` counts it among the run's checkpoints and takes the newest). Lightning's loops
+    (``omg.tools.lightning`` counts it among the run's checkpoints and takes the newest). Lightning's loops
     then stop. Other exceptions save nothing: a crash mid-step leaves a state that must not be
     resumed from. (Not Lightning's OnExceptionCheckpoint: with one of those, every ``fit`` without a
     ``--ckpt_path`` silently resumes from the newest checkpoint in the folder.)

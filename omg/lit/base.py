@@ -51,7 +51,7 @@ def modes_restored(module: nn.Module) -> Iterator[None]:
 
 class NonFiniteLoss(FloatingPointError):
     """A training loss that is NaN or inf; its message names the step and the batch's clips. The
-    CLI prints it as one line (``omg.lit.cli``)."""
+    CLI prints it as one line (``omg.tools.lightning``)."""
 
 
 def check_finite(loss: torch.Tensor, step: int, batch: dict, what: str = "loss", hint: str = "lower model.lr",
