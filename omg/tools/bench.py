@@ -22,6 +22,7 @@ from omg.errors import UsageError
 from omg.models.dit import FLAVORS
 from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt, number_type, run_subcommands
 from omg.tools.common import last_line
+from omg.tools.gpu import bench_gpu
 from omg.tools.plan import bench_plan
 
 MIN_WINDOW = 60  # frames: the shortest window the data benchmark cuts (2 s at 30 fps)
@@ -596,7 +597,8 @@ def plot_quality(rows: list[dict], path: Path, command: str) -> None:
 
 
 BENCHMARKS = {"data": (bench_data, {}), "train": (bench_train, {}), "sample": (bench_sample, {}),
-              "quality": (bench_quality, {}), "plan": (bench_plan, {})}
+              "quality": (bench_quality, {}), "plan": (bench_plan, {}),
+              "gpu": (bench_gpu, {})}
 
 
 def main(argv: list[str]) -> None:
