@@ -281,6 +281,11 @@ ROWS = [
                                "--frames", "8"]),
     ("bench-train-peak-nan", ["bench", "train", "--peak_tflops", "nan", "--steps", "1", "--warmup", "0",
                               "--frames", "8", "--batch_size", "1"]),
+    ("bench-plan-mfu-zero", ["bench", "plan", "--mfu", "0"]),
+    ("bench-plan-offload-ddp", ["bench", "plan", "--strategy", "ddp", "--offload"]),
+    ("bench-plan-not-pretraining", ["bench", "plan", "--configs", f"[{REPO}/configs/controlnet_base.yaml]"]),
+    ("bench-gpu-few-steps", ["bench", "gpu", "--dry_run", "--train_steps", "5"]),
+    ("bench-gpu-shards-missing", ["bench", "gpu", "--dry_run", "--shards", "{in}/nope"]),
     ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
     ("bench-data-batches-zero", [*BENCH_DATA, "--batches", "0"]),
     ("bench-data-batches-nan", [*BENCH_DATA, "--batches", "nan"]),
@@ -342,6 +347,11 @@ SAYS = {
     "fit-max-bad-fraction-over-1": "data.max_bad_fraction",
     "fit-val-other-representation": "data.train (",
     "test-evaluator-other-kind": "EvalCallback.evaluator differ",
+    "bench-plan-mfu-zero": "mfu",
+    "bench-plan-offload-ddp": "offload",
+    "bench-plan-not-pretraining": "PretrainModule",
+    "bench-gpu-few-steps": "train_steps",
+    "bench-gpu-shards-missing": "nope",
 }
 
 
@@ -379,7 +389,8 @@ def test_bad_input_is_one_line_exit_2_and_leaves_nothing(name, argv, ckpts, tmp_
 def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
-                        "transfer", "fit", "test", "bench data", "bench train", "bench sample"}
+                        "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench plan",
+                        "bench gpu"}
     assert set(SAYS) <= {name for name, _ in ROWS}
     assert len({name for name, _ in ROWS}) == len(ROWS)
 

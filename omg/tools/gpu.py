@@ -126,11 +126,12 @@ def bench_gpu(
     from omg.models.dit import DiTConfig
     from omg.tools.bench import PEAK_TFLOPS
 
-    for part in ("train", "val"):
-        if not (Path(shards) / part / "manifest.json").is_file():
-            raise UsageError(f"--shards {shards}: no {part}/manifest.json (a shard directory with train/ and val/)")
     if train_steps <= 5:
         raise UsageError(f"--train_steps must be above the 5 untimed warm-up steps, got {train_steps}")
+    for part in ("train", "val"):
+        if not (Path(shards) / part / "manifest.json").is_file():
+            raise UsageError(f"--shards {shards}: no {part}/manifest.json (a shard directory with train/ and val/; "
+                             "run from the repository root for the default)")
     cmds = commands(out, train_steps, shards)
     if dry_run:
         print_dry_run(cmds)
