@@ -175,7 +175,8 @@ def bench_gpu(
               "## Giant sampling", "",
               "| flavor | device | precision | sampler | steps | batch | s per batch | s per motion | peak memory "
               "| command |", "|---|---|---|---|---|---|---|---|---|---|", *sample_rows, "",
-              "## Checkpoint conversion and loading", "", "| step | result | time | command |", "|---|---|---|---|",
+              "## Checkpoint conversion and loading (and any step that failed)", "",
+              "| step | result | time | command |", "|---|---|---|---|",
               *other, ""]
     path = out / "gpu_check.md"
     path.write_text("\n".join(lines))

@@ -181,7 +181,7 @@ class Run:
     deepspeed_config: dict
 
 
-def run_from_config(path: Path, gpus: int) -> Run:
+def run_from_config(path: Path) -> Run:
     """The settings of a shipped pretraining config (``configs/pretrain_*.yaml``)."""
     import json
 
@@ -287,7 +287,7 @@ def bench_plan(
     if offload and strategy == "ddp":
         raise UsageError("--offload needs a ZeRO --strategy (zero1, zero2, zero3); DDP keeps everything on the GPU")
     if configs:
-        runs = [run_from_config(Path(c), gpus) for c in configs]
+        runs = [run_from_config(Path(c)) for c in configs]
     else:
         micro = micro_batch or global_batch // gpus
         if micro < 1 or global_batch % (micro * gpus):
