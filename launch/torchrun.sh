@@ -24,8 +24,11 @@ if (( ACCUM < 1 || ACCUM * BATCH * NODES * GPUS != GLOBAL_BATCH )); then
   exit 2
 fi
 
+# c10d rendezvous (PyTorch's recommended multi-node backend): the node at MASTER_ADDR hosts the
+# store, the others join it, and a node that starts late waits for the others (up to the
+# rendezvous timeout) instead of failing; RDZV_ID tells concurrent jobs on the same port apart.
 exec torchrun --nnodes "$NODES" --nproc-per-node "$GPUS" --node-rank "$NODE_RANK" \
-  --master-addr "$MASTER_ADDR" --master-port "$MASTER_PORT" \
+  --rdzv-backend c10d --rdzv-endpoint "$MASTER_ADDR:$MASTER_PORT" --rdzv-id "${RDZV_ID:-omg}" \
   -m omg.cli fit --config "$CONFIG" \
   --trainer.num_nodes "$NODES" --trainer.devices "$GPUS" \
   --data.batch_size "$BATCH" --trainer.accumulate_grad_batches "$ACCUM" "$@"

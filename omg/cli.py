@@ -28,7 +28,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
     "shards": ("omg.tools.shards:main", "build, synthesise and inspect WebDataset motion shards"),
     "plugins": ("omg.cli:plugins_main", "list every registry and the components registered in it"),
     "generate": ("omg.tools.generate:main", "sample motions from a checkpoint (unconditional, or from text prompts)"),
-    "bench": ("omg.tools.bench:main", "measure data loading, training and sampling speed and memory"),
+    "bench": ("omg.tools.bench:main", "measure data loading, training and sampling speed and memory; plan GPU runs"),
     "convert-ckpt": ("omg.tools.convert:main",
                      "turn a DeepSpeed/Lightning checkpoint into one fp32 (or EMA) safetensors file"),
     "export": ("omg.tools.export:main",

@@ -284,6 +284,11 @@ ROWS = [
                                "--frames", "8"]),
     ("bench-train-peak-nan", ["bench", "train", "--peak_tflops", "nan", "--steps", "1", "--warmup", "0",
                               "--frames", "8", "--batch_size", "1"]),
+    ("bench-plan-mfu-zero", ["bench", "plan", "--mfu", "0"]),
+    ("bench-plan-offload-ddp", ["bench", "plan", "--strategy", "ddp", "--offload"]),
+    ("bench-plan-not-pretraining", ["bench", "plan", "--configs", f"[{REPO}/configs/controlnet_base.yaml]"]),
+    ("bench-gpu-few-steps", ["bench", "gpu", "--dry_run", "--train_steps", "5"]),
+    ("bench-gpu-shards-missing", ["bench", "gpu", "--dry_run", "--shards", "{in}/nope"]),
     ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
     ("bench-data-batches-zero", [*BENCH_DATA, "--batches", "0"]),
     ("bench-data-batches-nan", [*BENCH_DATA, "--batches", "nan"]),
@@ -473,6 +478,11 @@ SAYS = {
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
     "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",
     "bench-train-peak-nan": "peak_tflops: expected a finite number > 0, got 'nan'",
+    "bench-plan-mfu-zero": "mfu: expected a number in (0, 1], got '0'",
+    "bench-plan-offload-ddp": "--offload needs a ZeRO --strategy (zero1, zero2, zero3)",
+    "bench-plan-not-pretraining": "ControlNetModule is not PretrainModule; the planner covers DiT pretraining",
+    "bench-gpu-few-steps": "--train_steps must be above the 5 untimed warm-up steps, got 5",
+    "bench-gpu-shards-missing": "--shards {in}/nope: no train/manifest.json",
     "bench-sample-frames-neg": "frames: expected an integer >= 1, got '-1'",
     "bench-data-batches-zero": "batches: expected an integer >= 1, got '0'",
     "bench-data-batches-nan": "batches: expected an integer >= 1, got 'nan'",
@@ -569,7 +579,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides"}
+                        "bench sides", "bench plan", "bench gpu"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

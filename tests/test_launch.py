@@ -33,7 +33,8 @@ def test_torchrun_multi_node_keeps_the_global_batch(fake_bin):
                  MASTER_ADDR="10.1.2.3")
     assert out.returncode == 0, out.stderr
     line = out.stdout.strip()
-    assert line.startswith("torchrun --nnodes 2 --nproc-per-node 4 --node-rank 1 --master-addr 10.1.2.3")
+    assert line.startswith("torchrun --nnodes 2 --nproc-per-node 4 --node-rank 1 --rdzv-backend c10d "
+                           "--rdzv-endpoint 10.1.2.3:29500 --rdzv-id omg")
     assert "-m omg.cli fit --config" in line and "pretrain_giant.yaml" in line
     assert "--trainer.num_nodes 2 --trainer.devices 4 --data.batch_size 8 --trainer.accumulate_grad_batches 4" in line
 

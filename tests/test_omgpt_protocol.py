@@ -19,8 +19,10 @@ def _module(**kw):
                  min_len=20, num_workers=0, shuffle_buffer=8, clips="whole")
     torch.manual_seed(0)
     offsets = torch.zeros(35, 3) + 0.1
-    return OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="minilm", spec=animal.spec,
-                            ema_decay=0, animals={"dog": offsets.tolist()}, **kw)
+    module = OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="minilm", spec=animal.spec,
+                              ema_decay=0, animals={"dog": offsets.tolist()}, **kw)
+    module.build_bank()  # the retrieval clips, as training keeps them in the checkpoint
+    return module
 
 
 def test_paper_eval_config_holds_the_papers_numbers():

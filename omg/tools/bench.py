@@ -22,6 +22,8 @@ from omg.errors import UsageError
 from omg.models.dit import FLAVORS
 from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt, number_type, run_subcommands
 from omg.tools.common import last_line
+from omg.tools.gpu import bench_gpu
+from omg.tools.plan import bench_plan
 
 MIN_WINDOW = 60  # frames: the shortest window the data benchmark cuts (2 s at 30 fps)
 USAGE_ERROR = "usage_error"  # the key of a worker's JSON line that reports bad input
@@ -715,7 +717,8 @@ def bench_sides(manifests: tuple[Path, ...], encoders: tuple[str, ...] = ("minil
 
 
 BENCHMARKS = {"data": (bench_data, {}), "train": (bench_train, {}), "sample": (bench_sample, {}),
-              "quality": (bench_quality, {}), "following": (bench_following, {}), "sides": (bench_sides, {})}
+              "quality": (bench_quality, {}), "following": (bench_following, {}), "sides": (bench_sides, {}),
+              "plan": (bench_plan, {}), "gpu": (bench_gpu, {})}
 
 
 def main(argv: list[str]) -> None:
