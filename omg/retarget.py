@@ -45,14 +45,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import yaml
 
 from omg.errors import UsageError
 from omg.io.rig import RigMotion
-from omg.kinematics import ground_contacts, positions_to_rotations
+from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
 from omg.motion.base import Clip
 from omg.registry import JOINT_MAPS
-from omg.rotations import quat_apply, quat_between, quat_identity
+from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_identity, quat_mul
 from omg.skeleton import Skeleton, get_skeleton
 
 
@@ -325,3 +326,156 @@ def retarget(
         texts=list(texts),
         **fields,
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# The other direction: a motion on a model skeleton written onto a user's rig.
+
+
+def _rig_joint_map(rig: RigMotion, skel: Skeleton, joint_map: str | Path | JointMap | None) -> JointMap:
+    """``resolve_joint_map``, but a rig whose names fit a map of another skeleton (a dog rig for a
+    human motion) says so instead of listing the joints a human map misses."""
+    if joint_map is None and detect_joint_map(rig, skel.name) is None:
+        other = detect_joint_map(rig)
+        if other is not None and other.target != skel.name:
+            raise UsageError(
+                f"{rig.source or rig.name}: the rig is a {other.category} rig (its names fit joint map "
+                f"{other.name!r}, onto {other.target}), the motion is on {skel.name}: give a rig of the motion's kind"
+            )
+    return resolve_joint_map(rig, skel, joint_map)
+
+
+def _leg_length(skel: Skeleton, positions: torch.Tensor) -> torch.Tensor:
+    """(..., J, 3) -> (...,) length of the leg whose foot is nearest the root (SMPL's leg, SMAL's hind
+    leg), from the hip joint down to the foot's top joint: the unit the root's path scales by."""
+    def path(j: int) -> list[int]:
+        out = [j]
+        while skel.parents[out[-1]] > 0:
+            out.append(skel.parents[out[-1]])
+        return out
+
+    tops = [f for f in skel.feet if skel.parents[f] not in skel.feet]
+    leg = min((path(f) for f in tops), key=len)
+    return sum((positions[..., a, :] - positions[..., b, :]).norm(dim=-1) for a, b in zip(leg[:-1], leg[1:]))
+
+
+def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
+    """Per rig joint, the nearest mapped points below it (joints or end sites, columns of
+    ``positions_with_end_sites``), found through unmapped joints, which stay rigid."""
+    J = rig.num_joints
+    children = [[c for c, p in enumerate(rig.parents) if p == j] for j in range(J)]
+    ends = [[J + k for k, (p, _) in enumerate(rig.end_sites) if p == j] for j in range(J)]
+
+    def below(j: int) -> list[int]:
+        out = []
+        for c in children[j] + ends[j]:
+            out += [c] if c in mapped else (below(c) if c < J else [])
+        return out
+
+    return [below(j) for j in range(J)]
+
+
+def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor) -> tuple:
+    """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
+    rest vectors to its aim points onto the target's vectors between the same model joints.
+
+    ``rest``: (J + E, 3) rest positions; ``targets``: (T, M, 3) model joint places in the rig's frame.
+    A joint with one aim turns by the shortest arc from its rest direction in its parent's frame (its
+    own rest orientation is where it starts: an A-pose rig is not forced into a T-pose), one with
+    several by their best fit (Kabsch); unmapped joints keep their rest (identity) rotation.
+    Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
+    """
+    T, J = targets.shape[0], rig.num_joints
+    identity = quat_identity((T,), torch.float64)
+    local = quat_identity((T, J), torch.float64)
+    world = [identity] * J
+    for j, p in enumerate(rig.parents):
+        parent = world[p] if p >= 0 else identity
+        kids = aims[j] if j in model_of else []
+        if kids:
+            v = rest[kids] - rest[j]  # (C, 3) rest vectors, in j's frame (rest rotations are the identity)
+            w = targets[:, [model_of[c] for c in kids]] - targets[:, model_of[j], None]  # (T, C, 3)
+            if len(kids) == 1:
+                aim = quat_apply(quat_conjugate(parent), w[:, 0])
+                local[:, j] = quat_between(v[0].expand_as(aim), aim)
+            else:
+                # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
+                # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
+                best = matrix_to_quat(kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True)))
+                local[:, j] = quat_mul(quat_conjugate(parent), best)
+        world[j] = quat_mul(parent, local[:, j])
+    # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
+    top = min(model_of)
+    return local, top, targets[:, model_of[top]]
+
+
+def onto_rig(
+    positions: np.ndarray,  # (T, J, 3) metres, Y up, on ``skeleton``
+    skeleton: Skeleton | str,
+    rig: RigMotion,
+    fps: float,
+    joint_map: str | Path | JointMap | None = None,
+    up: str | None = None,
+    clean_contacts: bool = True,
+) -> RigMotion:
+    """A motion of a model skeleton on a user's rig (read with ``omg.io.bvh.read_bvh``): the rig's
+    hierarchy, names, channels, unit, rest pose and bone lengths, its animation replaced.
+
+    The joint map is the import's, used the other way (detected from the rig's names, or given).
+    Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
+    the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
+    spine joints) keep their rest rotation relative to their parent. The root travels the model's
+    path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
+    from its own frames as on import; ``up`` names it). With ``clean_contacts`` feet planted on the
+    rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
+    """
+    from omg.io.contacts import clean_foot_contacts
+
+    skel = get_skeleton(skeleton)
+    pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
+    if pos.ndim != 3 or pos.shape[1:] != (skel.num_joints, 3) or len(pos) < 1:
+        raise UsageError(f"motion must be (T, {skel.num_joints}, 3) joint positions on {skel.name}, "
+                         f"got {tuple(pos.shape)}")  # fmt: skip
+    where = rig.source or rig.name
+    jmap = _rig_joint_map(rig, skel, joint_map)
+    names = source_names(rig)
+    plan = _plan(skel, jmap, names)
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))  # (J + E, 3) rig frame
+    rig_leg = float(_leg_length(skel, _proxy(plan, skel, rest[None])[0]))
+    if not rig_leg > 1e-6:
+        raise UsageError(f"{where}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
+                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites())), skel, up)
+    back = quat_conjugate(turn)  # Y up -> the rig's frame
+    scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
+    model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
+    aims = _aims(rig, model_of)
+    T = len(pos)
+
+    def solve(targets_yup: torch.Tensor) -> tuple:
+        targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
+        return _solve_rig(rig, rest, aims, model_of, targets)
+
+    def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
+        # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
+        # channels carry the path where it has them (Bandai's static joint_Root stays put), else the root's
+        translations = np.broadcast_to(rig.offsets, (T, rig.num_joints, 3)).copy()
+        own = top > 0 and any(c.endswith("position") for c in (rig.channels or [()] * rig.num_joints)[top])
+        if own:
+            translations[:, top] = (at - rest[rig.parents[top]]).numpy()
+        else:
+            translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
+        return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
+
+    out = placed(*solve(pos * scale))
+    if clean_contacts and T > 1:
+        # the rig's own places of the model joints, Y up: its feet are what must stay planted
+        on_rig = _proxy(plan, skel, torch.from_numpy(out.positions_with_end_sites()))
+        on_rig = quat_apply(turn.expand(T, skel.num_joints, 4), on_rig)
+        filled = torch.where(torch.isnan(on_rig), on_rig[:, :1].expand_as(on_rig), on_rig)
+        # retargeting's contact rule (slow and low), not the clean-up's looser one for generated feet: a
+        # slowly walking dog's feet are not planted
+        cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED)
+        cleaned = torch.from_numpy(cleaned).double()
+        out = placed(*solve(torch.where(torch.isnan(on_rig), on_rig, cleaned)))
+    return out
