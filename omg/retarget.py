@@ -520,3 +520,21 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
         "bone_cm": float(np.abs(lengths(b) - lengths(a)).max() * 100),
         "slide_original_cm_s": slide(a), "slide_back_cm_s": slide(b),
     }  # fmt: skip
+
+
+def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
+    """The rig of a BVH file for ``onto_rig``, checked against ``skeleton`` before any work is done:
+    a rig no map fits, one of the other kind (a dog rig for a human motion) or one without a rest
+    pose is one UsageError."""
+    from omg.io.bvh import read_bvh
+
+    if Path(path).suffix.lower() != ".bvh":
+        raise UsageError(f"--to_rig {path}: the rig must be a .bvh file (its HIERARCHY is the rig)")
+    rig = read_bvh(path)
+    skel = get_skeleton(skeleton)
+    plan = _plan(skel, _rig_joint_map(rig, skel, joint_map), source_names(rig))
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))
+    if not float(_leg_length(skel, _proxy(plan, skel, rest[None])[0])) > 1e-6:
+        raise UsageError(f"{path}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
+                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+    return rig

@@ -115,6 +115,8 @@ def _parse_hierarchy(lines: list[str], src: str):
         tokens.extend((w, n) for w in words)
     if motion_line is None:
         raise _error(src, len(lines), "no MOTION section (truncated file?)")
+    if not tokens:
+        raise _error(src, motion_line, "no HIERARCHY before MOTION: the file holds no joints (no rig, no rest pose)")
     stream = iter(tokens)
 
     def take(what: str) -> tuple[str, int]:
