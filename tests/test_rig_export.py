@@ -244,3 +244,31 @@ def test_the_rig_keeps_its_unit_and_rest_offsets(tmp_path):
     back = read_bvh(write_rig_bvh(tmp_path / "out.bvh", replace(out, name="out")))
     assert back.unit == 0.01
     np.testing.assert_allclose(back.positions(), out.positions(), atol=1e-5)
+
+
+def test_generate_writes_onto_the_rig(tmp_path):
+    """``omg generate --to_rig RIG.bvh --format glb`` (an untrained tiny checkpoint: only the plumbing is
+    under test): every sample is a .glb on the rig, and generation.json records the rig."""
+    import json
+
+    from conftest import REPO
+    from omg.cli import main
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import class_path
+    from omg.lit.pretrain import PretrainModule
+
+    torch.manual_seed(0)
+    spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
+    module = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, spec=spec, ema_decay=0)
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "module_class": class_path(type(module))}, tmp_path / "pre.ckpt")
+    (tmp_path / "rig.bvh").write_text(rig_bvh(BANDAI_RIG))
+    main(["generate", "--unconditional", "--ckpt", str(tmp_path / "pre.ckpt"), "--steps", "2", "--length", "1",
+          "--num_samples", "2", "--to_rig", str(tmp_path / "rig.bvh"), "--format", "glb", "--out", str(tmp_path / "g"),
+          "--device", "cpu"])
+    names = read_bvh(tmp_path / "rig.bvh").names
+    for k in range(2):
+        assert _glb_positions(tmp_path / "g" / f"sample_{k:03d}.glb", [0])[0] == names
+    settings = json.loads((tmp_path / "g" / "generation.json").read_text())
+    assert settings["to_rig"] == str(tmp_path / "rig.bvh") and settings["format"] == "glb"
+    assert (tmp_path / "g" / "preview.gif").exists()

@@ -190,8 +190,13 @@ def generate(
                 from omg.io.render import render_gif
 
                 shown = previews[:preview_count]
-                render_gif(out / "preview.gif", [m for m, _ in shown], module.representation.skeleton, fps,
-                           titles=[t for _, t in shown])
+                motions, drawn = [m for m, _ in shown], module.representation.skeleton
+                if rig is not None:  # the motions as written: on the rig's bones
+                    from omg.retarget import onto_rig
+
+                    motions = [onto_rig(m, drawn, rig, fps, joint_map).positions() for m in motions]
+                    drawn = rig.skeleton()
+                render_gif(out / "preview.gif", motions, drawn, fps, titles=[t for _, t in shown])
     except Exception:  # a failed run leaves no new files in a folder that existed before it
         if out.is_dir():
             for path in set(out.iterdir()) - existing:
