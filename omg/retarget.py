@@ -375,14 +375,16 @@ def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
     return [below(j) for j in range(J)]
 
 
-def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor) -> tuple:
+def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor,
+               frames: dict) -> tuple:
     """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
     rest vectors to its aim points onto the target's vectors between the same model joints.
 
     ``rest``: (J + E, 3) rest positions; ``targets``: (T, M, 3) model joint places in the rig's frame.
     A joint with one aim turns by the shortest arc from its rest direction in its parent's frame (its
     own rest orientation is where it starts: an A-pose rig is not forced into a T-pose), one with
-    several by their best fit (Kabsch); unmapped joints keep their rest (identity) rotation.
+    several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
+    fit (Kabsch); unmapped joints keep their rest (identity) rotation.
     Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
     """
     T, J = targets.shape[0], rig.num_joints
@@ -398,6 +400,10 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
             if len(kids) == 1:
                 aim = quat_apply(quat_conjugate(parent), w[:, 0])
                 local[:, j] = quat_between(v[0].expand_as(aim), aim)
+            elif j in frames:
+                m, kids_m, dirs, at_rest = frames[j]
+                now = kabsch(dirs, F.normalize(targets[:, kids_m] - targets[:, m, None], dim=-1))  # (T, 3, 3)
+                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(now @ at_rest.T))
             else:
                 # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
                 # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
@@ -407,6 +413,41 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
     # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
     top = min(model_of)
     return local, top, targets[:, model_of[top]]
+
+
+def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch.Tensor, aims: list,
+                  model_of: dict) -> dict:
+    """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
+
+    A model joint's frame is the best fit of the template's directions to its child bones (as on import).
+    The rig's joint is rigid with that frame: at the rig's rest pose (``rest_model``: the model joints'
+    places there) the model frame is R0 while the rig's is the identity, so in every frame
+    rig = model @ R0^T. This keeps the rig's hip and tail stubs where the rig has them, where a fit of
+    the model's stubs (template directions on import) would tilt the pelvis.
+    """
+    lengths = np.linalg.norm(skel.rest_offsets, axis=-1)
+    frames = {}
+    for r, kids in enumerate(aims):
+        # only where every aim hangs right below the joint: a joint the map skips may carry the rig's own
+        # turn (the MANN dog's Spine sits on its Hips and turns the back), and then the joint's frame is not
+        # the model's; the best fit of the directions (``_solve_rig``) serves those
+        if r not in model_of or len(kids) < 2 or any(_parent_of(rig, c) != r for c in kids):
+            continue
+        m = model_of[r]
+        kids_m = [c for c in skel.children(m) if plan.proxied[c] and lengths[c] > 1e-9]
+        if len(kids_m) < 2:
+            continue
+        dirs = F.normalize(torch.from_numpy(skel.rest_offsets[kids_m].astype(np.float64)), dim=-1)
+        observed = F.normalize(rest_model[kids_m] - rest_model[m], dim=-1)
+        if not torch.isfinite(observed).all():
+            continue
+        frames[r] = (m, kids_m, dirs, kabsch(dirs, observed))
+    return frames
+
+
+def _parent_of(rig: RigMotion, column: int) -> int:
+    """The parent joint of a rig column: a joint's, or an end site's."""
+    return rig.parents[column] if column < rig.num_joints else rig.end_sites[column - rig.num_joints][0]
 
 
 def onto_rig(
@@ -450,11 +491,12 @@ def onto_rig(
     scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
     model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
     aims = _aims(rig, model_of)
+    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, model_of)
     T = len(pos)
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
-        return _solve_rig(rig, rest, aims, model_of, targets)
+        return _solve_rig(rig, rest, aims, model_of, targets, frames)
 
     def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
         # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
