@@ -347,6 +347,8 @@ ROWS = [
     ("bench-following-fps-nan", ["bench", "following", "--input", "{in}", "--fps", "nan"]),
     ("bench-sides-manifest-missing", ["bench", "sides", "--manifests", "[{in}/nope.json]", "--encoders", "[hash]"]),
     ("bench-sides-manifest-binary", ["bench", "sides", "--manifests", "[{in}/elf.bin]", "--encoders", "[hash]"]),
+    ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
+    ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
 ]
 
 
@@ -556,6 +558,8 @@ SAYS = {
     "bench-following-fps-nan": "fps: expected a finite number > 0, got 'nan'",
     "bench-sides-manifest-missing": "--manifests: {in}/nope.json is not a clip manifest",
     "bench-sides-manifest-binary": "--manifests: {in}/elf.bin is not a clip manifest",
+    "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
+    "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
 }
 
 
@@ -595,7 +599,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides"}
+                        "bench sides", "bench rig"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 
