@@ -34,6 +34,13 @@ measured on the source's rest pose (so individual proportions stay; ``height`` r
 The source's up axis is detected (pelvis above the feet) and turned to +Y, the floor y = 0
 is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slow and low),
 and the motion is resampled to the requested fps before anything else.
+
+The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
+file read by ``read_rig``), with the same maps (detected from the rig's names, or given). Mapped
+rig joints turn so that their bones follow the model's, from the rig's own rest orientation;
+joints the model lacks keep their rest rotation; the root travels the model's path scaled to the
+rig's leg length, and planted feet are pinned (``omg.io.contacts``). ``rig_round_trip`` measures
+import + export on a rig's own clip (``omg bench rig``).
 """
 
 from __future__ import annotations

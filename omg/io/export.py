@@ -1,4 +1,5 @@
-"""Joint positions -> local rotations (IK) -> BVH files and GIF previews (``omg export``).
+"""Joint positions -> local rotations (IK) -> BVH or glTF files and GIF previews (``omg export``);
+or, given a user's rig, the motion on that rig (``omg.retarget.onto_rig``).
 
 Generated motions are joint positions; animation tools want a rig with local rotations.
 ``positions_to_rotations`` solves them for a fixed skeleton: each joint turns the rest
