@@ -400,7 +400,7 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
     world = [identity] * J
     for j, p in enumerate(rig.parents):
         parent = world[p] if p >= 0 else identity
-        kids = aims[j] if j in model_of else []
+        kids = [c for c in aims[j] if float((rest[c] - rest[j]).norm()) > 1e-9] if j in model_of else []
         if kids:
             v = rest[kids] - rest[j]  # (C, 3) rest vectors, in j's frame (rest rotations are the identity)
             w = targets[:, [model_of[c] for c in kids]] - targets[:, model_of[j], None]  # (T, C, 3)
@@ -418,7 +418,7 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
                 local[:, j] = quat_mul(quat_conjugate(parent), best)
         world[j] = quat_mul(parent, local[:, j])
     # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
-    top = min(model_of)
+    top = min(model_of)  # (joints added for aiming come after their mapped parent)
     return local, top, targets[:, model_of[top]]
 
 
@@ -497,13 +497,25 @@ def onto_rig(
     back = quat_conjugate(turn)  # Y up -> the rig's frame
     scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
     model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
-    aims = _aims(rig, model_of)
-    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, model_of)
+    # a joint the map skips that sits on its mapped parent (the MANN dog's Spine on its Hips) turns
+    # with that parent's model joint: it carries the rig's bend towards the next mapped joint, while the
+    # parent turns with the mapped bones right below it, where it has two or more (the dog's legs and
+    # tail; CMU's Hips has none: its hip and back joints sitting on it keep aiming through)
+    aim_of = dict(model_of)
+    direct = {p: 0 for p in model_of}
+    for c in model_of:
+        if c > 0 and _parent_of(rig, c) in direct and float((rest[c] - rest[_parent_of(rig, c)]).norm()) > 1e-9:
+            direct[_parent_of(rig, c)] += 1
+    for u, p in enumerate(rig.parents):
+        if u not in aim_of and direct.get(p, 0) >= 2 and np.linalg.norm(rig.offsets[u]) < 1e-9:
+            aim_of[u] = aim_of[p]
+    aims = _aims(rig, aim_of)
+    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, aim_of)
     T = len(pos)
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
-        return _solve_rig(rig, rest, aims, model_of, targets, frames)
+        return _solve_rig(rig, rest, aims, aim_of, targets, frames)
 
     def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
         # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
