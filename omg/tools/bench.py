@@ -777,7 +777,7 @@ def bench_rig(data: Path) -> list[dict]:
     rows = rig_round_trips(data)
     if not rows:
         raise UsageError(f"--data {data}: none of the benchmark's clips is there ({RIG_CLIPS[0][1]}, ...)")
-    print("| rig | clip | joints (mapped) | frames | mean error cm | max error cm | mapped joints mean cm "
+    print("| rig | clip | joints (map points) | frames | mean error cm | max error cm | mapped joints mean cm "
           "| bone length change cm | foot slide cm/s original -> back |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['label']} | {Path(r['file']).name} | {r['joints']} ({r['mapped']}) | {r['frames']} "
