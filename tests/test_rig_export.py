@@ -18,8 +18,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import BANDAI_RIG, DOG_RIG, rig_bvh
+from omg.export import export_motion
 from omg.io.bvh import read_bvh
-from omg.io.export import export_motion
 from omg.kinematics import ground_contacts
 from omg.retarget import onto_rig, read_rig, retarget
 from omg.skeleton import get_skeleton

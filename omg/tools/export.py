@@ -1,5 +1,5 @@
 """``omg export``: BVH or glTF files (and GIF previews) of motions: joint positions solved to local
-rotations by IK (``omg.io.export``), or features decoded by their representation first.
+rotations by IK (``omg.export``), or features decoded by their representation first.
 
 A folder written by ``omg generate`` brings its settings (generation.json: skeleton, frame rate,
 representation and the prompts, which become the previews' captions).
@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.export import EULER_ORDERS, FORMATS, export_motion
 from omg.files import check_output_dir, read_text
-from omg.io.export import EULER_ORDERS, FORMATS, export_motion
 from omg.retarget import read_rig
 from omg.skeleton import Skeleton, get_skeleton
 from omg.tools.args import PositiveFiniteFloat, run

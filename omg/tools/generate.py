@@ -257,7 +257,7 @@ def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, o
               format: str = "bvh") -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
     """Sample the jobs batch by batch and write each motion's files; the records of the motions, and
     the motions with their captions for the preview."""
-    from omg.io.export import export_motion
+    from omg.export import export_motion
 
     records, previews = [], []
     for start in range(0, len(jobs), batch_size):

@@ -177,7 +177,7 @@ def transfer(
         "fps": fps, "skeleton": rep.skeleton.name, "representation": "quatvel",
         "target_offsets": offsets.tolist(), "to_rig": str(to_rig) if to_rig is not None else None,
     }
-    from omg.io.export import export_motion
+    from omg.export import export_motion
 
     with removing_created(out):
         out.mkdir(parents=True, exist_ok=True)
