@@ -34,6 +34,13 @@ measured on the source's rest pose (so individual proportions stay; ``height`` r
 The source's up axis is detected (pelvis above the feet) and turned to +Y, the floor y = 0
 is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slow and low),
 and the motion is resampled to the requested fps before anything else.
+
+The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
+file read by ``read_rig``), with the same maps (detected from the rig's names, or given). Mapped
+rig joints turn so that their bones follow the model's, from the rig's own rest orientation;
+joints the model lacks keep their rest rotation; the root travels the model's path scaled to the
+rig's leg length, and planted feet are pinned (``omg.io.contacts``). ``rig_round_trip`` measures
+import + export on a rig's own clip (``omg bench rig``).
 """
 
 from __future__ import annotations
@@ -45,14 +52,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import yaml
 
 from omg.errors import UsageError
 from omg.io.rig import RigMotion
-from omg.kinematics import ground_contacts, positions_to_rotations
+from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
 from omg.motion.base import Clip
 from omg.registry import JOINT_MAPS
-from omg.rotations import quat_apply, quat_between, quat_identity
+from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_identity, quat_mul
 from omg.skeleton import Skeleton, get_skeleton
 
 
@@ -325,3 +333,269 @@ def retarget(
         texts=list(texts),
         **fields,
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# The other direction: a motion on a model skeleton written onto a user's rig.
+
+
+def _rig_joint_map(rig: RigMotion, skel: Skeleton, joint_map: str | Path | JointMap | None) -> JointMap:
+    """``resolve_joint_map``, but a rig whose names fit a map of another skeleton (a dog rig for a
+    human motion) says so instead of listing the joints a human map misses."""
+    if joint_map is None and detect_joint_map(rig, skel.name) is None:
+        other = detect_joint_map(rig)
+        if other is not None and other.target != skel.name:
+            raise UsageError(
+                f"{rig.source or rig.name}: the rig is a {other.category} rig (its names fit joint map "
+                f"{other.name!r}, onto {other.target}), the motion is on {skel.name}: give a rig of the motion's kind"
+            )
+    return resolve_joint_map(rig, skel, joint_map)
+
+
+def _leg_length(skel: Skeleton, positions: torch.Tensor) -> torch.Tensor:
+    """(..., J, 3) -> (...,) length of the leg whose foot is nearest the root (SMPL's leg, SMAL's hind
+    leg), from the hip joint down to the foot's top joint: the unit the root's path scales by."""
+    def path(j: int) -> list[int]:
+        out = [j]
+        while skel.parents[out[-1]] > 0:
+            out.append(skel.parents[out[-1]])
+        return out
+
+    tops = [f for f in skel.feet if skel.parents[f] not in skel.feet]
+    leg = min((path(f) for f in tops), key=len)
+    return sum((positions[..., a, :] - positions[..., b, :]).norm(dim=-1) for a, b in zip(leg[:-1], leg[1:]))
+
+
+def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
+    """Per rig joint, the nearest mapped points below it (joints or end sites, columns of
+    ``positions_with_end_sites``), found through unmapped joints, which stay rigid."""
+    J = rig.num_joints
+    children = [[c for c, p in enumerate(rig.parents) if p == j] for j in range(J)]
+    ends = [[J + k for k, (p, _) in enumerate(rig.end_sites) if p == j] for j in range(J)]
+
+    def below(j: int) -> list[int]:
+        out = []
+        for c in children[j] + ends[j]:
+            out += [c] if c in mapped else (below(c) if c < J else [])
+        return out
+
+    return [below(j) for j in range(J)]
+
+
+def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor,
+               frames: dict) -> tuple:
+    """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
+    rest vectors to its aim points onto the target's vectors between the same model joints.
+
+    ``rest``: (J + E, 3) rest positions; ``targets``: (T, M, 3) model joint places in the rig's frame.
+    A joint with one aim turns by the shortest arc from its rest direction in its parent's frame (its
+    own rest orientation is where it starts: an A-pose rig is not forced into a T-pose), one with
+    several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
+    fit (Kabsch); unmapped joints keep their rest (identity) rotation.
+    Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
+    """
+    T, J = targets.shape[0], rig.num_joints
+    identity = quat_identity((T,), torch.float64)
+    local = quat_identity((T, J), torch.float64)
+    world = [identity] * J
+    for j, p in enumerate(rig.parents):
+        parent = world[p] if p >= 0 else identity
+        kids = [c for c in aims[j] if float((rest[c] - rest[j]).norm()) > 1e-9] if j in model_of else []
+        if kids:
+            v = rest[kids] - rest[j]  # (C, 3) rest vectors, in j's frame (rest rotations are the identity)
+            w = targets[:, [model_of[c] for c in kids]] - targets[:, model_of[j], None]  # (T, C, 3)
+            if len(kids) == 1:
+                aim = quat_apply(quat_conjugate(parent), w[:, 0])
+                local[:, j] = quat_between(v[0].expand_as(aim), aim)
+            elif j in frames:
+                m, kids_m, dirs, at_rest = frames[j]
+                now = kabsch(dirs, F.normalize(targets[:, kids_m] - targets[:, m, None], dim=-1))  # (T, 3, 3)
+                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(now @ at_rest.T))
+            else:
+                # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
+                # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
+                best = matrix_to_quat(kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True)))
+                local[:, j] = quat_mul(quat_conjugate(parent), best)
+        world[j] = quat_mul(parent, local[:, j])
+    # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
+    top = min(model_of)  # (joints added for aiming come after their mapped parent)
+    return local, top, targets[:, model_of[top]]
+
+
+def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch.Tensor, aims: list,
+                  model_of: dict) -> dict:
+    """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
+
+    A model joint's frame is the best fit of the template's directions to its child bones (as on import).
+    The rig's joint is rigid with that frame: at the rig's rest pose (``rest_model``: the model joints'
+    places there) the model frame is R0 while the rig's is the identity, so in every frame
+    rig = model @ R0^T. This keeps the rig's hip and tail stubs where the rig has them, where a fit of
+    the model's stubs (template directions on import) would tilt the pelvis.
+    """
+    lengths = np.linalg.norm(skel.rest_offsets, axis=-1)
+    frames = {}
+    for r, kids in enumerate(aims):
+        # only where every aim hangs right below the joint: a joint the map skips may carry the rig's own
+        # turn (the MANN dog's Spine sits on its Hips and turns the back), and then the joint's frame is not
+        # the model's; the best fit of the directions (``_solve_rig``) serves those
+        if r not in model_of or len(kids) < 2 or any(_parent_of(rig, c) != r for c in kids):
+            continue
+        m = model_of[r]
+        kids_m = [c for c in skel.children(m) if plan.proxied[c] and lengths[c] > 1e-9]
+        if len(kids_m) < 2:
+            continue
+        dirs = F.normalize(torch.from_numpy(skel.rest_offsets[kids_m].astype(np.float64)), dim=-1)
+        observed = F.normalize(rest_model[kids_m] - rest_model[m], dim=-1)
+        if not torch.isfinite(observed).all():
+            continue
+        frames[r] = (m, kids_m, dirs, kabsch(dirs, observed))
+    return frames
+
+
+def _parent_of(rig: RigMotion, column: int) -> int:
+    """The parent joint of a rig column: a joint's, or an end site's."""
+    return rig.parents[column] if column < rig.num_joints else rig.end_sites[column - rig.num_joints][0]
+
+
+def onto_rig(
+    positions: np.ndarray,  # (T, J, 3) metres, Y up, on ``skeleton``
+    skeleton: Skeleton | str,
+    rig: RigMotion,
+    fps: float,
+    joint_map: str | Path | JointMap | None = None,
+    up: str | None = None,
+    clean_contacts: bool = True,
+) -> RigMotion:
+    """A motion of a model skeleton on a user's rig (read with ``omg.io.bvh.read_bvh``): the rig's
+    hierarchy, names, channels, unit, rest pose and bone lengths, its animation replaced.
+
+    The joint map is the import's, used the other way (detected from the rig's names, or given).
+    Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
+    the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
+    spine joints) keep their rest rotation relative to their parent. The root travels the model's
+    path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
+    from its own frames as on import; ``up`` names it). With ``clean_contacts`` feet planted on the
+    rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
+    """
+    from omg.io.contacts import clean_foot_contacts
+
+    skel = get_skeleton(skeleton)
+    pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
+    if pos.ndim != 3 or pos.shape[1:] != (skel.num_joints, 3) or len(pos) < 1:
+        raise UsageError(f"motion must be (T, {skel.num_joints}, 3) joint positions on {skel.name}, "
+                         f"got {tuple(pos.shape)}")  # fmt: skip
+    where = rig.source or rig.name
+    jmap = _rig_joint_map(rig, skel, joint_map)
+    names = source_names(rig)
+    plan = _plan(skel, jmap, names)
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))  # (J + E, 3) rig frame
+    rig_leg = float(_leg_length(skel, _proxy(plan, skel, rest[None])[0]))
+    if not rig_leg > 1e-6:
+        raise UsageError(f"{where}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
+                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites())), skel, up)
+    back = quat_conjugate(turn)  # Y up -> the rig's frame
+    scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
+    model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
+    # a joint the map skips that sits on its mapped parent (the MANN dog's Spine on its Hips) turns
+    # with that parent's model joint: it carries the rig's bend towards the next mapped joint, while the
+    # parent turns with the mapped bones right below it, where it has two or more (the dog's legs and
+    # tail; CMU's Hips has none: its hip and back joints sitting on it keep aiming through)
+    aim_of = dict(model_of)
+    direct = {p: 0 for p in model_of}
+    for c in model_of:
+        if c > 0 and _parent_of(rig, c) in direct and float((rest[c] - rest[_parent_of(rig, c)]).norm()) > 1e-9:
+            direct[_parent_of(rig, c)] += 1
+    for u, p in enumerate(rig.parents):
+        if u not in aim_of and direct.get(p, 0) >= 2 and np.linalg.norm(rig.offsets[u]) < 1e-9:
+            aim_of[u] = aim_of[p]
+    aims = _aims(rig, aim_of)
+    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, aim_of)
+    T = len(pos)
+
+    def solve(targets_yup: torch.Tensor) -> tuple:
+        targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
+        return _solve_rig(rig, rest, aims, aim_of, targets, frames)
+
+    def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
+        # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
+        # channels carry the path where it has them (Bandai's static joint_Root stays put), else the root's
+        translations = np.broadcast_to(rig.offsets, (T, rig.num_joints, 3)).copy()
+        own = top > 0 and any(c.endswith("position") for c in (rig.channels or [()] * rig.num_joints)[top])
+        if own:
+            translations[:, top] = (at - rest[rig.parents[top]]).numpy()
+        else:
+            translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
+        return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
+
+    out = placed(*solve(pos * scale))
+    if clean_contacts and T > 1:
+        # the rig's own places of the model joints, Y up: its feet are what must stay planted
+        on_rig = _proxy(plan, skel, torch.from_numpy(out.positions_with_end_sites()))
+        on_rig = quat_apply(turn.expand(T, skel.num_joints, 4), on_rig)
+        filled = torch.where(torch.isnan(on_rig), on_rig[:, :1].expand_as(on_rig), on_rig)
+        # retargeting's contact rule (slow and low), not the clean-up's looser one for generated feet: a
+        # slowly walking dog's feet are not planted
+        cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED)
+        cleaned = torch.from_numpy(cleaned).double()
+        out = placed(*solve(torch.where(torch.isnan(on_rig), on_rig, cleaned)))
+    return out
+
+
+def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> dict:
+    """How well a rig's own clip survives import onto ``skeleton`` and export back onto the rig.
+
+    Errors compare every joint and end site of the rig (the ones the model lacks included) after
+    one constant translation (the import puts the floor at y = 0): ``mean_cm`` and ``max_cm``;
+    ``mapped_mean_cm`` over the joints the map names; ``bone_cm``: the largest change of a bone's
+    length in any frame; ``slide_*_cm_s``: the mean speed of the mapped foot points over the frames
+    where the model's feet are planted (``ground_contacts``), in the original and on the way back.
+    """
+    skel = get_skeleton(skeleton)
+    jmap = _rig_joint_map(rig, skel, joint_map)
+    clip = retarget(rig, skel, jmap)
+    back = onto_rig(clip.positions, skel, rig, clip.fps, jmap)
+    a, b = rig.positions_with_end_sites(), back.positions_with_end_sites()  # (T, S, 3)
+    d = b - a
+    err = np.linalg.norm(d - d.reshape(-1, 3).mean(0), axis=-1) * 100  # (T, S) cm
+    plan = _plan(skel, jmap, source_names(rig))
+    mapped = sorted(plan.source.values())
+    parents = np.array(rig.parents[1:] + [p for p, _ in rig.end_sites])
+    child = np.arange(1, a.shape[1])
+
+    def lengths(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(x[:, child] - x[:, parents], axis=-1)
+
+    contact = ground_contacts(torch.from_numpy(clip.positions).double(), skel.feet, clip.fps).numpy()  # (T, F)
+    planted = contact[:-1] & contact[1:]  # (T - 1, F)
+    feet = [plan.source[f] for f in skel.feet]
+
+    def slide(x: np.ndarray) -> float:
+        speed = np.linalg.norm(np.diff(x[:, feet], axis=0), axis=-1) * clip.fps * 100  # (T - 1, F) cm/s
+        return float(speed[planted].mean()) if planted.any() else 0.0
+
+    return {
+        "rig": rig.name, "map": jmap.name, "frames": len(rig), "joints": rig.num_joints,
+        "mapped": len(mapped), "mean_cm": float(err.mean()), "max_cm": float(err.max()),
+        "mapped_mean_cm": float(err[:, mapped].mean()),
+        "bone_cm": float(np.abs(lengths(b) - lengths(a)).max() * 100),
+        "slide_original_cm_s": slide(a), "slide_back_cm_s": slide(b),
+    }  # fmt: skip
+
+
+def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
+    """The rig of a BVH file for ``onto_rig``, checked against ``skeleton`` before any work is done:
+    a rig no map fits, one of the other kind (a dog rig for a human motion) or one without a rest
+    pose is one UsageError."""
+    from omg.io.bvh import read_bvh
+
+    if Path(path).suffix.lower() != ".bvh":
+        raise UsageError(f"--to_rig {path}: the rig must be a .bvh file (its HIERARCHY is the rig)")
+    rig = read_bvh(path)
+    skel = get_skeleton(skeleton)
+    plan = _plan(skel, _rig_joint_map(rig, skel, joint_map), source_names(rig))
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))
+    if not float(_leg_length(skel, _proxy(plan, skel, rest[None])[0])) > 1e-6:
+        raise UsageError(f"{path}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
+                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+    return rig

@@ -41,6 +41,57 @@ Frame Time: 0.05
 """
 
 
+def rig_bvh(joints: list[tuple[str, str | None, tuple]], frames: int = 2, zero: bool = False) -> str:
+    """A BVH text in centimetres of a rig given as (name, parent, offset) rows, parents first; leaf
+    joints end in an end site half their bone; every frame is the rest pose (root at its offset).
+    ``zero``: every OFFSET zero (a file without a rest pose)."""
+    children = {name: [n for n, p, _ in joints if p == name] for name, _, _ in joints}
+    offset = {name: np.zeros(3) if zero else np.array(off, float) for name, _, off in joints}
+    lines = ["HIERARCHY"]
+
+    def emit(name: str, depth: int) -> None:
+        pad = "  " * depth
+        chans = "6 Xposition Yposition Zposition Zrotation Xrotation Yrotation" if depth == 0 else \
+            "3 Zrotation Xrotation Yrotation"
+        lines.extend([f"{pad}{'ROOT' if depth == 0 else 'JOINT'} {name}", f"{pad}{{",
+                      f"{pad}  OFFSET {' '.join(map(str, offset[name]))}", f"{pad}  CHANNELS {chans}"])
+        for c in children[name]:
+            emit(c, depth + 1)
+        if not children[name]:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {' '.join(map(str, offset[name] / 2))}",
+                          f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    emit(joints[0][0], 0)
+    frame = " ".join(["0"] * (3 + 3 * len(joints)))
+    return "\n".join(lines + ["MOTION", f"Frames: {frames}", "Frame Time: 0.05"] + [frame] * frames) + "\n"
+
+
+def _sides(rows: list[tuple[str, str, tuple]], left: str, right: str, axis: int) -> list[tuple[str, str, tuple]]:
+    """Rows written with ``{}`` for the side: left as given, right mirrored along ``axis``."""
+    out = []
+    for side, sign in ((left, 1.0), (right, -1.0)):
+        for name, parent, off in rows:
+            mirrored = tuple(v * sign if i == axis else v for i, v in enumerate(off))
+            out.append((name.format(side), parent.format(side), mirrored))
+    return out
+
+
+# a Bandai-Namco-named human rig in a T-pose (cm, Y up, facing +Z, left = +X) and a MANN-named dog (cm)
+BANDAI_RIG = [("joint_Root", None, (0, 0, 0)), ("Hips", "joint_Root", (0, 94, 0)), ("Spine", "Hips", (0, 10, 0)),
+              ("Chest", "Spine", (0, 15, 0)), ("Neck", "Chest", (0, 20, 0)), ("Head", "Neck", (0, 10, 0))] + _sides([
+    ("Shoulder_{}", "Chest", (3, 15, 0)), ("UpperArm_{}", "Shoulder_{}", (12, 0, 0)),
+    ("LowerArm_{}", "UpperArm_{}", (28, 0, 0)), ("Hand_{}", "LowerArm_{}", (25, 0, 0)),
+    ("UpperLeg_{}", "Hips", (9, -5, 0)), ("LowerLeg_{}", "UpperLeg_{}", (0, -42, 0)),
+    ("Foot_{}", "LowerLeg_{}", (0, -40, 0)), ("Toes_{}", "Foot_{}", (0, -6, 13))], "L", "R", 0)
+DOG_RIG = [("Hips", None, (0, 50, 0)), ("Spine", "Hips", (10, 0, 0)), ("Spine1", "Spine", (19, 0, 0)),
+           ("Neck", "Spine1", (22, 0, 0)), ("Head", "Neck", (14, 5, 0)), ("Tail", "Hips", (-7, 0, 0)),
+           ("Tail1", "Tail", (-15, 0, 0))] + _sides([
+    ("{}Shoulder", "Spine1", (5, 0, 5)), ("{}Arm", "{}Shoulder", (0, -5, 0)), ("{}ForeArm", "{}Arm", (0, -20, 0)),
+    ("{}Hand", "{}ForeArm", (0, -20, 0)), ("{}UpLeg", "Hips", (-5, 0, 5)), ("{}Leg", "{}UpLeg", (0, -20, 0)),
+    ("{}Foot", "{}Leg", (0, -25, 0))], "Left", "Right", 2)
+
+
 @pytest.fixture
 def shared_motion() -> Path:
     if not (SHARED_MOTION / "manifest.json").exists():

@@ -22,7 +22,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import REPO, TINY_BVH
+from conftest import BANDAI_RIG, DOG_RIG, REPO, TINY_BVH, rig_bvh
 from omg.cli import main
 from omg.skeleton import SMPL22
 
@@ -96,6 +96,11 @@ def _write_inputs(d: Path, out: Path) -> None:
     shutil.copytree(MINI_VAL, d / "val_copy")  # the same clips as MINI_VAL
     (d / "bvh").mkdir()
     (d / "bvh/tiny.bvh").write_text(TINY_BVH)
+    (d / "rigs").mkdir()  # --to_rig: a human rig, a dog rig, one without a rest pose, one without a hierarchy
+    (d / "rigs/human.bvh").write_text(rig_bvh(BANDAI_RIG))
+    (d / "rigs/dog.bvh").write_text(rig_bvh(DOG_RIG))
+    (d / "rigs/flat.bvh").write_text(rig_bvh(BANDAI_RIG, zero=True))
+    (d / "rigs/motion_only.bvh").write_text("MOTION\nFrames: 1\nFrame Time: 0.05\n0 0 0\n")
     (d / "empty").mkdir()
     (d / "user").mkdir()
     (d / "user/keep.txt").write_text("the user's own file\n")
@@ -103,6 +108,8 @@ def _write_inputs(d: Path, out: Path) -> None:
     positions = np.repeat(SMPL22.rest_positions()[None], 10, axis=0).astype(np.float32)
     settings = {"binary": None, "list": "[1, 2]", "types": '{"skeleton": 5}',
                 "nan": '{"fps": NaN, "prompts": 5, "num_samples": -1}', "dir": None, "bvhdir": "{}"}
+    (d / "joints").mkdir()  # a sound motion without settings, for the --to_rig rows
+    np.save(d / "joints/still.joints.npy", positions)
     for name, text in settings.items():
         gen = d / f"gen_{name}"
         gen.mkdir()
@@ -126,6 +133,7 @@ GEN = ["generate", "--steps", "2", "--length", "1", "--num_samples", "1", "--no_
 TEXT = [*GEN, "a person walks", "--ckpt", "{cn}", "--out", "{out}"]
 UNCOND = [*GEN, "--unconditional", "--ckpt", "{pre}", "--out", "{out}"]
 EXPORT = ["export", "{in}/gen_list/sample_000.joints.npy", "--no_preview"]  # no generation.json read: a plain file
+RIG_EXPORT = ["export", "{in}/joints/still.joints.npy", "--no_preview"]  # a sound motion: only the rig is at fault
 SYNTH_BUILD = ["shards", "build", "--source", "synth", "--out", "{out}", "--option.num_clips", "2"]
 FIT = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.default_root_dir", "{out}"]
 # small sizes: were a check missing, the benchmark would run (and fail or hang) quickly
@@ -180,6 +188,13 @@ ROWS = [
     ("export-settings-dir", ["export", "{in}/gen_dir", "--no_preview"]),
     ("export-bvh-is-dir", ["export", "{in}/gen_bvhdir", "--no_preview"]),
     ("export-input-binary", ["export", "{in}/random.bin"]),
+    ("export-rig-no-map", [*RIG_EXPORT, "--to_rig", "{in}/bvh/tiny.bvh"]),
+    ("export-rig-quadruped", [*RIG_EXPORT, "--to_rig", "{in}/rigs/dog.bvh"]),
+    ("export-rig-no-rest-pose", [*RIG_EXPORT, "--to_rig", "{in}/rigs/flat.bvh"]),
+    ("export-rig-no-hierarchy", [*RIG_EXPORT, "--to_rig", "{in}/rigs/motion_only.bvh"]),
+    ("export-rig-not-bvh", [*RIG_EXPORT, "--to_rig", "{in}/afile"]),
+    ("export-joint-map-without-rig", [*RIG_EXPORT, "--joint_map", "bandai"]),
+    ("export-rig-wrong-map", [*RIG_EXPORT, "--to_rig", "{in}/rigs/human.bvh", "--joint_map", "cmu"]),
     # omg shards build
     ("build-fps-nan", [*SYNTH_BUILD, "--fps", "nan"]),
     ("build-fps-inf", [*SYNTH_BUILD, "--fps", "inf"]),
@@ -240,6 +255,7 @@ ROWS = [
     ("transfer-source-nan", [*TRANSFER, "{in}/nan.npy", "--out", "{out}"]),
     ("transfer-source-dir", [*TRANSFER, "{in}/empty", "--out", "{out}"]),
     ("transfer-source-fifo", [*TRANSFER, "{in}/fifo.npy", "--out", "{out}"]),
+    ("transfer-rig-human", [*TRANSFER, "{in}/still.npy", "--out", "{out}", "--to_rig", "{in}/rigs/human.bvh"]),
     # omg generate's animal options on a checkpoint that is not OmniMotionGPT's
     ("gen-animal-on-controlnet", [*TEXT, "--animal", "dog"]),
     ("gen-from-motion-on-controlnet", [*TEXT, "--from_motion", "{in}/bvh/tiny.bvh"]),
@@ -336,6 +352,8 @@ ROWS = [
     ("bench-following-fps-nan", ["bench", "following", "--input", "{in}", "--fps", "nan"]),
     ("bench-sides-manifest-missing", ["bench", "sides", "--manifests", "[{in}/nope.json]", "--encoders", "[hash]"]),
     ("bench-sides-manifest-binary", ["bench", "sides", "--manifests", "[{in}/elf.bin]", "--encoders", "[hash]"]),
+    ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
+    ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
 ]
 
 
@@ -387,6 +405,14 @@ SAYS = {
     "export-settings-dir": "settings file {in}/gen_dir/generation.json: is a directory; a file is expected",
     "export-bvh-is-dir": "{in}/gen_bvhdir/sample_000.bvh: a folder is in the way of the output file",
     "export-input-binary": "{in}/random.bin: not a directory or an existing .npy file",
+    "export-rig-no-map": "{in}/bvh/tiny.bvh: cannot map the rig onto smpl22 (no registered map fits); closest",
+    "export-rig-quadruped": "{in}/rigs/dog.bvh: the rig is a dog rig (its names fit joint map 'mann_dog', onto "
+    "smal35), the motion is on smpl22",
+    "export-rig-no-rest-pose": "{in}/rigs/flat.bvh: the rig has no rest pose (its leg joints' OFFSETs are zero)",
+    "export-rig-no-hierarchy": "{in}/rigs/motion_only.bvh:1: no HIERARCHY before MOTION",
+    "export-rig-not-bvh": "--to_rig {in}/afile: the rig must be a .bvh file",
+    "export-joint-map-without-rig": "--joint_map names the map of the --to_rig rig; give --to_rig",
+    "export-rig-wrong-map": "{in}/rigs/human.bvh: joint map 'cmu' needs joints the file lacks: Spine1, Neck1",
     "build-fps-nan": "fps: expected a number of frames per second in (0, 1000], got 'nan'",
     "build-fps-inf": "fps: expected a number of frames per second in (0, 1000], got 'inf'",
     "build-fps-neg": "fps: expected a number of frames per second in (0, 1000], got '-20'",
@@ -439,6 +465,8 @@ SAYS = {
     "transfer-source-nan": "SOURCE {in}/nan.npy: holds NaN or inf values",
     "transfer-source-dir": "SOURCE {in}/empty: is a directory; a file is expected",
     "transfer-source-fifo": "SOURCE {in}/fifo.npy: not a regular file (a FIFO",
+    "transfer-rig-human": "{in}/rigs/human.bvh: the rig is a human rig (its names fit joint map 'bandai', onto "
+    "smpl22), the motion is on smal35",
     "gen-animal-on-controlnet": "--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {cn} holds "
                                 "a ControlNetModule",
     "gen-from-motion-on-controlnet": "--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {cn} "
@@ -540,6 +568,8 @@ SAYS = {
     "bench-following-fps-nan": "fps: expected a finite number > 0, got 'nan'",
     "bench-sides-manifest-missing": "--manifests: {in}/nope.json is not a clip manifest",
     "bench-sides-manifest-binary": "--manifests: {in}/elf.bin is not a clip manifest",
+    "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
+    "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
 }
 
 
@@ -579,7 +609,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

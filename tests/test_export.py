@@ -11,8 +11,8 @@ from PIL import Image
 
 from omg.cli import main as cli_main
 from omg.data.synth import synth_clips
+from omg.export import EULER_ORDERS, export_motion, positions_to_rotations
 from omg.io.bvh import read_bvh, write_bvh
-from omg.io.export import EULER_ORDERS, export_motion, positions_to_rotations
 from omg.io.render import render_gif
 from omg.rotations import axis_angle_to_quat, quat_normalize
 from omg.skeleton import SMAL35, SMPL22, Skeleton

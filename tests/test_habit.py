@@ -350,3 +350,22 @@ def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path, m
           str(moved / "prior.ckpt"), "--no_preview", "--out", str(tmp_path / "out")])
     assert np.load(tmp_path / "out" / "transfer.joints.npy").shape == (24, 35, 3)
     assert not marker.exists()
+
+
+def test_omg_transfer_onto_a_dog_rig(habit_run, shared_motion, tmp_path):
+    """``--to_rig``: the transfer is written onto a MANN-named dog rig (its names and offsets), as BVH and glb."""
+    from conftest import DOG_RIG, rig_bvh
+    from omg.io.bvh import read_bvh
+    from omg.tools.transfer import transfer
+
+    (tmp_path / "dog.bvh").write_text(rig_bvh(DOG_RIG))
+    clip = shared_motion / "quadruped" / "mann_dog" / "D1_007_KAN01_001.bvh"
+    transfer(clip, to="horse", ckpt=habit_run["vq_path"], out=tmp_path / "bvh", preview=False,
+             to_rig=tmp_path / "dog.bvh")
+    rig, out = read_bvh(tmp_path / "dog.bvh"), read_bvh(tmp_path / "bvh" / "transfer.bvh")
+    assert out.names == rig.names and np.allclose(out.offsets, rig.offsets) and out.unit == rig.unit
+    assert len(out) == len(np.load(tmp_path / "bvh" / "transfer.joints.npy"))
+    settings = transfer(clip, to="horse", ckpt=habit_run["vq_path"], out=tmp_path / "glb", preview=False,
+                        to_rig=tmp_path / "dog.bvh", format="glb")
+    assert (tmp_path / "glb" / "transfer.glb").stat().st_size > 0
+    assert settings["glb"].endswith("transfer.glb") and settings["to_rig"] == str(tmp_path / "dog.bvh")

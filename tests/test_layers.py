@@ -37,7 +37,7 @@ ROOT = PACKAGE.parent
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("omg", "omg.errors", "omg.files", "omg.rotations", "omg.skeleton", "omg.kinematics",
                     "omg.registry")),
-    ("formats", ("omg.motion", "omg.text", "omg.io", "omg.retarget", "omg.joint_maps")),
+    ("formats", ("omg.motion", "omg.text", "omg.io", "omg.retarget", "omg.export", "omg.joint_maps")),
     ("data", ("omg.data",)),
     ("models", ("omg.models", "omg.diffusion", "omg.samplers", "omg.losses", "omg.metrics")),
     ("training", ("omg.lit", "omg.callbacks", "omg.evaluation")),

@@ -85,6 +85,7 @@ def read_bvh(path: str | Path, scale: float | None = None) -> RigMotion:
         translations=translations * scale,
         end_sites=[(p, off * scale) for p, off in end_sites],
         source=src,
+        unit=scale,
     )
 
 
@@ -114,6 +115,8 @@ def _parse_hierarchy(lines: list[str], src: str):
         tokens.extend((w, n) for w in words)
     if motion_line is None:
         raise _error(src, len(lines), "no MOTION section (truncated file?)")
+    if not tokens:
+        raise _error(src, motion_line, "no HIERARCHY before MOTION: the file holds no joints (no rig, no rest pose)")
     stream = iter(tokens)
 
     def take(what: str) -> tuple[str, int]:
@@ -268,3 +271,55 @@ def write_bvh(
 
 def _fmt(vector: np.ndarray) -> str:
     return " ".join(f"{v:.6f}" for v in vector)
+
+
+def write_rig_bvh(path: str | Path, motion: RigMotion) -> Path:
+    """Write a motion on its own rig (``RigMotion``, e.g. ``omg.retarget.onto_rig``'s) as BVH, atomically:
+    the rig's hierarchy, joint names, channels (order included), end sites and unit (``motion.unit``).
+
+    Position channels get the joint's translation (the reader's meaning: they replace the offset);
+    rotation channels the Euler angles of its local rotation in the listed order. A joint with fewer
+    than three rotation channels keeps only those axes (the reader completes the order the same way).
+    """
+    unit = motion.unit or 1.0
+    J = motion.num_joints
+    channels = motion.channels or [("Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation")] + [
+        ("Zrotation", "Xrotation", "Yrotation")
+    ] * (J - 1)
+    children = [[c for c, p in enumerate(motion.parents) if p == j] for j in range(J)]
+    ends = [[off for p, off in motion.end_sites if p == j] for j in range(J)]
+    lines, joints = ["HIERARCHY"], []
+
+    def emit(j: int, depth: int) -> None:
+        pad = "  " * depth
+        name = "_".join(motion.names[j].split())
+        lines.extend([f"{pad}{'ROOT' if j == 0 else 'JOINT'} {name}", f"{pad}{{",
+                      f"{pad}  OFFSET {_fmt(motion.offsets[j] / unit)}",
+                      f"{pad}  CHANNELS {len(channels[j])} {' '.join(channels[j])}".rstrip()])  # fmt: skip
+        joints.append(j)
+        for c in children[j]:
+            emit(c, depth + 1)
+        for off in ends[j]:
+            lines.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {_fmt(off / unit)}", f"{pad}  }}"])
+        lines.append(f"{pad}}}")
+
+    emit(0, 0)
+    rot = torch.as_tensor(np.asarray(motion.rotations), dtype=torch.float64)
+    columns = []
+    for j in joints:
+        chans = channels[j]
+        order = "".join(c[0] for c in chans if c.endswith("rotation"))
+        full = order + "".join(a for a in "XYZ" if a not in order)
+        angles = np.rad2deg(quat_to_euler(rot[:, j], full).numpy()) if order else None  # (T, 3)
+        for c in chans:
+            if c.endswith("position"):
+                columns.append(motion.translations[:, j, "XYZ".index(c[0])] / unit)
+            else:
+                columns.append(angles[:, order.index(c[0])])
+    T = len(motion)
+    values = np.stack(columns, axis=1) if columns else np.zeros((T, 0))
+    lines += ["MOTION", f"Frames: {T}", f"Frame Time: {1.0 / motion.fps:.8f}"]
+    lines += [_fmt(row) for row in values]
+    path = Path(path)
+    atomic_write(path, ("\n".join(lines) + "\n").encode())
+    return path

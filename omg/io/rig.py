@@ -34,6 +34,7 @@ class RigMotion:
     end_sites: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (parent joint, (3,) offset in metres)
     source: str = ""  # the file it was read from
     channels: list[tuple[str, ...]] = field(default_factory=list)  # BVH only: per joint, as listed in the file
+    unit: float = 1.0  # metres per unit of the file (BVH: 0.01 for centimetres), so a writer keeps the file's unit
 
     def __len__(self) -> int:
         return self.rotations.shape[0]

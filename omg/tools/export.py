@@ -1,5 +1,5 @@
-"""``omg export``: BVH files (and GIF previews) of motions: joint positions solved to local
-rotations by IK (``omg.io.export``), or features decoded by their representation first.
+"""``omg export``: BVH or glTF files (and GIF previews) of motions: joint positions solved to local
+rotations by IK (``omg.export``), or features decoded by their representation first.
 
 A folder written by ``omg generate`` brings its settings (generation.json: skeleton, frame rate,
 representation and the prompts, which become the previews' captions).
@@ -19,14 +19,16 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.export import EULER_ORDERS, FORMATS, export_motion
 from omg.files import check_output_dir, read_text
-from omg.io.export import EULER_ORDERS, export_motion
+from omg.retarget import read_rig
 from omg.skeleton import Skeleton, get_skeleton
 from omg.tools.args import PositiveFiniteFloat, run
 
 DEFAULT_FPS = 20.0
 DEFAULT_SKELETON = "smpl22"
 EulerOrder = Literal[EULER_ORDERS]  # type: ignore[valid-type]
+OutputFormat = Literal[FORMATS]  # type: ignore[valid-type]
 
 
 def export(
@@ -40,6 +42,9 @@ def export(
     preview: bool = True,
     out: Path | None = None,
     clean_contacts: bool = False,
+    to_rig: Path | None = None,
+    joint_map: str | None = None,
+    format: OutputFormat = "bvh",
 ) -> list[dict]:
     """Write BVH files (and GIF previews) of generated motions.
 
@@ -56,6 +61,10 @@ def export(
         preview: write a GIF preview beside each BVH file
         out: write the files into this folder (default: beside each input)
         clean_contacts: pin planted feet (removes foot skating) before IK
+        to_rig: write the motions onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
+        joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected
+            from its joint names, as on import)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
 
     Returns:
         What was written per input (``export_motion``'s reports).
@@ -67,6 +76,9 @@ def export(
     if skeleton is not None:
         get_skeleton(skeleton)
     out = check_output_dir(out) if out else None
+    if joint_map is not None and to_rig is None:
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+    rigs: dict = {}  # skeleton name -> the rig, read and checked once before anything is written
     jobs = []  # every file is read and checked before anything is written
     for path in [f for spec in inputs for f in _inputs(spec)]:
         settings = _settings(path.parent)
@@ -76,8 +88,10 @@ def export(
         if out:
             stem = out / stem.name
         rate = fps or settings.get("fps") or DEFAULT_FPS
+        if to_rig is not None and skel.name not in rigs:
+            rigs[skel.name] = read_rig(to_rig, skel, joint_map)
         jobs.append((path, stem, positions, skel, rate, _prompt(settings, stem.name)))
-    extensions = ("bvh", "gif") if preview else ("bvh",)
+    extensions = (format, "gif") if preview else (format,)
     targets = [stem.with_name(f"{stem.name}.{ext}") for _, stem, *_ in jobs for ext in extensions]
     for target in targets:
         if target.is_dir():
@@ -94,11 +108,13 @@ def export(
             out.mkdir(parents=True)
         for path, stem, positions, skel, rate, texts in jobs:
             start = time.perf_counter()
-            report = export_motion(stem, positions, skel, rate, texts, preview, order, scale, clean_contacts)
+            report = export_motion(stem, positions, skel, rate, texts, preview, order, scale, clean_contacts,
+                                   rig=rigs.get(skel.name), joint_map=joint_map, format=format)
             reports.append(report)
-            written = ", ".join(Path(report[k]).name for k in ("bvh", "gif") if k in report)
-            print(f"{path}: {written} ({report['frames']} frames at {rate:g} fps, IK error "
-                  f"{report['ik_error_m'] * 1000:.3f} mm, {time.perf_counter() - start:.1f} s)")  # fmt: skip
+            written = ", ".join(Path(report[k]).name for k in (format, "gif") if k in report)
+            how = f"on the rig of {to_rig}" if to_rig else f"IK error {report['ik_error_m'] * 1000:.3f} mm"
+            print(f"{path}: {written} ({report['frames']} frames at {rate:g} fps, {how}, "
+                  f"{time.perf_counter() - start:.1f} s)")  # fmt: skip
     except Exception:  # a failed export leaves none of the files it created
         for target in new:
             target.unlink(missing_ok=True)

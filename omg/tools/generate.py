@@ -18,8 +18,10 @@ import torch
 from omg.errors import UsageError
 from omg.files import atomic_write, check_output_dir, npy_bytes, read_text, write_json
 from omg.registry import SAMPLERS
+from omg.retarget import read_rig
 from omg.tools.args import FiniteFloat, PositiveInt, Seed, number_type, run
 from omg.tools.common import removing_created
+from omg.tools.export import OutputFormat
 
 AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
 MAX_SECONDS = 60.0
@@ -45,6 +47,9 @@ def generate(
     preview: bool = True,
     preview_count: PositiveInt = MAX_PREVIEW,
     clean_contacts: bool = False,
+    to_rig: Path | None = None,
+    joint_map: str | None = None,
+    format: OutputFormat = "bvh",
     device: str | None = None,
     autocast: Literal["bf16", "fp16"] | None = None,
     compile: bool = False,
@@ -75,6 +80,9 @@ def generate(
         preview: write preview.gif
         preview_count: motions shown side by side in preview.gif
         clean_contacts: pin planted feet in the BVH files (removes foot skating)
+        to_rig: write each motion onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
+        joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
         device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
@@ -105,6 +113,13 @@ def generate(
     module = load_module(ckpt, default_class=PretrainModule, use_ema=ema)
     from omg.lit.omgpt import OmniMotionModule
 
+    if to_rig is not None or joint_map is not None or format != "bvh":
+        if isinstance(module, OmniMotionModule):
+            raise UsageError("--to_rig, --joint_map and --format glb are not available for OmniMotionGPT checkpoints "
+                             "yet: run omg export --to_rig on the written sample_NNN.joints.npy")
+        if joint_map is not None and to_rig is None:
+            raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+
     if isinstance(module, OmniMotionModule):
         from omg.tools.animal import generate_animal
 
@@ -131,6 +146,7 @@ def generate(
     if steps > module.diffusion.num_timesteps:
         raise UsageError(f"--steps must be in 1..{module.diffusion.num_timesteps} (the checkpoint's diffusion steps), "
                          f"got {steps}")
+    rig = read_rig(to_rig, module.spec.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
     module = module.to(device).eval()
 
     # one job per motion: (prompt or None, sample index); batched in order
@@ -155,6 +171,9 @@ def generate(
         "batch_size": batch_size,
         "ema": ema,
         "clean_contacts": clean_contacts,
+        "to_rig": str(to_rig) if to_rig is not None else None,
+        "joint_map": joint_map,
+        "format": format,
         "representation": module.spec.representation,
         "skeleton": module.spec.skeleton,
     }
@@ -165,14 +184,20 @@ def generate(
             settings["samples"], previews = _generate(module, prompts, jobs, frames, fps, out, steps=steps,
                                                       sampler=sampler, autocast=AUTOCAST.get(autocast), compile=compile,
                                                       guidance=guidance, seed=seed, batch_size=batch_size,
-                                                      clean_contacts=clean_contacts, ckpt=ckpt)
+                                                      clean_contacts=clean_contacts, ckpt=ckpt,
+                                                      rig=rig, joint_map=joint_map, format=format)
             write_json(out / "generation.json", settings)
             if preview:  # the first motions side by side with their captions
                 from omg.io.render import render_gif
 
                 shown = previews[:preview_count]
-                render_gif(out / "preview.gif", [m for m, _ in shown], module.representation.skeleton, fps,
-                           titles=[t for _, t in shown])
+                motions, drawn = [m for m, _ in shown], module.representation.skeleton
+                if rig is not None:  # the motions as written: on the rig's bones
+                    from omg.retarget import onto_rig
+
+                    motions = [onto_rig(m, drawn, rig, fps, joint_map).positions() for m in motions]
+                    drawn = rig.skeleton()
+                render_gif(out / "preview.gif", motions, drawn, fps, titles=[t for _, t in shown])
     except Exception:  # a failed run leaves no new files in a folder that existed before it
         if out.is_dir():
             for path in set(out.iterdir()) - existing:
@@ -228,10 +253,11 @@ def resolve_device(name: str) -> torch.device:
 def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, out: Path, *, steps: int,
               sampler: str, autocast: torch.dtype | None, compile: bool, guidance: float | None, seed: int,
               batch_size: int,
-              clean_contacts: bool, ckpt: Path) -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
+              clean_contacts: bool, ckpt: Path, rig=None, joint_map: str | None = None,
+              format: str = "bvh") -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
     """Sample the jobs batch by batch and write each motion's files; the records of the motions, and
     the motions with their captions for the preview."""
-    from omg.io.export import export_motion
+    from omg.export import export_motion
 
     records, previews = [], []
     for start in range(0, len(jobs), batch_size):
@@ -250,8 +276,8 @@ def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, o
             atomic_write(out / f"{name}.features.npy", npy_bytes(features[i].float().cpu().numpy()))
             positions = joints[i].cpu().numpy().astype(np.float32)
             atomic_write(out / f"{name}.joints.npy", npy_bytes(positions))
-            export_motion(out / name, positions, module.representation.skeleton, fps, preview=False,  # BVH
-                          clean_contacts=clean_contacts)
+            export_motion(out / name, positions, module.representation.skeleton, fps, preview=False,  # BVH / glb
+                          clean_contacts=clean_contacts, rig=rig, joint_map=joint_map, format=format)
             records.append({"file": name, "prompt": prompt, "repeat": k, "batch_seed": batch_seed})
             previews.append((positions, prompt or "unconditional"))
     return records, previews

@@ -8,7 +8,8 @@ given); its habit latent is that of the known category whose description is near
 paper's retrieval), while its own description's embedding stays the condition (the paper swaps only
 the habit latent); the output says which category and at what distance. Written to ``--out``:
 ``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3) with the target category's
-mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions), ``source.joints.npy``,
+mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions; with ``--to_rig`` on that rig;
+``transfer.glb`` with ``--format glb``), ``source.joints.npy``,
 ``preview.gif`` (source and result side by side) and ``transfer.json`` (every setting).
 """
 
@@ -22,8 +23,10 @@ import torch
 
 from omg.errors import UsageError
 from omg.files import atomic_write, check_output_dir, file_problem, npy_bytes, write_json
+from omg.retarget import read_rig
 from omg.tools.args import PositiveFiniteFloat, Seed, run
 from omg.tools.common import removing_created
+from omg.tools.export import OutputFormat
 
 
 def read_source(path: Path, module, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
@@ -101,6 +104,9 @@ def transfer(
     temperature: PositiveFiniteFloat = 1.0,
     quantizer: Literal["soft", "nearest"] | None = None,
     preview: bool = True,
+    to_rig: Path | None = None,
+    to_rig_joint_map: str | None = None,
+    format: OutputFormat = "bvh",
     out: Path = Path("out/transfer"),
     command: str = "",
 ) -> dict:
@@ -118,6 +124,10 @@ def transfer(
         temperature: scale of the prior's base Gaussian
         quantizer: soft or nearest (default: the checkpoint's)
         preview: write preview.gif (source and transfer side by side)
+        to_rig: write the transfer onto this BVH file's quadruped rig (its hierarchy, names, channels, unit)
+        to_rig_joint_map: the --to_rig rig's joint map (a registered name or a YAML file; default: detected;
+            --joint_map is the source's)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in transfer.json
 
@@ -128,7 +138,10 @@ def transfer(
     from omg.lit.habit import HabitPriorModule, HabitVQModule
 
     out = check_output_dir(out)
+    if to_rig_joint_map is not None and to_rig is None:
+        raise UsageError("--to_rig_joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
     module = load_module(ckpt, default_class=HabitVQModule, expect=HabitVQModule)
+    rig = read_rig(to_rig, module.representation.skeleton, to_rig_joint_map) if to_rig is not None else None
     prior = None
     if prior_ckpt is not None:
         prior = load_module(prior_ckpt, default_class=HabitPriorModule, expect=HabitPriorModule)
@@ -162,16 +175,17 @@ def transfer(
         "habit": "prior sample" if prior is not None else "posterior mean", "seed": seed,
         "temperature": temperature, "quantizer": quantizer or module.vqvae.quantizer.mode, "frames": len(joints),
         "fps": fps, "skeleton": rep.skeleton.name, "representation": "quatvel",
-        "target_offsets": offsets.tolist(),
+        "target_offsets": offsets.tolist(), "to_rig": str(to_rig) if to_rig is not None else None,
     }
-    from omg.io.export import export_motion
+    from omg.export import export_motion
 
     with removing_created(out):
         out.mkdir(parents=True, exist_ok=True)
         atomic_write(out / "transfer.features.npy", npy_bytes(result.float().numpy()))
         atomic_write(out / "transfer.joints.npy", npy_bytes(joints))
         atomic_write(out / "source.joints.npy", npy_bytes(source_joints.astype(np.float32)))
-        settings["bvh"] = export_motion(out / "transfer", joints, rep.skeleton, fps, preview=False)["bvh"]
+        settings[format] = export_motion(out / "transfer", joints, rep.skeleton, fps, preview=False, rig=rig,
+                                         joint_map=to_rig_joint_map, format=format)[format]
         if preview:
             from omg.io.render import render_gif
 

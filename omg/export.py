@@ -1,0 +1,112 @@
+"""Joint positions -> local rotations (IK) -> BVH or glTF files and GIF previews (``omg export``);
+or, given a user's rig, the motion on that rig (``omg.retarget.onto_rig``).
+
+Generated motions are joint positions; animation tools want a rig with local rotations.
+``positions_to_rotations`` solves them for a fixed skeleton: each joint turns the rest
+directions of its child bones onto the observed ones, aiming from where forward kinematics
+has put the joint so far, so that errors do not accumulate along a chain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omg import kinematics
+from omg.io.bvh import write_bvh, write_rig_bvh
+from omg.io.contacts import clean_foot_contacts
+from omg.io.gltf import write_glb
+from omg.io.rig import RigMotion
+from omg.kinematics import clip_offsets
+from omg.skeleton import Skeleton, get_skeleton
+
+EULER_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
+
+
+def positions_to_rotations(
+    skeleton: Skeleton | str,
+    positions: np.ndarray,  # (T, J, 3) metres
+    offsets: np.ndarray | None = None,  # (J, 3) rest offsets to keep as they are
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # rotations (T, J, 4), root (T, 3), offsets (J, 3)
+    """Local joint rotations that reproduce ``positions`` by forward kinematics (float32 arrays);
+    the solver is ``omg.kinematics.positions_to_rotations``, aiming from the FK places.
+
+    Without ``offsets`` the bones come from ``omg.kinematics.clip_offsets``, so that FK is exact
+    up to the clip's own bone-length jitter.
+    """
+    skel = get_skeleton(skeleton)
+    pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64)  # (T, J, 3)
+    if pos.ndim != 3 or pos.shape[1:] != (skel.num_joints, 3):
+        raise ValueError(f"positions must be (T, {skel.num_joints}, 3) for {skel.name!r}, got {tuple(pos.shape)}")
+    off = clip_offsets(skel, pos) if offsets is None else torch.as_tensor(np.asarray(offsets), dtype=torch.float64)
+    local = kinematics.positions_to_rotations(skel, pos, off)
+    return local.float().numpy(), pos[:, 0].float().numpy(), off.float().numpy()
+
+
+FORMATS = ("bvh", "glb")
+
+
+def model_motion(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarray, offsets: np.ndarray, fps: float,
+                 name: str = "motion") -> RigMotion:
+    """A motion on a model skeleton as a ``RigMotion`` (what the glTF writer takes)."""
+    translations = np.broadcast_to(offsets, (len(rotations), skeleton.num_joints, 3)).copy()
+    translations[:, 0] = root
+    return RigMotion(name=name, names=list(skeleton.names), parents=list(skeleton.parents),
+                     offsets=np.asarray(offsets, dtype=np.float64), fps=float(fps),
+                     rotations=np.asarray(rotations, dtype=np.float64), translations=translations)  # fmt: skip
+
+
+def export_motion(
+    out_stem: str | Path,
+    positions: np.ndarray,  # (T, J, 3) metres, Y up
+    skeleton: Skeleton | str,
+    fps: float,
+    texts: list[str] | None = None,
+    preview: bool = True,
+    order: str = "ZXY",
+    scale: float = 1.0,
+    clean_contacts: bool = False,
+    rig: RigMotion | None = None,
+    joint_map=None,
+    format: str = "bvh",
+) -> dict:
+    """Write ``<stem>.bvh`` (or ``<stem>.glb`` with ``format="glb"``) and, with ``preview``, ``<stem>.gif``;
+    returns what was written. ``clean_contacts`` pins planted feet first (``omg.io.contacts``).
+
+    With ``rig`` (a BVH read by ``read_bvh``) the motion is written onto that rig
+    (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
+    channels and unit (``order`` and ``scale`` are the model skeleton's BVH settings and do not apply);
+    the preview draws the rig's bones.
+    """
+    from omg.io.render import render_gif
+
+    skel = get_skeleton(skeleton)
+    if clean_contacts:
+        positions = clean_foot_contacts(positions, skel, fps)
+    stem = Path(out_stem)
+    target = stem.with_name(f"{stem.name}.{format}")
+    if rig is not None:
+        from omg.retarget import onto_rig
+
+        motion = onto_rig(positions, skel, rig, fps, joint_map)
+        motion = replace(motion, name=stem.name)
+        report = {format: str(write_rig_bvh(target, motion) if format == "bvh" else write_glb(target, motion)),
+                  "frames": len(positions), "rig": rig.source or rig.name}  # fmt: skip
+        drawn, drawn_skel = [motion.positions()], motion.skeleton()
+    else:
+        rotations, root, offsets = positions_to_rotations(skel, positions)
+        fk = skel.forward_kinematics(torch.from_numpy(rotations), torch.from_numpy(root), torch.from_numpy(offsets))
+        if format == "bvh":
+            written = write_bvh(target, skel, rotations, root, fps, offsets, order, scale)
+        else:
+            written = write_glb(target, model_motion(skel, rotations, root, offsets, fps, stem.name))
+        report = {format: str(written), "frames": len(positions),
+                  "ik_error_m": float(np.abs(fk.numpy() - positions).max())}  # fmt: skip
+        drawn, drawn_skel = [fk.numpy()], skel
+    if preview:
+        title = " / ".join(texts) if texts else stem.name
+        report["gif"] = str(render_gif(stem.with_name(f"{stem.name}.gif"), drawn, drawn_skel, fps, titles=[title]))
+    return report
