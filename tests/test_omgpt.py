@@ -244,6 +244,34 @@ def test_fit_then_generate_an_animal_from_a_real_bvh(omgpt_ckpt, shared_motion, 
                                                "deer, dog, fox, horse, sheep")
 
 
+def test_generated_animals_land_on_the_users_rig(omgpt_ckpt, shared_motion, tmp_path):
+    """--to_rig and --format glb reach OmniMotionGPT's writer: the BVH holds the dog rig's joints and
+    follows the generated joints (onto_rig of sample_NNN.joints.npy), and the .glb is written."""
+    import bvh as bvh_reader
+
+    from conftest import DOG_RIG, rig_bvh
+    from omg.retarget import onto_rig, read_rig
+
+    clips = json.loads((shared_motion / "manifest.json").read_text())["clips"]
+    human = next(shared_motion / c["path"] for c in clips if c.get("domain") == "human" and c["path"].endswith(".bvh"))
+    rig_path = tmp_path / "my_dog.bvh"
+    rig_path.write_text(rig_bvh(DOG_RIG))
+    for fmt in ("bvh", "glb"):
+        out = tmp_path / fmt
+        _cli("generate", "a dog walks", "--ckpt", str(omgpt_ckpt), "--from_motion", str(human), "--length", "1",
+             "--to_rig", str(rig_path), "--format", fmt, "--no_preview", "--out", str(out))
+        assert json.loads((out / "generation.json").read_text())["to_rig"] == str(rig_path)
+        assert (out / f"sample_000.{fmt}").stat().st_size > 0
+    written = bvh_reader.Bvh((tmp_path / "bvh/sample_000.bvh").read_text())
+    rig = read_rig(rig_path, "smal35")
+    assert written.get_joints_names() == rig.names and written.nframes == 20
+    from omg.io.bvh import read_bvh
+
+    joints = np.load(tmp_path / "bvh/sample_000.joints.npy")
+    expected = onto_rig(joints, "smal35", rig, 20).positions()  # the generated motion, on the rig
+    assert np.abs(read_bvh(tmp_path / "bvh/sample_000.bvh").positions() - expected).max() < 1e-3
+
+
 def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     import lightning as L
 

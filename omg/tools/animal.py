@@ -57,9 +57,12 @@ def read_human_motion(path: Path, fps: float) -> tuple[np.ndarray, np.ndarray]:
 def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | None, from_motion: Path | None,
                     human_ckpt: Path | None, num_samples: int, length: float, steps: int, sampler: str,
                     guidance: float | None, seed: int, preview: bool, preview_count: int, device: torch.device,
-                    out: Path, command: str) -> dict:
+                    out: Path, command: str, to_rig: Path | None = None, joint_map: str | None = None,
+                    format: str = "bvh") -> dict:
+    from omg.export import export_motion
     from omg.io.bvh import write_bvh
     from omg.lit.omgpt import generate_human
+    from omg.retarget import read_rig
     from omg.text.subjects import about_animal, choose_animal, to_person
 
     if not prompts:
@@ -67,6 +70,7 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
     names = module.animal_names
+    rig = read_rig(to_rig, module.spec.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
     chosen = [choose_animal(p, names, animal) for p in prompts]  # the rule of OmniMotionModule.sample
     fps = module.spec.fps
     frames = round(length * fps)
@@ -113,7 +117,11 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
             atomic_write(out / f"{stem}.features.npy", npy_bytes(features.float().cpu().numpy()))
             atomic_write(out / f"{stem}.joints.npy", npy_bytes(joints))
             atomic_write(out / f"{stem}.human.joints.npy", npy_bytes(human_joints.astype(np.float32)))
-            write_bvh(out / f"{stem}.bvh", skeleton, rotations.numpy(), root.numpy(), fps, offsets.numpy())
+            if rig is None and format == "bvh":  # the model's rotations as they are, no IK
+                write_bvh(out / f"{stem}.bvh", skeleton, rotations.numpy(), root.numpy(), fps, offsets.numpy())
+            else:  # onto the user's rig, or glTF
+                export_motion(out / stem, joints, skeleton, fps, preview=False, rig=rig, joint_map=joint_map,
+                              format=format)
             records.append({"file": stem, "prompt": prompt, "animal": name, "human_prompt": person, "repeat": k,
                             "animal_prompt": about_animal(prompt, name, names)})
             previews.append((joints, f"{prompt} ({name})"))
@@ -124,7 +132,8 @@ def generate_animal(module, prompts: list[str], *, ckpt: Path, animal: str | Non
             "human_source": "from_motion" if from_motion else "human_ckpt" if human_ckpt else module.human_source,
             "num_samples": num_samples, "frames": frames, "fps": fps, "steps": steps, "sampler": sampler,
             "guidance_scale": guidance, "seed": seed, "representation": module.spec.representation,
-            "skeleton": module.spec.skeleton, "samples": records,
+            "skeleton": module.spec.skeleton, "to_rig": None if to_rig is None else str(to_rig), "format": format,
+            "samples": records,
         }
         write_json(out / "generation.json", settings)
         if preview:

@@ -113,12 +113,8 @@ def generate(
     module = load_module(ckpt, default_class=PretrainModule, use_ema=ema)
     from omg.lit.omgpt import OmniMotionModule
 
-    if to_rig is not None or joint_map is not None or format != "bvh":
-        if isinstance(module, OmniMotionModule):
-            raise UsageError("--to_rig, --joint_map and --format glb are not available for OmniMotionGPT checkpoints "
-                             "yet: run omg export --to_rig on the written sample_NNN.joints.npy")
-        if joint_map is not None and to_rig is None:
-            raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+    if joint_map is not None and to_rig is None:
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
 
     if isinstance(module, OmniMotionModule):
         from omg.tools.animal import generate_animal
@@ -126,7 +122,8 @@ def generate(
         return generate_animal(module, prompts, ckpt=ckpt, animal=animal, from_motion=from_motion,
                                human_ckpt=human_ckpt, num_samples=num_samples, length=length, steps=steps,
                                sampler=sampler, guidance=guidance, seed=seed, preview=preview,
-                               preview_count=preview_count, device=device, out=out, command=command)
+                               preview_count=preview_count, device=device, out=out, command=command,
+                               to_rig=to_rig, joint_map=joint_map, format=format)
     if animal is not None or from_motion is not None or human_ckpt is not None:
         raise UsageError(f"--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {ckpt} holds a "
                          f"{type(module).__name__}")
