@@ -104,7 +104,9 @@ class MotionDiffusionModule(OmgModule):
     # -- training ------------------------------------------------------------------------
     def noise_generator(self) -> torch.Generator:
         """The RNG of timesteps and noise: its own, and saved in checkpoints, so that a resumed
-        run draws exactly what the uninterrupted run would have drawn."""
+        run draws exactly what the uninterrupted run would have drawn. Resumed on another number
+        of ranks, rank r takes the saved state of rank r where there is one (the ranks both runs
+        have keep their streams) and otherwise seeds from ``fresh_noise_seed(seed, step, r)``."""
         if self._noise_gen is None or self._noise_gen.device != self.device:
             self._noise_gen = torch.Generator(device=self.device)
             if self._noise_state is not None:
