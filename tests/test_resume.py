@@ -10,13 +10,19 @@ time resuming from the checkpoint the last resumed run wrote.
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
 import lightning as L
 import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from omg.data.datamodule import MotionDataModule
-from omg.lit.pretrain import PretrainModule
+from omg.lit.pretrain import PretrainModule, fresh_noise_seed
 
 BATCHES_PER_EPOCH = 4
 TOTAL_STEPS = 13  # three epoch boundaries (after steps 4, 8 and 12) and a part of a fourth epoch
@@ -250,38 +256,67 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
         torch.testing.assert_close(model.ema.shadow[n], expected, rtol=0, atol=1e-6)
 
 
+def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> tuple[int, str]:
+    """tests/ddp_resume_run.py on ``devices`` gloo ranks: (exit code, the end of its stderr)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "OMP_NUM_THREADS": "1"}
+    for key in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK"):
+        env.pop(key, None)
+    script = Path(__file__).with_name("ddp_resume_run.py")
+    args = [str(shards), str(root), str(kill_at), str(int(resume)), str(devices)] + ([record] if record else [])
+    done = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True, timeout=300)
+    return done.returncode, done.stderr[-3000:]
+
+
 def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
     """Two gloo ranks on the CPU: kill at an epoch boundary, resume, kill at the next boundary,
     resume again, and compare with the run never killed, each rank's noise RNG and the loop
     counters included."""
-    import os
-    import socket
-    import subprocess
-    import sys
-    from pathlib import Path
-
     shards = h263_shards / "train"  # 4 shards, 2 per rank
-    script = Path(__file__).with_name("ddp_resume_run.py")
-
-    def run(root, kill_at=-1, resume=False):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "OMP_NUM_THREADS": "1"}
-        for key in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK"):
-            env.pop(key, None)
-        done = subprocess.run([sys.executable, str(script), str(shards), str(root), str(kill_at), str(int(resume))],
-                              env=env, capture_output=True, text=True, timeout=300)
-        return done.returncode, done.stderr[-3000:]
-
-    code, err = run(tmp_path / "full")
+    code, err = ddp_run(shards, tmp_path / "full")
     assert code == 0, err
-    code, err = run(tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
+    code, err = ddp_run(shards, tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
     assert code == 3, err
-    code, err = run(tmp_path / "killed", kill_at=6, resume=True)
+    code, err = ddp_run(shards, tmp_path / "killed", kill_at=6, resume=True)
     assert code == 3, err
-    code, err = run(tmp_path / "killed", resume=True)
+    code, err = ddp_run(shards, tmp_path / "killed", resume=True)
     assert code == 0, err
     expected, resumed = final_state(tmp_path / "full"), final_state(tmp_path / "killed")
     assert expected["noise_rng"].shape[0] == 2 and not torch.equal(*expected["noise_rng"])  # one state per rank
     assert_identical(resumed, expected)
+
+
+# Elastic resume: a checkpoint of one world size resumed on another, killed mid-epoch (step 4 is
+# epoch 1's second batch in ddp_resume_run.py).
+@pytest.mark.parametrize("old,new", [(2, 1), (1, 2)], ids=["2to1", "1to2"])
+def test_resume_on_another_number_of_ranks(h263_shards, tmp_path, old, new):
+    shards, kill_at = h263_shards / "train", 4
+    code, err = ddp_run(shards, tmp_path / "run", kill_at=kill_at, devices=old)
+    assert code == 3, err
+    saved = torch.load(tmp_path / "run" / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert saved["global_step"] == kill_at and saved["noise_rng"].shape[0] == old
+    code, resumed_err = ddp_run(shards, tmp_path / "run", resume=True, devices=new, record="resumed")
+    assert code == 0, resumed_err
+    code, err = ddp_run(shards, tmp_path / "fresh", devices=new, record="fresh")  # the new world size from scratch
+    assert code == 0, err
+    for rank in range(new):
+        resumed = torch.load(tmp_path / "run" / f"resumed-rank{rank}.pt", weights_only=False)
+        fresh = torch.load(tmp_path / "fresh" / f"fresh-rank{rank}.pt", weights_only=False)
+        # weights, EMA, optimizer and schedule: the checkpoint's, whatever the world size
+        start = resumed["start"]
+        noise = start.pop("noise_rng")
+        assert_identical(start, {k: saved[k] for k in start}, f"rank {rank}")
+        # noise: rank r keeps rank r's saved state; a rank the checkpoint has none for a fresh one
+        if rank < old:
+            assert torch.equal(noise, saved["noise_rng"][rank])
+        else:
+            expected = torch.Generator().manual_seed(fresh_noise_seed(0, kill_at, rank)).get_state()
+            assert torch.equal(noise, expected)
+            assert not torch.equal(noise, torch.Generator().manual_seed(rank).get_state())  # not step 0's replayed
+        # data: the rest of the epoch and the next are the new world size's stream at the same position
+        assert sorted(resumed["steps"]) == [4, 5, 6]
+        assert resumed["steps"] == {step: fresh["steps"][step] for step in (4, 5, 6)}, f"rank {rank}"
+    assert torch.load(tmp_path / "run" / "ckpt" / "last.ckpt", weights_only=False)["global_step"] == 7
+    assert f"resuming a {old}-rank checkpoint on {new} ranks" in resumed_err  # said, not silent

@@ -16,6 +16,16 @@ The stream is a pure function of (seed, rank, worker, epoch), and the loader is 
 Lightning saves its (epoch, batches) position in checkpoints, and a resumed run replays the
 epoch up to that point and goes on with the same batches it would have seen.
 
+Resumed on another number of ranks (W ranks saved at epoch e after b batches, resumed on W'),
+the position is kept and the shards are split anew: rank r of the new run reads urls[r::W'] and
+replays its (seed, r, worker, e) stream past its first b batches, so from there on each rank sees
+exactly the batches that rank of a run started on W' ranks sees at (e, b): the rest of epoch e,
+then every later epoch. The trainer's epoch stays batches_per_epoch batches per rank, so the
+interrupted epoch ends after the same number of steps as it would have. Shards are drawn with
+replacement, so no run, resumed or not, promises a clip once per epoch; what a world-size change
+loses is only the continuation of the old ranks' own streams (the draws they would have made
+after batch b), and the new ranks' first b batches of epoch e are skipped, not trained on.
+
 ``data.train`` may be a weighted mixture of shard sets (``omg.data.mixture``): each rank splits
 every set's shards, and each sample is drawn from set k with probability share_k from that
 set's own shuffle buffer; the set draws are part of the same seeded stream, so the mixture's

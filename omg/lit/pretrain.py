@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from contextlib import nullcontext
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -29,6 +30,13 @@ from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
 
 log = logging.getLogger(__name__)
+
+
+def fresh_noise_seed(seed: int, step: int, rank: int) -> int:
+    """The noise-RNG seed of a rank that a checkpoint written on fewer ranks has no state for:
+    a function of (run seed, step, rank), so it differs from every rank's seed at step 0
+    (``seed + rank``) and a resumed run is reproducible."""
+    return int(np.random.SeedSequence([seed, step, rank]).generate_state(1, np.uint64)[0])
 
 
 class MotionDiffusionModule(OmgModule):
@@ -72,6 +80,7 @@ class MotionDiffusionModule(OmgModule):
         self.ema: EMA | None = None
         self._noise_gen: torch.Generator | None = None
         self._noise_state: Tensor | None = None  # restored from a checkpoint
+        self._noise_seed: int | None = None  # a rank the checkpoint has no state for (elastic resume)
         self._last_batch_time: float | None = None
 
     def configure_model(self) -> None:
@@ -95,13 +104,16 @@ class MotionDiffusionModule(OmgModule):
     # -- training ------------------------------------------------------------------------
     def noise_generator(self) -> torch.Generator:
         """The RNG of timesteps and noise: its own, and saved in checkpoints, so that a resumed
-        run draws exactly what the uninterrupted run would have drawn."""
+        run draws exactly what the uninterrupted run would have drawn. Resumed on another number
+        of ranks, rank r takes the saved state of rank r where there is one (the ranks both runs
+        have keep their streams) and otherwise seeds from ``fresh_noise_seed(seed, step, r)``."""
         if self._noise_gen is None or self._noise_gen.device != self.device:
             self._noise_gen = torch.Generator(device=self.device)
             if self._noise_state is not None:
                 self._noise_gen.set_state(self._noise_state)
             else:
-                self._noise_gen.manual_seed(torch.initial_seed() + self.global_rank)
+                seed = self._noise_seed if self._noise_seed is not None else torch.initial_seed() + self.global_rank
+                self._noise_gen.manual_seed(seed)
         return self._noise_gen
 
     def prepare(self, batch: dict) -> dict:
@@ -196,12 +208,19 @@ class MotionDiffusionModule(OmgModule):
         if "noise_rng" in checkpoint:
             states = checkpoint["noise_rng"]
             states = states[None] if states.ndim == 1 else states  # one rank's, as older omg wrote
-            rank = self.global_rank if self._trainer is not None else 0
+            trainer = self._trainer
+            rank, world = (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
+            self._noise_gen, self._noise_state, self._noise_seed = None, None, None
             if rank < len(states):
-                self._noise_gen, self._noise_state = None, states[rank].clone()  # set_state needs its own storage
+                self._noise_state = states[rank].clone()  # set_state needs its own storage
             else:
-                log.warning("this checkpoint holds the noise RNG of %d ranks; rank %d starts a fresh one, so "
-                            "the run does not repeat the uninterrupted one exactly", len(states), rank)
+                self._noise_seed = fresh_noise_seed(torch.initial_seed(), int(checkpoint.get("global_step", 0)), rank)
+            if len(states) != world and rank == 0:
+                kept = min(world, len(states))
+                log.warning("resuming a %d-rank checkpoint on %d ranks: ranks below %d keep their noise RNG, %s; each "
+                            "rank's data stream is the %d-rank run's from the saved position", len(states), world, kept,
+                            "the others draw fresh ones from (seed, step, rank)" if world > kept
+                            else f"those of ranks {kept} and up are dropped", world)
         if "ema" in checkpoint and self.ema_decay > 0:
             self.ema = EMA(self.trainable_module(), self.ema_decay)
             self.ema.load_state_dict(checkpoint["ema"])
