@@ -4,11 +4,12 @@ Validation clips are cut into fixed-length crops. ``mode="transfer"`` (default, 
 definition): the crops of the other categories are transferred onto every category c with at least
 ``min_samples`` real crops, with habit latents drawn from c's prior; FID, per-category Intra-FID,
 Diversity and 1-NNA compare the transferred motion with c's real crops, MPJPE the transferred motion
-with its source. The pooled FID and 1-NNA barely see habits (untransferred crops, pooled over the targets,
-are the real mixture again); Intra-FID is the one that does. ``mode="reconstruction"`` (a diagnostic, omg's figures before): each crop through
-the VQ-VAE with a latent of its own category's prior against the real crops, plus the downstream FID
-of the transfers (``cross_category_fid``). Features are those of a motion evaluator
-trained on the same representation (``configs/mini/habit_evaluator.yaml``). Each replication
+with its source. The pooled FID and 1-NNA barely see habits (untransferred crops, pooled over the
+targets, are the real mixture again); Intra-FID is the one that does. ``mode="reconstruction"`` (a
+diagnostic, omg's figures before): each crop through the VQ-VAE with a latent of its own category's
+prior against the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
+Features are those of a motion evaluator trained on the same representation
+(``configs/mini/habit_evaluator.yaml``). Each replication
 draws new prior samples and codes; the table row is the VQ-VAE's quantizer (EMA or EMA-reset),
 and rows of earlier runs written to the same ``table`` file are printed with it.
 """
