@@ -130,12 +130,13 @@ def test_unseen_species_retrieve_a_related_known_one(minilm, book, mini_categori
 
 def test_book_species_retrieve_their_family_among_the_mini_species(minilm, book, mini_categories):
     # the descriptions name no family (tests/test_habit.py::test_species_descriptions_name_no_family), so these
-    # match on build and gait: a wolf trots like a fox, a moose is built like a deer, a pig and the heavy
-    # pachyderms walk like a cow, camel, giraffe and elephant are long-legged like a horse, cheetah and leopard
-    # flex their spines like a cat, a goat leaps like a deer. Not asserted, as they miss without the family
-    # words: donkey, lion, bear, hyena, gazelle (cow), tiger (dog), rabbit (horse), zebra (cow, horse second).
-    relatives = {"wolf": {"fox", "dog"}, "moose": {"deer"}, "pig": {"cow"}, "hippopotamus": {"cow"},
-                 "rhinoceros": {"cow"}, "camel": {"horse"}, "giraffe": {"horse", "deer"}, "elephant": {"horse", "cow"},
+    # match on build and gait: a wolf trots like a fox, a hyena lopes like a dog, moose and gazelle are built
+    # like a deer, camel, giraffe, elephant and zebra are long-legged like a horse, cheetah and leopard flex
+    # their spines like a cat, a goat leaps like a deer. Not asserted, as they miss without the family words:
+    # pig and rhinoceros (deer), hippopotamus (horse), donkey (deer, horse second), lion and tiger (dog, cat
+    # second), bear (dog), rabbit (horse).
+    relatives = {"wolf": {"fox", "dog"}, "hyena": {"dog", "fox"}, "moose": {"deer"}, "gazelle": {"deer"},
+                 "camel": {"horse"}, "giraffe": {"horse", "deer"}, "elephant": {"horse", "cow"}, "zebra": {"horse"},
                  "cheetah": {"cat"}, "leopard": {"cat"}, "goat": {"deer", "sheep"}}
     found = {name: nearest_category(minilm, book.description(name), mini_categories)[0] for name in relatives}
     assert all(found[name] in relatives[name] for name in relatives), found
