@@ -12,7 +12,8 @@ import yaml
 from jsonargparse import ActionConfigFile
 from lightning.pytorch.cli import LightningArgumentParser
 
-import omg.lit  # noqa: F401  (short class names in configs resolve among imported modules)
+import omg.callbacks  # noqa: F401  (short class names in configs resolve among imported modules)
+import omg.lit  # noqa: F401
 from conftest import REPO
 from omg.data.datamodule import MotionDataModule
 
@@ -26,7 +27,8 @@ QUATVEL_SPEC = {"representation": "quatvel", "skeleton": "smal35", "fps": 20.0, 
 # a habit prior config's run directory -> the stage-1 config whose checkpoint it reads
 PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
                 "runs/mini_habit_prior": REPO / "configs/mini/habit_vqvae.yaml",
-                "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml"}
+                "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml",
+                "runs/habit_eval": REPO / "configs/habit_vqvae.yaml"}
 
 # an overlay -> the config it completes
 OVERLAYS = {"mini/omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
@@ -185,3 +187,21 @@ def test_small_whole_clip_configs_keep_every_bandai_take():
     for name in ("controlnet", "evaluator", "eval"):
         cfg = yaml.safe_load((REPO / f"configs/small/{name}.yaml").read_text())
         assert cfg["data"]["min_len"] <= min(frames), name
+
+
+def test_full_habit_configs_embed_categories_with_bge_and_name_a_missing_snapshot(tmp_path):
+    from omg.errors import UsageError
+    from omg.lit.habit import HabitVQModule
+    from omg.text.bge import CONFIG_KEY
+
+    init = parse(REPO / "configs/habit_vqvae.yaml").model.init_args.as_dict()
+    assert init["text_encoder"] == "bge-base-en-v1.5" and init["text_encoder_args"]["model_dir"]
+    init["text_encoder_args"] = {"model_dir": str(tmp_path / "no_snapshot")}
+    with pytest.raises(UsageError) as error:
+        HabitVQModule(**{**init, "flavor": "tiny", "spec": QUATVEL_SPEC})
+    assert "\n" not in str(error.value) and CONFIG_KEY in str(error.value)
+    offline = {**init, "flavor": "tiny", "spec": QUATVEL_SPEC, "text_encoder": "minilm", "text_encoder_args": None}
+    assert HabitVQModule(**offline).category_text.shape[-1] == 384  # the named offline fallback builds
+    evaluation = parse(REPO / "configs/habit_eval.yaml")
+    callback = evaluation.trainer.callbacks[0].init_args
+    assert callback.mode == "transfer" and callback.evaluator.startswith("runs/evaluator_habit/")

@@ -1,5 +1,5 @@
-"""An unseen species swaps only the habit latent (Behave Your Motion's transfer): ``omg transfer --to zebra``
-uses the nearest known category's (horse's) habit latent with the zebra's own description as the condition."""
+"""An unseen species swaps only the habit latent (Behave Your Motion's transfer): ``omg transfer --to camel``
+uses the nearest known category's (horse's) habit latent with the camel's own description as the condition."""
 
 from __future__ import annotations
 
@@ -24,19 +24,19 @@ def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_lat
     source = tmp_path / "dog.npy"
     np.save(source, np.asarray(dog["motion"][:64], dtype=np.float32))
 
-    out = {to: transfer(source, to=to, ckpt=path, out=tmp_path / to, preview=False) for to in ("horse", "zebra")}
-    assert out["zebra"]["category"] == "horse" and out["zebra"]["retrieved"]
-    assert out["zebra"]["condition"] == "its own description"
+    out = {to: transfer(source, to=to, ckpt=path, out=tmp_path / to, preview=False) for to in ("horse", "camel")}
+    assert out["camel"]["category"] == "horse" and out["camel"]["retrieved"]
+    assert out["camel"]["condition"] == "its own description"
     motion = {to: np.load(tmp_path / to / "transfer.features.npy") for to in out}
-    assert not np.allclose(motion["zebra"], motion["horse"], atol=1e-4)  # zebra is not horse
+    assert not np.allclose(motion["camel"], motion["horse"], atol=1e-4)  # a camel is not a horse
 
-    # ... and differs only by the condition: horse's habit latent with the zebra description's embedding
-    zebra = resolve_target(vq, "zebra", None)
+    # ... and differs only by the condition: horse's habit latent with the camel description's embedding
+    camel = resolve_target(vq, "camel", None)
     k = vq.categories.index("horse")
     features = torch.from_numpy(np.asarray(dog["motion"][:64], dtype=np.float32))[None]
     with torch.no_grad():
-        expected = vq.transfer(features, k, vq.mean_habit(k)[None], seed=0, text=zebra["embedding"])[0]
+        expected = vq.transfer(features, k, vq.mean_habit(k)[None], seed=0, text=camel["embedding"])[0]
         as_horse = vq.transfer(features, k, vq.mean_habit(k)[None], seed=0)[0]  # the old path: horse's text too
-    np.testing.assert_allclose(motion["zebra"], expected.numpy(), atol=1e-5)
+    np.testing.assert_allclose(motion["camel"], expected.numpy(), atol=1e-5)
     np.testing.assert_allclose(motion["horse"], as_horse.numpy(), atol=1e-5)
-    assert not torch.allclose(zebra["embedding"], vq.category_text[k].cpu())
+    assert not torch.allclose(camel["embedding"], vq.category_text[k].cpu())

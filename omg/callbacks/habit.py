@@ -1,11 +1,15 @@
 """``HabitEvalCallback``: the paper's evaluation of habit transfer at ``omg test`` on a HabitPriorModule.
 
-Validation clips are cut into fixed-length crops. Each crop is reconstructed through the VQ-VAE
-with a habit latent drawn from its own category's prior (FID, per-category Intra-FID, Diversity,
-1-NNA and MPJPE against the real crops), and transferred to every other category with at least
-``min_samples`` real crops (the cross-category downstream task: the FID of the motions transferred
-into a category against its real motions, averaged). Features are those of a motion evaluator
-trained on the same representation (``configs/mini/habit_evaluator.yaml``). Each replication
+Validation clips are cut into fixed-length crops. ``mode="transfer"`` (default, the paper's
+definition): the crops of the other categories are transferred onto every category c with at least
+``min_samples`` real crops, with habit latents drawn from c's prior; FID, per-category Intra-FID,
+Diversity and 1-NNA compare the transferred motion with c's real crops, MPJPE the transferred motion
+with its source. The pooled FID and 1-NNA barely see habits (untransferred crops, pooled over the
+targets, are the real mixture again); Intra-FID is the one that does. ``mode="reconstruction"`` (a
+diagnostic, omg's figures before): each crop through the VQ-VAE with a latent of its own category's
+prior against the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
+Features are those of a motion evaluator trained on the same representation
+(``configs/mini/habit_evaluator.yaml``). Each replication
 draws new prior samples and codes; the table row is the VQ-VAE's quantizer (EMA or EMA-reset),
 and rows of earlier runs written to the same ``table`` file are printed with it.
 """
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Callable
 
 import lightning as L
 import numpy as np
@@ -26,7 +31,7 @@ from omg.callbacks.run import run_dir
 from omg.errors import UsageError
 from omg.evaluation import build_evaluator, check_evaluator_spec, protocol, write_report
 from omg.files import atomic_write, write_json
-from omg.metrics import FID, MPJPE, CrossCategoryFID, Diversity, IntraFID, OneNNA
+from omg.metrics import FID, MPJPE, CrossCategoryFID, Diversity, EvalBatch, IntraFID, OneNNA
 
 COLUMNS = {  # summary key -> the paper's column
     "fid": "FID", "intra_fid": "Intra-FID", "cross_category_fid": "downstream FID", "diversity": "Diversity",
@@ -63,55 +68,88 @@ def _stack(items: list[dict]) -> tuple[Tensor, Tensor, Tensor]:
     return motion, mask, torch.from_numpy(np.stack([it["offsets"] for it in items]))
 
 
+MODES = ("transfer", "reconstruction")
+
+
+def prior_move(prior) -> Callable[[Tensor, int, torch.Generator], Tensor]:
+    """The transfer the evaluation scores: ``motion`` (B, T, D) onto category ``k`` with habit latents
+    drawn from k's flow prior (the code sampling seeded from ``gen``)."""
+    def move(motion: Tensor, k: int, gen: torch.Generator) -> Tensor:
+        z = prior.flows.sample(k, len(motion), gen)
+        return prior.vq.transfer(motion, k, z, seed=int(torch.randint(2**31, (1,), generator=gen)))
+    return move
+
+
 @torch.no_grad()
 def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, min_samples: int = 5,
-                    batch_size: int = 64, diversity_pairs: int = 300) -> dict[str, float]:
-    """One replication of the paper's metrics for a HabitPriorModule on real crops ``items``."""
+                    batch_size: int = 64, diversity_pairs: int = 300, mode: str = "transfer",
+                    move: Callable[[Tensor, int, torch.Generator], Tensor] | None = None) -> dict[str, float]:
+    """One replication of the paper's metrics for a HabitPriorModule on real crops ``items``.
+
+    ``mode="transfer"`` (the paper's): every crop of another category is transferred onto each category c
+    with at least ``min_samples`` real crops; FID, Intra-FID (per target category), Diversity and 1-NNA
+    of the transferred motion against c's real crops, MPJPE of the transferred motion against its source.
+    ``mode="reconstruction"`` (a diagnostic): each crop through the VQ-VAE onto its own category against
+    the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
+    ``move(motion, k, gen)``: the transfer scored (default: the prior's, ``prior_move``)."""
+    if mode not in MODES:
+        raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
     vq = prior.vq
+    move = move or prior_move(prior)
     cats = vq.categories
     known = [it for it in items if it["category"] in cats]
-    if len(known) < 2:
-        raise UsageError(f"the evaluation needs at least 2 validation crops of the model's categories {cats}")
-    E = evaluator.encode_motion(torch.from_numpy(np.asarray(known[0]["motion"]))[None]).shape[-1]
-    fid, intra, cross = FID(E), IntraFID(E, cats), CrossCategoryFID(E, cats, min_samples=min_samples)
-    pairs = min(diversity_pairs, len(known))
-    diversity, real_diversity, one_nna, mpjpe = Diversity(pairs, seed), Diversity(pairs, seed), OneNNA(), MPJPE()
     counts = {c: sum(it["category"] == c for it in known) for c in cats}
     targets = [k for k, c in enumerate(cats) if counts[c] >= min_samples]
+    if len(known) < 2 or (mode == "transfer" and (not targets or len(targets) == len(known))):
+        raise UsageError(f"the {mode} evaluation needs validation crops of the model's categories {cats}, "
+                         f"{min_samples} of a target category and others to transfer onto it; got {counts}")
+    E = evaluator.encode_motion(torch.from_numpy(np.asarray(known[0]["motion"]))[None]).shape[-1]
+    real_count = sum(counts[cats[k]] for k in targets) if mode == "transfer" else len(known)
+    pairs = min(diversity_pairs, real_count)
+    metrics = {"fid": FID(E), "intra_fid": IntraFID(E, cats), "diversity": Diversity(pairs, seed),
+               "real_diversity": Diversity(pairs, seed), "one_nna": OneNNA()}
+    if mode == "reconstruction":
+        metrics["cross_category_fid"] = CrossCategoryFID(E, cats, min_samples=min_samples)
+    mpjpe = MPJPE()
     gen = torch.Generator().manual_seed(seed)
     rep = vq.representation
     for part in _batches(known, batch_size):
         motion, mask, offsets = (t.to(vq.device) for t in _stack(part))
         category = torch.tensor([cats.index(it["category"]) for it in part], device=vq.device)
         real = evaluator.encode_motion(motion, mask)
-        recon = torch.empty_like(motion)
-        for k in category.unique().tolist():
-            rows = category == k
-            z = prior.flows.sample(k, int(rows.sum()), gen)
-            recon[rows] = vq.transfer(motion[rows], k, z, seed=int(torch.randint(2**31, (1,), generator=gen)))
-        fake = evaluator.encode_motion(recon, mask)
-        fid.update(real, real=True)
-        fid.update(fake, real=False)
-        intra.update(real, category, real=True)
-        intra.update(fake, category, real=False)
-        cross.update(real, category, real=True)
-        one_nna.update(real, real=True)
-        one_nna.update(fake, real=False)
-        diversity.update(fake)
-        real_diversity.update(real)
-        mpjpe.update(rep.decode(recon, offsets), rep.decode(motion, offsets), mask)
-        for k in targets:  # the downstream task: every crop of another category into category k
+        source = rep.decode(motion, offsets)
+        batches = []
+        if mode == "reconstruction":
+            recon = torch.empty_like(motion)
+            for k in category.unique().tolist():
+                rows = category == k
+                recon[rows] = move(motion[rows], k, gen)
+            batches.append(EvalBatch(real=real, gen=evaluator.encode_motion(recon, mask), category=category,
+                                     mask=mask, real_joints=source, gen_joints=rep.decode(recon, offsets)))
+        for k in targets:  # every crop of another category onto category k, against k's real crops
             rows = category != k
             if not rows.any():
                 continue
-            z = prior.flows.sample(k, int(rows.sum()), gen)
-            moved = vq.transfer(motion[rows], k, z, seed=int(torch.randint(2**31, (1,), generator=gen)))
+            moved = move(motion[rows], k, gen)
             into = torch.full((int(rows.sum()),), k, device=vq.device)
-            cross.update(evaluator.encode_motion(moved, mask[rows]), into, real=False)
-    return {"fid": float(fid.compute()), "intra_fid": float(intra.compute()["intra_fid"]),
-            "cross_category_fid": float(cross.compute()["cross_category_fid"]),
-            "diversity": float(diversity.compute()), "real_diversity": float(real_diversity.compute()),
-            "one_nna": float(one_nna.compute()), "mpjpe": float(mpjpe.compute())}
+            features = evaluator.encode_motion(moved, mask[rows])
+            if mode == "reconstruction":
+                metrics["cross_category_fid"].update(features, into, real=False)
+                continue
+            own = category == k
+            batches.append(EvalBatch(real=real[own], gen=features, category=category[own], gen_category=into,
+                                     mask=mask[rows], real_joints=source[rows],
+                                     gen_joints=rep.decode(moved, offsets[rows])))
+        if mode == "reconstruction":
+            metrics["cross_category_fid"].update(real, category, real=True)
+        for batch in batches:
+            for name, metric in metrics.items():
+                if name != "cross_category_fid":
+                    metric.eval_update(batch, real=name == "real_diversity")
+            mpjpe.update(batch.gen_joints, batch.real_joints, batch.mask)
+    out = {name: metric.compute() for name, metric in metrics.items()}
+    out = {name: float(v[name] if isinstance(v, dict) else v) for name, v in out.items()}
+    return {**out, "mpjpe": float(mpjpe.compute())}
 
 
 def paper_table(rows: dict[str, dict[str, dict]]) -> str:
@@ -133,6 +171,9 @@ class HabitEvalCallback(Callback):
 
     Args:
         evaluator: a motion evaluator checkpoint trained on the same representation (EvaluatorModule).
+        mode: ``transfer`` (the paper's metrics of transferred motion) or ``reconstruction`` (the
+            diagnostic of each crop reconstructed onto its own category); a reconstruction row is
+            labelled "<quantizer> (reconstruction)".
         replications: passes with new prior samples and codes; mean ± 95% CI.
         crop_len: frames per evaluated crop (default: data.max_len).
         crop_stride: frames between crop starts (default: crop_len, crops that do not overlap); a small
@@ -147,7 +188,9 @@ class HabitEvalCallback(Callback):
 
     def __init__(self, evaluator: str, replications: int = 5, crop_len: int | None = None,
                  crop_stride: int | None = None, min_samples: int = 5, diversity_pairs: int = 300, seed: int = 0,
-                 table: str | None = None):
+                 table: str | None = None, mode: str = "transfer"):
+        if mode not in MODES:
+            raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
         if not Path(evaluator).exists():
             raise UsageError(f"HabitEvalCallback.evaluator: no evaluator checkpoint at {evaluator}; train one with "
                              "`omg fit --config configs/mini/habit_evaluator.yaml`")
@@ -155,7 +198,7 @@ class HabitEvalCallback(Callback):
             raise UsageError("HabitEvalCallback: replications >= 1, min_samples >= 2, diversity_pairs >= 2 and "
                              f"crop_stride >= 1, got {replications}, {min_samples}, {diversity_pairs}, {crop_stride}")
         self.evaluator_path, self.replications, self.crop_len = evaluator, replications, crop_len
-        self.crop_stride = crop_stride
+        self.crop_stride, self.mode = crop_stride, mode
         self.min_samples, self.diversity_pairs, self.seed = min_samples, diversity_pairs, seed
         self.table = Path(table) if table else None
         self.evaluator: nn.Module | None = None
@@ -180,11 +223,11 @@ class HabitEvalCallback(Callback):
         items = crops(data.val_clips().samples, length, self.crop_stride)
         evaluator = self.evaluator.to(pl_module.device)
         pl_module.eval()
-        label = pl_module.vq.row_label
+        label = pl_module.vq.row_label + (" (reconstruction)" if self.mode == "reconstruction" else "")
 
         def replication(r: int) -> dict[str, float]:
             values = evaluate_habits(pl_module, evaluator, items, self.seed + r, self.min_samples,
-                                     diversity_pairs=self.diversity_pairs)
+                                     diversity_pairs=self.diversity_pairs, mode=self.mode)
             rank_zero_info(f"omg: habit evaluation replication {r + 1}/{self.replications} ({label}): "
                            + ", ".join(f"{k} {v:.4f}" for k, v in values.items()))
             return values
@@ -193,7 +236,8 @@ class HabitEvalCallback(Callback):
         for key, s in summary.items():
             pl_module.log(f"eval/{key}", s["mean"])
         settings = {"checkpoint": str(trainer.ckpt_path) if trainer.ckpt_path else None, "row": label,
-                    "evaluator": self.evaluator_path, "replications": self.replications, "crops": len(items),
+                    "evaluator": self.evaluator_path, "mode": self.mode, "replications": self.replications,
+                    "crops": len(items),
                     "crop_len": length, "crop_stride": self.crop_stride or length, "min_samples": self.min_samples,
                     "seed": self.seed}
         self._report(run_dir(trainer), label, summary, settings)
@@ -205,7 +249,7 @@ class HabitEvalCallback(Callback):
         if self.table is not None and self.table.is_file():
             rows = json.loads(self.table.read_text())
         rows[label] = {k: {"mean": v["mean"], "ci95": v["ci95"]} for k, v in summary.items()}
-        rows = {k: rows[k] for k in sorted(rows, key=lambda r: (r != "EMA", r))}  # the paper's order
+        rows = {k: rows[k] for k in sorted(rows, key=lambda r: ("(" in r, r != "EMA", r))}  # the paper's order
         table = paper_table(rows)
         if self.table is not None:
             self.table.parent.mkdir(parents=True, exist_ok=True)

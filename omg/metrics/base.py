@@ -16,7 +16,11 @@ class EvalBatch:
     """What one evaluation batch offers a metric: evaluator embeddings (N, E) of the texts and
     of the real and generated motions, category indices (N,), decoded joints (N, T, J, 3) with
     the frame mask (N, T), each row's clip labels, and MultiModality's repeated generations
-    (M, E) with their prompt ids (M,). Fields a pass does not need are None."""
+    (M, E) with their prompt ids (M,). Fields a pass does not need are None.
+
+    ``gen_category`` (N',): the categories of the generated rows where they are not the real rows'
+    (habit transfer: real motion of a category against motion transferred into it from others,
+    the two sets of different sizes); None: ``category`` labels both."""
 
     text: Tensor | None = None
     real: Tensor | None = None
@@ -28,9 +32,13 @@ class EvalBatch:
     mm: Tensor | None = None
     mm_ids: Tensor | None = None
     labels: list[dict] | None = None
+    gen_category: Tensor | None = None
 
     def motion(self, real: bool) -> Tensor | None:
         return self.real if real else self.gen
+
+    def categories(self, real: bool) -> Tensor | None:
+        return self.category if real or self.gen_category is None else self.gen_category
 
     def joints(self, real: bool) -> Tensor | None:
         return self.real_joints if real else self.gen_joints

@@ -140,8 +140,8 @@ class IntraFID(GenerationMetric, _GaussianStats):
         self._accumulate(features, labels, real)
 
     def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
-        self.update(batch.real, batch.category, real=True)
-        self.update(batch.gen, batch.category, real=False)
+        self.update(batch.real, batch.categories(True), real=True)
+        self.update(batch.gen, batch.categories(False), real=False)
 
     def compute(self) -> dict[str, Tensor]:
         per_category = torch.stack([self._frechet(g) for g in range(len(self.categories))])
