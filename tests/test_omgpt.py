@@ -158,14 +158,21 @@ def _data(path, **kw):
     return MotionDataModule(str(path), **{**args, **kw})
 
 
-def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
+def tiny_module(spec, **kw):
+    """The tiny OmniMotionModule of these tests (hash text, no EMA) on the mini human stream of whole clips."""
     from omg.lit.omgpt import OmniMotionModule
+
+    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
+                 shuffle_buffer=32, clips="whole")
+    return OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=spec, ema_decay=0,
+                            **kw)
+
+
+def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
 
     torch.manual_seed(0)
     animal_data = _data(MINI / "animal_maa/train")
-    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32,
-                                              min_len=20, num_workers=0, shuffle_buffer=32, clips="whole"),
-                              flavor="mini", config=TINY, text_encoder="hash", spec=animal_data.spec, ema_decay=0)
+    module = tiny_module(animal_data.spec)
     module.companion.start()
     batches = {"animal": next(iter(animal_data.train_dataloader())), "human": module.companion.next()}
     optimizer = torch.optim.Adam(module.model.parameters(), lr=3e-3)

@@ -17,7 +17,7 @@ from omg.lit.habit import HabitVQModule, masked_smooth_l1
 from omg.lit.omgpt import OmniMotionModule
 from test_configs import parse
 from test_habit import CATEGORIES, QUATVEL
-from test_omgpt import MINI, TINY, _data
+from test_omgpt import MINI, _data, tiny_module
 
 OMGPT_WEIGHTS = {"jrec": 1.0, "clip": 1.0, "trec": 1.0, "cons": 0.1, "cross_clip": 1.0, "ee": 100.0,
                  "translation": 1.0}
@@ -32,9 +32,7 @@ def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
     """L = Σ_d (L_jrec + 1 L_CLIP + 1 L_trec + 1 L_translation) + 0.1 L_cons + 1 L_CLIP~ + 100 L_ee, by default."""
     torch.manual_seed(0)
     animal = _data(MINI / "animal_maa/train")
-    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32,
-                                              min_len=20, num_workers=0, shuffle_buffer=32, clips="whole"),
-                              flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0)
+    module = tiny_module(animal.spec)
     assert module.weights == OMGPT_WEIGHTS
     assert {f"{k}_weight": v for k, v in OMGPT_WEIGHTS.items()}.items() <= _defaults(OmniMotionModule).items()
     module.companion.start()

@@ -212,16 +212,11 @@ class SlowAfterCtrlC(Callback):
 def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
     """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
     Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
-    from conftest import REPO
-
-    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
-    command = [sys.executable, "-m", "omg.cli", "fit", "--config", "configs/mini/pretrain.yaml",
-               f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false",
-               "--trainer.callbacks.every_n_train_steps=5", *args]
+    command = ["fit", "--config", "configs/mini/pretrain.yaml", f"--trainer.default_root_dir={root}",
+               "--trainer.enable_progress_bar=false", "--trainer.callbacks.every_n_train_steps=5", *args]
     if callbacks:
         command.append("--trainer.callbacks+=test_run_faults.SlowAfterCtrlC")
-    err = open(root.parent / f"{root.name}.err", "w")  # noqa: SIM115 (closed with the process)
-    return subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
+    return omg_process(*command, log=root.parent / f"{root.name}.err", new_session=True)
 
 
 def _wait_for(condition, process, timeout=120):
@@ -312,10 +307,12 @@ def processes(where: str | None = None, parent: int | None = None) -> list[int]:
     return found
 
 
-def omg_process(*args: str, log: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], env=env, stdout=subprocess.DEVNULL,
-                            stderr=log.open("w"))
+def omg_process(*args: str, log: Path, new_session: bool = False) -> subprocess.Popen:
+    """`python -m omg.cli ARGS` from the repository, stderr to ``log``; ``new_session``: in a process
+    group of its own, as a terminal starts it. Test modules import (callbacks named in a config)."""
+    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=log.open("w"), start_new_session=new_session)
 
 
 def finish(process: subprocess.Popen, log: Path, within: float, leftovers: str | None = None) -> str:

@@ -1102,7 +1102,6 @@ def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
     """All the bytes ``open_url`` gives; a ``pipe:`` command that fails, or runs longer than
     ``timeout`` seconds, raises ``OSError`` (with the last line it printed to stderr)."""
     if url.startswith("pipe:"):
-        import signal
         import subprocess
 
         # its own process group: on a timeout the shell and everything it started are stopped
@@ -1111,7 +1110,7 @@ def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
             try:
                 out, err = process.communicate(timeout=timeout)
             except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
+                _kill_group(process)
                 raise OSError(f"the command did not end within {timeout:g} s and was stopped") from None
         if process.returncode != 0:
             said = err.decode(errors="replace").strip().splitlines()
@@ -1159,17 +1158,22 @@ def _count_error(url: str, count: int, samples: int | None) -> ShardError | None
     return ShardError(url, "samples", f"{count} samples, the manifest says {samples}")
 
 
+def _kill_group(process) -> None:
+    """Kill a command started in a process group of its own, with everything it started, and reap it."""
+    try:
+        os.killpg(process.pid, signal.SIGKILL)
+    except ProcessLookupError:  # it ended meanwhile
+        pass
+    process.wait()
+
+
 def _abandon(stream) -> None:
     """Close a stream that will not be read to its end. A ``pipe:`` command is killed with its process
     group, not waited for: webdataset's close waits up to two hours for a command that is stalled, and
     killing only the shell would leave its commands running."""
     process = getattr(stream, "proc", None)
     if process is not None and process.poll() is None:
-        try:
-            os.killpg(process.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        process.wait()
+        _kill_group(process)
     try:
         stream.close()
     except OSError:  # the killed command's exit status: not news
