@@ -12,7 +12,7 @@ from test_habit import CATEGORIES, QUATVEL, _fit
 def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_latent(tmp_path):
     from omg.data.datamodule import ClipDataset, MotionDataModule
     from omg.lit.habit import HabitVQModule
-    from omg.tools.transfer import resolve_target, transfer
+    from omg.tools.transfer import transfer
 
     # condition_decoder: the description reaches the decoder too (without it, only the encoder before quantization)
     vq, path = _fit(lambda spec: HabitVQModule(CATEGORIES, flavor="tiny", condition_decoder=True, spec=spec),
@@ -31,7 +31,7 @@ def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_lat
     assert not np.allclose(motion["camel"], motion["horse"], atol=1e-4)  # a camel is not a horse
 
     # ... and differs only by the condition: horse's habit latent with the camel description's embedding
-    camel = resolve_target(vq, "camel", None)
+    camel = vq.species_condition("camel", None)
     k = vq.categories.index("horse")
     features = torch.from_numpy(np.asarray(dog["motion"][:64], dtype=np.float32))[None]
     with torch.no_grad():

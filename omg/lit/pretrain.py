@@ -23,6 +23,7 @@ from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, check_finite, checkpoint_each, modes_restored
 from omg.lit.ema import EMA
+from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -265,6 +266,45 @@ class MotionDiffusionModule(OmgModule):
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
         return lambda x, t: self.model(x, t, mask)
+
+    # -- the generation interface (omg.lit.generative) ------------------------------------
+    def generation_card(self) -> GenerationCard:
+        return GenerationCard(
+            family="omg", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
+            inputs=("text",) if self.text_conditional else ("unconditional",),
+            max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
+            max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
+            guidance=getattr(self, "guidance_scale", None))
+
+    def read_source(self, path, joint_map: str | None = None):
+        raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
+
+    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
+        """``num_samples`` motions per prompt (in total when unconditional), sampled ``batch_size`` at a time,
+        each batch with seed ``seed`` + its first motion's index; the weights as loaded (``load_module`` puts
+        the EMA in)."""
+        prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
+        jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
+        motions = []
+        for start in range(0, len(jobs), request.batch_size):
+            batch = jobs[start : start + request.batch_size]
+            batch_seed = request.seed + start
+            texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
+            features = self.sample(texts, [request.frames] * len(batch), steps=steps,
+                                   sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
+                                   use_ema=False, autocast=request.autocast, compile=request.compile)  # (n, T, D)
+            joints = self.representation.decode(features.float())  # (n, T, J, 3)
+            for i, (prompt, k) in enumerate(batch):
+                motions.append(GeneratedMotion(
+                    features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
+                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, "batch_seed": batch_seed}))
+        return motions
+
+    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
+        return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
+                "sampler": request.sampler or "ddim",
+                "guidance_scale": (request.guidance if request.guidance is not None else self.guidance_scale)
+                if request.prompts else None, "batch_size": request.batch_size}
 
 
 def autocasting(denoise: Denoiser, device_type: str, dtype: torch.dtype) -> Denoiser:

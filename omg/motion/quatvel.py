@@ -55,10 +55,16 @@ class QuatVel(Representation):
         """Positions of frames 0 .. T'-1: FK of the quaternions from a root trajectory that
         starts at ``root_start`` and moves by the integrated root velocity (row t moves the
         root from frame t to t + 1, so frame t's root is the sum of rows 0 .. t-1)."""
+        quats, root = self.rotations_and_root(features, root_start)
+        return self.skeleton.forward_kinematics(quats, root, fk_offsets(self.skeleton, offsets, features))
+
+    def rotations_and_root(self, features: torch.Tensor, root_start: torch.Tensor | None = None
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., T', J * 7) features -> unit local quaternions (..., T', J, 4) and root positions (..., T', 3)."""
         J = self.skeleton.num_joints
         quats = quat_normalize(features[..., : J * 4].unflatten(-1, (J, 4)))  # (..., T', J, 4)
         root_velocity = features[..., J * 4 : J * 4 + 3]  # (..., T', 3) joint 0 comes first
         root = torch.cumsum(F.pad(root_velocity[..., :-1, :], (0, 0, 1, 0)), dim=-2)
         if root_start is not None:
             root = root + torch.as_tensor(root_start, dtype=features.dtype, device=features.device).unsqueeze(-2)
-        return self.skeleton.forward_kinematics(quats, root, fk_offsets(self.skeleton, offsets, features))
+        return quats, root

@@ -17,6 +17,15 @@ import torch
 
 from omg.errors import UsageError
 from omg.files import atomic_write, check_output_dir, npy_bytes, read_text, write_json
+from omg.lit.generative import (
+    MAX_SECONDS,
+    GeneratedMotion,
+    GenerationCard,
+    GenerationRequest,
+    GenerativeModule,
+    card_inputs,
+    check_request,
+)
 from omg.registry import SAMPLERS
 from omg.retarget import read_rig
 from omg.tools.args import FiniteFloat, PositiveInt, Seed, number_type, run
@@ -24,7 +33,6 @@ from omg.tools.common import removing_created
 from omg.tools.export import OutputFormat
 
 AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
-MAX_SECONDS = 60.0
 MAX_PREVIEW = 6
 Seconds = number_type("Seconds", float, [(">", 0.0), ("<=", MAX_SECONDS)],
                       f"a number of seconds in (0, {MAX_SECONDS:g}]")
@@ -38,8 +46,8 @@ def generate(
     unconditional: bool = False,
     num_samples: PositiveInt = 4,
     length: Seconds = 6.0,
-    steps: PositiveInt = 200,
-    sampler: str = "ddim",
+    steps: PositiveInt | None = None,
+    sampler: str | None = None,
     guidance: FiniteFloat | None = None,
     seed: Seed = 0,
     batch_size: PositiveInt = 32,
@@ -59,10 +67,12 @@ def generate(
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
-    """Generate motions from a trained checkpoint.
+    """Generate motions from a trained checkpoint of any family.
 
     Writes per motion its features, joint positions and a BVH file, a preview.gif of the first
-    motions and generation.json with every setting (the command reproduces the result).
+    motions and generation.json with every setting (the command reproduces the result). What a
+    checkpoint generates from (prompts, nothing, a source motion, a species) is its generation
+    card's (``omg.lit.generative``); an option it does not take is one line before sampling.
 
     Args:
         prompts: text prompts (needs a text-conditioned checkpoint)
@@ -71,8 +81,8 @@ def generate(
         unconditional: sample the pretrained motion prior without text
         num_samples: motions per prompt (or in total when unconditional)
         length: seconds per motion
-        steps: sampling steps (at most the checkpoint's diffusion steps; OMG: 200 DDIM steps)
-        sampler: a registered sampler: ddim (OMG's), dpmpp (DPM-Solver++(2M): ~20 steps), euler
+        steps: sampling steps (at most the checkpoint's diffusion steps; default OMG's 200 DDIM steps)
+        sampler: a registered sampler: ddim (OMG's, the default), dpmpp (DPM-Solver++(2M): ~20 steps), euler
         guidance: classifier-free guidance scale s (default: the checkpoint's, OMG: 4.5)
         seed: random seed
         batch_size: motions sampled at once
@@ -87,13 +97,14 @@ def generate(
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
         compile: run the network through torch.compile (a one-off compilation, then faster steps)
-        animal: OmniMotionGPT checkpoints: the animal (a species the checkpoint knows); it wins over the animal
-            the prompt names, and the prompt is made about it (default: the one the prompt names)
-        from_motion: OmniMotionGPT: the human motion to turn into the animal's (BVH, ASF/AMC or DeepMimic
-            file retargeted to smpl22, a .joints.npy (T, 22, 3), or a features .npy in smpl22 maa or
-            humanml3d263); one motion per prompt
-        human_ckpt: OmniMotionGPT: an OMG ControlNet checkpoint that generates the human motion from the
-            prompt made about "a person" (without either, the checkpoint's own human source)
+        animal: checkpoints that take a species (OmniMotionGPT, habit transfer): the animal; it wins over the
+            animal the prompt names, and the prompt is made about it (default: the one the prompt names)
+        from_motion: checkpoints that take a source motion: the motion file (OmniMotionGPT: the human motion to
+            turn into the animal's, a BVH, ASF/AMC or DeepMimic file retargeted to smpl22, a .joints.npy
+            (T, 22, 3), or a features .npy in smpl22 maa or humanml3d263; one motion per prompt)
+        human_ckpt: checkpoints whose source motion a second model may make (OmniMotionGPT): a text-to-motion
+            checkpoint (OMG ControlNet) that generates the human motion from the prompt made about "a person"
+            (without either, the checkpoint's own human source)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
@@ -101,107 +112,138 @@ def generate(
         The settings written to generation.json.
     """
     from omg.lit.checkpoint import load_module
-    from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
+    from omg.lit.pretrain import PretrainModule
 
     prompts = read_prompts(prompts or [], prompts_file)
-    if unconditional == bool(prompts):
+    if unconditional == bool(prompts) and from_motion is None:
         raise UsageError("give prompts (or --prompts_file) for text-to-motion, or --unconditional to sample the "
                          "motion prior")
-    SAMPLERS.get(sampler)  # an unknown name is one line before anything is loaded
-    device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    out = check_output_dir(out)  # every input is checked before anything is written
-    module = load_module(ckpt, default_class=PretrainModule, use_ema=ema)
-    from omg.lit.omgpt import OmniMotionModule
-
+    if sampler is not None:
+        SAMPLERS.get(sampler)  # an unknown name is one line before anything is loaded
     if joint_map is not None and to_rig is None:
         raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+    if from_motion is not None and human_ckpt is not None:
+        raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
+    device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    out = check_output_dir(out)  # every input is checked before anything is written
+    module = generative_module(ckpt, load_module(ckpt, default_class=PretrainModule, use_ema=ema))
+    card = module.generation_card()
+    request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps), num_samples=num_samples,
+                                seed=seed, steps=steps, sampler=sampler, guidance=guidance, species=animal,
+                                batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile)
+    if from_motion is not None:
+        request.source = _source(module, card, ckpt, from_motion)
+    if human_ckpt is not None:
+        if not card.source_generator:
+            raise UsageError(f"--human_ckpt: {ckpt} ({type(module).__name__}) takes no second checkpoint for its "
+                             "source motion")
+        request.source_module = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
+    check_request(card, request, f"{ckpt} ({type(module).__name__})")
+    rig = read_rig(to_rig, card.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
+    module = module.to(device).eval()
+    motions = module.generate(request)
+    check_finite_motions(motions, ckpt, f" or --guidance {guidance:g} too large" if prompts and guidance is not None
+                         else "")
+    settings = {"command": command, "ckpt": str(ckpt), "module": type(module).__name__, "family": card.family,
+                "prompts": prompts, "num_samples": num_samples, "length_s": length, "frames": request.frames,
+                "fps": card.fps, "seed": seed, "ema": ema, "autocast": autocast, "compile": compile,
+                "from_motion": None if from_motion is None else str(from_motion),
+                "human_ckpt": None if human_ckpt is None else str(human_ckpt), "clean_contacts": clean_contacts,
+                "to_rig": None if to_rig is None else str(to_rig), "joint_map": joint_map, "format": format,
+                **module.generation_settings(request),
+                "representation": card.representation, "skeleton": card.skeleton}
+    write_generation(out, motions, card, settings, rig=rig, joint_map=joint_map, format=format,
+                     clean_contacts=clean_contacts, preview=preview, preview_count=preview_count)
+    frames = settings["frames"]
+    print(f"wrote {len(motions)} motions of {frames} frames ({frames / card.fps:g} s at {card.fps:g} fps) to {out}")
+    return settings
 
-    if isinstance(module, OmniMotionModule):
-        from omg.tools.animal import generate_animal
 
-        return generate_animal(module, prompts, ckpt=ckpt, animal=animal, from_motion=from_motion,
-                               human_ckpt=human_ckpt, num_samples=num_samples, length=length, steps=steps,
-                               sampler=sampler, guidance=guidance, seed=seed, preview=preview,
-                               preview_count=preview_count, device=device, out=out, command=command,
-                               to_rig=to_rig, joint_map=joint_map, format=format)
-    if animal is not None or from_motion is not None or human_ckpt is not None:
-        raise UsageError(f"--animal, --from_motion and --human_ckpt need an OmniMotionGPT checkpoint; {ckpt} holds a "
-                         f"{type(module).__name__}")
-    if not isinstance(module, MotionDiffusionModule):
+def generative_module(ckpt: Path, module) -> GenerativeModule:
+    """``module`` when it implements the generation interface, else one line naming what ``ckpt`` holds."""
+    if not isinstance(module, GenerativeModule):
         from omg.lit.checkpoint import class_path
 
-        raise UsageError(f"{ckpt} holds a {class_path(type(module))} checkpoint, not a "
-                         f"{class_path(MotionDiffusionModule)}")
-    if prompts and not module.text_conditional:
-        raise UsageError(f"{ckpt} is an unconditional pretraining checkpoint: pass --unconditional, "
-                         "or a text-conditioned (ControlNet) checkpoint for prompts")
-    fps = module.spec.fps
-    frames = round(length * fps)
-    if frames < 2:
-        raise UsageError(f"--length must be in (0, {MAX_SECONDS:g}] seconds and give at least 2 frames at {fps} fps, "
-                         f"got {length}")
-    if steps > module.diffusion.num_timesteps:
-        raise UsageError(f"--steps must be in 1..{module.diffusion.num_timesteps} (the checkpoint's diffusion steps), "
-                         f"got {steps}")
-    rig = read_rig(to_rig, module.spec.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
-    module = module.to(device).eval()
+        raise UsageError(f"{ckpt} holds a {class_path(type(module))} checkpoint, which generates no motion")
+    return module
 
-    # one job per motion: (prompt or None, sample index); batched in order
-    jobs = [(p, k) for p in (prompts or [None]) for k in range(num_samples)]
-    settings = {
-        "command": command,
-        "ckpt": str(ckpt),
-        "module": type(module).__name__,
-        "unconditional": not prompts,
-        "prompts": prompts,
-        "num_samples": num_samples,
-        "length_s": length,
-        "frames": frames,
-        "fps": fps,
-        "steps": steps,
-        "sampler": sampler,
-        "autocast": autocast,
-        "compile": compile,
-        "guidance_scale": (guidance if guidance is not None else module.guidance_scale) if prompts
-        else None,
-        "seed": seed,
-        "batch_size": batch_size,
-        "ema": ema,
-        "clean_contacts": clean_contacts,
-        "to_rig": str(to_rig) if to_rig is not None else None,
-        "joint_map": joint_map,
-        "format": format,
-        "representation": module.spec.representation,
-        "skeleton": module.spec.skeleton,
-    }
+
+def _source(module: GenerativeModule, card: GenerationCard, ckpt: Path, path: Path):
+    if "motion" not in card.inputs:
+        raise UsageError(f"--from_motion: {ckpt} ({type(module).__name__}) does not generate from a source motion; "
+                         f"it takes {card_inputs(card)}")
+    return module.read_source(path)
+
+
+def check_finite_motions(motions: list[GeneratedMotion], ckpt: Path, hint: str = "") -> None:
+    """One line when a model produced NaN or inf motions (a diverged checkpoint), before anything is written."""
+    if not all(np.isfinite(m.features).all() and np.isfinite(m.joints).all() for m in motions):
+        raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt}){hint}")
+
+
+def write_generation(out: Path, motions: list[GeneratedMotion], card: GenerationCard, settings: dict, *,
+                     names: list[str] | None = None, settings_file: str = "generation.json", rig=None,
+                     joint_map: str | None = None, format: str = "bvh", clean_contacts: bool = False,
+                     preview: bool = True, preview_count: int = MAX_PREVIEW) -> dict:
+    """Write the motions of one generation and its settings: the one writer of every family and command.
+
+    Per motion (``names``, default ``sample_NNN``): ``.features.npy`` (T, D), ``.joints.npy`` (T, J, 3), and
+    ``.bvh`` (or ``.glb``): the model's rotations as they are when it makes them, else rotations solved by
+    IK; on ``rig`` when given, with planted feet pinned under ``clean_contacts`` (both from the joints).
+    Companion motions (a human source, a transfer's source) as ``.joints.npy``; ``preview.gif`` with the
+    first ``preview_count`` motions (companions with a title beside theirs); ``settings_file`` with each
+    motion's record under ``samples``. A failure leaves no new file: a folder it created is removed, one
+    that existed keeps exactly the files it had."""
+    from omg.export import export_motion, model_motion
+    from omg.io.bvh import write_bvh
+    from omg.io.gltf import write_glb
+    from omg.skeleton import get_skeleton
+
+    skeleton, fps = get_skeleton(card.skeleton), card.fps
     existing = set(out.iterdir()) if out.is_dir() else set()
     try:
         with removing_created(out):
             out.mkdir(parents=True, exist_ok=True)
-            settings["samples"], previews = _generate(module, prompts, jobs, frames, fps, out, steps=steps,
-                                                      sampler=sampler, autocast=AUTOCAST.get(autocast), compile=compile,
-                                                      guidance=guidance, seed=seed, batch_size=batch_size,
-                                                      clean_contacts=clean_contacts, ckpt=ckpt,
-                                                      rig=rig, joint_map=joint_map, format=format)
-            write_json(out / "generation.json", settings)
+            records, shown = [], []
+            for i, motion in enumerate(motions):
+                name = names[i] if names else f"sample_{i:03d}"
+                atomic_write(out / f"{name}.features.npy", npy_bytes(np.asarray(motion.features, np.float32)))
+                atomic_write(out / f"{name}.joints.npy", npy_bytes(np.asarray(motion.joints, np.float32)))
+                for stem, joints, _, title in motion.companions:
+                    companion = np.asarray(joints, np.float32)
+                    atomic_write(out / f"{stem.format(stem=name)}.joints.npy", npy_bytes(companion))
+                    if title is not None and i < preview_count:
+                        shown.append((joints, title))
+                if motion.rotations is not None and rig is None and not clean_contacts:  # as the model made them
+                    rotations, root, offsets = motion.rotations
+                    if format == "bvh":
+                        write_bvh(out / f"{name}.bvh", skeleton, rotations, root, fps, offsets)
+                    else:
+                        write_glb(out / f"{name}.glb", model_motion(skeleton, rotations, root, offsets, fps, name))
+                else:
+                    export_motion(out / name, motion.joints, skeleton, fps, preview=False,
+                                  clean_contacts=clean_contacts, rig=rig, joint_map=joint_map, format=format)
+                records.append({"file": name, **motion.record})
+                if i < preview_count:
+                    shown.append((motion.joints, motion.title))
+            settings["samples"] = records
+            write_json(out / settings_file, settings)
             if preview:  # the first motions side by side with their captions
                 from omg.io.render import render_gif
 
-                shown = previews[:preview_count]
-                motions, drawn = [m for m, _ in shown], module.representation.skeleton
+                drawn, drawn_skeleton = [m for m, _ in shown], skeleton
                 if rig is not None:  # the motions as written: on the rig's bones
                     from omg.retarget import onto_rig
 
-                    motions = [onto_rig(m, drawn, rig, fps, joint_map).positions() for m in motions]
-                    drawn = rig.skeleton()
-                render_gif(out / "preview.gif", motions, drawn, fps, titles=[t for _, t in shown])
+                    drawn = [onto_rig(m, skeleton, rig, fps, joint_map).positions() for m in drawn]
+                    drawn_skeleton = rig.skeleton()
+                render_gif(out / "preview.gif", drawn, drawn_skeleton, fps, titles=[t for _, t in shown])
     except Exception:  # a failed run leaves no new files in a folder that existed before it
         if out.is_dir():
             for path in set(out.iterdir()) - existing:
                 if path.is_file():
                     path.unlink(missing_ok=True)
         raise
-    print(f"wrote {len(settings['samples'])} motions of {frames} frames ({length} s at {fps} fps) to {out}")
     return settings
 
 
@@ -245,39 +287,6 @@ def resolve_device(name: str) -> torch.device:
     if device.type == "mps" and not torch.backends.mps.is_available():
         raise UsageError(f"--device {name}: MPS (Apple GPU) is not available here; use --device cpu")
     return device
-
-
-def _generate(module, prompts: list[str], jobs: list, frames: int, fps: float, out: Path, *, steps: int,
-              sampler: str, autocast: torch.dtype | None, compile: bool, guidance: float | None, seed: int,
-              batch_size: int,
-              clean_contacts: bool, ckpt: Path, rig=None, joint_map: str | None = None,
-              format: str = "bvh") -> tuple[list[dict], list[tuple[np.ndarray, str]]]:
-    """Sample the jobs batch by batch and write each motion's files; the records of the motions, and
-    the motions with their captions for the preview."""
-    from omg.export import export_motion
-
-    records, previews = [], []
-    for start in range(0, len(jobs), batch_size):
-        batch = jobs[start : start + batch_size]
-        batch_seed = seed + start
-        texts = [p for p, _ in batch] if prompts else None  # None: the unconditional motion prior
-        # (n, T, D); use_ema=False: load_module has already put the EMA weights in
-        features = module.sample(texts, [frames] * len(batch), steps=steps, sampler=sampler, guidance=guidance,
-                                 seed=batch_seed, use_ema=False, autocast=autocast, compile=compile)
-        if not torch.isfinite(features).all():
-            scale = f" or --guidance {guidance:g} too large" if prompts and guidance is not None else ""
-            raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt}){scale}")
-        joints = module.representation.decode(features.float())  # (n, T, J, 3)
-        for i, (prompt, k) in enumerate(batch):
-            name = f"sample_{len(records):03d}"
-            atomic_write(out / f"{name}.features.npy", npy_bytes(features[i].float().cpu().numpy()))
-            positions = joints[i].cpu().numpy().astype(np.float32)
-            atomic_write(out / f"{name}.joints.npy", npy_bytes(positions))
-            export_motion(out / name, positions, module.representation.skeleton, fps, preview=False,  # BVH / glb
-                          clean_contacts=clean_contacts, rig=rig, joint_map=joint_map, format=format)
-            records.append({"file": name, "prompt": prompt, "repeat": k, "batch_seed": batch_seed})
-            previews.append((positions, prompt or "unconditional"))
-    return records, previews
 
 
 def main(argv: list[str]) -> None:

@@ -1,0 +1,158 @@
+"""The one generation interface of every model family.
+
+A module that can make motion implements ``GenerativeModule``: its ``generation_card`` says
+what it generates from (text, no condition, a source motion, a species), on which skeleton, at
+what frame rate and within which frame limits, with which sampler options; ``generate`` turns a
+``GenerationRequest`` into ``GeneratedMotion``s. ``omg generate``, ``omg transfer`` and the
+server ask a module only these, never its class, and write what it returns with one writer
+(``omg.tools.generate.write_generation``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from omg.errors import UsageError
+
+Input = Literal["text", "unconditional", "motion", "species"]
+MAX_SECONDS = 60.0  # the longest motion one generation call makes
+
+
+@dataclass(frozen=True)
+class GenerationCard:
+    """What a module generates and from what; the page, the API and the CLI read their options here.
+
+    ``inputs``: "text" (prompts), "unconditional" (nothing), "motion" (a source motion file,
+    ``read_source``), "species" (a target animal); ``needs``: those every request must give.
+    ``samplers``/``max_steps``/``guidance``: a diffusion family's sampling options (the default
+    guidance scale), empty for a family without them. ``species``: the animals it knows by name;
+    ``open_species``: any other species or description is answered too (by retrieval).
+    ``source_generator``: a checkpoint may make the source motion from the prompt (OmniMotionGPT's
+    OMG → animal chain)."""
+
+    family: str
+    skeleton: str
+    representation: str
+    fps: float
+    inputs: tuple[Input, ...]
+    needs: tuple[Input, ...] = ()
+    min_frames: int = 2
+    max_frames: int = 1200
+    samplers: tuple[str, ...] = ()
+    max_steps: int = 0
+    default_steps: int = 0
+    guidance: float | None = None
+    species: tuple[str, ...] = ()
+    open_species: bool = False
+    source_generator: bool = False
+    source_fixes_length: bool = False  # a source motion sets the output's frames (a transfer)
+    deterministic_source: bool = False  # a given source motion yields one motion, whatever num_samples says
+    options: dict[str, str] = field(default_factory=dict)  # family options a request may set: name -> meaning
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
+
+
+@dataclass
+class GenerationRequest:
+    """One call's worth of motions: ``num_samples`` per prompt (or in total without prompts).
+
+    ``source``: a motion already read by the module's ``read_source``; ``source_module``: a
+    generative module that makes the source motion from each prompt. ``steps``/``sampler``/
+    ``guidance`` are None for the family's defaults."""
+
+    prompts: list[str] | None
+    frames: int
+    num_samples: int = 1
+    seed: int = 0
+    steps: int | None = None
+    sampler: str | None = None
+    guidance: float | None = None
+    species: str | None = None
+    source: Any = None
+    source_module: Any = None
+    batch_size: int = 32
+    autocast: Any = None  # a torch dtype
+    compile: bool = False
+    options: dict[str, Any] = field(default_factory=dict)  # the family's own (``GenerationCard.options``)
+
+
+@dataclass
+class GeneratedMotion:
+    """One motion as the writer takes it.
+
+    ``features`` (T, D) in the module's representation and ``joints`` (T, J, 3) metres, Y up.
+    ``rotations`` = (local quaternions (T, J, 4), root (T, 3), offsets (J, 3)) when the model makes
+    rotations: they are written to BVH as they are; else the writer solves them by IK.
+    ``companions``: other motions of this one's making, as (file stem, ``{stem}`` standing for the
+    motion's, joints (T, J', 3), skeleton name, preview title or None) — OmniMotionGPT's human
+    source, a transfer's source.
+    ``record``: what ``generation.json`` keeps about it (prompt, repeat, seeds, the animal…)."""
+
+    features: np.ndarray
+    joints: np.ndarray
+    title: str
+    record: dict[str, Any] = field(default_factory=dict)
+    rotations: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    companions: list[tuple[str, np.ndarray, str, str | None]] = field(default_factory=list)
+
+
+@runtime_checkable
+class GenerativeModule(Protocol):
+    """What ``omg generate``, ``omg transfer`` and ``omg serve`` call on a model of any family."""
+
+    def generation_card(self) -> GenerationCard: ...
+
+    def read_source(self, path: Path, joint_map: str | None = None) -> Any: ...
+
+    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]: ...
+
+    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]: ...
+
+
+def check_request(card: GenerationCard, request: GenerationRequest, what: str = "this checkpoint") -> None:
+    """A request the card can answer, or one line saying what is wrong, before anything is sampled.
+    ``what`` names the model in the message (its file and class)."""
+    given = {"text": bool(request.prompts), "motion": request.source is not None or request.source_module is not None,
+             "species": request.species is not None}
+    if given["text"] and "text" not in card.inputs and "unconditional" in card.inputs:
+        raise UsageError(f"{what} is an unconditional pretraining checkpoint: it samples without a condition; pass "
+                         "--unconditional, or a text-conditioned checkpoint for prompts")
+    for name in ("text", "motion", "species"):
+        if given[name] and name not in card.inputs:
+            raise UsageError(f"{what} does not generate from {_WHAT[name]}; it takes {card_inputs(card)}")
+    if not given["text"] and not given["motion"] and "unconditional" not in card.inputs:
+        raise UsageError(f"{what} generates from {card_inputs(card)}: give them")
+    for name in card.needs:
+        if not given[name]:
+            raise UsageError(f"{what} needs {_WHAT[name]}")
+    if request.source_module is not None:
+        if not card.source_generator:
+            raise UsageError(f"{what} takes no second checkpoint to make its source motion")
+        source = request.source_module.generation_card()
+        if "text" not in source.inputs:
+            raise UsageError(f"the source-motion checkpoint generates from {card_inputs(source)}, not from prompts")
+    if not card.min_frames <= request.frames <= card.max_frames:
+        raise UsageError(f"--length must give {card.min_frames}..{card.max_frames} frames at {card.fps:g} fps, got "
+                         f"{request.frames}")
+    if request.steps is not None and card.max_steps and not 1 <= request.steps <= card.max_steps:
+        raise UsageError(f"--steps must be in 1..{card.max_steps} (the checkpoint's diffusion steps), got "
+                         f"{request.steps}")
+    if request.sampler is not None and not card.samplers:
+        raise UsageError(f"--sampler: {what} has no sampler to choose")
+    if request.species is not None and not card.open_species and request.species not in card.species:
+        known = ", ".join(card.species) or "none (train the model first)"
+        raise UsageError(f"unknown animal {request.species!r}; this checkpoint knows: {known}")
+
+
+def card_inputs(card: GenerationCard) -> str:
+    """What a card generates from, in words."""
+    return " and ".join(_WHAT[i] for i in card.inputs if i != "unconditional") or _WHAT["unconditional"]
+
+
+_WHAT = {"text": "prompts", "unconditional": "nothing (--unconditional)", "motion": "a source motion (--from_motion)",
+         "species": "a species (--animal)"}
