@@ -469,8 +469,8 @@ SAYS = {
     "smpl22), the motion is on smal35",
     "gen-animal-on-controlnet": "{cn} (ControlNetModule) does not generate from a species (--animal); it takes "
                                 "prompts",
-    "gen-from-motion-on-controlnet": "--from_motion: {cn} (ControlNetModule) does not generate from a source motion "
-                                     "(--from_motion); it takes prompts",
+    "gen-from-motion-on-controlnet": "{cn} (ControlNetModule) does not generate from a source motion (--from_motion); "
+                                     "it takes prompts",
     "inspect-mixture-negative-weight": f"{{in}}/mix_negative.yaml: data.train[0] ({MINI_SHARDS}): 'weight' must be a "
                                        "positive number, got -1",
     "inspect-mixture-unknown-key": "{in}/mix_unknown_key.yaml: data.train[0]: unknown key 'pat'",

@@ -418,3 +418,35 @@ def test_omg_transfer_onto_a_dog_rig(habit_run, shared_motion, tmp_path):
                         to_rig=tmp_path / "dog.bvh", format="glb")
     assert (tmp_path / "glb" / "transfer.glb").stat().st_size > 0
     assert settings["glb"].endswith("transfer.glb") and settings["to_rig"] == str(tmp_path / "dog.bvh")
+
+
+def test_transfer_writes_the_model_rotations_and_omg_generate_makes_the_same_transfer(habit_run, tmp_path):
+    """The BVH holds the rotations the model made (an IK round trip would change each bone's twist), and
+    the habit prior answers `omg generate` through the one generation interface with the motion
+    `omg transfer` makes."""
+    from omg.cli import main
+    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.io.bvh import read_bvh
+    from omg.tools.transfer import transfer
+
+    vq = habit_run["vq"]
+    source = tmp_path / "dog.npy"
+    data = MotionDataModule(str(QUATVEL / "val"), verify_shards=False)
+    dog = next(s for s in ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples
+               if s["meta"]["category"] == "dog")
+    np.save(source, np.asarray(dog["motion"][:48], dtype=np.float32))
+    transfer(source, to="horse", ckpt=habit_run["vq_path"], prior_ckpt=habit_run["prior_path"], out=tmp_path / "t",
+             preview=False)
+    features = np.load(tmp_path / "t/transfer.features.npy")
+    made = torch.nn.functional.normalize(torch.from_numpy(features[:, : vq.num_joints * 4]).unflatten(-1, (-1, 4)),
+                                         dim=-1)
+    bvh = read_bvh(tmp_path / "t/transfer.bvh", scale=1.0)
+    written = torch.from_numpy(bvh.rotations[:, [bvh.names.index(n) for n in SMAL35.names]]).float()  # model order
+    agreement = (made * written).sum(-1).abs()  # |cos| of the half angle between the two rotations
+    assert agreement.min() > 0.9999, float(agreement.min())
+
+    main(["generate", "--ckpt", str(habit_run["prior_path"]), "--from_motion", str(source), "--animal", "horse",
+          "--num_samples", "1", "--no_preview", "--out", str(tmp_path / "g")])
+    np.testing.assert_array_equal(np.load(tmp_path / "g/sample_000.features.npy"), features)
+    settings = json.loads((tmp_path / "g/generation.json").read_text())
+    assert settings["family"] == "habit" and settings["category"] == "horse" and settings["habit"] == "prior sample"

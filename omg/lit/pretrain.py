@@ -271,7 +271,7 @@ class MotionDiffusionModule(OmgModule):
     def generation_card(self) -> GenerationCard:
         return GenerationCard(
             family="omg", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("text",) if self.text_conditional else ("unconditional",),
+            inputs=("text", "unconditional") if self.text_conditional else ("unconditional",),  # D_u: the prior
             max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
             guidance=getattr(self, "guidance_scale", None))

@@ -23,7 +23,6 @@ from omg.lit.generative import (
     GenerationCard,
     GenerationRequest,
     GenerativeModule,
-    card_inputs,
     check_request,
 )
 from omg.registry import SAMPLERS
@@ -131,14 +130,12 @@ def generate(
     request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps), num_samples=num_samples,
                                 seed=seed, steps=steps, sampler=sampler, guidance=guidance, species=animal,
                                 batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile)
-    if from_motion is not None:
-        request.source = _source(module, card, ckpt, from_motion)
     if human_ckpt is not None:
-        if not card.source_generator:
-            raise UsageError(f"--human_ckpt: {ckpt} ({type(module).__name__}) takes no second checkpoint for its "
-                             "source motion")
         request.source_module = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
+    request.source = from_motion  # read once the card says the model takes it
     check_request(card, request, f"{ckpt} ({type(module).__name__})")
+    if from_motion is not None:
+        request.source = module.read_source(from_motion)
     rig = read_rig(to_rig, card.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
     module = module.to(device).eval()
     motions = module.generate(request)
@@ -166,13 +163,6 @@ def generative_module(ckpt: Path, module) -> GenerativeModule:
 
         raise UsageError(f"{ckpt} holds a {class_path(type(module))} checkpoint, which generates no motion")
     return module
-
-
-def _source(module: GenerativeModule, card: GenerationCard, ckpt: Path, path: Path):
-    if "motion" not in card.inputs:
-        raise UsageError(f"--from_motion: {ckpt} ({type(module).__name__}) does not generate from a source motion; "
-                         f"it takes {card_inputs(card)}")
-    return module.read_source(path)
 
 
 def check_finite_motions(motions: list[GeneratedMotion], ckpt: Path, hint: str = "") -> None:

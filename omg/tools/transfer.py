@@ -8,7 +8,8 @@ given); its habit latent is that of the known category whose description is near
 paper's retrieval), while its own description's embedding stays the condition (the paper swaps only
 the habit latent); the output says which category and at what distance. Written to ``--out``:
 ``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3) with the target category's
-mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions; with ``--to_rig`` on that rig;
+mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions and the model's rotations as they
+are, no IK; with ``--to_rig`` on that rig;
 ``transfer.glb`` with ``--format glb``), ``source.joints.npy``,
 ``preview.gif`` (source and result side by side) and ``transfer.json`` (every setting).
 """
