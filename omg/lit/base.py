@@ -8,13 +8,14 @@ import inspect
 import math
 import time
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 
 import lightning as L
 import torch
 from torch import nn
 from torch.distributed._composable import checkpoint as checkpoint_activations
 
+from omg.lit.ema import EMA
 from omg.motion import DataSpec
 
 
@@ -83,6 +84,8 @@ class OmgModule(L.LightningModule):
 
     frozen_prefixes: tuple[str, ...] = ()
     location_hparams: tuple[str, ...] = ()
+    ema_decay: float = 0.0  # the weight EMA's decay (0: none), over ``trainable_module()``
+    ema: EMA | None = None
     lr: float
     betas: tuple[float, float]
     weight_decay: float
@@ -107,6 +110,10 @@ class OmgModule(L.LightningModule):
                                f"unexpected {unexpected[:5]}")
         return missing, unexpected
 
+    def trainable_module(self) -> nn.Module:
+        """The part of the module that training changes (its optimizer groups and its EMA)."""
+        return self
+
     def optimizer_groups(self) -> list[dict]:
         """AdamW parameter groups; by default every trainable parameter with ``weight_decay``."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
@@ -118,12 +125,39 @@ class OmgModule(L.LightningModule):
         scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(self.warmup_steps, total))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
+    # -- the weight EMA: created at fit start, updated once per optimizer step, saved and restored
+    # with the checkpoint, swapped in for sampling (``ema_weights``) --------------------------------
+    def on_fit_start(self) -> None:
+        if self.ema_decay > 0 and self.ema is None:
+            self.ema = EMA(self.trainable_module(), self.ema_decay)
+
+    def optimizer_step(self, *args, **kwargs) -> None:
+        super().optimizer_step(*args, **kwargs)
+        # Once per real optimizer step, and before checkpoint callbacks see the step (they run in
+        # on_train_batch_end). Strategies that accumulate gradients themselves (DeepSpeed) get this call
+        # on every micro-batch and step on the last one of each window: the EMA must not average over
+        # micro-batches, or its horizon would depend on the accumulation and so on the number of GPUs.
+        # Lightning offers no public "was this an accumulation step" (its fit loop's is private).
+        if self.ema is not None and not self.trainer.fit_loop._should_accumulate():
+            self.ema.update(self.trainable_module())
+
+    def ema_weights(self, use_ema: bool = True):
+        """A context in which ``trainable_module()`` holds the EMA weights (when kept and ``use_ema``)."""
+        return self.ema.swapped_in(self.trainable_module()) if use_ema and self.ema is not None else nullcontext()
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # which class to rebuild, also for checkpoints written outside LightningCLI
         checkpoint["module_class"] = f"{type(self).__module__}.{type(self).__qualname__}"
         # when it was written, which orders a run's checkpoints for `--ckpt_path last`
         # (omg.lit.checkpoint.saved_order) also after a copy that did not keep the files' mtimes
         checkpoint["saved_time"] = time.time()
+        if self.ema is not None:
+            checkpoint["ema"] = self.ema.state_dict()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if "ema" in checkpoint and self.ema_decay > 0:
+            self.ema = EMA(self.trainable_module(), self.ema_decay)
+            self.ema.load_state_dict(checkpoint["ema"])
 
     def on_train_start(self) -> None:
         start_epoch_after_restored_last_batch(self.trainer)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -35,7 +34,6 @@ from torch import Tensor
 from omg.data.paired import CompanionStream
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, check_finite, modes_restored
-from omg.lit.ema import EMA
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
 from omg.motion import Clip, DataSpec, get_representation, length_mask
@@ -236,7 +234,6 @@ class OmniMotionModule(OmgModule):
             scale = std.clamp_min(std_floor) if standardize else torch.ones_like(std)
             getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale,
                                                           1.0 / s.fps if standardize and s.fps > 0 else None)
-        self.ema: EMA | None = None
         self.human_generator = None  # an OMG ControlNet module, loaded when first needed
         self._bank: dict | None = None  # retrieval: the human validation clips and their caption features
         self._companion_state: dict | None = None
@@ -368,8 +365,7 @@ class OmniMotionModule(OmgModule):
             found = category_offsets(scan_metas(getattr(data, "train_urls", None) or data.val_urls))
             self.animals = {k: torch.tensor(v) for k, v in found.items()}
             self.hparams["animals"] = found  # kept in checkpoints: what --animal accepts
-        if self.ema_decay > 0 and self.ema is None:
-            self.ema = EMA(self.model, self.ema_decay)
+        super().on_fit_start()  # the weight EMA
 
     def human_batch(self) -> dict:
         batch = self.companion.next()
@@ -399,22 +395,13 @@ class OmniMotionModule(OmgModule):
         params = [p for p in self.model.parameters() if p.requires_grad]
         return torch.optim.Adam(params, lr=self.lr, betas=tuple(self.betas), weight_decay=self.weight_decay)
 
-    def optimizer_step(self, *args, **kwargs) -> None:
-        super().optimizer_step(*args, **kwargs)
-        if self.ema is not None and not self.trainer.fit_loop._should_accumulate():
-            self.ema.update(self.model)
-
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         super().on_save_checkpoint(checkpoint)
-        if self.ema is not None:
-            checkpoint["ema"] = self.ema.state_dict()
         if self.companion is not None and self.companion.loader is not None:
             checkpoint["human_stream"] = self.companion.state_dict()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        if "ema" in checkpoint and self.ema_decay > 0:
-            self.ema = EMA(self.model, self.ema_decay)
-            self.ema.load_state_dict(checkpoint["ema"])
+        super().on_load_checkpoint(checkpoint)
         self._companion_state = checkpoint.get("human_stream")
         hparams = checkpoint.get("hyper_parameters") or {}
         if animals := hparams.get("animals"):
@@ -432,8 +419,7 @@ class OmniMotionModule(OmgModule):
         mask = length_mask(lengths, human.shape[1], device=self.device)
         prompts = [about_animal(t, a, self.animal_names) for t, a in zip(texts, animals)]
         offsets = torch.stack([self.animal_offsets(a) for a in animals])
-        weights = self.ema.swapped_in(self.model) if (use_ema and self.ema is not None) else nullcontext()
-        with modes_restored(self), weights:
+        with modes_restored(self), self.ema_weights(use_ema):
             self.eval()
             return self.model.translate(human.to(self.device).float() * mask[..., None], human_offsets.to(self.device),
                                         mask, self.sentence(prompts), offsets)

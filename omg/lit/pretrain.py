@@ -12,7 +12,6 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from contextlib import nullcontext
 from typing import Any
 
 import numpy as np
@@ -22,7 +21,6 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, check_finite, checkpoint_each, modes_restored
-from omg.lit.ema import EMA
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
@@ -78,7 +76,6 @@ class MotionDiffusionModule(OmgModule):
         self.geometric_loss = GeometricLoss(self.representation, self.spec.fps)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
-        self.ema: EMA | None = None
         self._noise_gen: torch.Generator | None = None
         self._noise_state: Tensor | None = None  # restored from a checkpoint
         self._noise_seed: int | None = None  # a rank the checkpoint has no state for (elastic resume)
@@ -175,24 +172,8 @@ class MotionDiffusionModule(OmgModule):
     def optimizer_groups(self) -> list[dict]:
         return [{"params": [p for p in self.trainable_module().parameters() if p.requires_grad]}]
 
-    # -- EMA -----------------------------------------------------------------------------
-    def on_fit_start(self) -> None:
-        if self.ema_decay > 0 and self.ema is None:
-            self.ema = EMA(self.trainable_module(), self.ema_decay)
-
-    def optimizer_step(self, *args, **kwargs) -> None:
-        super().optimizer_step(*args, **kwargs)
-        # Once per real optimizer step, and before checkpoint callbacks see the step. Strategies
-        # that accumulate gradients themselves (DeepSpeed) get this call on every micro-batch and
-        # step on the last one of each window: the EMA must not average over micro-batches, or
-        # its horizon would depend on the accumulation and so on the number of GPUs.
-        if self.ema is not None and not self.trainer.fit_loop._should_accumulate():
-            self.ema.update(self.trainable_module())
-
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         super().on_save_checkpoint(checkpoint)
-        if self.ema is not None:
-            checkpoint["ema"] = self.ema.state_dict()
         checkpoint["noise_rng"] = self._gather_noise_states()
 
     def _gather_noise_states(self) -> Tensor:
@@ -222,9 +203,7 @@ class MotionDiffusionModule(OmgModule):
                             "rank's data stream is the %d-rank run's from the saved position", len(states), world, kept,
                             "the others draw fresh ones from (seed, step, rank)" if world > kept
                             else f"those of ranks {kept} and up are dropped", world)
-        if "ema" in checkpoint and self.ema_decay > 0:
-            self.ema = EMA(self.trainable_module(), self.ema_decay)
-            self.ema.load_state_dict(checkpoint["ema"])
+        super().on_load_checkpoint(checkpoint)
 
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
@@ -249,9 +228,7 @@ class MotionDiffusionModule(OmgModule):
             raise ValueError(f"{len(texts)} texts for {len(mask)} lengths")
         solver = SAMPLERS.get(sampler)
         gen = torch.Generator(device=self.device).manual_seed(seed)
-        trained = self.trainable_module()
-        weights = self.ema.swapped_in(trained) if (use_ema and self.ema is not None) else nullcontext()
-        with modes_restored(self), weights:
+        with modes_restored(self), self.ema_weights(use_ema):
             self.eval()
             dtype = next(self.model.parameters()).dtype
             denoise = self.denoiser(texts, mask, guidance)

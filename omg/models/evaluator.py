@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omg.errors import UsageError
+from omg.models.positions import sinusoidal_positions
 from omg.motion import DataSpec
 from omg.text import TextEncoder, build_text_encoder
 
@@ -68,16 +69,6 @@ FLAVORS = {
     "base": EvaluatorConfig("base", d_model=256, n_layers=4, text_layers=1, n_heads=4, embed_dim=256),
     "large": EvaluatorConfig("large", d_model=512, n_layers=6, text_layers=2, n_heads=8, embed_dim=512),
 }
-
-
-def sinusoidal_positions(length: int, dim: int, device: torch.device | None = None) -> Tensor:
-    """(length, dim) fixed sin/cos position features: any clip length works."""
-    pos = torch.arange(length, device=device, dtype=torch.float32)[:, None]
-    freq = torch.exp(torch.arange(0, dim, 2, device=device, dtype=torch.float32) * (-math.log(10000.0) / dim))
-    out = torch.zeros(length, dim, device=device)
-    out[:, 0::2] = torch.sin(pos * freq)
-    out[:, 1::2] = torch.cos(pos * freq[: dim // 2])
-    return out
 
 
 class Block(nn.Module):

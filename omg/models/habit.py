@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omg.errors import UsageError
+from omg.models.positions import sinusoidal_positions
 
 QUANTIZERS = ("soft", "nearest")
 
@@ -293,15 +294,6 @@ class MotionVQVAE(nn.Module):
 # ----------------------------------------------------------------------------- habit encoder
 
 
-def sinusoidal(length: int, dim: int, device: torch.device) -> Tensor:  # -> (length, dim)
-    position = torch.arange(length, device=device, dtype=torch.float32)[:, None]
-    freq = torch.exp(torch.arange(0, dim, 2, device=device, dtype=torch.float32) * (-math.log(10000.0) / dim))
-    table = torch.zeros(length, dim, device=device)
-    table[:, 0::2] = torch.sin(position * freq)
-    table[:, 1::2] = torch.cos(position * freq[: dim // 2])
-    return table
-
-
 class HabitEncoder(nn.Module):
     """q(z | m) = N(mu, diag sigma²): a transformer over the motion frames with a summary token."""
 
@@ -318,7 +310,7 @@ class HabitEncoder(nn.Module):
     def forward(self, motion: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
         """(B, T, D) normalised motion, (B, T) bool -> mu (B, Z), log sigma (B, Z)."""
         B, T, _ = motion.shape
-        h = self.inp(motion) + sinusoidal(T, self.inp.out_features, motion.device)[None]
+        h = self.inp(motion) + sinusoidal_positions(T, self.inp.out_features, motion.device)[None]
         h = torch.cat([self.summary.expand(B, -1, -1), h], dim=1)  # (B, 1 + T, W)
         pad = torch.cat([torch.zeros(B, 1, dtype=torch.bool, device=mask.device), ~mask.bool()], dim=1)
         h = self.blocks(h, src_key_padding_mask=pad)

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from omg.errors import UsageError
+from omg.models.positions import sinusoidal_positions
 from omg.motion import Representation
 from omg.rotations import matrix_to_6d, sixd_to_matrix
 from omg.skeleton import Skeleton
@@ -127,16 +128,6 @@ def transformer(width: int, heads: int, layers: int, dropout: float) -> nn.Trans
     return nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
 
 
-def sinusoid(length: int, width: int, device=None) -> Tensor:
-    """(length, width) sinusoidal position codes."""
-    pos = torch.arange(length, device=device, dtype=torch.float32)[:, None]
-    freq = torch.exp(torch.arange(0, width, 2, device=device, dtype=torch.float32) * (-math.log(10000.0) / width))
-    out = torch.zeros(length, width, device=device)
-    out[:, 0::2] = torch.sin(pos * freq)
-    out[:, 1::2] = torch.cos(pos * freq[: width // 2])
-    return out
-
-
 def pooled_mask(mask: Tensor, pool: int) -> Tensor:
     """(B, T) real frames -> (B, ceil(T / pool)) latent frames holding at least one real frame."""
     T = mask.shape[1]
@@ -181,7 +172,7 @@ class TemporalTokens(nn.Module):
 
     def forward(self, x: Tensor, mask: Tensor) -> Tensor:  # (B, T, J + 1, C_in), (B, T) -> (B, T, J + 1, C_out)
         h = self.embed(x.flatten(2))  # (B, T, C_t)
-        h = h + sinusoid(h.shape[1], h.shape[2], h.device).to(h.dtype)
+        h = h + sinusoidal_positions(h.shape[1], h.shape[2], h.device).to(h.dtype)
         h = self.blocks(h, src_key_padding_mask=~mask)
         return self.out(h).unflatten(-1, (self.tokens, self.out_dim))
 
@@ -305,7 +296,7 @@ class LatentTextDecoder(nn.Module):
         h = self.embed(z.flatten(2))  # (B, L, W)
         if self.shift:  # frame t sees C and Z_<t only
             h = torch.cat([c, h[:, :-1]], 1)
-        h = h + sinusoid(h.shape[1], h.shape[2], h.device).to(h.dtype)
+        h = h + sinusoidal_positions(h.shape[1], h.shape[2], h.device).to(h.dtype)
         causal = nn.Transformer.generate_square_subsequent_mask(h.shape[1], device=h.device, dtype=torch.bool)
         h = self.blocks(h, c, tgt_mask=causal, tgt_is_causal=True,
                         tgt_key_padding_mask=~mask)
