@@ -7,7 +7,7 @@ from __future__ import annotations
 import inspect
 import math
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, nullcontext
 
 import lightning as L
@@ -79,7 +79,8 @@ class OmgModule(L.LightningModule):
     inert and self-contained (``omg.lit.checkpoint.load_module`` drops them; ``--ckpt_path`` takes
     them from the run's config). They give
     their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
-    and ``warmup_steps``; the schedule is linear warm-up then cosine decay over the run.
+    and ``warmup_steps``; ``make_optimizer`` (AdamW) and ``lr_factor`` (linear warm-up then cosine
+    decay over the run) are the hooks of a family whose paper says otherwise.
     """
 
     frozen_prefixes: tuple[str, ...] = ()
@@ -115,14 +116,24 @@ class OmgModule(L.LightningModule):
         return self
 
     def optimizer_groups(self) -> list[dict]:
-        """AdamW parameter groups; by default every trainable parameter with ``weight_decay``."""
+        """The optimizer's parameter groups; by default every trainable parameter with ``weight_decay``."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
+    def make_optimizer(self, groups: list[dict]) -> torch.optim.Optimizer:
+        """The optimizer over ``groups``: AdamW with ``lr``, ``betas`` and ``weight_decay``."""
+        return torch.optim.AdamW(groups, lr=self.lr, weight_decay=self.weight_decay, betas=tuple(self.betas))
+
+    def lr_factor(self, total_steps: int) -> Callable[[int], float] | None:
+        """The LR multiplier of each optimizer step of a run of ``total_steps`` (None: the LR stays
+        ``lr``): linear warm-up over ``warmup_steps``, then cosine decay to 0."""
+        return warmup_cosine(self.warmup_steps, total_steps)
+
     def configure_optimizers(self):
-        optimizer = torch.optim.AdamW(self.optimizer_groups(), lr=self.lr, weight_decay=self.weight_decay,
-                                      betas=tuple(self.betas))
-        total = int(self.trainer.estimated_stepping_batches)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(self.warmup_steps, total))
+        optimizer = self.make_optimizer(self.optimizer_groups())
+        factor = self.lr_factor(int(self.trainer.estimated_stepping_batches))
+        if factor is None:
+            return optimizer
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     # -- the weight EMA: created at fit start, updated once per optimizer step, saved and restored

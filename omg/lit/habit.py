@@ -238,18 +238,15 @@ class HabitVQModule(OmgModule):
     def test_step(self, batch: dict, batch_idx: int) -> None:
         self.validation_step(batch, batch_idx, stage="test")
 
-    def configure_optimizers(self):
-        optimizer = torch.optim.AdamW(self.optimizer_groups(), lr=self.lr, weight_decay=self.weight_decay,
-                                      betas=tuple(self.betas))
-        total = int(self.trainer.estimated_stepping_batches)
-        after = step_lr(self.lr, self.lr_after, self.lr_switch)(total)
-        warmup = self.warmup_steps
+    def lr_factor(self, total_steps: int):
+        """The paper's step schedule (``lr``, then ``lr_after`` from ``lr_switch`` of the run), after a linear
+        warm-up over ``warmup_steps``."""
+        after, warmup = step_lr(self.lr, self.lr_after, self.lr_switch)(total_steps), self.warmup_steps
 
         def factor(step: int) -> float:
             return after(step) * min(1.0, (step + 1) / warmup) if warmup else after(step)
 
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        return factor
 
     # -- transfer --------------------------------------------------------------------------
     @torch.no_grad()

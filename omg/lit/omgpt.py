@@ -389,11 +389,13 @@ class OmniMotionModule(OmgModule):
     def test_step(self, batch: dict, batch_idx: int) -> None:
         self.validation_step(batch, batch_idx, stage="test")
 
-    def configure_optimizers(self):
-        if self.schedule == "cosine":
-            return super().configure_optimizers()
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        return torch.optim.Adam(params, lr=self.lr, betas=tuple(self.betas), weight_decay=self.weight_decay)
+    def make_optimizer(self, groups: list[dict]) -> torch.optim.Optimizer:
+        if self.schedule == "cosine":  # omg's variant: AdamW, warm-up and cosine decay
+            return super().make_optimizer(groups)
+        return torch.optim.Adam(groups, lr=self.lr, betas=tuple(self.betas), weight_decay=self.weight_decay)
+
+    def lr_factor(self, total_steps: int):
+        return super().lr_factor(total_steps) if self.schedule == "cosine" else None  # the paper: Adam, constant
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         super().on_save_checkpoint(checkpoint)
