@@ -31,7 +31,14 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 
 from omg.errors import UsageError
-from omg.lit.generative import GeneratedMotion, GenerationCard, GenerationRequest, GenerativeModule, check_request
+from omg.lit.generative import (
+    GeneratedMotion,
+    GenerationCard,
+    GenerationRequest,
+    GenerativeModule,
+    card_inputs,
+    check_request,
+)
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
 from omg.tools.generate import check_finite_motions, read_prompts, write_generation
@@ -242,7 +249,7 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None) -> 
 
     @app.post("/v1/generate", summary="motions from prompts (or none, for an unconditional model)")
     async def generate(body: GenerateBody):
-        model = _model(by_name, models, body.model)
+        model = _model(by_name, models, body.model, "a request body")
         card = model.card
         prompts = read_prompts(body.prompts)
         if long := [i for i, p in enumerate(prompts) if len(p) > limits.max_prompt_chars]:
@@ -367,6 +374,9 @@ def _model(by_name: dict[str, Model], candidates: list[Model], name: str | None,
     if name is not None:
         if name not in by_name:
             raise UsageError(f"unknown model {name!r}; loaded: {', '.join(by_name) or 'none'}")
+        if by_name[name] not in candidates:
+            raise UsageError(f"model {name!r} does not generate from {takes}; it takes "
+                             f"{card_inputs(by_name[name].card)}")
         return by_name[name]
     if not candidates:
         raise UsageError(f"no loaded model generates from {takes}")
