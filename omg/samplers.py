@@ -1,7 +1,8 @@
 """Samplers of an x0-predicting diffusion model, registered by name in ``omg.registry.SAMPLERS``.
 
 Every sampler has one signature: ``sampler(diffusion, denoise, shape, *, steps, generator, device,
-dtype, mask) -> x̂0 (shape)`` (and ``noise=``, x_T given instead of drawn, when a caller seeds each row), with ``denoise(x_t, t) -> x̂0`` the model (guidance included) and
+dtype, mask) -> x̂0 (shape)`` (and ``noise=``: x_T given instead of drawn, when a caller seeds each row),
+with ``denoise(x_t, t) -> x̂0`` the model (guidance included) and
 ``mask`` (B, T) keeping padded frames at zero. ``ddim`` is omg's own (``Diffusion.ddim_sample``,
 the sampler OMG reports with, 200 steps); the others are the ``diffusers`` schedulers set up with
 omg's cosine schedule (its betas) and the model's parametrisation (``prediction_type="sample"``):

@@ -382,3 +382,81 @@ def test_bad_command_lines_are_one_line(serve_ckpts, capsys):
         main(["serve", "--ckpt", str(serve_ckpts["habit"]), "--human_ckpt", str(serve_ckpts["human"])])
     assert exit_.value.code == 2
     assert "no --ckpt takes a second checkpoint" in capsys.readouterr().err
+
+
+# -- the page in a real headless browser ----------------------------------------------------
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not CHROMIUM.exists():
+        pytest.skip("the page's test needs Debian's chromium (apt-get install -y chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the page's test needs playwright (pip install "
+                                                                 "playwright; its own browsers are not used)")
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield browser
+        browser.close()
+
+
+def _canvas_colours(page) -> int:
+    """Distinct colours on the viewer's canvas (a blank one has one)."""
+    from PIL import Image
+
+    image = Image.open(io.BytesIO(page.locator("#viewer canvas").screenshot())).convert("RGB")
+    return len(set(image.resize((160, 120)).getdata()))
+
+
+def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, tmp_path):
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1200, "height": 800})
+    page = context.new_page()
+    requests, errors = [], []
+    page.on("request", lambda r: requests.append(r.url))
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
+    page.fill("#prompts", "a person walks forward\na person waves")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.drawn > 5", timeout=60_000)
+    assert page.locator(".sample").count() == 2
+    assert "a person waves" in page.locator("#samples").inner_text()
+    assert _canvas_colours(page) > 3  # the grid and two coloured skeletons
+    first = page.evaluate("window.omgViewer.frame")
+    page.wait_for_function(f"window.omgViewer.frame != {first}")
+    page.click("#play")  # pause, then scrub
+    page.locator("#scrubber").fill("10")
+    page.wait_for_function("window.omgViewer.frame == 10")
+    assert page.locator("#frame").inner_text().startswith("11 / 30")
+    with page.expect_download() as download:
+        page.locator(".sample a", has_text="BVH").first.click()
+    path = tmp_path / "dl.bvh"
+    download.value.save_as(path)
+    assert path.read_text().startswith("HIERARCHY")
+    for link in page.locator(".sample a").all()[1:4]:  # .joints.npy, .features.npy, settings JSON
+        assert httpx.get(server.url + link.get_attribute("href")).status_code == 200
+    # a bad request is one line on the page, and the page goes on
+    page.fill("#length", "500")
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert "length 500 s" in page.locator("#status").inner_text()
+    # habit transfer: the upload and the species
+    page.select_option("#model", "habit")
+    assert page.locator("#upload-box").is_visible() and page.locator("#text-box").is_hidden()
+    page.set_input_files("#upload", files=[{"name": "dog.bvh", "mimeType": "text/plain",
+                                           "buffer": _bvh(shared_motion)}])
+    page.fill("#species", "horse")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 2 && window.omgViewer.drawn > 2", timeout=60_000)
+    assert "horse" in page.locator("#samples").inner_text()
+    context.close()
+    assert not errors, errors
+    assert requests and all(u.startswith(server.url + "/") for u in requests), [u for u in requests
+                                                                                if not u.startswith(server.url)]

@@ -240,7 +240,8 @@ class MotionDiffusionModule(OmgModule):
         ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
         ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
         initial noise, or ``seeds`` (one per motion) each motion's own: drawn at its own length from its own
-        generator, so a motion does not depend on what it is sampled with. ``autocast`` (e.g. ``torch.bfloat16``) runs the network under autocast
+        generator, so a motion does not depend on what it is sampled with. ``autocast`` (e.g.
+        ``torch.bfloat16``) runs the network under autocast
         (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
         ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
         """
