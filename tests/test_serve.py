@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -366,12 +367,14 @@ def test_omg_serve_binds_localhost_and_sigterm_finishes_the_request_in_flight(se
             process.send_signal(signal.SIGTERM)
             response = flight.result()
         assert response.status_code == 200 and response.json()["motions"]
-        process.wait(60)
+        assert process.wait(60) == -signal.SIGTERM  # uvicorn re-raises it once the requests are answered
     finally:
         if process.poll() is None:
             process.kill()
     text = log.read_text()
     assert "Traceback" not in text, text
+    results = Path(re.search(r"\(results in (\S+)\)", text).group(1))
+    assert results.name.startswith("omg-serve-") and not results.exists()  # the temporary results are removed
     assert f"on http://127.0.0.1:{port}/" in text
 
 

@@ -89,7 +89,7 @@ def serve(
     """
     import uvicorn
 
-    from omg.tools.serve.app import Limits, create_app, remove_results
+    from omg.tools.serve.app import Limits, create_app
 
     if not ckpt:
         raise UsageError("give at least one --ckpt")
@@ -101,15 +101,12 @@ def serve(
     results = Path(tempfile.mkdtemp(prefix="omg-serve-")) if temporary else Path(out)
     limits = Limits(max_batch=max_batch, max_wait=max_wait, max_samples=max_samples,
                     max_upload_bytes=int(max_upload_mb * 2**20))
-    app = create_app(models, results, limits)
+    app = create_app(models, results, limits, remove_out=temporary)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     print(f"omg serve: {', '.join(m.name for m in models)} on http://{host}:{port}/ (results in {results})",
           flush=True)
-    try:  # uvicorn finishes the requests in flight on Ctrl-C / SIGTERM, then returns
-        uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=600)
-    finally:
-        if temporary:
-            remove_results(results)
+    # uvicorn finishes the requests in flight on Ctrl-C / SIGTERM, runs the app's shutdown, then re-raises the signal
+    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=600)
 
 
 def main(argv: list[str]) -> None:

@@ -196,8 +196,9 @@ class GenerateBody(BaseModel):
     species: str | None = Field(None, description="the animal (models whose card takes a species)")
 
 
-def create_app(models: list[Model], out: Path, limits: Limits | None = None) -> FastAPI:
-    """The application serving ``models``; results are written under ``out`` (one folder per result)."""
+def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False) -> FastAPI:
+    """The application serving ``models``; results are written under ``out`` (one folder per result), which
+    is removed at shutdown under ``remove_out`` (uvicorn re-raises SIGTERM after it: no later code runs)."""
     limits = limits or Limits()
     by_name = {m.name: m for m in models}
     batcher = Batcher(limits)
@@ -209,6 +210,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None) -> 
         yield  # uvicorn has answered the requests in flight when this resumes
         task.cancel()
         batcher.worker.shutdown(wait=True)
+        if remove_out:
+            shutil.rmtree(out, ignore_errors=True)
 
     app = FastAPI(title="omg serve", version="1", lifespan=lifespan,
                   description="Text-to-motion, animal motion and habit transfer from the checkpoints loaded; "
@@ -419,11 +422,6 @@ def _result_path(out: Path, result: str, name: str) -> Path | None:
 def _one_line(e: BaseException) -> str:
     text = " ".join(str(e).split()) or type(e).__name__
     return text if len(text) <= 300 else text[:297] + "..."
-
-
-def remove_results(out: Path) -> None:
-    """The results folder of a server that made it (``omg serve`` without ``--out``)."""
-    shutil.rmtree(out, ignore_errors=True)
 
 
 __all__ = ["Batcher", "GenerateBody", "Limits", "Model", "create_app"]
