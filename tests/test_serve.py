@@ -430,6 +430,8 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     page.click("#generate")
     page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.drawn > 5", timeout=60_000)
     assert page.locator(".sample").count() == 2
+    page.wait_for_timeout(400)  # a progress poll in flight does not overwrite the answer
+    assert page.locator("#status").inner_text().startswith("2 motion(s) in ")
     assert "a person waves" in page.locator("#samples").inner_text()
     assert _canvas_colours(page) > 3  # the grid and two coloured skeletons
     first = page.evaluate("window.omgViewer.frame")

@@ -81,9 +81,11 @@ async function generate() {
   $('generate').disabled = true;
   show('progress', true);
   const started = performance.now();
+  let answered = false;  // a status poll still on its way must not overwrite the answer
   const poll = setInterval(async () => {  // progress: how long, and what the sampler is busy with
     try {
       const s = await (await fetch('/v1/status')).json();
+      if (answered) return;
       const secs = ((performance.now() - started) / 1000).toFixed(1);
       setStatus(`sampling… ${secs} s (${s.sampling} motions in the sampler, ${s.queued} requests queued)`);
     } catch (e) { /* the answer comes anyway */ }
@@ -91,11 +93,13 @@ async function generate() {
   try {
     const response = await request;
     const result = await response.json();
+    answered = true;
     if (!response.ok) { setStatus(result.detail || `error ${response.status}`, true); return; }
     setStatus(`${result.motions.length} motion(s) in ${result.seconds} s` +
               (result.batched_motions > result.motions.length ? ` (sampled with ${result.batched_motions} others)` : ''));
     showResult(result);
   } catch (e) {
+    answered = true;
     setStatus(`the server did not answer: ${e}`, true);
   } finally {
     clearInterval(poll);
