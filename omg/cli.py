@@ -35,6 +35,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
                "write BVH files and rendered previews of motions (npy joint positions or features)"),
     "transfer": ("omg.tools.transfer:main",
                  "move a quadruped motion onto another species with its habits (habit VQ-VAE + flow prior)"),
+    "serve": ("omg.tools.serve:main", "a local page and HTTP API over checkpoints (generate, transfer, 3D viewer)"),
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM

@@ -112,19 +112,24 @@ class Diffusion:
         dtype: torch.dtype = torch.float32,
         mask: Tensor | None = None,
         progress: bool = False,
+        noise: Tensor | None = None,
     ) -> Tensor:
         """DDIM (Song et al. 2021) from x_{T-1} ~ N(0, I) to x̂0 over ``steps`` evenly spaced t.
 
         eta=0 is deterministic given the initial noise; eta=1 is DDPM-like ancestral sampling.
         mask (B, T) bool keeps padded frames at zero; ``denoise`` should close over the same mask
-        (e.g. ``lambda x, t: model(x, t, mask)``). Returns (shape) in ``dtype``.
+        (e.g. ``lambda x, t: model(x, t, mask)``). ``noise``: x_{T-1} itself (e.g. drawn per row from
+        its own seed) instead of a draw from ``generator``. Returns (shape) in ``dtype``.
         """
         if not 1 <= steps <= self.num_timesteps:
             raise UsageError(f"steps must be in 1..{self.num_timesteps}, got {steps}")
         if device is None and mask is not None:
             device = mask.device
         keep = None if mask is None else mask[..., None].to(device=device, dtype=dtype)  # (B, T, 1)
-        x = torch.randn(shape, generator=generator, device=device, dtype=dtype)
+        if noise is not None:
+            x = noise.to(device=device, dtype=dtype)
+        else:
+            x = torch.randn(shape, generator=generator, device=device, dtype=dtype)
         if keep is not None:
             x = x * keep
         # Evenly spaced from T-1 to 0; spacing >= 1 keeps them distinct after rounding.

@@ -1,7 +1,8 @@
 """Samplers of an x0-predicting diffusion model, registered by name in ``omg.registry.SAMPLERS``.
 
 Every sampler has one signature: ``sampler(diffusion, denoise, shape, *, steps, generator, device,
-dtype, mask) -> x̂0 (shape)``, with ``denoise(x_t, t) -> x̂0`` the model (guidance included) and
+dtype, mask) -> x̂0 (shape)`` (and ``noise=``: x_T given instead of drawn, when a caller seeds each row),
+with ``denoise(x_t, t) -> x̂0`` the model (guidance included) and
 ``mask`` (B, T) keeping padded frames at zero. ``ddim`` is omg's own (``Diffusion.ddim_sample``,
 the sampler OMG reports with, 200 steps); the others are the ``diffusers`` schedulers set up with
 omg's cosine schedule (its betas) and the model's parametrisation (``prediction_type="sample"``):
@@ -32,10 +33,11 @@ Sampler = Callable[..., Tensor]
 
 @SAMPLERS.register("ddim")
 def ddim(diffusion: Diffusion, denoise: Denoiser, shape: tuple[int, ...], *, steps: int,
-         generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None) -> Tensor:
+         generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None,
+         noise: Tensor | None = None) -> Tensor:
     """DDIM, deterministic (η = 0): omg's and OMG's reference sampler."""
     return diffusion.ddim_sample(denoise, shape, steps=steps, generator=generator, device=device, dtype=dtype,
-                                 mask=mask)
+                                 mask=mask, noise=noise)
 
 
 def diffusers_betas(diffusion: Diffusion) -> list[float]:
@@ -45,7 +47,7 @@ def diffusers_betas(diffusion: Diffusion) -> list[float]:
 
 
 def _scheduler_loop(scheduler, diffusion: Diffusion, denoise: Denoiser, shape, steps: int, generator, device,
-                    dtype: torch.dtype, mask: Tensor | None) -> Tensor:
+                    dtype: torch.dtype, mask: Tensor | None, noise: Tensor | None = None) -> Tensor:
     """The diffusers loop: scale the input to the model's x_t, let the scheduler step on x̂0."""
     if not 1 <= steps <= diffusion.num_timesteps:
         raise UsageError(f"steps must be in 1..{diffusion.num_timesteps}, got {steps}")
@@ -56,7 +58,9 @@ def _scheduler_loop(scheduler, diffusion: Diffusion, denoise: Denoiser, shape, s
     # the step index then counts up from 0: diffusers would otherwise find it by comparing device
     # tensors (a host synchronisation); no other read of a device value happens in the loop
     scheduler.set_begin_index(0)
-    noise = torch.randn(shape, generator=generator, device=device, dtype=dtype)  # the same x_T as ddim
+    if noise is None:
+        noise = torch.randn(shape, generator=generator, device=device, dtype=dtype)  # the same x_T as ddim
+    noise = noise.to(device=device, dtype=dtype)
     x = noise * scheduler.init_noise_sigma
     for t in scheduler.timesteps:
         if keep is not None:
@@ -80,9 +84,10 @@ def _make(kind: str, diffusion: Diffusion):
 
 def _diffusers_sampler(kind: str, doc: str) -> Sampler:
     def sample(diffusion: Diffusion, denoise: Denoiser, shape: tuple[int, ...], *, steps: int,
-               generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None) -> Tensor:
+               generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None,
+               noise: Tensor | None = None) -> Tensor:
         return _scheduler_loop(_make(kind, diffusion), diffusion, denoise, shape, steps, generator, device, dtype,
-                               mask)
+                               mask, noise)
 
     sample.__name__, sample.__doc__ = kind, doc
     return sample

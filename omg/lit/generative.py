@@ -52,6 +52,7 @@ class GenerationCard:
     source_fixes_length: bool = False  # a source motion sets the output's frames (a transfer)
     deterministic_source: bool = False  # a given source motion yields one motion, whatever num_samples says
     options: dict[str, str] = field(default_factory=dict)  # family options a request may set: name -> meaning
+    row_seeds: bool = False  # ``generate`` honours ``GenerationRequest.row_seeds`` (a server may batch requests)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
@@ -79,6 +80,9 @@ class GenerationRequest:
     autocast: Any = None  # a torch dtype
     compile: bool = False
     options: dict[str, Any] = field(default_factory=dict)  # the family's own (``GenerationCard.options``)
+    # one noise seed per motion (prompt-major, as ``generate`` returns them) where the card says ``row_seeds``:
+    # each motion is then the same whatever it is sampled with (a server batches requests); None: ``seed``
+    row_seeds: list[int] | None = None
 
 
 @dataclass

@@ -209,7 +209,8 @@ class MotionDiffusionModule(OmgModule):
     @torch.no_grad()
     def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
                guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
-               autocast: torch.dtype | None = None, compile: bool = False) -> Tensor:
+               autocast: torch.dtype | None = None, compile: bool = False,
+               seeds: Sequence[int] | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
         generated at its own length (frames beyond it are padding, to be ignored).
 
@@ -217,7 +218,9 @@ class MotionDiffusionModule(OmgModule):
         ``guidance`` (default: the module's); None samples the unconditional motion prior.
         ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
         ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
-        initial noise. ``autocast`` (e.g. ``torch.bfloat16``) runs the network under autocast
+        initial noise, or ``seeds`` (one per motion) each motion's own: drawn at its own length from its own
+        generator, so a motion does not depend on what it is sampled with. ``autocast`` (e.g.
+        ``torch.bfloat16``) runs the network under autocast
         (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
         ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
         """
@@ -236,8 +239,10 @@ class MotionDiffusionModule(OmgModule):
                 denoise = autocasting(denoise, self.device.type, autocast)
             if compile:
                 denoise = torch.compile(denoise)
-            x = solver(self.diffusion, denoise, (*mask.shape, self.config.input_dim), steps=steps, generator=gen,
-                       device=self.device, dtype=dtype, mask=mask)
+            shape = (*mask.shape, self.config.input_dim)
+            given = {} if seeds is None else {"noise": row_noise(seeds, mask, shape[-1], dtype)}
+            x = solver(self.diffusion, denoise, shape, steps=steps, generator=gen, device=self.device, dtype=dtype,
+                       mask=mask, **given)
         return self.denormalize(x)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
@@ -251,7 +256,7 @@ class MotionDiffusionModule(OmgModule):
             inputs=("text", "unconditional") if self.text_conditional else ("unconditional",),  # D_u: the prior
             max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
-            guidance=getattr(self, "guidance_scale", None))
+            guidance=getattr(self, "guidance_scale", None), row_seeds=True)
 
     def read_source(self, path, joint_map: str | None = None):
         raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
@@ -262,19 +267,24 @@ class MotionDiffusionModule(OmgModule):
         the EMA in)."""
         prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
         jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
+        if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
+            raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
         motions = []
         for start in range(0, len(jobs), request.batch_size):
             batch = jobs[start : start + request.batch_size]
             batch_seed = request.seed + start
+            seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
             texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
             features = self.sample(texts, [request.frames] * len(batch), steps=steps,
                                    sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
-                                   use_ema=False, autocast=request.autocast, compile=request.compile)  # (n, T, D)
+                                   use_ema=False, autocast=request.autocast, compile=request.compile,
+                                   seeds=seeds)  # (n, T, D)
             joints = self.representation.decode(features.float())  # (n, T, J, 3)
             for i, (prompt, k) in enumerate(batch):
+                seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
                 motions.append(GeneratedMotion(
                     features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
-                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, "batch_seed": batch_seed}))
+                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, **seed}))
         return motions
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
@@ -282,6 +292,16 @@ class MotionDiffusionModule(OmgModule):
                 "sampler": request.sampler or "ddim",
                 "guidance_scale": (request.guidance if request.guidance is not None else self.guidance_scale)
                 if request.prompts else None, "batch_size": request.batch_size}
+
+
+def row_noise(seeds: Sequence[int], mask: Tensor, dim: int, dtype: torch.dtype) -> Tensor:
+    """x_T (B, T, dim) with row i drawn from its own generator seeded ``seeds[i]`` over its own frames (zero
+    beyond): a row's noise depends only on its seed and length, not on the rows it is batched with."""
+    noise = torch.zeros(*mask.shape, dim, device=mask.device, dtype=dtype)
+    for i, (seed, frames) in enumerate(zip(seeds, mask.sum(dim=1).tolist())):
+        gen = torch.Generator(device=mask.device).manual_seed(int(seed))
+        noise[i, :frames] = torch.randn(frames, dim, generator=gen, device=mask.device, dtype=dtype)
+    return noise
 
 
 def autocasting(denoise: Denoiser, device_type: str, dtype: torch.dtype) -> Denoiser:

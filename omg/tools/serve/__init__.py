@@ -1,0 +1,134 @@
+"""``omg serve``: a local server with a page and an HTTP API over trained checkpoints of any family.
+
+The checkpoints are loaded once; each model's generation card (``omg.lit.generative``) tells the
+page and ``GET /v1/models`` what it takes. ``POST /v1/generate`` and ``POST /v1/transfer`` answer
+with the motions' joints and links to the files ``omg generate`` writes (``write_generation``);
+the page plays them in a three.js skeleton viewer shipped in ``static/vendor`` (nothing is fetched
+from elsewhere). See the README's "Serving" section for the routes and ``curl`` examples.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from pathlib import Path
+
+import torch
+
+from omg.errors import UsageError
+from omg.tools.args import PositiveFiniteFloat, PositiveInt, run
+from omg.tools.generate import generative_module, resolve_device
+
+
+def load_models(ckpts: list[Path], human_ckpt: Path | None, device: torch.device, ema: bool = True) -> list:
+    """Each checkpoint as a ``Model`` named by its file (``last`` by its run folder), with the
+    ``--human_ckpt`` module for the cards that take a source generator."""
+    from omg.lit.checkpoint import load_module
+    from omg.lit.pretrain import PretrainModule
+    from omg.tools.serve.app import Model
+
+    human = None
+    if human_ckpt is not None:
+        human = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
+        if "text" not in human.generation_card().inputs:
+            raise UsageError(f"--human_ckpt {human_ckpt} does not generate from prompts")
+    models, names = [], set()
+    for ckpt in ckpts:
+        module = generative_module(ckpt, load_module(ckpt, default_class=PretrainModule, use_ema=ema))
+        module = module.to(device).eval()
+        card = module.generation_card()
+        name = _name(ckpt, names)
+        names.add(name)
+        models.append(Model(name=name, ckpt=str(ckpt), module=module, card=card,
+                            source_module=human if card.source_generator else None))
+    if human is not None and not any(m.source_module is not None for m in models):
+        raise UsageError("--human_ckpt: no --ckpt takes a second checkpoint for its source motion (OmniMotionGPT)")
+    return models
+
+
+def _name(ckpt: Path, taken: set[str]) -> str:
+    path = Path(ckpt)
+    stem = path.stem if path.stem not in ("last", "model", "checkpoint") else path.parent.parent.name or path.stem
+    name, n = stem, 2
+    while name in taken:
+        name, n = f"{stem}-{n}", n + 1
+    return name
+
+
+def serve(
+    *,
+    ckpt: list[Path],
+    human_ckpt: Path | None = None,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    device: str | None = None,
+    ema: bool = True,
+    max_batch: PositiveInt = 16,
+    max_wait: PositiveFiniteFloat = 0.05,
+    max_samples: PositiveInt = 16,
+    max_upload_mb: PositiveFiniteFloat = 20.0,
+    out: Path | None = None,
+    command: str = "",
+) -> None:
+    """Serve checkpoints on a local page and HTTP API (FastAPI on uvicorn) until Ctrl-C or SIGTERM.
+
+    Args:
+        ckpt: checkpoints to load, of any family that generates motion (repeat --ckpt for several)
+        human_ckpt: a text-to-motion checkpoint (OMG ControlNet) that makes the human source motion of the
+            checkpoints that take one (OmniMotionGPT: the OMG -> animal chain)
+        host: address to bind (127.0.0.1: this machine only)
+        port: port to listen on
+        device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
+        ema: use the EMA of the weights (--no_ema: the trained weights)
+        max_batch: most motions sampled in one call (requests that arrive together are batched)
+        max_wait: seconds a request waits for others to be batched with
+        max_samples: most motions one request may ask for
+        max_upload_mb: largest upload (and request body) in MiB
+        out: folder the results are written to (default: a temporary folder removed at exit)
+        command: the command line (unused; kept for the command's record)
+    """
+    import uvicorn
+
+    from omg.tools.serve.app import Limits, create_app
+
+    if not ckpt:
+        raise UsageError("give at least one --ckpt")
+    if not 0 <= port <= 65535:
+        raise UsageError(f"--port {port}: give a port in 0..65535")
+    device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    models = load_models(ckpt, human_ckpt, device, ema)
+    temporary = out is None
+    results = Path(tempfile.mkdtemp(prefix="omg-serve-")) if temporary else Path(out)
+    limits = Limits(max_batch=max_batch, max_wait=max_wait, max_samples=max_samples,
+                    max_upload_bytes=int(max_upload_mb * 2**20))
+    app = create_app(models, results, limits, remove_out=temporary)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    print(f"omg serve: {', '.join(m.name for m in models)} on http://{host}:{port}/ (results in {results})",
+          flush=True)
+    # uvicorn finishes the requests in flight on Ctrl-C / SIGTERM, runs the app's shutdown, then re-raises the signal
+    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=600)
+
+
+def main(argv: list[str]) -> None:
+    run(serve, _repeated(argv, "--ckpt"), "omg serve")
+
+
+def _repeated(argv: list[str], flag: str) -> list[str]:
+    """``--ckpt A --ckpt B`` as jsonargparse's list ``--ckpt [A, B]`` (it would keep only the last)."""
+    values, rest, i = [], [], 0
+    while i < len(argv):
+        if argv[i] == flag and i + 1 < len(argv):
+            values.append(argv[i + 1])
+            i += 2
+        elif argv[i].startswith(flag + "="):
+            values.append(argv[i].split("=", 1)[1])
+            i += 1
+        else:
+            rest.append(argv[i])
+            i += 1
+    if not values:
+        return rest
+    import json
+
+    joined = values[0] if len(values) == 1 and values[0].lstrip().startswith("[") else json.dumps(values)
+    return [flag, joined, *rest]
