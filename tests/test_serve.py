@@ -145,7 +145,7 @@ def test_health_and_models_come_from_the_cards(client):
     models = {m["name"]: m for m in client.get("/v1/models").json()["models"]}
     assert set(models) == {"human", "animal", "habit", "pretrain"}
     human, animal, habit = models["human"], models["animal"], models["habit"]
-    assert human["card"]["inputs"] == ["text"] and human["card"]["skeleton"] == "smpl22"
+    assert human["card"]["inputs"] == ["text", "unconditional"] and human["card"]["skeleton"] == "smpl22"
     assert human["card"]["row_seeds"] and "ddim" in human["card"]["samplers"] and len(human["parents"]) == 22
     assert animal["card"]["skeleton"] == "smal35" and "dog" in animal["card"]["species"]
     assert animal["source_generator"] and len(animal["parents"]) == 35
@@ -267,7 +267,7 @@ def test_the_server_answers_while_it_samples(client, server):
     (dict(model="human", prompts=["a person walks"], num_samples=9), 400, "9 motions asked for; at most 8"),
     (dict(model="human", prompts=["a person walks"], steps=5000), 400, "steps must be in 1..1000"),
     (dict(model="human", prompts=["a person\x00walks"]), 400, "control character"),
-    (dict(model="human"), 400, "generates from prompts: give them"),
+    (dict(model="animal"), 400, "generates from prompts"),
     (dict(model="pretrain", prompts=["a person walks"]), 400, "unconditional"),
     (dict(model="animal", prompts=["a dog walks"], species="unicorn"), 400, "unknown animal 'unicorn'"),
     (dict(model="habit", prompts=["a dog walks"]), 400, "does not generate from prompts"),
