@@ -33,7 +33,7 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
                      "turn a DeepSpeed/Lightning checkpoint into one fp32 (or EMA) safetensors file"),
     "export": ("omg.tools.export:main",
                "write BVH files and rendered previews of motions (npy joint positions or features)"),
-    "transfer": ("omg.tools.transfer:main",
+    "transfer": ("omg.tools.habit:main",
                  "move a quadruped motion onto another species with its habits (habit VQ-VAE + flow prior)"),
     "serve": ("omg.tools.serve:main", "a local page and HTTP API over checkpoints (generate, transfer, 3D viewer)"),
 }

@@ -1,5 +1,6 @@
-"""Training losses: the geometric terms of the diffusion stages and the contrastive InfoNCE of
-the text–motion evaluator. The λ_t-weighted x̂0 loss belongs to the noise schedule
+"""Training losses: the geometric terms of the diffusion stages, the contrastive InfoNCE of
+the text–motion evaluator, and the masked reductions OmniMotionGPT and habit transfer train
+with. The λ_t-weighted x̂0 loss belongs to the noise schedule
 (``omg.diffusion.Diffusion.loss``)."""
 
 from __future__ import annotations
@@ -60,3 +61,22 @@ def info_nce(logits: Tensor, same: Tensor | None = None) -> Tensor:
 
 
 __all__ = ["GeometricLoss", "info_nce"]
+
+
+def masked_mse(a: Tensor, b: Tensor, mask: Tensor) -> Tensor:
+    """Mean squared error over the real entries: a, b (B, L, ...), mask (B, L)."""
+    weights = mask.reshape(*mask.shape, *([1] * (a.dim() - mask.dim()))).to(a.dtype)
+    per_entry = a[0, 0].numel()
+    return ((a - b).square() * weights).sum() / (weights.sum() * per_entry).clamp_min(1)
+
+
+def cosine_gap(a: Tensor, b: Tensor, rows: Tensor) -> Tensor:
+    """Mean of 1 − cos(a, b) over the selected rows (B,) bool."""
+    gap = 1 - F.cosine_similarity(a, b, dim=-1)
+    return (gap * rows).sum() / rows.sum().clamp_min(1)
+
+
+def masked_smooth_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Mean smooth L1 over the real frames: (B, T, F), (B, T, F), (B, T) -> ()."""
+    error = F.smooth_l1_loss(pred, target, reduction="none").mean(-1)  # (B, T)
+    return (error * mask).sum() / mask.sum().clamp_min(1)

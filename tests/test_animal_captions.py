@@ -11,7 +11,7 @@ import pytest
 
 from conftest import REPO
 from omg.errors import UsageError
-from omg.text.subjects import (
+from omg.text.omgpt import (
     about_animal,
     animal_subjects,
     animal_table,

@@ -16,7 +16,7 @@ FAMILY_CLASSES = {"PretrainModule", "ControlNetModule", "MotionDiffusionModule",
 
 
 def test_the_commands_that_generate_never_check_a_family_class():
-    for name in ("generate.py", "transfer.py"):
+    for name in ("generate.py", "habit.py"):
         tree = ast.parse((REPO / "omg/tools" / name).read_text())
         checked = {node.args[1].id for node in ast.walk(tree) if isinstance(node, ast.Call)
                    and getattr(node.func, "id", None) in ("isinstance", "issubclass")

@@ -138,7 +138,7 @@ def minilm():
 # without family words in the descriptions (tests/test_species.py has the whole list)
 @pytest.mark.parametrize(("query", "expected"), [("wolf", "fox"), ("camel", "horse"), ("moose", "deer")])
 def test_retrieval_finds_the_nearest_known_species(minilm, query, expected):
-    from omg.text.species import SpeciesBook, nearest_category
+    from omg.text.habit import SpeciesBook, nearest_category
 
     book = SpeciesBook.load()
     assert nearest_category(minilm, book.describe(query), book.descriptions(CATEGORIES))[0] == expected
@@ -148,7 +148,7 @@ def test_species_descriptions_name_no_family():
     """Retrieval must match build and gait, not a shared family word."""
     import re
 
-    from omg.text.species import SpeciesBook
+    from omg.text.habit import SpeciesBook
 
     book = SpeciesBook.load()
     cues = re.compile(r"\b(canid|felid|equid|cervid|bovid|bovine|ursid|suid|camelid|big cat|family)\b", re.I)
@@ -265,7 +265,7 @@ def test_omg_transfer_writes_a_bvh_of_a_real_dog_clip(habit_run, shared_motion, 
 
 
 def test_omg_transfer_reads_a_deepmimic_dog(habit_run, shared_motion, tmp_path):
-    from omg.tools.transfer import transfer
+    from omg.tools.habit import transfer
 
     clip = shared_motion / "quadruped" / "deepmimic_dog" / "dog3d_trot.txt"
     if not clip.is_file():
@@ -405,7 +405,7 @@ def test_omg_transfer_onto_a_dog_rig(habit_run, shared_motion, tmp_path):
     """``--to_rig``: the transfer is written onto a MANN-named dog rig (its names and offsets), as BVH and glb."""
     from conftest import DOG_RIG, rig_bvh
     from omg.io.bvh import read_bvh
-    from omg.tools.transfer import transfer
+    from omg.tools.habit import transfer
 
     (tmp_path / "dog.bvh").write_text(rig_bvh(DOG_RIG))
     clip = shared_motion / "quadruped" / "mann_dog" / "D1_007_KAN01_001.bvh"
@@ -427,7 +427,7 @@ def test_transfer_writes_the_model_rotations_and_omg_generate_makes_the_same_tra
     from omg.cli import main
     from omg.data.datamodule import ClipDataset, MotionDataModule
     from omg.io.bvh import read_bvh
-    from omg.tools.transfer import transfer
+    from omg.tools.habit import transfer
 
     vq = habit_run["vq"]
     source = tmp_path / "dog.npy"

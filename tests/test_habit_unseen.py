@@ -12,7 +12,7 @@ from test_habit import CATEGORIES, QUATVEL, _fit
 def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_latent(tmp_path):
     from omg.data.datamodule import ClipDataset, MotionDataModule
     from omg.lit.habit import HabitVQModule
-    from omg.tools.transfer import transfer
+    from omg.tools.habit import transfer
 
     # condition_decoder: the description reaches the decoder too (without it, only the encoder before quantization)
     vq, path = _fit(lambda spec: HabitVQModule(CATEGORIES, flavor="tiny", condition_decoder=True, spec=spec),

@@ -314,7 +314,7 @@ def test_the_checker_sees_lazy_relative_and_dynamic_imports():
 
 def test_the_data_tables_are_read():
     edges = {(importer, imported) for importer, imported, _, _ in all_imports()}
-    assert ("omg.cli", "omg.tools.generate") in edges and ("omg.cli", "omg.tools.transfer") in edges
+    assert ("omg.cli", "omg.tools.generate") in edges and ("omg.cli", "omg.tools.habit") in edges
     assert ("omg.callbacks.eval", "omg.metrics") in edges and ("omg.cli", "omg.data.sources") in edges
     assert REGISTRIES["DATA_SOURCES"] == ["omg.data.sources"] and "omg.samplers" in REGISTRIES["ALL"]
 

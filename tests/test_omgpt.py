@@ -17,7 +17,7 @@ from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_veloc
 from omg.motion import get_representation
 from omg.rotations import quat_normalize, quat_to_6d
 from omg.skeleton import SMAL35, SMPL22
-from omg.text.subjects import find_animal, to_animal, to_person
+from omg.text.omgpt import find_animal, to_animal, to_person
 
 MINI = REPO / "shards/mini"
 TINY = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32,
@@ -315,7 +315,8 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     from dataclasses import replace
 
     from omg.lit.checkpoint import load_module
-    from omg.lit.omgpt import generate_human, maa_from_positions
+    from omg.lit.omgpt import generate_human
+    from omg.motion.maa import maa_from_positions
 
     generator = load_module(tmp_path / "controlnet.ckpt", expect=ControlNetModule)
     generator.spec = replace(generator.spec, fps=40.0)  # as if trained on 40 fps shards
@@ -364,7 +365,7 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
     overlay = yaml.safe_load((REPO / "configs/mini/omgpt_self_eval.yaml").read_text())
     overlay["trainer"]["default_root_dir"] = str(tmp_path / "self_eval")
     for callback in overlay["trainer"]["callbacks"]:
-        assert callback["init_args"]["evaluator"]["class_path"] == "omg.lit.omgpt.OmniMotionSelfEvaluator"
+        assert callback["init_args"]["evaluator"]["class_path"] == "omg.lit.evaluator.OmniMotionSelfEvaluator"
         callback["init_args"].update({**small, "evaluator": {**callback["init_args"]["evaluator"],
                                                              "init_args": {"checkpoint": str(omgpt_ckpt)}}})
     (tmp_path / "self_eval.yaml").write_text(yaml.safe_dump(overlay))
@@ -440,7 +441,7 @@ def test_generated_motion_depends_on_the_text_and_on_the_human_motion(omgpt_ckpt
 def test_self_evaluator_embeds_text_and_motion_in_one_space(omgpt_ckpt):
     from omg.evaluation import build_evaluator
 
-    evaluator = build_evaluator({"class_path": "omg.lit.omgpt.OmniMotionSelfEvaluator",
+    evaluator = build_evaluator({"class_path": "omg.lit.evaluator.OmniMotionSelfEvaluator",
                                  "init_args": {"checkpoint": str(omgpt_ckpt)}})
     from omg.data.datamodule import MotionDataModule
 
@@ -531,7 +532,7 @@ def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
     ("a person kicks and waves with the left side", None),  # a leg word and an arm word
 ])
 def test_one_sided_limb_in_captions(caption, expected):
-    from omg.text.subjects import one_sided_limb
+    from omg.text.omgpt import one_sided_limb
 
     assert one_sided_limb(caption) == expected
 
@@ -550,9 +551,9 @@ def _swinging(skeleton, limb_end: int, T: int = 40) -> torch.Tensor:
 def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
     """A stand-in translation that swings exactly the animal limb the caption names (or, mirrored,
     the other one) is kept on every clip (on none); a left-kick human clip moves its left foot most."""
-    from omg.callbacks.ood import OTHER_SIDE, SideTransferCallback, limb_travel
+    from omg.callbacks.omgpt import OTHER_SIDE, SideTransferCallback, limb_travel
     from omg.lit.checkpoint import load_module
-    from omg.text.subjects import one_sided_limb
+    from omg.text.omgpt import one_sided_limb
 
     module = load_module(omgpt_ckpt)
     callback = SideTransferCallback(str(MINI / "human_maa/train"), animals=["dog", "horse"])

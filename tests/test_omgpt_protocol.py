@@ -38,7 +38,7 @@ def test_paper_eval_config_holds_the_papers_numbers():
         assert metrics["r_precision"] == {"pool_size": 32}
         assert metrics["diversity"] == {"num_pairs": 1024 if ood else 64}
         evaluator = args.evaluator
-        assert evaluator["class_path"] == "omg.lit.omgpt.OmniMotionSelfEvaluator"
+        assert evaluator["class_path"] == "omg.lit.evaluator.OmniMotionSelfEvaluator"
         assert evaluator["init_args"]["unit"] is name.endswith("_unit")  # the paper's raw scale, and omg's unit one
     model = cfg.model.init_args
     assert (model.retrieval_draw, model.retrieval_top_k) == ("similarity", 32)
@@ -74,7 +74,7 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
 def test_self_evaluation_reports_both_scales(omgpt_ckpt):  # noqa: F811  (the fixture imported above)
     """unit=False: the networks' own features (the paper's scale); unit=True: the same directions, unit length."""
     from omg.callbacks import EvalCallback, OODEvalCallback
-    from omg.lit.omgpt import OmniMotionSelfEvaluator
+    from omg.lit.evaluator import OmniMotionSelfEvaluator
 
     raw, unit = (OmniMotionSelfEvaluator(str(omgpt_ckpt), unit=u) for u in (False, True))
     texts = ["a dog walks forward.", "a cat jumps."]

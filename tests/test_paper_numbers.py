@@ -13,8 +13,9 @@ import yaml
 
 from conftest import REPO
 from omg.data.datamodule import MotionDataModule
-from omg.lit.habit import HabitVQModule, masked_smooth_l1
+from omg.lit.habit import HabitVQModule
 from omg.lit.omgpt import OmniMotionModule
+from omg.losses import masked_smooth_l1
 from test_configs import parse
 from test_habit import CATEGORIES, QUATVEL
 from test_omgpt import MINI, _data, tiny_module

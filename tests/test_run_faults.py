@@ -402,7 +402,7 @@ def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, t
     """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
     import threading
 
-    from omg.data.paired import CompanionStream
+    from omg.data.omgpt import CompanionStream
     from omg.errors import UsageError
 
     fifo = str(tmp_path / "fifo")

@@ -16,7 +16,7 @@ from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
 from omg.text import build_text_encoder
 from omg.text.bge import CONFIG_KEY, BgeTextEncoder
-from omg.text.species import SpeciesBook, category_distances, nearest_category, sentence_embeddings
+from omg.text.habit import SpeciesBook, category_distances, nearest_category, sentence_embeddings
 
 HOOFED = {"horse", "cow", "deer", "sheep"}
 OKAPI = ("A forest giraffid of 200 to 350 kg and 1.5 m at the shoulder, with a long neck, long legs with striped "

@@ -18,7 +18,7 @@ versioned directory (``run_dir``). In a config::
 
 from omg.callbacks.eval import EvalCallback
 from omg.callbacks.habit import HabitEvalCallback
-from omg.callbacks.ood import OODEvalCallback, SideTransferCallback
+from omg.callbacks.omgpt import OODEvalCallback, SideTransferCallback
 from omg.callbacks.render import RenderCallback
 from omg.callbacks.run import run_dir
 

@@ -9,10 +9,12 @@ R-precision top-1/2/3 in pools of ``r_precision_pool`` and MM-Dist with ``omg.me
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
@@ -142,3 +144,44 @@ def load_evaluator(path: str | Path, map_location: str | torch.device = "cpu"):
 
 
 __all__ = ["EvaluatorModule", "load_evaluator"]
+
+
+class OmniMotionSelfEvaluator(torch.nn.Module):
+    """The paper's self-evaluation: motion features E_t^a(E^a(P, S)) and text features C of an
+    OmniMotionGPT checkpoint, in the same sentence space. An ``EvalCallback`` evaluator::
+
+        evaluator: {class_path: omg.lit.evaluator.OmniMotionSelfEvaluator, init_args: {checkpoint: CKPT}}
+
+    The evaluation passes motions without their offsets: S is the mean of the known animals'
+    bone offsets. Unlike omg's contrastive evaluator it shares the generator's encoders, so it
+    rewards the generator's own view of text; report it beside the independent one.
+
+    ``unit``: both features as unit vectors (omg's default: E_t is trained on 1 − cos(E_t(Z), C), so
+    its output's length is arbitrary and Euclidean distances would mostly measure it), or as the
+    networks give them (``false``: the paper's scale, where Diversity, MModality, MM-Dist and FID
+    are comparable with its tables). The two scales differ most in Diversity and MModality.
+    """
+
+    def __init__(self, checkpoint: str, unit: bool = True):
+        super().__init__()
+        self.unit = unit
+        from omg.lit.checkpoint import load_module
+        from omg.lit.omgpt import OmniMotionModule
+
+        self.module = load_module(checkpoint, expect=OmniMotionModule)  # EMA weights where kept
+        self.spec = self.module.spec
+        self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
+
+    def _scaled(self, features: Tensor) -> Tensor:
+        return F.normalize(features, dim=-1) if self.unit else features
+
+    @torch.no_grad()
+    def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
+        return self._scaled(self.module.sentence(list(texts)).to(self.offsets.device))
+
+    @torch.no_grad()
+    def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
+        animal = self.module.model.animal
+        offsets = self.offsets.expand(len(motion), -1, -1)
+        z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
+        return self._scaled(animal["text_encoder"](z, z_mask))

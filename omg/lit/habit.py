@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, check_finite
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
+from omg.losses import masked_smooth_l1
 from omg.models.habit import CategoryFlows, CategoryHabitEncoders, HabitConfig, MotionVQVAE, Quantizer, gaussian_kl
 from omg.motion import DataSpec, get_representation
 from omg.skeleton import get_skeleton
@@ -39,12 +39,6 @@ def step_lr(lr: float, lr_after: float, switch_fraction: float):
         return lambda step: 1.0 if step < switch else lr_after / lr
 
     return schedule
-
-
-def masked_smooth_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """Mean smooth L1 over the real frames: (B, T, F), (B, T, F), (B, T) -> ()."""
-    error = F.smooth_l1_loss(pred, target, reduction="none").mean(-1)  # (B, T)
-    return (error * mask).sum() / mask.sum().clamp_min(1)
 
 
 class HabitVQModule(OmgModule):
@@ -67,7 +61,7 @@ class HabitVQModule(OmgModule):
         kl_weight: weight of KL(q(z | m) || N(0, I)) on the habit posterior.
         text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
             (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
-        species_file: a YAML of extra or overriding species descriptions (omg.text.species).
+        species_file: a YAML of extra or overriding species descriptions (omg.text.habit).
         descriptions, category_embeddings: filled in when the module is first built (the descriptions
             and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
             needed to transfer to a known category).
@@ -304,7 +298,7 @@ class HabitVQModule(OmgModule):
         category whose description is nearest ``to``'s (a species of the book, or a description of 3 words or
         more); an unseen species keeps its own description's embedding as the condition (``embedding``: the
         paper swaps only the habit latent)."""
-        from omg.text.species import SpeciesBook, nearest_category, sentence_embeddings, species_key
+        from omg.text.habit import SpeciesBook, nearest_category, sentence_embeddings, species_key
 
         if not to or not to.strip():
             raise UsageError("--to is empty: give a species name (e.g. horse) or a description of the animal")
@@ -417,7 +411,7 @@ def embed_categories(categories: list[str], text_encoder: str, text_encoder_args
                      species_file: str | None) -> tuple[dict[str, str], list[list[float]]]:
     """({category: description}, their sentence embeddings as lists) by the registered text encoder."""
     from omg.text.base import build_text_encoder
-    from omg.text.species import SpeciesBook, sentence_embeddings
+    from omg.text.habit import SpeciesBook, sentence_embeddings
 
     book = SpeciesBook.load(species_file)
     descriptions = {name: book.description(name) for name in categories}

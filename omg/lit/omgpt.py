@@ -1,7 +1,7 @@
 """OmniMotionGPT: joint human + animal motion autoencoders aligned through text space.
 
 Trained end to end on two streams at once (losses §3.1-3.2, implementation details §5): the animal
-set is the run's ``data:``, the human set the model's ``human_data:`` (``omg.data.paired.CompanionStream``).
+set is the run's ``data:``, the human set the model's ``human_data:`` (``omg.data.omgpt.CompanionStream``).
 Per domain d (§3.1):
 
     L_ae^d = L_jrec (‖P − D(E(P, S), S)‖²) + w_clip · (1 − cos(E_t(Z), C)) + w_trec · ‖P − D(D_t(C, Z), S)‖²
@@ -20,7 +20,6 @@ displacement in m/s), the latent and velocity errors as they come. Inference
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -31,55 +30,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from omg.data.paired import CompanionStream
+from omg.data.omgpt import CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, check_finite, modes_restored
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
+from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
-from omg.motion import Clip, DataSpec, get_representation, length_mask
+from omg.motion import DataSpec, get_representation, length_mask
+from omg.motion.maa import maa_from_positions, root_translation
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
 from omg.text import build_text_encoder
-from omg.text.subjects import about_animal, choose_animal, to_animal, to_person
+from omg.text.omgpt import about_animal, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
-
-
-def masked_mse(a: Tensor, b: Tensor, mask: Tensor) -> Tensor:
-    """Mean squared error over the real entries: a, b (B, L, ...), mask (B, L)."""
-    weights = mask.reshape(*mask.shape, *([1] * (a.dim() - mask.dim()))).to(a.dtype)
-    per_entry = a[0, 0].numel()
-    return ((a - b).square() * weights).sum() / (weights.sum() * per_entry).clamp_min(1)
-
-
-def cosine_gap(a: Tensor, b: Tensor, rows: Tensor) -> Tensor:
-    """Mean of 1 − cos(a, b) over the selected rows (B,) bool."""
-    gap = 1 - F.cosine_similarity(a, b, dim=-1)
-    return (gap * rows).sum() / rows.sum().clamp_min(1)
-
-
-def translation(features: Tensor) -> Tensor:
-    """The root translation (..., 3) of maa features (the last token's first 3 numbers)."""
-    return features[..., -6:-3]
-
-
-def category_offsets(samples: Sequence[dict]) -> dict[str, list[list[float]]]:
-    """Mean bone offsets (J, 3) per category of decoded samples' meta."""
-    sums: dict[str, tuple[np.ndarray, int]] = {}
-    for meta in samples:
-        if meta.get("offsets") is None:
-            continue
-        name = meta.get("category") or "animal"
-        total, count = sums.get(name, (0.0, 0))
-        sums[name] = (total + np.asarray(meta["offsets"], dtype=np.float64), count + 1)
-    return {name: (total / count).round(6).tolist() for name, (total, count) in sorted(sums.items())}
-
-
-def scan_metas(urls: Sequence[str]) -> list[dict]:
-    """Every sample's meta.json of the shards (motion is not decoded)."""
-    from omg.data.shards import iter_tar
-
-    return [json.loads(raw["meta.json"]) for url in urls for raw in iter_tar(url) if "meta.json" in raw]
 
 
 class OmniMotionModule(OmgModule):
@@ -284,8 +248,8 @@ class OmniMotionModule(OmgModule):
             "jrec": masked_mse(internal(rec, mask), target, mask),
             "clip": cosine_gap(parts["text_encoder"](z, z_mask), text, captioned),
             "trec": masked_mse(internal(rec_text, mask), target, rows),
-            "translation": masked_mse(translation(rec), translation(motion), mask)
-            + masked_mse(translation(rec_text), translation(motion), rows),
+            "translation": masked_mse(root_translation(rec), root_translation(motion), mask)
+            + masked_mse(root_translation(rec_text), root_translation(motion), rows),
         }
         return losses, z, z_mask
 
@@ -608,15 +572,6 @@ def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
                          "(human_spec); go on from this checkpoint with the same human shards")
 
 
-def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """Human joint positions (T, 22, 3) -> smpl22 maa features (T, 138) and offsets (22, 3), the
-    rotations solved by the representation's IK on the clip's own bone lengths."""
-    skeleton = get_skeleton(HUMAN_SKELETON)
-    clip = Clip(id="human", skeleton=skeleton, fps=fps, positions=np.asarray(positions, dtype=np.float32))
-    features, meta = get_representation("maa", skeleton).encode(clip)
-    return features, np.asarray(meta["offsets"], dtype=np.float32)
-
-
 def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int, fps: float,
                    **sampling) -> tuple[Tensor, Tensor]:
     """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
@@ -654,41 +609,3 @@ def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int
     return motion, torch.stack(offsets)
 
 
-class OmniMotionSelfEvaluator(torch.nn.Module):
-    """The paper's self-evaluation: motion features E_t^a(E^a(P, S)) and text features C of an
-    OmniMotionGPT checkpoint, in the same sentence space. An ``EvalCallback`` evaluator::
-
-        evaluator: {class_path: omg.lit.omgpt.OmniMotionSelfEvaluator, init_args: {checkpoint: CKPT}}
-
-    The evaluation passes motions without their offsets: S is the mean of the known animals'
-    bone offsets. Unlike omg's contrastive evaluator it shares the generator's encoders, so it
-    rewards the generator's own view of text; report it beside the independent one.
-
-    ``unit``: both features as unit vectors (omg's default: E_t is trained on 1 − cos(E_t(Z), C), so
-    its output's length is arbitrary and Euclidean distances would mostly measure it), or as the
-    networks give them (``false``: the paper's scale, where Diversity, MModality, MM-Dist and FID
-    are comparable with its tables). The two scales differ most in Diversity and MModality.
-    """
-
-    def __init__(self, checkpoint: str, unit: bool = True):
-        super().__init__()
-        self.unit = unit
-        from omg.lit.checkpoint import load_module
-
-        self.module = load_module(checkpoint, expect=OmniMotionModule)  # EMA weights where kept
-        self.spec = self.module.spec
-        self.register_buffer("offsets", torch.stack(list(self.module.animals.values())).mean(0), persistent=False)
-
-    def _scaled(self, features: Tensor) -> Tensor:
-        return F.normalize(features, dim=-1) if self.unit else features
-
-    @torch.no_grad()
-    def encode_text(self, texts: Sequence[str]) -> Tensor:  # (B, D_text)
-        return self._scaled(self.module.sentence(list(texts)).to(self.offsets.device))
-
-    @torch.no_grad()
-    def encode_motion(self, motion: Tensor, mask: Tensor) -> Tensor:  # (B, T, 216) un-normalised -> (B, D_text)
-        animal = self.module.model.animal
-        offsets = self.offsets.expand(len(motion), -1, -1)
-        z, z_mask = animal["ae"].encode(motion.float() * mask[..., None], offsets, mask)
-        return self._scaled(animal["text_encoder"](z, z_mask))

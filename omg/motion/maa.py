@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from omg import kinematics
 from omg.errors import UsageError
 from omg.motion.base import Clip, Representation, check_mirrorable, mirror_block
 from omg.registry import REPRESENTATIONS
 from omg.rotations import REFLECT_X, SIXD_REFLECT_X, quat_to_6d, sixd_to_quat
-from omg.skeleton import Skeleton
+from omg.skeleton import Skeleton, get_skeleton
 
 
 def require_rotations(rep: Representation, clip: Clip) -> tuple[np.ndarray, np.ndarray]:
@@ -91,3 +92,17 @@ class MAA(Representation):
     def decode(self, features: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
         rotations, root = self.rotations_and_root(features)
         return self.skeleton.forward_kinematics(rotations, root, fk_offsets(self.skeleton, offsets, features))
+
+
+def root_translation(features: Tensor) -> Tensor:
+    """The root translation (..., 3) of maa features (the last token's first 3 numbers)."""
+    return features[..., -6:-3]
+
+
+def maa_from_positions(positions: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Human joint positions (T, 22, 3) -> smpl22 maa features (T, 138) and offsets (22, 3), the
+    rotations solved by the representation's IK on the clip's own bone lengths."""
+    skeleton = get_skeleton("smpl22")
+    clip = Clip(id="human", skeleton=skeleton, fps=fps, positions=np.asarray(positions, dtype=np.float32))
+    features, meta = MAA(skeleton).encode(clip)
+    return features, np.asarray(meta["offsets"], dtype=np.float32)

@@ -53,7 +53,7 @@ from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.rotations import matrix_to_quat, sixd_to_matrix
 from omg.skeleton import SMAL35, Skeleton
-from omg.text.subjects import species_of
+from omg.text.omgpt import species_of
 
 FPS = 20.0
 NUM_TEST_OF_36 = 13  # the paper's 23 train / 13 test identities

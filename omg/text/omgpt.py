@@ -60,7 +60,7 @@ def species_of(identity: str) -> str | None:
 
 @functools.cache
 def _known_animal_words() -> tuple[str, ...]:
-    from omg.text.species import SpeciesBook
+    from omg.text.habit import SpeciesBook
 
     identities, aliases = animal_table()
     return tuple(sorted({*identities.values(), *aliases, *(n.replace("_", " ") for n in SpeciesBook.load().names)}))

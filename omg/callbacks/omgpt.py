@@ -1,7 +1,7 @@
 """``OODEvalCallback``: OmniMotionGPT's out-of-distribution protocol.
 
 Prompts are human captions (a human shard set's, e.g. the HumanML3D test split) with the subject
-replaced by an animal name (``omg.text.subjects.to_animal``); no real animal motion matches them,
+replaced by an animal name (``omg.text.omgpt.to_animal``); no real animal motion matches them,
 so the real set of FID-OOD is the whole real animal set: each prompt is paired with a random real
 animal clip (training and validation sets of ``data``), cut to the prompt's length. The metrics are
 those of ``EvalCallback`` on these prompts, logged as ``ood/<metric>`` with ``fid`` as ``fid_ood``; ``omg test`` writes
@@ -29,7 +29,7 @@ from omg.errors import UsageError
 from omg.evaluation import PromptSet, markdown_table, write_report
 from omg.files import atomic_write, write_json
 from omg.models.omgpt import primal_joints
-from omg.text.subjects import one_sided_limb, to_animal
+from omg.text.omgpt import one_sided_limb, to_animal
 
 
 class OODEvalCallback(EvalCallback):

@@ -11,9 +11,12 @@ checkpoint saves and a resumed run restores.
 from __future__ import annotations
 
 import inspect
-from collections.abc import Iterator
+import json
+from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
 from typing import Any
+
+import numpy as np
 
 from omg.data.datamodule import ClipDataset, MotionDataModule, StreamLoader
 from omg.data.windows import WindowSampler
@@ -81,3 +84,22 @@ class CompanionStream:
             return []
         return ClipDataset.from_shards(self.data.val_urls, self.data.feature_dim, self.windows,
                                        self.args.max_bad_fraction, self.data.shard_checks, self.args.timeout).samples
+
+
+def category_offsets(samples: Sequence[dict]) -> dict[str, list[list[float]]]:
+    """Mean bone offsets (J, 3) per category of decoded samples' meta."""
+    sums: dict[str, tuple[np.ndarray, int]] = {}
+    for meta in samples:
+        if meta.get("offsets") is None:
+            continue
+        name = meta.get("category") or "animal"
+        total, count = sums.get(name, (0.0, 0))
+        sums[name] = (total + np.asarray(meta["offsets"], dtype=np.float64), count + 1)
+    return {name: (total / count).round(6).tolist() for name, (total, count) in sorted(sums.items())}
+
+
+def scan_metas(urls: Sequence[str]) -> list[dict]:
+    """Every sample's meta.json of the shards (motion is not decoded)."""
+    from omg.data.shards import iter_tar
+
+    return [json.loads(raw["meta.json"]) for url in urls for raw in iter_tar(url) if "meta.json" in raw]
