@@ -162,9 +162,12 @@ def file_prompt_set(prompts: Sequence[dict], samples_per_prompt: int, fps: float
 # -- metrics ------------------------------------------------------------------------------
 
 def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None,
-                  key: str = "metrics") -> dict[str, dict]:
-    """``[fid, {diversity: {num_pairs: 100}}]`` or ``{fid: {}, ...}`` -> {name: options}."""
-    spec = DEFAULT_METRICS if spec is None else spec
+                  key: str = "metrics", defaults: Sequence[str] = DEFAULT_METRICS,
+                  from_prompts: bool = True) -> dict[str, dict]:
+    """``[fid, {diversity: {num_pairs: 100}}]`` or ``{fid: {}, ...}`` -> {name: options}; ``defaults`` when
+    None. ``from_prompts``: the metrics are fed generations from a prompt set (False: another pass, such
+    as habit transfer's, which feeds transferred motions with their sources)."""
+    spec = defaults if spec is None else spec
     items = list(spec.items()) if isinstance(spec, dict) else []
     if not isinstance(spec, dict):
         for entry in spec:
@@ -181,7 +184,7 @@ def parse_metrics(spec: Sequence[str | dict[str, Any]] | dict[str, Any] | None,
         if not isinstance(options, dict | None):
             raise UsageError(f"{key}.{name}: options must be a mapping, got {options!r}")
         cls = METRICS.get(name)
-        if not callable(getattr(cls, "eval_update", None)) or not getattr(cls, "from_prompts", True):
+        if not callable(getattr(cls, "eval_update", None)) or (from_prompts and not getattr(cls, "from_prompts", True)):
             raise UsageError(f"{key}: {name} cannot be computed from generated prompts (it needs other inputs); "
                              f"use {', '.join(DEFAULT_METRICS)}, clip_score, intra_fid, one_nna or foot_skating")
         out[name] = dict(options or {})

@@ -340,6 +340,14 @@ def test_transfer_metrics_compare_with_the_target_categorys_real_crops(habit_run
     # the reconstruction diagnostic compares each crop with its own category: unchanged crops score 0
     recon = run(source, mode="reconstruction")
     assert recon["fid"] < 1e-6 and recon["mpjpe"] == 0 and recon["cross_category_fid"] > moved["intra_fid"]
+    # the metrics are chosen by name through the registry, like the text evaluation's: any registered one is fed
+    from omg.evaluation import parse_metrics
+
+    chosen = parse_metrics(["fid", "foot_skating"], defaults=(), from_prompts=False)
+    picked = evaluate_habits(prior, evaluator, items, seed=0, min_samples=5, diversity_pairs=50, move=source,
+                             metrics=chosen)
+    assert set(picked) == {"fid", "foot_skating", "real_foot_skating"} and picked["fid"] == kept["fid"]
+    assert picked["foot_skating"] == picked["real_foot_skating"]  # untransferred crops skate as the real ones
 
 
 def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):

@@ -29,9 +29,10 @@ from torch import Tensor, nn
 
 from omg.callbacks.run import run_dir
 from omg.errors import UsageError
-from omg.evaluation import build_evaluator, check_evaluator_spec, protocol, write_report
+from omg.evaluation import build_evaluator, build_metric, check_evaluator_spec, parse_metrics, protocol, write_report
 from omg.files import atomic_write, write_json
-from omg.metrics import FID, MPJPE, CrossCategoryFID, Diversity, EvalBatch, IntraFID, OneNNA
+from omg.metrics import EvalBatch
+from omg.registry import METRICS
 
 COLUMNS = {  # summary key -> the paper's column
     "fid": "FID", "intra_fid": "Intra-FID", "cross_category_fid": "downstream FID", "diversity": "Diversity",
@@ -80,10 +81,14 @@ def prior_move(prior) -> Callable[[Tensor, int, torch.Generator], Tensor]:
     return move
 
 
+HABIT_METRICS = ("fid", "intra_fid", "diversity", "one_nna", "mpjpe")  # the paper's table (Behave Your Motion, Sec. 4)
+
+
 @torch.no_grad()
 def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, min_samples: int = 5,
                     batch_size: int = 64, diversity_pairs: int = 300, mode: str = "transfer",
-                    move: Callable[[Tensor, int, torch.Generator], Tensor] | None = None) -> dict[str, float]:
+                    move: Callable[[Tensor, int, torch.Generator], Tensor] | None = None,
+                    metrics: dict[str, dict] | None = None) -> dict[str, float]:
     """One replication of the paper's metrics for a HabitPriorModule on real crops ``items``.
 
     ``mode="transfer"`` (the paper's): every crop of another category is transferred onto each category c
@@ -91,7 +96,9 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
     of the transferred motion against c's real crops, MPJPE of the transferred motion against its source.
     ``mode="reconstruction"`` (a diagnostic): each crop through the VQ-VAE onto its own category against
     the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
-    ``move(motion, k, gen)``: the transfer scored (default: the prior's, ``prior_move``)."""
+    ``move(motion, k, gen)``: the transfer scored (default: the prior's, ``prior_move``). ``metrics``: registered
+    metrics by name with their options (``parse_metrics``; default ``HABIT_METRICS``), each fed through
+    ``eval_update`` (a reference metric, Diversity, also for the real crops as ``real_<name>``)."""
     if mode not in MODES:
         raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
     vq = prior.vq
@@ -106,11 +113,17 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
     E = evaluator.encode_motion(torch.from_numpy(np.asarray(known[0]["motion"]))[None]).shape[-1]
     real_count = sum(counts[cats[k]] for k in targets) if mode == "transfer" else len(known)
     pairs = min(diversity_pairs, real_count)
-    metrics = {"fid": FID(E), "intra_fid": IntraFID(E, cats), "diversity": Diversity(pairs, seed),
-               "real_diversity": Diversity(pairs, seed), "one_nna": OneNNA()}
+    chosen = dict(metrics if metrics is not None else parse_metrics(None, defaults=HABIT_METRICS, from_prompts=False))
     if mode == "reconstruction":
-        metrics["cross_category_fid"] = CrossCategoryFID(E, cats, min_samples=min_samples)
-    mpjpe = MPJPE()
+        chosen.setdefault("cross_category_fid", {})
+    context = {"num_features": E, "categories": cats, "num_pairs": pairs, "seed": seed, "min_samples": min_samples,
+               "skeleton": vq.spec.skeleton, "fps": vq.spec.fps}
+    metrics = {}
+    for name, options in chosen.items():
+        metrics[name] = build_metric(name, options, context, key="HabitEvalCallback.metrics")
+        if getattr(METRICS.get(name), "reference", False):  # also described for the real crops
+            metrics[f"real_{name}"] = build_metric(name, options, context, key="HabitEvalCallback.metrics")
+    cross = metrics.pop("cross_category_fid", None) if mode == "reconstruction" else None
     gen = torch.Generator().manual_seed(seed)
     rep = vq.representation
     for part in _batches(known, batch_size):
@@ -126,6 +139,7 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
                 recon[rows] = move(motion[rows], k, gen)
             batches.append(EvalBatch(real=real, gen=evaluator.encode_motion(recon, mask), category=category,
                                      mask=mask, real_joints=source, gen_joints=rep.decode(recon, offsets)))
+        transferred = []  # reconstruction: (features, target) of the transfers, for the downstream FID
         for k in targets:  # every crop of another category onto category k, against k's real crops
             rows = category != k
             if not rows.any():
@@ -134,22 +148,22 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
             into = torch.full((int(rows.sum()),), k, device=vq.device)
             features = evaluator.encode_motion(moved, mask[rows])
             if mode == "reconstruction":
-                metrics["cross_category_fid"].update(features, into, real=False)
+                transferred.append((features, into))
                 continue
             own = category == k
             batches.append(EvalBatch(real=real[own], gen=features, category=category[own], gen_category=into,
                                      mask=mask[rows], real_joints=source[rows],
                                      gen_joints=rep.decode(moved, offsets[rows])))
-        if mode == "reconstruction":
-            metrics["cross_category_fid"].update(real, category, real=True)
+        if cross is not None and transferred:
+            cross.eval_update(EvalBatch(real=real, category=category, gen=torch.cat([f for f, _ in transferred]),
+                                        gen_category=torch.cat([c for _, c in transferred])))
         for batch in batches:
             for name, metric in metrics.items():
-                if name != "cross_category_fid":
-                    metric.eval_update(batch, real=name == "real_diversity")
-            mpjpe.update(batch.gen_joints, batch.real_joints, batch.mask)
+                metric.eval_update(batch, real=name.startswith("real_"))
+    if cross is not None:
+        metrics["cross_category_fid"] = cross
     out = {name: metric.compute() for name, metric in metrics.items()}
-    out = {name: float(v[name] if isinstance(v, dict) else v) for name, v in out.items()}
-    return {**out, "mpjpe": float(mpjpe.compute())}
+    return {name: float(v[name.removeprefix("real_")] if isinstance(v, dict) else v) for name, v in out.items()}
 
 
 def paper_table(rows: dict[str, dict[str, dict]]) -> str:
@@ -184,11 +198,13 @@ class HabitEvalCallback(Callback):
         seed: seeds every replication.
         table: a JSON file that collects the rows (EMA, EMA-reset) of the runs that wrote to it; the
             whole table is printed and written beside it as markdown.
+        metrics: registered metrics by name, as ``EvalCallback.metrics`` (default: the paper's FID,
+            Intra-FID, Diversity, 1-NNA and MPJPE; a plugin's metric is fed the same batches).
     """
 
     def __init__(self, evaluator: str, replications: int = 5, crop_len: int | None = None,
                  crop_stride: int | None = None, min_samples: int = 5, diversity_pairs: int = 300, seed: int = 0,
-                 table: str | None = None, mode: str = "transfer"):
+                 table: str | None = None, mode: str = "transfer", metrics: list[str | dict] | None = None):
         if mode not in MODES:
             raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
         if not Path(evaluator).exists():
@@ -201,6 +217,8 @@ class HabitEvalCallback(Callback):
         self.crop_stride, self.mode = crop_stride, mode
         self.min_samples, self.diversity_pairs, self.seed = min_samples, diversity_pairs, seed
         self.table = Path(table) if table else None
+        self.metrics = parse_metrics(metrics, key="HabitEvalCallback.metrics", defaults=HABIT_METRICS,
+                                     from_prompts=False)
         self.evaluator: nn.Module | None = None
 
     def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None = None) -> None:
@@ -227,7 +245,7 @@ class HabitEvalCallback(Callback):
 
         def replication(r: int) -> dict[str, float]:
             values = evaluate_habits(pl_module, evaluator, items, self.seed + r, self.min_samples,
-                                     diversity_pairs=self.diversity_pairs, mode=self.mode)
+                                     diversity_pairs=self.diversity_pairs, mode=self.mode, metrics=self.metrics)
             rank_zero_info(f"omg: habit evaluation replication {r + 1}/{self.replications} ({label}): "
                            + ", ".join(f"{k} {v:.4f}" for k, v in values.items()))
             return values

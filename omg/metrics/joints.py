@@ -26,10 +26,17 @@ def _frame_mask(joints: Tensor, mask: Tensor | None) -> Tensor:
 
 
 @METRICS.register("mpjpe")
-class MPJPE(RunningMean):
-    """Mean per-joint position error: Euclidean distance averaged over joints and valid frames."""
+class MPJPE(GenerationMetric, RunningMean):
+    """Mean per-joint position error: Euclidean distance averaged over joints and valid frames. Fed by an
+    evaluation, it compares each generated motion with the real motion of its row (habit transfer: the
+    transferred motion with its source)."""
 
     higher_is_better = False
+    needs_joints = True
+    from_prompts = False  # a generation from a prompt is not meant to match one real clip joint by joint
+
+    def eval_update(self, batch: EvalBatch, real: bool = False) -> None:
+        self.update(batch.gen_joints, batch.real_joints, batch.mask)
 
     def update(self, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> None:
         """pred, target: (B, T, J, 3); mask: (B, T), True on real (unpadded) frames."""
