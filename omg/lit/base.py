@@ -12,7 +12,7 @@ from contextlib import contextmanager, nullcontext
 
 import lightning as L
 import torch
-from torch import nn
+from torch import Tensor, nn
 from torch.distributed._composable import checkpoint as checkpoint_activations
 
 from omg.lit.ema import EMA
@@ -110,6 +110,27 @@ class OmgModule(L.LightningModule):
             raise RuntimeError(f"checkpoint does not fit {type(self).__name__}: missing {missing[:5]}, "
                                f"unexpected {unexpected[:5]}")
         return missing, unexpected
+
+    # -- one training step: the family's losses, the one guard against a non-finite loss, logging ----------
+    loss_name = "loss"  # how the one-line error of a non-finite loss names it
+
+    def training_losses(self, batch: dict) -> dict[str, Tensor] | None:
+        """The batch's training losses: ``loss`` (what is minimised) and the terms to log beside it; None
+        skips the batch."""
+        raise NotImplementedError(f"{type(self).__name__} does not say how a batch is trained on")
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor | None:
+        losses = self.training_losses(batch)
+        if losses is None:
+            return None
+        check_finite(losses["loss"], self.global_step, batch, what=self.loss_name,
+                     hint="lower model.lr, enable gradient clipping", terms=losses)
+        self.log_training(losses, batch)
+        return losses["loss"]
+
+    def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
+        """Log a training step's losses as ``train/<term>``."""
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=len(batch["motion"]))
 
     def trainable_module(self) -> nn.Module:
         """The part of the module that training changes (its optimizer groups and its EMA)."""

@@ -19,7 +19,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, check_finite
+from omg.lit.base import OmgModule
 from omg.lit.checkpoint import load_module
 from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
@@ -85,22 +85,25 @@ class EvaluatorModule(OmgModule):
         motion = self.evaluator.encode_normalized_motion(batch["motion"][rows], batch["mask"][rows])
         return text, motion, same_pairs(texts, ids, labels).to(self.device)
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor | None:
+    loss_name = "InfoNCE"
+
+    def training_losses(self, batch: dict) -> dict[str, Tensor] | None:
         out = self.embed(batch)
         if out is None:
             rank_zero_warn("a training batch has fewer than 2 captioned clips; skipped (the evaluator needs captions)")
             return None
         text, motion, same = out
         logits = self.evaluator.logits(text, motion)
-        loss = info_nce(logits, same)
-        check_finite(loss, self.global_step, batch, what="InfoNCE")
-        n = len(text)
+        self._pairs = len(text)  # the captioned clips the step trained on: the logged values' batch size
         # in-batch top-1 accuracy, a duplicate caption's motion counting as a hit
-        hit = same[torch.arange(n, device=self.device), logits.argmax(1)].float().mean()
-        self.log_dict({"train/loss": loss, "train/acc": hit}, prog_bar=True, batch_size=n)
+        hit = same[torch.arange(len(text), device=self.device), logits.argmax(1)].float().mean()
+        return {"loss": info_nce(logits, same), "acc": hit}
+
+    def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
+        n = self._pairs
+        self.log_dict({"train/loss": losses["loss"], "train/acc": losses["acc"]}, prog_bar=True, batch_size=n)
         self.log("train/temperature", 1.0 / self.evaluator.logit_scale.exp().clamp(
             max=self.evaluator.config.max_logit_scale), batch_size=n)
-        return loss
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         out = self.embed(batch)

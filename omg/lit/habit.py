@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, check_finite
+from omg.lit.base import OmgModule
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import masked_smooth_l1
 from omg.models.habit import CategoryFlows, CategoryHabitEncoders, HabitConfig, MotionVQVAE, Quantizer, gaussian_kl
@@ -200,12 +200,10 @@ class HabitVQModule(OmgModule):
                "embedding": terms["embedding"], "kl": kl, "perplexity": terms["perplexity"]}
         return out, recon, {"category": category, "mu": mu}
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+    def training_losses(self, batch: dict) -> dict[str, Tensor]:
         losses, _, extra = self.losses(batch, self.generator())
-        check_finite(losses["loss"], self.global_step, batch)
         self._accumulate(batch, extra["category"], extra["mu"])
-        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=len(batch["motion"]))
-        return losses["loss"]
+        return losses
 
     habit_decay = 0.99  # per step, of the sums behind mean_habit
 
@@ -489,11 +487,13 @@ class HabitPriorModule(OmgModule):
             z = mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
         return -self.flows.log_prob(z, category).mean() / z.shape[1]
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
-        loss = self.nll(batch, self.vq.generator())
-        check_finite(loss, self.global_step, batch, what="NLL")
-        self.log("train/nll", loss, prog_bar=True, batch_size=len(batch["motion"]))
-        return loss
+    loss_name = "NLL"
+
+    def training_losses(self, batch: dict) -> dict[str, Tensor]:
+        return {"loss": self.nll(batch, self.vq.generator())}
+
+    def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
+        self.log("train/nll", losses["loss"], prog_bar=True, batch_size=len(batch["motion"]))
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         self.log("val/nll", self.nll(batch), batch_size=len(batch["motion"]), sync_dist=True)

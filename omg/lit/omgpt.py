@@ -32,7 +32,7 @@ from torch import Tensor
 
 from omg.data.omgpt import CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, check_finite, modes_restored
+from omg.lit.base import OmgModule, modes_restored
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
@@ -335,12 +335,12 @@ class OmniMotionModule(OmgModule):
         batch = self.companion.next()
         return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
-        losses = self.losses(batch, self.human_batch())
-        check_finite(losses["loss"], self.global_step, batch, hint="lower model.lr, enable gradient clipping")
+    def training_losses(self, batch: dict) -> dict[str, Tensor]:
+        return self.losses(batch, self.human_batch())
+
+    def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=len(batch["text"]))
         self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=len(batch["text"]))
-        return losses["loss"]
 
     def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
         """The animal autoencoder's reconstruction errors on the validation clips."""

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, check_finite, checkpoint_each, modes_restored
+from omg.lit.base import OmgModule, checkpoint_each, modes_restored
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, MotionDiT
@@ -138,14 +138,13 @@ class MotionDiffusionModule(OmgModule):
         return {"loss": simple + self.vel_weight * vel + self.foot_weight * foot,
                 "simple": simple, "vel": vel, "foot": foot}
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
-        losses = self.diffusion_losses(batch)
-        check_finite(losses["loss"], self.global_step, batch, hint="lower model.lr, enable gradient clipping",
-                     terms=losses)
-        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=True, batch_size=batch["motion"].shape[0])
+    def training_losses(self, batch: dict) -> dict[str, Tensor]:
+        return self.diffusion_losses(batch)
+
+    def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
+        super().log_training(losses, batch)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"])
         self._log_throughput(batch)
-        return losses["loss"]
 
     def _log_throughput(self, batch: dict) -> None:
         now = time.perf_counter()
