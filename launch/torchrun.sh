@@ -24,6 +24,12 @@ if (( ACCUM < 1 || ACCUM * BATCH * NODES * GPUS != GLOBAL_BATCH )); then
   exit 2
 fi
 
+# NCCL's watchdog ends a process whose collective failed or outlived the process group's timeout
+# (trainer.strategy.init_args.timeout, 30 min unless set) instead of leaving it hung on the GPU: 1 aborts
+# the communicators and tears the process down (torchrun's own default for its workers, said here so
+# that both launch paths run alike; a value already in the environment wins).
+export TORCH_NCCL_ASYNC_ERROR_HANDLING=${TORCH_NCCL_ASYNC_ERROR_HANDLING:-1}
+
 # c10d rendezvous (PyTorch's recommended multi-node backend): the node at MASTER_ADDR hosts the
 # store, the others join it, and a node that starts late waits for the others (up to the
 # rendezvous timeout) instead of failing; RDZV_ID tells concurrent jobs on the same port apart.

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,34 @@ def pick_cpu_threads(trainer: L.Trainer, model: L.LightningModule) -> None:
                        "(set OMP_NUM_THREADS to choose another number)")
 
 
+# How torch's process-group backends word the two ways a multi-process run breaks (lower case): a peer whose
+# process or node ended closes its sockets (gloo's TCP pairs, NCCL's remote-error check, the c10d store);
+# a peer that stops without closing them (a frozen node, SIGSTOP, a network partition) is noticed only
+# by the collective's timeout (gloo's own wait, NCCL's watchdog), which is the strategy's `timeout`.
+LOST_PEER = ("connection closed by peer", "connection reset by peer", "connection was likely closed", "broken pipe",
+             "remote process exited")
+TIMED_OUT = ("timed out", "timeout")
+_SOURCE = re.compile(r"^\[[^\]]*\.(?:cc|cpp|h|hpp):\d+\]\s*")  # gloo's "[.../pair.cc:561] " prefix
+
+
+def distributed_failure(error: BaseException) -> str | None:
+    """What broke a multi-process run, in a few words around torch's own first sentence (``lost a peer
+    process (Connection closed by peer [10.0.0.2]:7380): ...``), when ``error`` is a collective's or the
+    store's failure of either kind; None for anything else (a bug keeps its traceback). gloo raises a
+    plain RuntimeError whose text names its source file; NCCL and the store raise ``DistError``s."""
+    text = str(error).strip()
+    if not (isinstance(error, torch.distributed.DistError) or "gloo/" in text):
+        return None
+    detail = _SOURCE.sub("", text.splitlines()[0] if text else "").split(". ")[0].rstrip(".")
+    lowered = text.lower()
+    if any(phrase in lowered for phrase in TIMED_OUT):
+        return (f"a collective operation timed out ({detail}): another rank stopped responding for longer than the "
+                "process group's timeout (trainer.strategy.init_args.timeout, 30 min unless set)")
+    if any(phrase in lowered for phrase in LOST_PEER):
+        return f"lost a peer process ({detail}): another rank's process or node ended; its own log says why"
+    return None
+
+
 class StepProgressBar(RichProgressBar):
     """Lightning's rich bar, its epoch told without a total when the run is bounded by steps
     (``max_epochs=-1`` made it read "Epoch 7/-2")."""
@@ -151,6 +180,13 @@ class OmgLightningCLI(LightningCLI):
             super()._run_subcommand(subcommand)
         except NonFiniteLoss as e:  # one line: its step and its batch's clips say where to look
             raise UsageError(str(e)) from None
+        except RuntimeError as e:  # a lost peer or a collective timeout (Lightning has torn the run down)
+            if (what := distributed_failure(e)) is None:
+                raise
+            trainer = self.trainer
+            again = " with --ckpt_path last to resume from the newest checkpoint" if subcommand == "fit" else ""
+            raise UsageError(f"rank {trainer.global_rank} of {trainer.world_size}, step {trainer.global_step}: "
+                             f"{what}; start the job again on every node{again}") from None
 
     def _preflight(self) -> None:
         """Callbacks that can judge the model and the data before the run (a ``preflight(model,
