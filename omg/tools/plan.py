@@ -410,7 +410,7 @@ def plan_row(run: Run, gpus: int, gpus_per_node: int, gpu: str, mfu: float,
         frozen = parts.frozen_dit + parts.frozen_text
         tokens = text_tokens or parts.text_tokens
         moc = MoCConfig(**parts.moc)
-        key = (run.flavor, weights, tuple(sorted(parts.moc.items(), key=str)), tokens)
+        key = (run.flavor, weights, repr(sorted(parts.moc.items())), tokens)  # moc.layers is a list
         if key not in activations:
             activations[key] = measure_controlnet_activations(run.flavor, weights, parts.moc, tokens)
         plain = config.n_layers - len(moc.controlled_layers(config.n_layers))
