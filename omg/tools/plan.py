@@ -316,6 +316,7 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
     from omg.files import read_text
 
     config = yaml.safe_load(read_text(path, "--configs"))
+    kind = "training"  # the module's class, once read
     try:
         model, data, trainer = config["model"], config["data"], config["trainer"]
         kind = str(model["class_path"]).rpartition(".")[2]
@@ -342,8 +343,7 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
                    int(trainer.get("accumulate_grad_batches", 1)), strategy,
                    bool(args.get("activation_checkpointing", False)), offload, int(trainer["max_steps"]), ds, stage)
     except (KeyError, TypeError) as e:
-        raise UsageError(f"--configs {path}: no {e} where a {kind if 'kind' in locals() else 'training'} config "
-                         "has it") from None
+        raise UsageError(f"--configs {path}: no {e} where a {kind} config has it") from None
 
 
 @dataclass(frozen=True)
@@ -409,6 +409,9 @@ def plan_row(run: Run, gpus: int, gpus_per_node: int, gpu: str, mfu: float,
         params, largest = parts.trainable, parts.largest
         frozen = parts.frozen_dit + parts.frozen_text
         tokens = text_tokens or parts.text_tokens
+        if tokens > parts.text_tokens:
+            raise UsageError(f"--text_tokens {tokens}: {run.name}'s text encoder {run.controlnet.text_encoder} "
+                             f"keeps at most {parts.text_tokens} tokens")
         moc = MoCConfig(**parts.moc)
         key = (run.flavor, weights, repr(sorted(parts.moc.items())), tokens)  # moc.layers is a list
         if key not in activations:
