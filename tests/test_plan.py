@@ -1,5 +1,7 @@
 """``omg bench plan``: the activation term against a real forward+backward's peak memory on the
-CPU, the model states against DeepSpeed's estimators, and the shipped configs planned."""
+CPU (DiT and ControlNet), the model states against DeepSpeed's estimators, the ControlNet's
+trainable/frozen split against the real module's, its FLOPs against torch's counter, and the
+shipped configs planned."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import pytest
 
 from conftest import REPO
 from omg.cli import main
-from omg.tools.plan import measure_activations, model_states
+from omg.tools.plan import measure_activations, measure_controlnet_activations, model_states
 
 # Peak resident memory of one training step of the mini DiT (bf16 autocast, as bf16-mixed), in a
 # process of its own: /proc/self/clear_refs "5" resets the peak (VmHWM), so the peak minus the
@@ -20,10 +22,11 @@ from omg.tools.plan import measure_activations, model_states
 # keeps torch's allocations in one arena. Gradients exist from the warm-up steps before.
 PEAK_STEP = """
 import sys, torch
+from omg.models.controlnet import MoCConfig, MotionControlNet
 from omg.models.dit import DiTConfig, MotionDiT
 from omg.lit.base import checkpoint_each
 torch.set_num_threads(1)
-B, T, ckpt = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
+B, T, ckpt, L = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
 torch.manual_seed(0)
 model = MotionDiT(DiTConfig.from_name("mini"))
 if ckpt:
@@ -31,9 +34,14 @@ if ckpt:
 x, t = torch.randn(B, T, 263), torch.randint(0, 1000, (B,))
 mask = torch.ones(B, T, dtype=torch.bool)
 mask[0, T // 2:] = False
+inputs = (x, t, mask)
+if L:  # the ControlNet of configs/mini/controlnet.yaml (MiniLM tokens, 384 wide) on it, L-token captions
+    model = MotionControlNet(model, MoCConfig(**MOC))
+    tokens, text_mask = torch.randn(B, L, 384), torch.ones(B, L, dtype=torch.bool)
+    inputs = (x, t, tokens, text_mask, torch.full((B,), L - 1), mask)
 def step():
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = model(x, t, mask)
+        out = model(*inputs)
     out.float().square().mean().backward()
 def status(key):
     return int(next(line for line in open("/proc/self/status") if line.startswith(key)).split()[1]) * 1024
@@ -45,10 +53,15 @@ print(status("VmHWM:") - before)
 """
 
 
-def peak_step_bytes(batch: int, frames: int, checkpointing: bool) -> int:
+MINI_MOC = {"d_c": 64, "num_experts": 4, "text_dim": 384}  # configs/mini/controlnet.yaml with MiniLM
+
+
+def peak_step_bytes(batch: int, frames: int, checkpointing: bool, text_tokens: int = 0) -> int:
+    """The peak of a mini DiT's step, or with ``text_tokens`` of its ControlNet's."""
     env = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "65536", "PYTHONPATH": str(REPO)}
-    out = subprocess.run([sys.executable, "-c", PEAK_STEP, str(batch), str(frames), str(int(checkpointing))],
-                         env=env, capture_output=True, text=True, check=True).stdout
+    script = f"MOC = {MINI_MOC!r}\n{PEAK_STEP}"
+    out = subprocess.run([sys.executable, "-c", script, str(batch), str(frames), str(int(checkpointing)),
+                          str(text_tokens)], env=env, capture_output=True, text=True, check=True).stdout
     return int(out.strip().splitlines()[-1])
 
 
@@ -63,6 +76,16 @@ def test_activation_estimate_matches_the_measured_peak(batch, frames, checkpoint
     rounding of the measurement (5%)."""
     estimate = measure_activations("mini", "fp32-autocast").bytes(4, batch, frames, checkpointing)
     measured = peak_step_bytes(batch, frames, checkpointing)
+    assert 0.95 <= measured / estimate <= 1.3, (measured, estimate)
+
+
+@pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK), reason="needs Linux's resettable peak RSS")
+def test_controlnet_activation_estimate_matches_the_measured_peak():
+    """The same for the mini ControlNet (frozen DiT + copies + MoC on 4 layers, captions of CLIP's
+    77 tokens): fitted at 16-64 frames, batch 1-2, checked on a step of 4 x 196 frames (HumanML3D's
+    longest clips); measured/planned 1.09."""
+    estimate = measure_controlnet_activations("mini", "fp32-autocast", MINI_MOC, 77).bytes(4, 4, 196)
+    measured = peak_step_bytes(4, 196, False, text_tokens=77)
     assert 0.95 <= measured / estimate <= 1.3, (measured, estimate)
 
 
@@ -98,8 +121,72 @@ def test_plan_of_shipped_configs(capsys):
 def test_plan_options_refuse_bad_input(capsys):
     for argv, says in ((["--mfu", "0"], "mfu"), (["--strategy", "ddp", "--offload"], "offload"),
                        (["--global_batch", "100", "--gpus", "8"], "global_batch"),
-                       (["--configs", "[configs/controlnet_base.yaml]"], "PretrainModule")):
+                       (["--configs", "[configs/habit_vqvae.yaml]"], "ControlNetModule")):
         with pytest.raises(SystemExit) as e:
             main(["bench", "plan", *argv])
         err = capsys.readouterr().err
         assert e.value.code == 2 and says in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_plan_of_a_controlnet_config(capsys):
+    """A ControlNet config plans: the paper's 500 epochs of HumanML3D's 23,384 clips at its global
+    batch 64 are its trainer.max_steps; the frozen DiT and CLIP text tower are in the frozen column."""
+    import yaml
+
+    main(["bench", "plan", "--configs", "[configs/controlnet_base.yaml]"])
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| controlnet_base"))
+    max_steps = yaml.safe_load((REPO / "configs/controlnet_base.yaml").read_text())["trainer"]["max_steps"]
+    assert f"| {max_steps:,} (500 epochs) |" in row and "64 (8 x 1 x 8 H100) x 196" in row
+    assert "| 122M + 218M |" in row  # trainable + frozen (Base 94M + CLIP ViT-L/14's text tower 124M)
+
+
+def test_controlnet_split_is_the_modules():
+    """The planner's trainable and frozen counts are those of the real ControlNetModule of
+    configs/controlnet_base.yaml built on the meta device: its optimizer's parameters and its
+    EMA's are the trainable ones; everything else (the DiT, the text encoder) is frozen."""
+    import torch
+    import yaml
+
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.ema import EMA
+    from omg.tools.plan import controlnet_parts, run_from_config
+
+    run = run_from_config(REPO / "configs/controlnet_base.yaml")
+    parts = controlnet_parts(run.flavor, run.controlnet)
+    args = yaml.safe_load((REPO / "configs/controlnet_base.yaml").read_text())["model"]["init_args"]
+    spec = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
+            "mean": [0.0] * 263, "std": [1.0] * 263}
+    with torch.device("meta"):
+        module = ControlNetModule(**{**args, "base": {"flavor": "base", "dit": None, "spec": spec}})
+        ema = EMA(module.trainable_module())
+    trainable = sum(p.numel() for group in module.optimizer_groups() for p in group["params"])
+    assert parts.trainable == trainable == sum(t.numel() for t in ema.shadow.values())
+    assert parts.frozen_dit == sum(p.numel() for p in module.model.parameters())
+    assert parts.frozen_dit + parts.frozen_text == sum(p.numel() for p in module.parameters() if not p.requires_grad)
+    assert parts.moc["text_dim"] == 768 and parts.text_tokens == 77  # CLIP ViT-L/14
+
+
+@pytest.mark.parametrize("wiring, experts, layers", [("per_layer", "moc", None), ("parallel_stream", "moc", [1]),
+                                                     ("per_layer", "single_ffn", [0, 2])])
+def test_controlnet_flops_are_torchs_count(wiring, experts, layers):
+    """MoCConfig.flops against torch's FlopCounterMode on a forward of the real module (less the
+    frozen DiT's): equal but for the copies' attention (q·kᵀ, attn·v), which the counter does not
+    see in the CPU attention kernel."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from omg.models.controlnet import MoCConfig, MotionControlNet
+    from omg.models.dit import DiTConfig, MotionDiT
+
+    dit, (B, T, L) = DiTConfig.from_name("mini"), (2, 40, 9)
+    config = MoCConfig(d_c=64, num_experts=4, text_dim=96, wiring=wiring, experts=experts, layers=layers)
+    net = MotionControlNet(MotionDiT(dit), config)
+    x, t = torch.randn(B, T, 263), torch.randint(0, 1000, (B,))
+    counts = []
+    for forward in (lambda: net(x, t, torch.randn(B, L, 96), torch.ones(B, L, dtype=torch.bool),
+                                torch.full((B,), L - 1)), lambda: net.base(x, t)):
+        with FlopCounterMode(display=False) as counter:
+            forward()
+        counts.append(counter.get_total_flops())
+    copies = len(net.copy_blocks)
+    assert counts[0] - counts[1] == config.flops(dit, B, T, L) - copies * B * T * 4 * T * dit.d_model

@@ -59,7 +59,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omg.errors import UsageError
-from omg.models.dit import MotionDiT, Rope
+from omg.models.dit import DiTConfig, MotionDiT, Rope
 
 ADAIN_EPS = 1e-5
 WIRINGS = ("per_layer", "parallel_stream")
@@ -151,6 +151,33 @@ class MoCConfig:
                     "list of distinct block indices >= 0"
                 )
             self.layers = sorted(layers)
+
+    def flops(self, dit: DiTConfig, batch: int, seq_len: int, text_len: int) -> int:
+        """Analytic forward FLOPs (2 per multiply-add) of the trainable part on ``dit``: the block
+        copies, the MoC blocks and (parallel stream) the zero projections, for ``text_len`` tokens.
+
+        Per frame and controlled layer, MoC: W_down, W_q, W_up 2·(2·d·c + c²), attention 4·L·c,
+        the experts 4·K·H·(c + L) (``MoCBlock.experts``), the bias mix 2·L·c; single FFN instead of
+        the experts and the mix: 4·c·H. Per sample and controlled layer, the text terms: keys and
+        values 4·L·D·c, AdaIN from the EOT 4·D·c, with experts the gate MLP 2·L·(D·G + G² + G·K) and
+        ω·b1, ω·b2 2·L·K·(H + c). A copy costs what its frozen block costs (``DiTConfig.flops``);
+        a zero projection 2·d² per frame. Elementwise work (AdaIN, masks, gelu) is not counted."""
+        d, c, L, D = dit.d_model, self.d_c, text_len, self.text_dim
+        K, H, G = self.num_experts, self.expert_hidden, self.gate_hidden
+        controlled = len(self.controlled_layers(dit.n_layers))
+        copies = dit.n_layers if self.wiring == "parallel_stream" else controlled
+        block = 8 * d * d + 6 * d * dit.ffn_dim + 4 * seq_len * d  # one block, per frame (DiTConfig.flops)
+        moc_frame = 2 * (2 * d * c + c * c) + 4 * L * c
+        moc_sample = 4 * L * D * c + 4 * D * c
+        if self.experts == "single_ffn":
+            moc_frame += 4 * c * H
+        else:
+            moc_frame += 4 * K * H * (c + L) + 2 * L * c
+            moc_sample += 2 * L * (D * G + G * G + G * K) + 2 * L * K * (H + c)
+        per_frame = copies * block + controlled * moc_frame
+        if self.wiring == "parallel_stream":
+            per_frame += dit.n_layers * 2 * d * d
+        return batch * (seq_len * per_frame + controlled * moc_sample)
 
     def controlled_layers(self, n_layers: int) -> list[int]:
         """The block indices that get a controller, checked against the model's depth."""
