@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.datamodule import MotionDataModule
 from omg.io.bvh import read_bvh
 from omg.lit.controlnet import ControlNetModule

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.data.shards import Manifest
 from omg.data.windows import Collate, WindowSampler

@@ -15,7 +15,7 @@ import sys
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 
 pytestmark = pytest.mark.slow  # two trainings with process start-up: about 30-60 s each on 2 cores
 

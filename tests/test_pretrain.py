@@ -13,12 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO, TINY_DIT, TINY_DIT_ARG
 from omg.data.datamodule import MotionDataModule
 from omg.lit.base import warmup_cosine
 from omg.lit.pretrain import PretrainModule
-
-TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
 
 
 def test_activation_checkpointing_is_applied_once_by_configure_model(h263_shards):
@@ -29,7 +27,7 @@ def test_activation_checkpointing_is_applied_once_by_configure_model(h263_shards
     grads, names = [], []
     for switch in (False, True):
         torch.manual_seed(0)
-        module = PretrainModule(flavor="mini", dit=TINY, spec=dm.spec, ema_decay=0, activation_checkpointing=switch)
+        module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=dm.spec, ema_decay=0, activation_checkpointing=switch)
         module.configure_model()
         module.configure_model()  # fit, then test: no error, applied once
         module._noise_gen = torch.Generator().manual_seed(1)
@@ -88,7 +86,7 @@ def _fit_args(shards, root, steps):
             "--data.num_workers=1", f"--trainer.max_steps={steps}", "--trainer.val_check_interval=1000",
             f"--trainer.default_root_dir={root}", f"--trainer.callbacks.dirpath={root}/checkpoints",
             "--trainer.callbacks.every_n_train_steps=4", "--trainer.enable_progress_bar=false",
-            "--model.init_args.dit=" + str(TINY).replace("'", '"'), "--model.init_args.warmup_steps=5"]
+            TINY_DIT_ARG, "--model.init_args.warmup_steps=5"]
 
 
 def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path):
@@ -187,7 +185,7 @@ def test_trains_with_weights_cast_to_bf16(h263_shards):
                           shuffle_buffer=4)
     batch = next(iter(dm.train_dataloader()))
     batch["motion"] = batch["motion"].to(torch.bfloat16)
-    module = PretrainModule(flavor="mini", dit=TINY, spec=dm.spec).to(torch.bfloat16)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=dm.spec).to(torch.bfloat16)
     losses = module.diffusion_losses(batch)
     assert all(torch.isfinite(v) for v in losses.values())
     losses["loss"].backward()

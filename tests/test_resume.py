@@ -19,54 +19,15 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.callbacks import Callback
 
+from helpers import TINY_DIT
+from helpers.resume import Recorder, assert_identical, final_state, run_until_killed
 from omg.data.datamodule import MotionDataModule
 from omg.lit.pretrain import PretrainModule, fresh_noise_seed
 
 BATCHES_PER_EPOCH = 4
 TOTAL_STEPS = 13  # three epoch boundaries (after steps 4, 8 and 12) and a part of a fourth epoch
-
-
-class Killed(Exception):
-    """Stands for SIGKILL: nothing after it runs, and the next run starts from the files."""
-
-
-class KillAt(Callback):
-    def __init__(self, step: int):
-        self.step = step
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if trainer.global_step == self.step:
-            raise Killed(f"killed at the start of step {self.step}")
-
-
-class Recorder(Callback):
-    """What each optimizer step trained on: the batch's clip ids and lengths, and the epoch."""
-
-    def __init__(self):
-        self.steps: dict[int, tuple] = {}
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        self.steps[trainer.global_step] = (trainer.current_epoch, tuple(batch["id"]), tuple(batch["lengths"].tolist()))
-
-
-def run_until_killed(model, data, root, *, max_steps: int, kill_at: int | None = None, resume: bool = False,
-                     callbacks=(), keep_all: bool = False, **trainer_args) -> L.Trainer:
-    """``trainer.fit`` of a tiny CPU run checkpointing every step into ``root/ckpt``, killed at the
-    start of step ``kill_at``, or resumed from ``root/ckpt/last.ckpt``; ``keep_all`` keeps every
-    step's checkpoint. Without validation unless ``trainer_args`` ask for it."""
-    checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1,
-                                  **({"save_top_k": -1} if keep_all else {}))
-    callbacks = [*callbacks, checkpoints] + ([KillAt(kill_at)] if kill_at is not None else [])
-    trainer_args = {"limit_val_batches": 0, "num_sanity_val_steps": 0, **trainer_args}
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=root, callbacks=callbacks, **trainer_args)
-    try:
-        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
-    except Killed:
-        pass
-    return trainer
 
 
 def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_workers: int = 0,
@@ -77,7 +38,7 @@ def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_w
     data = MotionDataModule(str(shards / "train"), val=str(shards / "val") if validate else None, batch_size=4,
                             max_len=30, min_len=10, batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers,
                             shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=3,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3, warmup_steps=3,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
     validation = ({"limit_val_batches": 1, "val_check_interval": BATCHES_PER_EPOCH, "check_val_every_n_epoch": None}
@@ -96,46 +57,6 @@ def fit_killed(shards, root, kills: tuple[int, ...], **kwargs) -> dict[int, tupl
         assert i == 0 or min(recorder.steps) == kills[i - 1]  # resumed where the last run was killed
         steps.update(recorder.steps)
     return steps
-
-
-def loop_counters(ckpt: dict) -> dict:
-    """Lightning's training-loop counters in a checkpoint: epochs (ready, started, processed,
-    completed), batches, optimizer and scheduler steps. The validation loop's own batch counter is
-    left out: Lightning resets it at each epoch's start and, resuming from a checkpoint written
-    before an epoch-end validation, counts that validation as run after the reset."""
-    fit_loop = ckpt["loops"]["fit_loop"]
-    return {k: v for k, v in fit_loop.items() if k != "state_dict" and not k.startswith("epoch_loop.val_loop.")}
-
-
-def final_state(root) -> dict:
-    ckpt = torch.load(root / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
-    return {
-        "global_step": ckpt["global_step"],
-        "epoch": ckpt["epoch"],
-        "state_dict": ckpt["state_dict"],
-        "ema": ckpt["ema"],
-        "optimizer": ckpt["optimizer_states"],
-        "lr": ckpt["lr_schedulers"],
-        "noise_rng": ckpt["noise_rng"],
-        "data": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"],  # the stream position
-        "loops": loop_counters(ckpt),
-    }
-
-
-def assert_identical(a, b, path="checkpoint"):
-    assert type(a) is type(b), f"{path}: {type(a)} vs {type(b)}"
-    if isinstance(a, torch.Tensor):
-        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), f"{path} differs"
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys(), f"{path}: keys {sorted(a)} vs {sorted(b)}"
-        for k in a:
-            assert_identical(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), f"{path}: length {len(a)} vs {len(b)}"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_identical(x, y, f"{path}[{i}]")
-    else:
-        assert a == b, f"{path}: {a!r} vs {b!r}"
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +159,7 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
     L.seed_everything(0, verbose=False)
     data = MotionDataModule(str(h263_shards / "train"), batch_size=2, max_len=30, min_len=10, batches_per_epoch=12,
                             num_workers=0, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-2, warmup_steps=1,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-2, warmup_steps=1,
                            ema_decay=decay, spec=data.spec)
     initial = {n: p.detach().clone() for n, p in model.model.named_parameters()}
     recorder = WeightsAfterStep()
