@@ -13,6 +13,12 @@ from omg.data.shards import ShardWriter
 from omg.skeleton import SMPL22
 
 
+def pytest_collection_modifyitems(config, items):
+    """The slow tests first (each keeps its place among them): with two xdist workers the long trainings
+    start at once and the short tests fill the time around them, instead of one long test starting last."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture
 def shared_motion() -> Path:
     if not (SHARED_MOTION / "manifest.json").exists():

@@ -27,6 +27,8 @@ MINI = REPO / "shards/mini/human263"
 ANIMAL = REPO / "shards/mini/animal_maa"
 STEPS = 120
 POOL = 32
+# the tests share the trained evaluator: under xdist they run on one worker, which trains it once
+pytestmark = pytest.mark.xdist_group("evaluator")
 
 
 def _data(root=MINI, **kw):

@@ -17,6 +17,9 @@ from helpers.habit import fit as _fit
 from omg.models.habit import CouplingFlow, Quantizer
 from omg.skeleton import SMAL35
 
+# the tests share the mini habit fit (habit_run): under xdist they run on one worker, which fits it once
+pytestmark = pytest.mark.xdist_group("habit")
+
 # ----------------------------------------------------------------------------- the mini data's habits
 
 

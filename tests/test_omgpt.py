@@ -21,6 +21,9 @@ from omg.rotations import quat_normalize, quat_to_6d
 from omg.skeleton import SMAL35, SMPL22
 from omg.text.subjects import find_animal, to_animal, to_person
 
+# the tests share the mini OmniMotionGPT fit (omgpt_ckpt): under xdist they run on one worker, which fits it once
+pytestmark = pytest.mark.xdist_group("omgpt")
+
 
 def test_primal_joints_come_from_the_graph_with_the_semantic_pairing():
     assert primal_joints(SMPL22) == SMPL22.primal_joints == (0, 10, 11, 15, 20, 21, 9)

@@ -11,6 +11,8 @@ from helpers.configs import parse
 from helpers.omgpt import MINI, TINY
 from helpers.omgpt import data as _data
 
+pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt.py
+
 
 def _module(**kw):
     from omg.lit.omgpt import OmniMotionModule

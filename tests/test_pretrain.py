@@ -109,6 +109,7 @@ def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path):
 STEPS = 16
 
 
+# the tests of whole_run share it: under xdist they run on one worker, which runs it once
 @pytest.fixture(scope="module")
 def whole_run(h263_shards, tmp_path_factory):
     """An uninterrupted tiny run of `omg fit`; its root directory."""
@@ -122,6 +123,7 @@ def _final_state(path):
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+@pytest.mark.xdist_group("pretrain_whole_run")
 def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
     steps = STEPS
 
@@ -155,6 +157,7 @@ def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
         torch.testing.assert_close(b["state_dict"][name], value, rtol=0, atol=1e-6)
 
 
+@pytest.mark.xdist_group("pretrain_whole_run")
 def test_generate_unconditional_writes_reproducible_motions(whole_run, tmp_path, capsys):
     from omg.cli import main
 

@@ -191,28 +191,49 @@ def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> t
     return done.returncode, done.stderr[-3000:]
 
 
-def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
+# The multi-process tests: each gloo run starts its ranks' interpreters (10-20 s a run on 2 cores). They
+# share the runs never killed; under xdist their group runs on one worker, which makes each run once.
+@pytest.fixture(scope="module")
+def never_killed(h263_shards, tmp_path_factory):
+    """``never_killed(devices)``: the folder of tests/ddp_resume_run.py's run on ``devices`` gloo ranks,
+    never killed, each rank's steps and start state recorded as ``fresh-rank{r}.pt`` (each run once)."""
+    runs = {}
+
+    def run(devices: int):
+        if devices not in runs:
+            root = tmp_path_factory.mktemp(f"never_killed_{devices}")
+            code, err = ddp_run(h263_shards / "train", root, devices=devices, record="fresh")
+            assert code == 0, err
+            runs[devices] = root
+        return runs[devices]
+
+    return run
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp_resume")
+def test_two_rank_run_resumes_bit_for_bit(h263_shards, never_killed, tmp_path):
     """Two gloo ranks on the CPU: kill at an epoch boundary, resume, kill at the next boundary,
     resume again, and compare with the run never killed, each rank's noise RNG and the loop
     counters included."""
     shards = h263_shards / "train"  # 4 shards, 2 per rank
-    code, err = ddp_run(shards, tmp_path / "full")
-    assert code == 0, err
     code, err = ddp_run(shards, tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
     assert code == 3, err
     code, err = ddp_run(shards, tmp_path / "killed", kill_at=6, resume=True)
     assert code == 3, err
     code, err = ddp_run(shards, tmp_path / "killed", resume=True)
     assert code == 0, err
-    expected, resumed = final_state(tmp_path / "full"), final_state(tmp_path / "killed")
+    expected, resumed = final_state(never_killed(2)), final_state(tmp_path / "killed")
     assert expected["noise_rng"].shape[0] == 2 and not torch.equal(*expected["noise_rng"])  # one state per rank
     assert_identical(resumed, expected)
 
 
 # Elastic resume: a checkpoint of one world size resumed on another, killed mid-epoch (step 4 is
 # epoch 1's second batch in ddp_resume_run.py).
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp_resume")
 @pytest.mark.parametrize("old,new", [(2, 1), (1, 2)], ids=["2to1", "1to2"])
-def test_resume_on_another_number_of_ranks(h263_shards, tmp_path, old, new):
+def test_resume_on_another_number_of_ranks(h263_shards, never_killed, tmp_path, old, new):
     shards, kill_at = h263_shards / "train", 4
     code, err = ddp_run(shards, tmp_path / "run", kill_at=kill_at, devices=old)
     assert code == 3, err
@@ -220,11 +241,10 @@ def test_resume_on_another_number_of_ranks(h263_shards, tmp_path, old, new):
     assert saved["global_step"] == kill_at and saved["noise_rng"].shape[0] == old
     code, resumed_err = ddp_run(shards, tmp_path / "run", resume=True, devices=new, record="resumed")
     assert code == 0, resumed_err
-    code, err = ddp_run(shards, tmp_path / "fresh", devices=new, record="fresh")  # the new world size from scratch
-    assert code == 0, err
+    fresh_run = never_killed(new)  # the new world size from scratch
     for rank in range(new):
         resumed = torch.load(tmp_path / "run" / f"resumed-rank{rank}.pt", weights_only=False)
-        fresh = torch.load(tmp_path / "fresh" / f"fresh-rank{rank}.pt", weights_only=False)
+        fresh = torch.load(fresh_run / f"fresh-rank{rank}.pt", weights_only=False)
         # weights, EMA, optimizer and schedule: the checkpoint's, whatever the world size
         start = resumed["start"]
         noise = start.pop("noise_rng")

@@ -15,6 +15,8 @@ from omg.text import ClipTextEncoder, HashTextEncoder, MiniLMTextEncoder, TextEn
 
 TEXTS = ["a person walks forward", "", "a dog jumps over a log and then runs"]
 LONG = " ".join(["walk"] * 600)
+# the tests share the encoders and the random CLIP: under xdist they run on one worker, which builds them once
+pytestmark = pytest.mark.xdist_group("text")
 
 
 def count_calls(monkeypatch, encoder: TextEncoder) -> list[list[str]]:
