@@ -54,7 +54,7 @@ def test_loss_falls_on_a_fixed_batch_and_samples_are_finite(h263_shards):
             return module.diffusion_losses(batch)
 
     before = eval_loss()
-    for _ in range(200):
+    for _ in range(100):  # the mini DiT's loss falls to about 0.18x in 100 steps (seeds 0 and 1), 0.11x in 200
         losses = module.diffusion_losses(batch)
         optimizer.zero_grad()
         losses["loss"].backward()
