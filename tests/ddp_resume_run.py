@@ -11,9 +11,10 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers import TINY_DIT  # noqa: E402
+from helpers.resume import KillAt, Killed, Recorder  # noqa: E402
 from omg.data.datamodule import MotionDataModule  # noqa: E402
 from omg.lit.pretrain import PretrainModule  # noqa: E402
-from test_resume import KillAt, Killed, Recorder  # noqa: E402
 
 MAX_STEPS = 7  # epochs of 3 batches: boundaries after steps 3 and 6
 
@@ -47,7 +48,7 @@ if __name__ == "__main__":
     L.seed_everything(0, verbose=False)
     data = MotionDataModule(str(shards), batch_size=2, max_len=30, min_len=10, batches_per_epoch=3,
                             num_workers=0, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3,
                            warmup_steps=2, ema_decay=0.9, spec=data.spec)
     recorder, start = Recorder(), StartState()
     callbacks = [L.pytorch.callbacks.ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1),

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 from omg.errors import UsageError
 from omg.text.omgpt import (
     about_animal,

@@ -22,11 +22,9 @@ import pytest
 import torch
 import yaml
 
-from conftest import BANDAI_RIG, DOG_RIG, REPO, TINY_BVH, rig_bvh
+from helpers import BANDAI_RIG, DOG_RIG, REPO, TINY_BVH, TINY_DIT, rig_bvh
 from omg.cli import main
 from omg.skeleton import SMPL22
-
-TINY_DIT = {"n_layers": 1, "d_model": 32, "n_heads": 2}
 
 
 @pytest.fixture(scope="module")

@@ -11,57 +11,18 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
 
-from conftest import walking_clip
+from helpers.lazy_walks import SOURCE
+from helpers.lazy_walks import build as _build
 from omg.cli import main
-from omg.data.shards import BUILD_STATE, BuildProgress, LazyItem, Manifest, decode_sample, iter_tar, merge_shard_sets
+from omg.data.shards import BUILD_STATE, BuildProgress, Manifest, decode_sample, iter_tar, merge_shard_sets
 from omg.errors import UsageError
-from omg.motion import Clip
-from omg.registry import DATA_SOURCES
 from omg.tools.shards import build
-
-SOURCE = "test-lazy-walks"
-FAIL_AT = 23
-
-
-def _item(i: int, fps: float, fail_flag: str | None, delay: float = 0.0,
-          readers: str | None = None) -> Clip | Exception | None:
-    """Source item i, read lazily (in a helper process with --workers): a walk, a bad item, an
-    item of another domain, or a clip whose features are NaN. ``readers``: a folder where each
-    process that reads an item leaves a file named by its pid."""
-    time.sleep(delay)
-    if readers:
-        (Path(readers) / str(os.getpid())).touch()
-    if fail_flag and i == FAIL_AT and Path(fail_flag).exists():
-        raise RuntimeError(f"interrupted at item {i}")  # stops the build, like a kill
-    if i % 11 == 5:
-        return ValueError(f"test bad item: number {i}")
-    if i % 13 == 7:
-        return None
-    clip = walking_clip(i, fps)
-    if i % 17 == 3:
-        clip = replace(clip, positions=np.full_like(clip.positions, np.nan))  # fails to encode
-    return replace(clip, id=f"clip{i:03d}", labels={"i": str(i)})
-
-
-@DATA_SOURCES.register(SOURCE)
-def lazy_walks(input, skeleton, fps, num_clips: int = 48, fail_flag: str | None = None,
-               delay: float = 0.0, readers: str | None = None) -> list[LazyItem]:
-    """Walks read when the build gets to them (a test source)."""
-    return [LazyItem(_item, (i, fps, fail_flag, delay, readers)) for i in range(num_clips)]
-
-
-def _build(out: Path, **kw) -> list:
-    options = kw.pop("options", {})
-    kw.setdefault("val_fraction", 0.25)
-    return build(SOURCE, out, "humanml3d263", "smpl22", 20.0, max_clips=4, options=options, shuffle_buffer=16,
-                 seed=3, **kw)
 
 
 def _set(shard_dir: Path) -> dict:
@@ -151,7 +112,7 @@ def test_a_helpers_failure_stops_the_build(tmp_path):
 
 def test_killed_parallel_build_resumes(one_worker, tmp_path):
     out = tmp_path / "killed"
-    code = f"from pathlib import Path; from test_build_scale import _build; _build(Path({str(out)!r}), workers=2, " \
+    code = f"from pathlib import Path; from helpers.lazy_walks import build; build(Path({str(out)!r}), workers=2, " \
            "options={'delay': 0.05})"
     process = subprocess.Popen([sys.executable, "-c", code], cwd=Path(__file__).parent,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

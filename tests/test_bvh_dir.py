@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import TINY_BVH
+from helpers import TINY_BVH
 from omg.cli import main
 from omg.data.shards import resolved
 from omg.data.sources.bvh_dir import SkippedClip, bvh_dir_source

@@ -10,7 +10,7 @@ import pytest
 import torch
 from lightning.pytorch.loggers import CSVLogger
 
-from conftest import REPO
+from helpers import REPO, TINY_DIT, TINY_DIT_ARG
 from omg.callbacks import EvalCallback, RenderCallback
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
@@ -19,7 +19,6 @@ from omg.lit.pretrain import PretrainModule
 from omg.metrics.following import CATEGORIES, load_prompts
 
 MINI = REPO / "shards/mini/human263"
-TINY = {"n_layers": 2, "d_model": 64, "n_heads": 2}
 METRICS = ["fid", {"r_precision": {"pool_size": 8}}, "mm_dist", {"diversity": {"num_pairs": 8}},
            {"multimodality": {"num_pairs": 2}}, "foot_skating"]
 
@@ -31,7 +30,7 @@ def _data():
 
 def _module(data, seed=0):
     torch.manual_seed(seed)
-    return PretrainModule(flavor="mini", dit=TINY, spec=data.spec, lr=1e-3, warmup_steps=2, ema_decay=0)
+    return PretrainModule(flavor="mini", dit=TINY_DIT, spec=data.spec, lr=1e-3, warmup_steps=2, ema_decay=0)
 
 
 def _trainer(root, steps, callbacks, logger=True):
@@ -103,7 +102,7 @@ def test_eval_during_fit_and_the_protocol_at_test(evaluator_ckpt, tmp_path):
 def test_controlnet_samples_follow_lengths_and_guidance():
     data = _data()
     torch.manual_seed(0)
-    module = ControlNetModule(base={"flavor": "mini", "dit": TINY, "spec": data.spec}, text_encoder="hash",
+    module = ControlNetModule(base={"flavor": "mini", "dit": TINY_DIT, "spec": data.spec}, text_encoder="hash",
                               moc={"d_c": 32, "num_experts": 2}, spec=data.spec, ema_decay=0).eval()
     for p in module.controlnet.parameters():  # as if trained: neither the prior's output nor the residuals are zero
         p.data.normal_(0, 0.05)
@@ -191,7 +190,7 @@ def test_omg_fit_versions_runs_and_omg_test_prints_the_protocol(evaluator_ckpt, 
     fit = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *common, "--trainer.max_steps=2",
            "--trainer.val_check_interval=1000", "--trainer.default_root_dir=pre",
            "--trainer.callbacks.dirpath=pre/checkpoints",
-           '--model.init_args.dit={"n_layers": 2, "d_model": 64, "n_heads": 2}']
+           TINY_DIT_ARG]
     _cli(*fit)
     _cli(*fit, "--trainer.max_steps=1")
     for version, steps in (("version_0", 2), ("version_1", 1)):  # a second run never clashes with the first

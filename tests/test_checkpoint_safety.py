@@ -21,12 +21,12 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch.serialization import get_unsafe_globals_in_checkpoint
 
-from conftest import REPO
+from helpers import REPO, TINY_DIT, TINY_DIT_ARG
+from helpers.checkpoints import SPEC, write_zero2_checkpoint, zero_tensor_bytes
 from omg.cli import main as omg
 from omg.errors import UsageError
 from omg.lit.checkpoint import LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module
 from omg.lit.pretrain import PretrainModule
-from test_checkpoint import SPEC, TINY, write_zero2_checkpoint, zero_tensor_bytes
 
 MINI = REPO / "shards/mini/human263"
 
@@ -44,7 +44,7 @@ class Payload:
 @pytest.fixture(scope="module")
 def tiny() -> PretrainModule:
     torch.manual_seed(0)
-    return PretrainModule(flavor="mini", dit=TINY, spec=SPEC)
+    return PretrainModule(flavor="mini", dit=TINY_DIT, spec=SPEC)
 
 
 def _lightning_dict(module: PretrainModule) -> dict:
@@ -179,7 +179,7 @@ COMMON = [f"--data.train={MINI}/train", f"--data.val={MINI}/val", "--data.batch_
           "--trainer.enable_model_summary=false", "--trainer.val_check_interval=1000",
           "--trainer.callbacks.every_n_train_steps=1"]
 PRETRAIN = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *COMMON,
-            '--model.init_args.dit={"n_layers": 2, "d_model": 64, "n_heads": 2}']
+            TINY_DIT_ARG]
 
 
 def _fit(*argv: str) -> None:

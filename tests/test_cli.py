@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 from omg.cli import COMMANDS, LIGHTNING, main
 
 

@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
-import lightning as L
 import pytest
 import torch
 import yaml
-from jsonargparse import ActionConfigFile
-from lightning.pytorch.cli import LightningArgumentParser
 
 import omg.callbacks  # noqa: F401  (short class names in configs resolve among imported modules)
 import omg.lit  # noqa: F401
-from conftest import REPO
+from helpers import REPO
+from helpers.configs import parse
 from omg.data.datamodule import MotionDataModule
 
 CONFIGS = sorted(p for p in (REPO / "configs").rglob("*.yaml"))
@@ -30,28 +27,9 @@ PRIOR_STAGE1 = {"runs/habit_prior": REPO / "configs/habit_vqvae.yaml",
                 "runs/mini_habit_eval": REPO / "configs/mini/habit_vqvae.yaml",
                 "runs/habit_eval": REPO / "configs/habit_vqvae.yaml"}
 
-# an overlay -> the config it completes
-OVERLAYS = {"mini/omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
-            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml", "omgpt_eval.yaml": REPO / "configs/omgpt.yaml"}
-
-
 def maa_spec(skeleton: str, dim: int) -> dict:
     return {"representation": "maa", "skeleton": skeleton, "fps": 20.0, "feature_dim": dim, "mean": [0.0] * dim,
             "std": [1.0] * dim}
-
-
-def parse(path: Path):
-    parser = LightningArgumentParser(exit_on_error=False)
-    parser.add_argument("--config", action=ActionConfigFile)
-    parser.add_argument("--seed_everything", type=int | bool, default=True)
-    parser.add_lightning_class_args(L.Trainer, "trainer")
-    parser.add_lightning_class_args(L.LightningModule, "model", subclass_mode=True)
-    parser.add_lightning_class_args(MotionDataModule, "data")
-    # a data-only config (configs/data/) or an overlay follows the config it completes, as
-    # `omg fit --config A --config B` composes them
-    overlay = OVERLAYS.get(path.relative_to(REPO / "configs").as_posix())
-    base = REPO / "configs/pretrain_base.yaml" if path.parent.name == "data" else overlay
-    return parser.parse_args([*(["--config", str(base)] if base else []), "--config", str(path)])
 
 
 def build_model_on_meta(cfg, flavor: str = "mini"):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.datamodule import MotionDataModule
 from omg.io.bvh import read_bvh
 from omg.lit.controlnet import ControlNetModule
@@ -19,6 +19,8 @@ from omg.lit.pretrain import PretrainModule
 MINI = REPO / "shards/mini/human263"
 TINY = {"n_layers": 3, "d_model": 64, "n_heads": 2}
 MOC = {"d_c": 32, "num_experts": 4}
+# the tests share the pretrained tiny DiT: under xdist they run on one worker, which trains it once
+pytestmark = pytest.mark.xdist_group("controlnet_module")
 
 
 def _data(**kw):
@@ -178,6 +180,7 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
     assert "unknown sampler 'plms'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
     """A few minutes of fine-tuning on the mini data: "walks forward" travels, "jumps in place"
     stays put and bobs up and down (a sanity check of the whole stage, not a quality claim).

@@ -13,7 +13,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from conftest import toy_clip, write_toy_shards
+from helpers import rewrite_member, toy_clip, write_toy_shards
 from omg.data.datamodule import MotionDataModule, StreamLoader, TooManyBadSamples
 from omg.data.shards import Manifest
 from omg.data.windows import WindowSampler
@@ -92,11 +92,9 @@ def test_resumed_loader_continues_at_the_saved_position(toy_shards):
 
 
 def test_corrupt_samples_are_skipped_with_a_warning(tmp_path, caplog):
-    from test_shards import _rewrite_member
-
     shards = write_toy_shards(tmp_path / "s", num_clips=200, max_clips=100)
     for shard, key in zip(Manifest.load(shards).shard_paths, ("clip_0007", "clip_0107")):
-        _rewrite_member(shard, f"{key}.motion.npy", b"garbage")
+        rewrite_member(shard, f"{key}.motion.npy", b"garbage")
     with caplog.at_level(logging.WARNING):
         batches = _epoch(_datamodule(shards, batches_per_epoch=60, shuffle_buffer=2, max_bad_fraction=0.05,
                                      verify_shards=False).train_dataloader())
@@ -107,11 +105,9 @@ def test_corrupt_samples_are_skipped_with_a_warning(tmp_path, caplog):
 
 
 def test_too_many_corrupt_samples_stop_the_run(tmp_path):
-    from test_shards import _rewrite_member
-
     shards = write_toy_shards(tmp_path / "s", num_clips=20, max_clips=20)
     for i in range(0, 20, 2):
-        _rewrite_member(Manifest.load(shards).shard_paths[0], f"clip_{i:04d}.motion.npy", b"garbage")
+        rewrite_member(Manifest.load(shards).shard_paths[0], f"clip_{i:04d}.motion.npy", b"garbage")
     with pytest.raises(TooManyBadSamples, match="max_bad_fraction"):
         _epoch(_datamodule(shards, max_bad_fraction=0.1, verify_shards=False).train_dataloader())
 
@@ -253,7 +249,7 @@ def test_whole_clips_shorter_than_min_len_are_not_trained_on(toy_shards):
 
 def test_batch_composition_draws_every_clip_however_short(tmp_path):
     """`omg shards inspect`'s batch report draws as training does, but from every clip (no min_len)."""
-    from conftest import JointPositions
+    from helpers import JointPositions
     from omg.data.shards import ShardWriter
     from omg.skeleton import SMPL22
     from omg.tools.shards import batch_composition
@@ -294,7 +290,7 @@ def test_window_starts_follow_the_sliding_window_distribution():
 
 
 def test_long_clips_contribute_in_proportion_to_their_frames(tmp_path):
-    from conftest import JointPositions
+    from helpers import JointPositions
     from omg.data.shards import ShardWriter
     from omg.skeleton import SMPL22
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.data.shards import Manifest
 from omg.data.windows import Collate, WindowSampler
@@ -27,6 +27,8 @@ MINI = REPO / "shards/mini/human263"
 ANIMAL = REPO / "shards/mini/animal_maa"
 STEPS = 120
 POOL = 32
+# the tests share the trained evaluator: under xdist they run on one worker, which trains it once
+pytestmark = pytest.mark.xdist_group("evaluator")
 
 
 def _data(root=MINI, **kw):

@@ -34,7 +34,7 @@ TAKES = ("raise-up-left-hand_normal_013", "raise-up-right-hand_exhausted_001", "
 @pytest.fixture(scope="module")
 def takes(request) -> dict[str, torch.Tensor]:
     """content label -> SMPL-22 joints (T, 22, 3) at 20 fps, read through omg's BVH retarget path."""
-    from conftest import SHARED_MOTION
+    from helpers import SHARED_MOTION
     from omg.io.read import read_motion
     from omg.retarget import retarget
 

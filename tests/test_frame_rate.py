@@ -5,14 +5,12 @@ from __future__ import annotations
 import lightning as L
 import pytest
 
-from conftest import walking_clip
+from helpers import TINY_DIT, walking_clip
 from omg.data.datamodule import MotionDataModule
 from omg.data.shards import ShardWriter
 from omg.errors import UsageError
 from omg.motion import get_representation
 from omg.skeleton import SMPL22
-
-TINY = {"n_layers": 1, "d_model": 32, "n_heads": 2}
 
 
 def shards_at(root, fps: float):
@@ -29,7 +27,7 @@ def prior_30fps(tmp_path_factory):
     root = tmp_path_factory.mktemp("prior30")
     data = MotionDataModule(str(shards_at(root / "shards", 30.0)), batch_size=4, max_len=30, min_len=10,
                             batches_per_epoch=1, num_workers=0, shuffle_buffer=4)
-    model = PretrainModule(flavor="mini", dit=TINY, warmup_steps=1, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, warmup_steps=1, spec=data.spec)
     trainer = L.Trainer(accelerator="cpu", max_steps=1, logger=False, enable_progress_bar=False,
                         enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0)
     trainer.fit(model, data)

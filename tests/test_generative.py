@@ -7,7 +7,7 @@ import ast
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 from omg.errors import UsageError
 from omg.lit.generative import GenerationCard, GenerationRequest, check_request
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import sys
 
-from conftest import REPO
+from helpers import REPO
 from omg.cli import main
 
 

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
+from helpers.habit import CATEGORIES, QUATVEL
+from helpers.habit import fit as _fit
 from omg.models.habit import CouplingFlow, Quantizer
 from omg.skeleton import SMAL35
 
-QUATVEL = REPO / "shards" / "mini" / "animal_quatvel"
-CATEGORIES = ["dog", "cat", "fox", "horse", "cow", "deer", "sheep"]
-
+# the tests share the mini habit fit (habit_run): under xdist they run on one worker, which fits it once
+pytestmark = pytest.mark.xdist_group("habit")
 
 # ----------------------------------------------------------------------------- the mini data's habits
 
@@ -156,25 +157,6 @@ def test_species_descriptions_name_no_family():
 
 
 # ----------------------------------------------------------------------------- mini fit
-
-
-def _fit(module, out, steps: int, batch_size: int = 32, seed: int = 0):
-    import lightning as L
-
-    from omg.data.datamodule import MotionDataModule
-
-    L.seed_everything(seed, verbose=False)
-    data = MotionDataModule(str(QUATVEL / "train"), batch_size=batch_size, max_len=64, min_len=64, clips="windows",
-                            batches_per_epoch=steps, num_workers=0, shuffle_buffer=94, verify_shards=False)
-    module = module(data.spec) if callable(module) and not isinstance(module, L.LightningModule) else module
-    trainer = L.Trainer(accelerator="cpu", max_steps=steps, logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(out),
-                        gradient_clip_val=1.0, limit_val_batches=0)
-    trainer.fit(module, datamodule=data)
-    module.hparams["_class_path"] = f"{type(module).__module__}.{type(module).__qualname__}"  # as LightningCLI records
-    path = out / "last.ckpt"
-    trainer.save_checkpoint(path)
-    return module, path
 
 
 @pytest.fixture(scope="session")
@@ -411,7 +393,7 @@ def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path, m
 
 def test_omg_transfer_onto_a_dog_rig(habit_run, shared_motion, tmp_path):
     """``--to_rig``: the transfer is written onto a MANN-named dog rig (its names and offsets), as BVH and glb."""
-    from conftest import DOG_RIG, rig_bvh
+    from helpers import DOG_RIG, rig_bvh
     from omg.io.bvh import read_bvh
     from omg.tools.habit import transfer
 

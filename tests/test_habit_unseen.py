@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from test_habit import CATEGORIES, QUATVEL, _fit
+from helpers.habit import CATEGORIES, QUATVEL
+from helpers.habit import fit as _fit
 
 
 def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_latent(tmp_path):

@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import JointPositions, smpl_reference_joints, walking_clip
+from helpers import JointPositions, smpl_reference_joints, walking_clip
 from omg.cli import main
 from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar, resolved
 from omg.errors import UsageError

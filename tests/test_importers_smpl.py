@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import smpl_reference_joints
+from helpers import smpl_reference_joints
 from omg.cli import main
 from omg.data.shards import resolved
 from omg.errors import UsageError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.shards import Manifest, decode_sample, iter_tar, validate
 from omg.tools.shards import MINI_SETS
 

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from scipy.stats import binomtest
 
-from conftest import JointPositions, toy_clip, walking_clip
+from helpers import TINY_DIT, JointPositions, toy_clip, walking_clip
 from omg.data.datamodule import MotionDataModule
 from omg.data.shards import FeatureStats, ShardWriter
 from omg.errors import UsageError
@@ -261,13 +261,13 @@ def test_inspect_prints_each_sets_share_from_a_config_or_the_list(two_sets, tmp_
 def _fit_mixture(h263_shards, root, kill_at=None, resume=False):
     import lightning as L
 
+    from helpers.resume import Recorder, run_until_killed
     from omg.lit.pretrain import PretrainModule
-    from test_resume import Recorder, run_until_killed
 
     L.seed_everything(0, verbose=False)
     data = _dm([{"path": str(h263_shards / "train"), "weight": 0.7}, {"path": str(h263_shards / "val"), "weight": 0.3}],
                batch_size=4, batches_per_epoch=4, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=2,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3, warmup_steps=2,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
     run_until_killed(model, data, root, max_steps=7, kill_at=kill_at, resume=resume, callbacks=[recorder])
@@ -275,7 +275,7 @@ def _fit_mixture(h263_shards, root, kill_at=None, resume=False):
 
 
 def test_a_killed_run_on_a_mixture_resumes_its_stream_exactly(h263_shards, tmp_path):
-    from test_resume import assert_identical, final_state
+    from helpers.resume import assert_identical, final_state
 
     steps = _fit_mixture(h263_shards, tmp_path / "full")
     first = _fit_mixture(h263_shards, tmp_path / "killed", kill_at=5)

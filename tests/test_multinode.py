@@ -22,7 +22,7 @@ import psutil
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.tools.lightning import distributed_failure
 
 # the trainings (marked slow): process start-up and a few steps, about 30-60 s a launch on 2 cores

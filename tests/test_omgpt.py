@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO, TINY_DIT
+from helpers.omgpt import MINI, TINY, tiny_module
+from helpers.omgpt import data as _data
 from omg.errors import UsageError
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
 from omg.motion import get_representation
@@ -19,9 +21,8 @@ from omg.rotations import quat_normalize, quat_to_6d
 from omg.skeleton import SMAL35, SMPL22
 from omg.text.omgpt import find_animal, to_animal, to_person
 
-MINI = REPO / "shards/mini"
-TINY = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32,
-        "latent_layers": 1, "dropout": 0.0}
+# the tests share the mini OmniMotionGPT fit (omgpt_ckpt): under xdist they run on one worker, which fits it once
+pytestmark = pytest.mark.xdist_group("omgpt")
 
 
 def test_primal_joints_come_from_the_graph_with_the_semantic_pairing():
@@ -151,23 +152,6 @@ def test_animal_captions_made_about_a_person_and_animals_found():
     assert find_animal("a person walks", animals) is None
 
 
-def _data(path, **kw):
-    from omg.data.datamodule import MotionDataModule
-
-    args = dict(batch_size=4, max_len=32, min_len=20, num_workers=0, shuffle_buffer=32, clips="whole")
-    return MotionDataModule(str(path), **{**args, **kw})
-
-
-def tiny_module(spec, **kw):
-    """The tiny OmniMotionModule of these tests (hash text, no EMA) on the mini human stream of whole clips."""
-    from omg.lit.omgpt import OmniMotionModule
-
-    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
-                 shuffle_buffer=32, clips="whole")
-    return OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=spec, ema_decay=0,
-                            **kw)
-
-
 def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
 
     torch.manual_seed(0)
@@ -197,19 +181,6 @@ def _cli(*argv):
     from omg.cli import main
 
     main(list(argv))
-
-
-@pytest.fixture(scope="module")
-def omgpt_ckpt(tmp_path_factory):
-    """`omg fit --config configs/mini/omgpt.yaml`, a few steps of a tiny model; its last checkpoint."""
-    root = tmp_path_factory.mktemp("omgpt")
-    torch.manual_seed(0)
-    _cli("fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=4",
-         f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false", "--trainer.val_check_interval=4",
-         "--trainer.enable_model_summary=false", "--model.init_args.text_encoder=hash",
-         f"--model.init_args.config={json.dumps(TINY)}", "--data.batch_size=4",
-         "--model.init_args.human_data.batch_size=4")
-    return root / "checkpoints/last.ckpt"
 
 
 def _bvh_offsets(path):
@@ -256,7 +227,7 @@ def test_generated_animals_land_on_the_users_rig(omgpt_ckpt, shared_motion, tmp_
     follows the generated joints (onto_rig of sample_NNN.joints.npy), and the .glb is written."""
     import bvh as bvh_reader
 
-    from conftest import DOG_RIG, rig_bvh
+    from helpers import DOG_RIG, rig_bvh
     from omg.retarget import onto_rig, read_rig
 
     clips = json.loads((shared_motion / "manifest.json").read_text())["clips"]
@@ -289,8 +260,7 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     human = _data(MINI / "human263/train", max_len=40)
     trainer_args = dict(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, default_root_dir=tmp_path)
-    dit = {"n_layers": 2, "d_model": 32, "n_heads": 2}
-    pretrain = PretrainModule(flavor="mini", dit=dit, spec=human.spec, warmup_steps=1, ema_decay=0)
+    pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec, warmup_steps=1, ema_decay=0)
     trainer = L.Trainer(max_steps=2, **trainer_args)
     trainer.fit(pretrain, human)
     trainer.save_checkpoint(tmp_path / "pretrain.ckpt")
@@ -482,8 +452,8 @@ def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
     """A tiny OmniMotionGPT run of 7 steps on the mini sets; ``seen``: step -> the human clip ids it trained on."""
     import lightning as L
 
+    from helpers.resume import run_until_killed
     from omg.lit.omgpt import OmniMotionModule
-    from test_resume import run_until_killed
 
     class Recorded(OmniMotionModule):
         def human_batch(self):
@@ -503,7 +473,7 @@ def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
 def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
     """The human stream's position travels in the checkpoint beside the animal data's: a run killed
     at step 5 and resumed trains on the same human clips, step for step, and ends bit-identical."""
-    from test_resume import assert_identical
+    from helpers.resume import assert_identical
 
     full, killed = {}, {}
     _fit_omgpt(tmp_path / "full", full)

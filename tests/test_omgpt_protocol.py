@@ -6,9 +6,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from conftest import REPO
-from test_configs import parse
-from test_omgpt import MINI, TINY, _data, omgpt_ckpt  # noqa: F401  (a fixture)
+from helpers import REPO
+from helpers.configs import parse
+from helpers.omgpt import MINI, TINY
+from helpers.omgpt import data as _data
+
+pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt.py
 
 
 def _module(**kw):
@@ -71,7 +74,7 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
         _module(retrieval_draw="nearest")
 
 
-def test_self_evaluation_reports_both_scales(omgpt_ckpt):  # noqa: F811  (the fixture imported above)
+def test_self_evaluation_reports_both_scales(omgpt_ckpt):
     """unit=False: the networks' own features (the paper's scale); unit=True: the same directions, unit length."""
     from omg.callbacks import EvalCallback, OODEvalCallback
     from omg.lit.evaluator import OmniMotionSelfEvaluator

@@ -11,14 +11,15 @@ import pytest
 import torch
 import yaml
 
-from conftest import REPO
+from helpers import REPO
+from helpers.configs import parse
+from helpers.habit import CATEGORIES, QUATVEL
+from helpers.omgpt import MINI, tiny_module
+from helpers.omgpt import data as _data
 from omg.data.datamodule import MotionDataModule
 from omg.lit.habit import HabitVQModule
 from omg.lit.omgpt import OmniMotionModule
 from omg.losses import masked_smooth_l1
-from test_configs import parse
-from test_habit import CATEGORIES, QUATVEL
-from test_omgpt import MINI, _data, tiny_module
 
 OMGPT_WEIGHTS = {"jrec": 1.0, "clip": 1.0, "trec": 1.0, "cons": 0.1, "cross_clip": 1.0, "ee": 100.0,
                  "translation": 1.0}

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 from omg.cli import main
 from omg.tools.plan import measure_activations, measure_controlnet_activations, model_states
 

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 from omg.data.datamodule import ClipDataset, MotionDataModule
 from omg.errors import UsageError
 from omg.evaluation import (

@@ -14,7 +14,7 @@ import lightning as L
 import pytest
 import torch
 
-from conftest import REPO
+from helpers import REPO
 
 BANDAI = REPO.parent / "shared" / "data" / "bandai1"
 CONTENTS = ("walk-back", "bow")

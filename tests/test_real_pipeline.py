@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from conftest import REPO
+from helpers import REPO, TINY_DIT_ARG
 from omg.cli import main
 from omg.io.bvh import read_bvh
 from omg.skeleton import SMPL22
@@ -25,7 +25,7 @@ def test_real_clips_to_shards_to_training_to_bvh(shared_motion, tmp_path):
           f"--data.val={shards}/val", "--data.batch_size=4", "--data.max_len=40", "--data.num_workers=0",
           "--trainer.max_steps=3", "--trainer.val_check_interval=3", f"--trainer.default_root_dir={root}",
           f"--trainer.callbacks.dirpath={root}/checkpoints", "--trainer.enable_progress_bar=false",
-          '--model.init_args.dit={"n_layers": 2, "d_model": 64, "n_heads": 2}'])
+          TINY_DIT_ARG])
     ckpt = root / "checkpoints/last.ckpt"
     assert ckpt.exists() and (root / "version_0/config.yaml").exists()
 

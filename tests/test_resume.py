@@ -19,54 +19,15 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
-from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.callbacks import Callback
 
+from helpers import TINY_DIT
+from helpers.resume import Recorder, assert_identical, final_state, run_until_killed
 from omg.data.datamodule import MotionDataModule
 from omg.lit.pretrain import PretrainModule, fresh_noise_seed
 
 BATCHES_PER_EPOCH = 4
 TOTAL_STEPS = 13  # three epoch boundaries (after steps 4, 8 and 12) and a part of a fourth epoch
-
-
-class Killed(Exception):
-    """Stands for SIGKILL: nothing after it runs, and the next run starts from the files."""
-
-
-class KillAt(Callback):
-    def __init__(self, step: int):
-        self.step = step
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if trainer.global_step == self.step:
-            raise Killed(f"killed at the start of step {self.step}")
-
-
-class Recorder(Callback):
-    """What each optimizer step trained on: the batch's clip ids and lengths, and the epoch."""
-
-    def __init__(self):
-        self.steps: dict[int, tuple] = {}
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        self.steps[trainer.global_step] = (trainer.current_epoch, tuple(batch["id"]), tuple(batch["lengths"].tolist()))
-
-
-def run_until_killed(model, data, root, *, max_steps: int, kill_at: int | None = None, resume: bool = False,
-                     callbacks=(), keep_all: bool = False, **trainer_args) -> L.Trainer:
-    """``trainer.fit`` of a tiny CPU run checkpointing every step into ``root/ckpt``, killed at the
-    start of step ``kill_at``, or resumed from ``root/ckpt/last.ckpt``; ``keep_all`` keeps every
-    step's checkpoint. Without validation unless ``trainer_args`` ask for it."""
-    checkpoints = ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1,
-                                  **({"save_top_k": -1} if keep_all else {}))
-    callbacks = [*callbacks, checkpoints] + ([KillAt(kill_at)] if kill_at is not None else [])
-    trainer_args = {"limit_val_batches": 0, "num_sanity_val_steps": 0, **trainer_args}
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=root, callbacks=callbacks, **trainer_args)
-    try:
-        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
-    except Killed:
-        pass
-    return trainer
 
 
 def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_workers: int = 0,
@@ -77,7 +38,7 @@ def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_w
     data = MotionDataModule(str(shards / "train"), val=str(shards / "val") if validate else None, batch_size=4,
                             max_len=30, min_len=10, batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers,
                             shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-3, warmup_steps=3,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3, warmup_steps=3,
                            ema_decay=0.9, spec=data.spec)
     recorder = Recorder()
     validation = ({"limit_val_batches": 1, "val_check_interval": BATCHES_PER_EPOCH, "check_val_every_n_epoch": None}
@@ -96,46 +57,6 @@ def fit_killed(shards, root, kills: tuple[int, ...], **kwargs) -> dict[int, tupl
         assert i == 0 or min(recorder.steps) == kills[i - 1]  # resumed where the last run was killed
         steps.update(recorder.steps)
     return steps
-
-
-def loop_counters(ckpt: dict) -> dict:
-    """Lightning's training-loop counters in a checkpoint: epochs (ready, started, processed,
-    completed), batches, optimizer and scheduler steps. The validation loop's own batch counter is
-    left out: Lightning resets it at each epoch's start and, resuming from a checkpoint written
-    before an epoch-end validation, counts that validation as run after the reset."""
-    fit_loop = ckpt["loops"]["fit_loop"]
-    return {k: v for k, v in fit_loop.items() if k != "state_dict" and not k.startswith("epoch_loop.val_loop.")}
-
-
-def final_state(root) -> dict:
-    ckpt = torch.load(root / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
-    return {
-        "global_step": ckpt["global_step"],
-        "epoch": ckpt["epoch"],
-        "state_dict": ckpt["state_dict"],
-        "ema": ckpt["ema"],
-        "optimizer": ckpt["optimizer_states"],
-        "lr": ckpt["lr_schedulers"],
-        "noise_rng": ckpt["noise_rng"],
-        "data": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"],  # the stream position
-        "loops": loop_counters(ckpt),
-    }
-
-
-def assert_identical(a, b, path="checkpoint"):
-    assert type(a) is type(b), f"{path}: {type(a)} vs {type(b)}"
-    if isinstance(a, torch.Tensor):
-        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b), f"{path} differs"
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys(), f"{path}: keys {sorted(a)} vs {sorted(b)}"
-        for k in a:
-            assert_identical(a[k], b[k], f"{path}.{k}")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), f"{path}: length {len(a)} vs {len(b)}"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_identical(x, y, f"{path}[{i}]")
-    else:
-        assert a == b, f"{path}: {a!r} vs {b!r}"
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +159,7 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
     L.seed_everything(0, verbose=False)
     data = MotionDataModule(str(h263_shards / "train"), batch_size=2, max_len=30, min_len=10, batches_per_epoch=12,
                             num_workers=0, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, lr=1e-2, warmup_steps=1,
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-2, warmup_steps=1,
                            ema_decay=decay, spec=data.spec)
     initial = {n: p.detach().clone() for n, p in model.model.named_parameters()}
     recorder = WeightsAfterStep()
@@ -270,28 +191,49 @@ def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> t
     return done.returncode, done.stderr[-3000:]
 
 
-def test_two_rank_run_resumes_bit_for_bit(h263_shards, tmp_path):
+# The multi-process tests: each gloo run starts its ranks' interpreters (10-20 s a run on 2 cores). They
+# share the runs never killed; under xdist their group runs on one worker, which makes each run once.
+@pytest.fixture(scope="module")
+def never_killed(h263_shards, tmp_path_factory):
+    """``never_killed(devices)``: the folder of tests/ddp_resume_run.py's run on ``devices`` gloo ranks,
+    never killed, each rank's steps and start state recorded as ``fresh-rank{r}.pt`` (each run once)."""
+    runs = {}
+
+    def run(devices: int):
+        if devices not in runs:
+            root = tmp_path_factory.mktemp(f"never_killed_{devices}")
+            code, err = ddp_run(h263_shards / "train", root, devices=devices, record="fresh")
+            assert code == 0, err
+            runs[devices] = root
+        return runs[devices]
+
+    return run
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp_resume")
+def test_two_rank_run_resumes_bit_for_bit(h263_shards, never_killed, tmp_path):
     """Two gloo ranks on the CPU: kill at an epoch boundary, resume, kill at the next boundary,
     resume again, and compare with the run never killed, each rank's noise RNG and the loop
     counters included."""
     shards = h263_shards / "train"  # 4 shards, 2 per rank
-    code, err = ddp_run(shards, tmp_path / "full")
-    assert code == 0, err
     code, err = ddp_run(shards, tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
     assert code == 3, err
     code, err = ddp_run(shards, tmp_path / "killed", kill_at=6, resume=True)
     assert code == 3, err
     code, err = ddp_run(shards, tmp_path / "killed", resume=True)
     assert code == 0, err
-    expected, resumed = final_state(tmp_path / "full"), final_state(tmp_path / "killed")
+    expected, resumed = final_state(never_killed(2)), final_state(tmp_path / "killed")
     assert expected["noise_rng"].shape[0] == 2 and not torch.equal(*expected["noise_rng"])  # one state per rank
     assert_identical(resumed, expected)
 
 
 # Elastic resume: a checkpoint of one world size resumed on another, killed mid-epoch (step 4 is
 # epoch 1's second batch in ddp_resume_run.py).
+@pytest.mark.slow
+@pytest.mark.xdist_group("ddp_resume")
 @pytest.mark.parametrize("old,new", [(2, 1), (1, 2)], ids=["2to1", "1to2"])
-def test_resume_on_another_number_of_ranks(h263_shards, tmp_path, old, new):
+def test_resume_on_another_number_of_ranks(h263_shards, never_killed, tmp_path, old, new):
     shards, kill_at = h263_shards / "train", 4
     code, err = ddp_run(shards, tmp_path / "run", kill_at=kill_at, devices=old)
     assert code == 3, err
@@ -299,11 +241,10 @@ def test_resume_on_another_number_of_ranks(h263_shards, tmp_path, old, new):
     assert saved["global_step"] == kill_at and saved["noise_rng"].shape[0] == old
     code, resumed_err = ddp_run(shards, tmp_path / "run", resume=True, devices=new, record="resumed")
     assert code == 0, resumed_err
-    code, err = ddp_run(shards, tmp_path / "fresh", devices=new, record="fresh")  # the new world size from scratch
-    assert code == 0, err
+    fresh_run = never_killed(new)  # the new world size from scratch
     for rank in range(new):
         resumed = torch.load(tmp_path / "run" / f"resumed-rank{rank}.pt", weights_only=False)
-        fresh = torch.load(tmp_path / "fresh" / f"fresh-rank{rank}.pt", weights_only=False)
+        fresh = torch.load(fresh_run / f"fresh-rank{rank}.pt", weights_only=False)
         # weights, EMA, optimizer and schedule: the checkpoint's, whatever the world size
         start = resumed["start"]
         noise = start.pop("noise_rng")

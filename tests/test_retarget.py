@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TINY_BVH
+from helpers import TINY_BVH
 from omg.errors import UsageError
 from omg.io.read import read_motion
 from omg.io.rig import RigMotion
@@ -30,7 +30,7 @@ def _read(root: Path, entry: dict) -> RigMotion:
 @pytest.fixture(scope="module")
 def retargeted() -> list:
     """(manifest entry, source motion, clip at 20 fps) for every real clip."""
-    from tests.conftest import SHARED_MOTION
+    from helpers import SHARED_MOTION
 
     if not (SHARED_MOTION / "manifest.json").exists():
         pytest.skip(f"real motion data not found at {SHARED_MOTION}")

@@ -17,7 +17,7 @@ import pygltflib
 import torch
 from scipy.spatial.transform import Rotation
 
-from conftest import BANDAI_RIG, DOG_RIG, rig_bvh
+from helpers import BANDAI_RIG, DOG_RIG, TINY_DIT, rig_bvh
 from omg.export import export_motion
 from omg.io.bvh import read_bvh
 from omg.kinematics import ground_contacts
@@ -251,7 +251,7 @@ def test_generate_writes_onto_the_rig(tmp_path):
     under test): every sample is a .glb on the rig, and generation.json records the rig."""
     import json
 
-    from conftest import REPO
+    from helpers import REPO
     from omg.cli import main
     from omg.data.datamodule import MotionDataModule
     from omg.lit.checkpoint import class_path
@@ -259,7 +259,7 @@ def test_generate_writes_onto_the_rig(tmp_path):
 
     torch.manual_seed(0)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
-    module = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 32, "n_heads": 2}, spec=spec, ema_decay=0)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "module_class": class_path(type(module))}, tmp_path / "pre.ckpt")
     (tmp_path / "rig.bvh").write_text(rig_bvh(BANDAI_RIG))

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 from lightning.pytorch.callbacks import Callback
 
-from conftest import REPO
+from helpers import REPO, rewrite_member
+from helpers.configs import write_config
 from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
@@ -47,28 +47,6 @@ class KillWritingLast(Callback):
 
 class KilledWritingLast(Exception):
     pass
-
-
-def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=(), top_k=1, **data):
-    config = {
-        "seed_everything": 0,
-        "trainer": {
-            "accelerator": "cpu", "devices": 1, "max_steps": max_steps, "enable_progress_bar": False,
-            "enable_model_summary": False, "limit_val_batches": 0, "num_sanity_val_steps": 0,
-            "default_root_dir": str(root),
-            "callbacks": [{"class_path": "lightning.pytorch.callbacks.ModelCheckpoint",
-                           "init_args": {"dirpath": str(root / "ckpt"), "save_last": True, "every_n_train_steps": 2,
-                                         "save_top_k": top_k}},
-                          *callbacks],
-        },
-        "model": {"class_path": "PretrainModule",
-                  "init_args": {"flavor": "mini", "dit": {"n_layers": 1, "d_model": 32, "n_heads": 2}, "lr": 1e-3,
-                                "warmup_steps": 2, "ema_decay": 0.9}},
-        "data": {"train": str(shards), "batch_size": 4, "max_len": 30, "min_len": 10, "batches_per_epoch": 5,
-                 "num_workers": num_workers, "shuffle_buffer": 8, **data},
-    }
-    path.write_text(yaml.safe_dump(config))
-    return str(path)
 
 
 def one_error_line(capsys) -> str:
@@ -134,15 +112,13 @@ def test_too_many_bad_samples_in_a_worker_is_one_line(h263_shards, tmp_path, cap
     import tarfile
 
     from omg.data.shards import Manifest
-    from test_shards import _rewrite_member
-
     shards = tmp_path / "s"
     shutil.copytree(h263_shards / "train", shards)
     for path in Manifest.load(shards).shard_paths:  # half the samples of every shard
         with tarfile.open(path) as tar:
             keys = sorted({name.split(".")[0] for name in tar.getnames()})
         for key in keys[::2]:
-            _rewrite_member(path, f"{key}.motion.npy", b"garbage")
+            rewrite_member(path, f"{key}.motion.npy", b"garbage")
     config = write_config(tmp_path / "c.yaml", shards, tmp_path / "run", num_workers=1, verify_shards=False)
     with pytest.raises(SystemExit) as e:
         main(["fit", "--config", config])
@@ -431,8 +407,6 @@ def test_a_non_finite_loss_names_the_batch_clips_in_one_line(h263_shards, tmp_pa
     import numpy as np
 
     from omg.data.shards import Manifest
-    from test_shards import _rewrite_member
-
     shards = tmp_path / "s"
     shutil.copytree(h263_shards / "train", shards)
     huge = io.BytesIO()
@@ -441,7 +415,7 @@ def test_a_non_finite_loss_names_the_batch_clips_in_one_line(h263_shards, tmp_pa
         with tarfile.open(path) as tar:
             keys = sorted({name.split(".")[0] for name in tar.getnames()})
         for key in keys:
-            _rewrite_member(path, f"{key}.motion.npy", huge.getvalue())
+            rewrite_member(path, f"{key}.motion.npy", huge.getvalue())
     config = write_config(tmp_path / "c.yaml", shards, tmp_path / "run", max_steps=2, verify_shards=False)
     with pytest.raises(SystemExit) as e:
         main(["fit", "--config", config])

@@ -16,7 +16,7 @@ import tarfile
 import numpy as np
 import pytest
 
-from conftest import write_toy_shards
+from helpers import write_toy_shards
 from omg.cli import main
 from omg.data.shards import MANIFEST, Manifest, ShardError, check_shards, iter_tar, verify_shard
 from omg.errors import UsageError

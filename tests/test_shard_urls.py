@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import write_toy_shards
+from helpers import write_toy_shards
 from omg.data.datamodule import MotionDataModule
 from omg.data.shards import Manifest, ShardError, iter_tar
 from omg.errors import UsageError
@@ -119,9 +119,9 @@ def test_inspect_checks_a_set_behind_a_pipe(toy_shards, capsys):
 def test_fit_on_a_mixture_read_through_a_pipe_stores_the_pooled_stats(h263_shards, tmp_path):
     """`omg fit` end to end: one set behind `pipe:cat`, one local; the checkpoint's spec (what
     `omg generate` normalises with) holds the mixture's pooled statistics."""
+    from helpers.configs import write_config
     from omg.cli import main
     from omg.lit.checkpoint import load_module
-    from test_run_faults import write_config
 
     train = [{"path": f"pipe:cat {h263_shards / 'train'}/manifest.json", "weight": 0.8},
              {"path": str(h263_shards / "val"), "weight": 0.2}]

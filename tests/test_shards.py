@@ -5,12 +5,11 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import tarfile
 
 import numpy as np
 import pytest
 
-from conftest import JointPositions, toy_clip, write_toy_shards
+from helpers import JointPositions, rewrite_member, toy_clip, write_toy_shards
 from omg.data.shards import BUILD_STATE, MANIFEST, SCHEMA_VERSION, Manifest, ShardWriter, iter_tar, validate
 from omg.motion import Clip
 from omg.skeleton import SMPL22
@@ -99,19 +98,9 @@ def test_resume_with_other_settings_is_refused(tmp_path):
         ShardWriter(tmp_path, JointPositions(SMPL22), 30.0, max_clips=2, log=lambda m: None).write(_source(10))
 
 
-def _rewrite_member(shard, key_ext, data: bytes):
-    with tarfile.open(shard) as tar:
-        members = [(m, tar.extractfile(m).read()) for m in tar.getmembers()]
-    with tarfile.open(shard, "w") as tar:
-        for m, payload in members:
-            payload = data if m.name == key_ext else payload
-            m.size = len(payload)
-            tar.addfile(m, io.BytesIO(payload))
-
-
 def test_validate_names_bad_samples_by_shard_and_key(toy_shards):
     m = Manifest.load(toy_shards)
-    _rewrite_member(m.shard_paths[1], "clip_0006.motion.npy", b"garbage")
+    rewrite_member(m.shard_paths[1], "clip_0006.motion.npy", b"garbage")
     truncated = m.shard_paths[3]
     truncated.write_bytes(truncated.read_bytes()[:1500])
     _, good, problems = validate(toy_shards)
@@ -127,7 +116,7 @@ def test_inspect_command_exit_codes(toy_shards, capsys):
     shards_main(["inspect", str(toy_shards)])
     out = capsys.readouterr().out
     assert "40 clips" in out and "40 valid samples, 0 problems" in out
-    _rewrite_member(Manifest.load(toy_shards).shard_paths[0], "clip_0001.meta.json", b"{}")
+    rewrite_member(Manifest.load(toy_shards).shard_paths[0], "clip_0001.meta.json", b"{}")
     with pytest.raises(SystemExit) as e:
         shards_main(["inspect", str(toy_shards)])
     assert e.value.code == 1

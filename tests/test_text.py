@@ -15,6 +15,8 @@ from omg.text import ClipTextEncoder, HashTextEncoder, MiniLMTextEncoder, TextEn
 
 TEXTS = ["a person walks forward", "", "a dog jumps over a log and then runs"]
 LONG = " ".join(["walk"] * 600)
+# the tests share the encoders and the random CLIP: under xdist they run on one worker, which builds them once
+pytestmark = pytest.mark.xdist_group("text")
 
 
 def count_calls(monkeypatch, encoder: TextEncoder) -> list[list[str]]:
@@ -211,8 +213,9 @@ def test_omnimotiongpt_clip_feature_is_encode_text_and_eot_is_an_option(random_c
     code on random weights); text_feature="eot" is the EOT token before the text projection."""
     import open_clip
 
+    from helpers.omgpt import MINI, TINY
+    from helpers.omgpt import data as _data
     from omg.lit.omgpt import OmniMotionModule
-    from test_omgpt import MINI, TINY, _data
 
     model, path = random_clip
     specs = dict(spec=_data(MINI / "animal_maa/train").spec, human_spec=_data(MINI / "human_maa/train").spec)

@@ -1,0 +1,42 @@
+"""OmniMotionGPT in tests: the tiny config, the mini data's streams, a tiny module, and a few steps of
+``omg fit --config configs/mini/omgpt.yaml`` (the ``omgpt_ckpt`` fixture)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from helpers import MINI, REPO
+
+TINY = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32,
+        "latent_layers": 1, "dropout": 0.0}
+
+
+def data(path, **kw):
+    """A data module of a mini set (whole clips of 20-32 frames, batches of 4, in-process)."""
+    from omg.data.datamodule import MotionDataModule
+
+    args = dict(batch_size=4, max_len=32, min_len=20, num_workers=0, shuffle_buffer=32, clips="whole")
+    return MotionDataModule(str(path), **{**args, **kw})
+
+
+def tiny_module(spec, **kw):
+    """The tiny OmniMotionModule of these tests (hash text, no EMA) on the mini human stream of whole clips."""
+    from omg.lit.omgpt import OmniMotionModule
+
+    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
+                 shuffle_buffer=32, clips="whole")
+    return OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=spec, ema_decay=0,
+                            **kw)
+
+
+def fit_mini(root: Path) -> Path:
+    """`omg fit --config configs/mini/omgpt.yaml`, 4 steps of the tiny model with hash text; its last checkpoint."""
+    from omg.cli import main
+
+    main(["fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=4",
+          f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false", "--trainer.val_check_interval=4",
+          "--trainer.enable_model_summary=false", "--model.init_args.text_encoder=hash",
+          f"--model.init_args.config={json.dumps(TINY)}", "--data.batch_size=4",
+          "--model.init_args.human_data.batch_size=4"])
+    return root / "checkpoints/last.ckpt"
