@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 import torch
 
+from helpers import MINI, REPO, TINY_DIT
+from helpers.habit import CATEGORIES
+
 pytest.importorskip("fastapi", reason="omg serve needs fastapi (pip install -e '.[dev]')")
 httpx = pytest.importorskip("httpx", reason="the server tests talk to it with httpx")
 
-REPO = Path(__file__).resolve().parents[1]
-MINI = REPO / "shards/mini"
-CATEGORIES = ["dog", "cat", "fox", "horse", "cow", "deer", "sheep"]
 
 
 def _fit_save(module, data, path: Path) -> Path:
@@ -60,7 +60,7 @@ def serve_ckpts(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("serve_ckpts")
     torch.manual_seed(0)
     human = _data(MINI / "human263/train")
-    pretrain = PretrainModule(flavor="mini", dit={"n_layers": 2, "d_model": 32, "n_heads": 2}, spec=human.spec,
+    pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec,
                               warmup_steps=1, ema_decay=0)
     _fit_save(pretrain, human, root / "pretrain.ckpt")
     controlnet = ControlNetModule(pretrained=str(root / "pretrain.ckpt"), text_encoder="hash",
