@@ -89,6 +89,7 @@ def _fit_args(shards, root, steps):
             TINY_DIT_ARG, "--model.init_args.warmup_steps=5"]
 
 
+@pytest.mark.slow  # five `omg fit` processes, each importing Lightning: about 35 s on 2 cores
 def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path):
     cases = {
         "--model.init_args.flavor=colossal": "unknown DiT flavor 'colossal'",

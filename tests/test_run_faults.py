@@ -13,40 +13,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from lightning.pytorch.callbacks import Callback
 
 from helpers import REPO, rewrite_member
 from helpers.configs import write_config
+from helpers.faults import KilledWritingLast
 from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
-
-
-class SigtermAt(Callback):
-    """Sends this process SIGTERM during a step, as a scheduler or `scancel` would."""
-
-    def __init__(self, step: int):
-        self.step = step
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if trainer.global_step == self.step:
-            os.kill(os.getpid(), signal.SIGTERM)
-
-
-class KillWritingLast(Callback):
-    """Stands for a kill while ``last.ckpt`` is written at ``step``: the periodic checkpoint of that
-    step is whole, and ``last.ckpt`` stays the older file (its write is atomic)."""
-
-    def __init__(self, step: int):
-        self.step, self.saves = step, 0
-
-    def on_save_checkpoint(self, trainer, pl_module, checkpoint):
-        if trainer.global_step == self.step:
-            self.saves += 1
-            if self.saves == 2:  # ModelCheckpoint writes the step's periodic file, then last.ckpt
-                raise KilledWritingLast
-
-
-class KilledWritingLast(Exception):
-    pass
 
 
 def one_error_line(capsys) -> str:
@@ -61,7 +32,7 @@ def test_sigterm_saves_a_checkpoint_exits_nonzero_and_resumes_exactly(h263_shard
     shards = h263_shards / "train"
     full = write_config(tmp_path / "full.yaml", shards, tmp_path / "full")
     main(["fit", "--config", full])
-    sigterm = {"class_path": "test_run_faults.SigtermAt", "init_args": {"step": 4}}
+    sigterm = {"class_path": "helpers.faults.SigtermAt", "init_args": {"step": 4}}
     stopped = write_config(tmp_path / "stopped.yaml", shards, tmp_path / "stopped", callbacks=[sigterm])
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
@@ -134,7 +105,7 @@ def test_resume_last_takes_the_newest_whole_checkpoint_and_keeps_the_top_k_polic
     keep deleted, the checkpoint resumed from included, and a user's own files kept."""
     shards = h263_shards / "train"
     main(["fit", "--config", write_config(tmp_path / "full.yaml", shards, tmp_path / "full")])
-    kill = {"class_path": "test_run_faults.KillWritingLast", "init_args": {"step": 4}}
+    kill = {"class_path": "helpers.faults.KillWritingLast", "init_args": {"step": 4}}
     with pytest.raises(KilledWritingLast):
         main(["fit", "--config", write_config(tmp_path / "killed.yaml", shards, tmp_path / "run", callbacks=[kill])])
     ckpt = tmp_path / "run" / "ckpt"
@@ -177,21 +148,13 @@ def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_pat
     assert [p.name for p in written_checkpoints(callback)] == sorted(written)
 
 
-class SlowAfterCtrlC(Callback):
-    """Makes the step in which a stop was asked for last a minute, the time to press Ctrl-C again."""
-
-    def on_train_batch_end(self, trainer, *args):
-        if trainer.received_sigterm:
-            time.sleep(60)
-
-
 def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
     """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
     Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
     command = ["fit", "--config", "configs/mini/pretrain.yaml", f"--trainer.default_root_dir={root}",
                "--trainer.enable_progress_bar=false", "--trainer.callbacks.every_n_train_steps=5", *args]
     if callbacks:
-        command.append("--trainer.callbacks+=test_run_faults.SlowAfterCtrlC")
+        command.append("--trainer.callbacks+=helpers.faults.SlowAfterCtrlC")
     return omg_process(*command, log=root.parent / f"{root.name}.err", new_session=True)
 
 
@@ -285,7 +248,7 @@ def processes(where: str | None = None, parent: int | None = None) -> list[int]:
 
 def omg_process(*args: str, log: Path, new_session: bool = False) -> subprocess.Popen:
     """`python -m omg.cli ARGS` from the repository, stderr to ``log``; ``new_session``: in a process
-    group of its own, as a terminal starts it. Test modules import (callbacks named in a config)."""
+    group of its own, as a terminal starts it. The test helpers import (callbacks named in a config)."""
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=log.open("w"), start_new_session=new_session)
