@@ -43,7 +43,8 @@ def test_slurm_reads_the_allocation(fake_bin):
     out = launch("slurm.sbatch", "configs/pretrain_base.yaml", fake_bin, SLURM_JOB_NUM_NODES="4",
                  SLURM_NTASKS_PER_NODE="2")
     assert out.returncode == 0, out.stderr
-    assert "srun omg fit --config" in out.stdout
+    # --kill-on-bad-exit: one lost task ends the step instead of leaving the others in a collective
+    assert "srun --kill-on-bad-exit=1 omg fit --config" in out.stdout
     assert ("--trainer.num_nodes 4 --trainer.devices 2 --data.batch_size 32 "
             "--trainer.accumulate_grad_batches 1" in out.stdout)
     assert "--ckpt_path last" in out.stdout
