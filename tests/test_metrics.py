@@ -364,6 +364,7 @@ def _rank_main(rank: int, world: int, port: int, out: str) -> None:
     dist.destroy_process_group()
 
 
+@pytest.mark.slow  # two gloo processes that each import Lightning
 def test_two_gloo_ranks_equal_one_process(tmp_path):
     mp.spawn(_rank_main, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
     whole = single_process_results()

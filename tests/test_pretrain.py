@@ -124,6 +124,7 @@ def _final_state(path):
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+@pytest.mark.slow  # a killed `omg fit` process and its resume: about 35 s on 2 cores
 @pytest.mark.xdist_group("pretrain_whole_run")
 def test_killed_run_resumes_to_the_same_state(h263_shards, whole_run, tmp_path):
     steps = STEPS

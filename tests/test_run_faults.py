@@ -166,6 +166,7 @@ def _wait_for(condition, process, timeout=120):
         time.sleep(0.1)
 
 
+@pytest.mark.slow  # two `omg fit` processes (interrupted, resumed): about 25 s on 2 cores
 def test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes(tmp_path):
     root = tmp_path / "run"
     run = _mini_fit(root, "--trainer.max_steps=300")
