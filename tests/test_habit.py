@@ -182,7 +182,7 @@ def habit_run(tmp_path_factory):
 
 
 class _Snapshots:
-    """The habit encoders', flows' and VQ-VAE's weights at the start, at the end of the habit pretraining, at the end."""
+    """The weights at the start, at the end of the habit pretraining and at the end of a fit."""
 
     def __init__(self):
         import lightning as L

@@ -51,7 +51,6 @@ from omg.models.habit import (
 from omg.motion import DataSpec, get_representation
 from omg.skeleton import get_skeleton
 
-
 HABIT_ORDERS = ("flow_prior", "kl_then_flows")
 
 
