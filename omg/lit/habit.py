@@ -334,10 +334,7 @@ class HabitVQModule(OmgModule):
         """The paper's step schedule over the VQ-VAE's steps (``lr``, then ``lr_after`` from ``lr_switch`` of
         them), after a linear warm-up over ``warmup_steps``; in ``flow_prior`` the habit pretraining before it
         runs at ``lr`` after its own warm-up."""
-        habit = self.habit_steps(total_steps)
-        if habit and total_steps - habit < 1:
-            raise UsageError(f"model.habit_fraction {self.habit_fraction} of {total_steps} steps leaves the VQ-VAE "
-                             "no step: raise trainer.max_steps")
+        habit = self.habit_steps(total_steps)  # < total_steps: habit_fraction < 1
         after, warmup = step_lr(self.lr, self.lr_after, self.lr_switch)(total_steps - habit), self.warmup_steps
 
         def factor(step: int) -> float:
