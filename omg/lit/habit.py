@@ -8,7 +8,7 @@ flow priors of the habit latent, on ``quatvel`` shards whose clips carry their s
   encoders and flows train together, the posterior q(z | m) regularised by its category's flow
   (``flow_weight`` · KL(q || p_flow), estimated with a posterior sample: log q(z | m) − log p_flow(z),
   whose gradient on the flow is the NLL of the posterior under it) while the latent alone must
-  tell the crop's habit statistics (each channel's mean and spread over time: the reconstruction
+  tell the crop's habit statistics (each local joint rotation's mean and spread over time: the reconstruction
   that keeps the latent informative; the paper's text does not say which it used); then the
   encoders and flows are frozen and the VQ-VAE trains with no KL term. The checkpoint holds the
   flows: ``omg transfer`` and ``omg generate`` draw the habit latent from them, no stage 2.
@@ -178,7 +178,7 @@ class HabitVQModule(OmgModule):
         self.flows: CategoryFlows | None = None
         if habit_order == "flow_prior":  # pretrained with the encoders, kept in the checkpoint for transfer
             self.flows = CategoryFlows(len(self.categories), self.config)
-            self.habit_stats = HabitStatsDecoder(D, self.config)
+            self.habit_stats = HabitStatsDecoder(self.num_joints * 4 - 4, self.config)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
         N, J, Z = len(self.categories), self.num_joints, self.config.habit_dim
@@ -258,13 +258,16 @@ class HabitVQModule(OmgModule):
         return self.training and self.global_step < self.habit_steps()
 
     def habit_losses(self, batch: dict, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-        """The habit pretraining (``flow_prior``): the crop's habit statistics from its posterior sample
+        """The habit pretraining (``flow_prior``): the crop's habit statistics (mean and spread over time of
+        each local joint rotation channel but the root's, which with the velocities holds the path) from its
+        posterior sample
         (smooth L1) + ``flow_weight`` · KL(q(z | m) || p_flow(z)) per latent dimension, a one-sample estimate."""
         motion, mask = batch["motion"], batch["mask"]
         category = self.category_index(batch["category"])
         mu, log_sigma = self.habit_posterior(motion, mask, category)
         z = self._sample(mu, log_sigma, generator) if self.training else mu
-        stats = (self.habit_stats(z) - habit_statistics(motion, mask)).abs()
+        rotations = motion[..., 4:self.num_joints * 4]  # local joint rotations but the root's: no path
+        stats = (self.habit_stats(z) - habit_statistics(rotations, mask)).abs()
         stats = torch.where(stats < 1, 0.5 * stats.square(), stats - 0.5).mean()  # smooth L1
         kl = flow_prior_kl(z, mu, log_sigma, self.flows, category).mean() / z.shape[1]
         return {"loss": stats + self.flow_weight * kl, "habit_stats": stats, "flow_kl": kl}

@@ -13,8 +13,9 @@
 - ``CouplingFlow`` / ``CategoryFlows``: the habit prior p(z) of each category, a normalizing flow
   of affine coupling layers over an isotropic Gaussian, trained by negative log-likelihood.
 - ``HabitStatsDecoder`` / ``habit_statistics``: what the habit encoders are pretrained to tell under
-  their flow priors (``habit_order: flow_prior``): the per-channel mean and standard deviation over
-  time of a motion crop, from its habit latent alone; ``flow_prior_kl``: the one-sample estimate of
+  their flow priors (``habit_order: flow_prior``): the mean and standard deviation over time of each
+  local joint rotation channel of a motion crop (not the root's nor the velocities: they hold the
+  path), from its habit latent alone; ``flow_prior_kl``: the one-sample estimate of
   KL(q(z | m) || p_flow(z)) that regularises the posterior there instead of KL to N(0, I).
 
 Plain torch; shapes in comments (B batch, T frames, D features, C code width, K codes, Z habit
@@ -352,8 +353,8 @@ def gaussian_log_prob(z: Tensor, mu: Tensor, log_sigma: Tensor) -> Tensor:
 
 
 def habit_statistics(motion: Tensor, mask: Tensor) -> Tensor:
-    """(B, T, D) normalised motion, (B, T) bool -> (B, 2 D): each channel's mean and standard deviation over
-    the real frames (a carriage is a mean, a nod or a sway a spread: the time-invariant part of a habit)."""
+    """(B, T, C) normalised motion channels, (B, T) bool -> (B, 2 C): each channel's mean and standard deviation
+    over the real frames (a carriage is a mean, a nod or a sway a spread: the time-invariant part of a habit)."""
     w = mask.to(motion.dtype)[..., None]  # (B, T, 1)
     n = w.sum(1).clamp_min(1)  # (B, 1)
     mean = (motion * w).sum(1) / n
@@ -362,15 +363,15 @@ def habit_statistics(motion: Tensor, mask: Tensor) -> Tensor:
 
 
 class HabitStatsDecoder(nn.Module):
-    """z (B, Z) -> the motion's ``habit_statistics`` (B, 2 D): the reconstruction that makes the habit
-    latent informative while each encoder is pretrained under its flow prior (an MLP shared by the
+    """z (B, Z) -> the ``habit_statistics`` (B, 2 C) of C motion channels: the reconstruction that makes the
+    habit latent informative while each encoder is pretrained under its flow prior (an MLP shared by the
     categories: the latent alone must tell them)."""
 
-    def __init__(self, feature_dim: int, c: HabitConfig):
+    def __init__(self, channels: int, c: HabitConfig):
         super().__init__()
         self.net = nn.Sequential(nn.Linear(c.habit_dim, c.habit_width), nn.ReLU(),
                                  nn.Linear(c.habit_width, c.habit_width), nn.ReLU(),
-                                 nn.Linear(c.habit_width, 2 * feature_dim))
+                                 nn.Linear(c.habit_width, 2 * channels))
 
     def forward(self, z: Tensor) -> Tensor:
         return self.net(z)
