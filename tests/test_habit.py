@@ -597,3 +597,26 @@ def test_omg_test_evaluates_the_default_order_with_its_own_flows(habit_run, habi
     assert "| EMA-reset |" in capsys.readouterr().out
     rows = json.loads((tmp_path / "table.json").read_text())
     assert list(rows) == ["EMA-reset"] and all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+
+
+def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_order(tmp_path):
+    """A VQ-VAE or prior checkpoint written before habit_order existed (no such hyper-parameter, no flows in the
+    VQ-VAE) loads as what it is, omg's earlier order, and transfers."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import load_module
+    from omg.lit.habit import HabitPriorModule, HabitVQModule
+
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    old = HabitVQModule(CATEGORIES, habit_order="kl_then_flows", flavor="tiny", text_encoder="hash", spec=spec)
+    hparams = {k: v for k, v in old.hparams.items() if k not in ("habit_order", "habit_fraction", "flow_weight")}
+    torch.save({"state_dict": old.state_dict(), "hyper_parameters": hparams,
+                "module_class": "omg.lit.habit.HabitVQModule"}, tmp_path / "vq.ckpt")
+    vq = load_module(tmp_path / "vq.ckpt", default_class=HabitVQModule)
+    assert vq.habit_order == "kl_then_flows" and vq.flows is None and vq.row_label == "EMA-reset, KL then flows"
+    prior = HabitPriorModule(str(tmp_path / "vq.ckpt"))
+    torch.save({"state_dict": prior.state_dict(), "hyper_parameters": {**prior.hparams, "vq": hparams},
+                "module_class": "omg.lit.habit.HabitPriorModule"}, tmp_path / "prior.ckpt")
+    moved = load_module(tmp_path / "prior.ckpt", default_class=HabitPriorModule)
+    assert moved.vq.habit_order == "kl_then_flows"
+    motion = torch.zeros(1, 8, spec.feature_dim)
+    assert torch.isfinite(moved.vq.transfer(motion, 1, moved.habit_latents(1, 1))).all()

@@ -191,6 +191,14 @@ class HabitVQModule(OmgModule):
         self.register_buffer("habit_count", torch.zeros(N, dtype=torch.float64))
         self._generator: torch.Generator | None = None
 
+    @staticmethod
+    def checkpoint_hparams(hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them (``omg.lit.checkpoint.load_module``): one
+        written before ``habit_order`` existed holds no flows and was trained in omg's earlier order."""
+        if "habit_order" not in hparams and not any(k.startswith("flows.") for k in state):
+            return {**hparams, "habit_order": "kl_then_flows"}
+        return hparams
+
     # -- categories and features -------------------------------------------------------
     @property
     def row_label(self) -> str:
@@ -583,6 +591,8 @@ class HabitPriorModule(OmgModule):
             self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
             vq = dict(self.vq.hparams)
         else:  # the structure: the weights come with this checkpoint's
+            # a prior written before habit_order existed fitted a VQ-VAE of omg's earlier order
+            vq = {"habit_order": "kl_then_flows", **vq}
             self.vq = build_module(HabitVQModule, vq, "model.init_args.vq")
         self.hparams["vq"] = dict(vq)
         self.vq.requires_grad_(False).eval()
