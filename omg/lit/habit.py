@@ -268,8 +268,8 @@ class HabitVQModule(OmgModule):
     def habit_losses(self, batch: dict, generator: torch.Generator | None = None) -> dict[str, Tensor]:
         """The habit pretraining (``flow_prior``): the crop's habit statistics (mean and spread over time of
         each local joint rotation channel but the root's, which with the velocities holds the path) from its
-        posterior sample
-        (smooth L1) + ``flow_weight`` · KL(q(z | m) || p_flow(z)) per latent dimension, a one-sample estimate."""
+        posterior sample (smooth L1) + ``flow_weight`` · KL(q(z | m) || p_flow(z)) per latent dimension, a
+        one-sample estimate."""
         motion, mask = batch["motion"], batch["mask"]
         category = self.category_index(batch["category"])
         mu, log_sigma = self.habit_posterior(motion, mask, category)
@@ -303,15 +303,13 @@ class HabitVQModule(OmgModule):
         return out, recon, {"category": category, "mu": mu}
 
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
+        """The habit pretraining's losses in its steps, else the VQ-VAE's. One AdamW holds every part: the part
+        a phase leaves alone gets no gradient, and AdamW skips it."""
         if self.pretraining():
             return self.habit_losses(batch, self.generator())
         losses, _, extra = self.losses(batch, self.generator())
         self._accumulate(batch, extra["category"], extra["mu"])
         return losses
-
-    def optimizer_groups(self) -> list[dict]:
-        # one AdamW over every part: a phase's frozen part gets no gradient, and AdamW leaves it alone
-        return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
     habit_decay = 0.99  # per step, of the sums behind mean_habit
 
