@@ -620,3 +620,24 @@ def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_o
     assert moved.vq.habit_order == "kl_then_flows"
     motion = torch.zeros(1, 8, spec.feature_dim)
     assert torch.isfinite(moved.vq.transfer(motion, 1, moved.habit_latents(1, 1))).all()
+
+
+def test_the_default_order_under_ddp_asks_for_unused_parameters():
+    """Each phase of flow_prior leaves a part of the model without gradient: plain DDP would hang or fail at the
+    first step, so fit start says which strategy to use (one line)."""
+    import lightning as L
+
+    from omg.data.datamodule import MotionDataModule
+    from omg.errors import UsageError
+    from omg.lit.habit import HabitVQModule
+
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    for strategy, order, refused in (("ddp", "flow_prior", True), ("ddp", "kl_then_flows", False),
+                                     ("ddp_find_unused_parameters_true", "flow_prior", False)):
+        module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", text_encoder="hash", spec=spec)
+        module.trainer = L.Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False)
+        if refused:
+            with pytest.raises(UsageError, match="set trainer.strategy ddp_find_unused_parameters_true"):
+                module.on_fit_start()
+        else:
+            module.on_fit_start()

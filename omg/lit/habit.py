@@ -261,6 +261,17 @@ class HabitVQModule(OmgModule):
             total_steps = cached[1]
         return int(self.habit_fraction * total_steps)
 
+    def on_fit_start(self) -> None:
+        super().on_fit_start()
+        from lightning.pytorch.strategies import DDPStrategy
+
+        strategy = self.trainer.strategy
+        if (self.habit_order == "flow_prior" and isinstance(strategy, DDPStrategy) and self.trainer.world_size > 1
+                and not strategy._ddp_kwargs.get("find_unused_parameters")):
+            raise UsageError("model.habit_order flow_prior trains one part of the model in each phase (the habit "
+                             "encoders and flows, then the VQ-VAE), which DDP must be told: set trainer.strategy "
+                             "ddp_find_unused_parameters_true")
+
     def pretraining(self) -> bool:
         """Whether this training step pretrains the habit encoders and flows (the first phase of ``flow_prior``)."""
         return self.training and self.global_step < self.habit_steps()
