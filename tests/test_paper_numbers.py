@@ -129,6 +129,7 @@ def test_habit_configs_have_the_papers_numbers():
     # the paper's order: each category's habit encoder pretrained under its flow prior, then the VQ-VAE's
     # 200K iterations on the pretrained encoders
     assert args.habit_order == _defaults(HabitVQModule)["habit_order"] == "flow_prior"
+    assert parse(REPO / "configs/mini/habit_vqvae.yaml").model.init_args.habit_order == "flow_prior"  # the mini too
     assert cfg.trainer.max_steps - int(args.habit_fraction * cfg.trainer.max_steps) == 200000
     assert cfg.data.batch_size == 32 and cfg.data.max_len == cfg.data.min_len == 64
     base = HabitConfig.from_name(args.flavor)
