@@ -1,5 +1,6 @@
-"""Habit transfer: quantizer, EMA codebook and code reset, the flow prior, retrieval, a mini fit whose
-transfers carry the target's habits and keep the source's path, and `omg transfer` on a real dog clip."""
+"""Habit transfer: quantizer, EMA codebook and code reset, the flow prior, retrieval, mini fits of both
+training orders (the paper's, habit encoders pretrained under their flows, and omg's earlier KL-then-flows)
+whose transfers carry the target's habits and keep the source's path, and `omg transfer` on a real dog clip."""
 
 from __future__ import annotations
 
