@@ -141,6 +141,9 @@ BENCH_SAMPLE = ["bench", "sample", "--steps", "1", "--frames", "8", "--batch_siz
 MINI_SHARDS = str(REPO / "shards/mini/human263/train")
 MINI_VAL = str(REPO / "shards/mini/human263/val")
 TRANSFER = ["transfer", "--to", "horse", "--ckpt", "{habit}", "--no_preview"]
+FIT_HABIT = ["fit", "--config", str(REPO / "configs/mini/habit_vqvae.yaml"), "--trainer.default_root_dir", "{out}",
+             "--data.train", str(REPO / "shards/mini/animal_quatvel/train"),
+             "--data.val", str(REPO / "shards/mini/animal_quatvel/val"), "--trainer.max_steps", "1"]
 FIT_DATA = [*FIT, "--data.train", MINI_SHARDS, "--data.val", MINI_VAL,  # the config names them from the repo
             "--trainer.max_steps", "1"]  # were a check missing, the run would end soon
 ROWS = [
@@ -291,6 +294,8 @@ ROWS = [
     ("test-evaluator-other-kind", ["test", "--config", "{eval_animal}", "--trainer.default_root_dir", "{out}",
                                    "--model.init_args.pretrained", "{pre}", "--model.init_args.text_encoder", "hash",
                                    "--model.init_args.moc", "{{d_c: 16, num_experts: 2}}"]),
+    ("fit-habit-order-banana", [*FIT_HABIT, "--model.init_args.habit_order", "banana"]),
+    ("fit-habit-fraction-one", [*FIT_HABIT, "--model.init_args.habit_fraction", "1"]),
     ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
     # omg bench
@@ -500,6 +505,9 @@ SAYS = {
                                 "max_len=120",
     "fit-val-other-representation": f"data.train ({MINI_SHARDS}) and data.val ({ANIMAL_VAL}) {SPECS_DIFFER}",
     "test-evaluator-other-kind": f"the data and EvalCallback.evaluator {SPECS_DIFFER}",
+    "fit-habit-order-banana": "model.habit_order must be one of flow_prior, kl_then_flows (flow_prior: the paper's",
+    "fit-habit-fraction-one": "model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
+                              "encoders) and model.flow_weight >= 0, got 1.0, 0.01",
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
     "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",

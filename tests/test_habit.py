@@ -1,5 +1,6 @@
-"""Habit transfer: quantizer, EMA codebook and code reset, the flow prior, retrieval, a mini fit whose
-transfers carry the target's habits and keep the source's path, and `omg transfer` on a real dog clip."""
+"""Habit transfer: quantizer, EMA codebook and code reset, the flow prior, retrieval, mini fits of both
+training orders (the paper's, habit encoders pretrained under their flows, and omg's earlier KL-then-flows)
+whose transfers carry the target's habits and keep the source's path, and `omg transfer` on a real dog clip."""
 
 from __future__ import annotations
 
@@ -159,16 +160,19 @@ def test_species_descriptions_name_no_family():
 # ----------------------------------------------------------------------------- mini fit
 
 
+TINY_FIT = dict(flavor="tiny", temperature=0.1, lr=3e-3, lr_after=3e-4, lr_switch=0.8, condition_decoder=True)
+
+
 @pytest.fixture(scope="session")
 def habit_run(tmp_path_factory):
-    """A tiny VQ-VAE, its flow priors and an evaluator, fitted briefly on the mini quadrupeds."""
+    """A tiny VQ-VAE in omg's earlier order (kl_then_flows), its flow priors fitted after, and an evaluator,
+    fitted briefly on the mini quadrupeds."""
     from omg.lit.evaluator import EvaluatorModule
     from omg.lit.habit import HabitPriorModule, HabitVQModule
 
     out = tmp_path_factory.mktemp("habit")
-    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, flavor="tiny", temperature=0.1, lr=3e-3,
-                                                  lr_after=3e-4, lr_switch=0.8, condition_decoder=True,
-                                                  spec=spec), out / "vq", 250)
+    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, habit_order="kl_then_flows", **TINY_FIT, spec=spec),
+                       out / "vq", 250)
     prior, prior_path = _fit(HabitPriorModule(str(vq_path), lr=3e-3), out / "prior", 60)
     evaluator, _ = _fit(lambda spec: EvaluatorModule(flavor="mini", evaluator={"n_layers": 1, "d_model": 64,
                                                                                 "embed_dim": 64},
@@ -178,12 +182,54 @@ def habit_run(tmp_path_factory):
             "evaluator": evaluator.evaluator.eval(), "evaluator_path": out / "evaluator" / "last.ckpt"}
 
 
+class _Snapshots:
+    """The weights at the start, at the end of the habit pretraining and at the end of a fit."""
+
+    def __init__(self):
+        import lightning as L
+
+        outer = self
+        self.at: dict[str, dict[str, torch.Tensor]] = {}
+
+        class Callback(L.Callback):
+            def on_train_batch_start(self, trainer, module, batch, batch_idx):
+                if trainer.global_step in (0, module.habit_steps()):
+                    outer.take("start" if trainer.global_step == 0 else "pretrained", module)
+
+            def on_train_end(self, trainer, module):
+                outer.take("end", module)
+
+        self.callback = Callback()
+
+    def take(self, name, module):
+        self.at[name] = {k: v.detach().clone() for k, v in module.state_dict().items()}
+
+    def changed(self, a: str, b: str, prefix: str) -> bool:
+        return any(not torch.equal(self.at[a][k], self.at[b][k]) for k in self.at[a] if k.startswith(prefix))
+
+
+@pytest.fixture(scope="session")
+def habit_flow_run(tmp_path_factory):
+    """A tiny model of the paper's order (the default, flow_prior): 62 steps pretrain the habit encoders under
+    their flows, 248 train the VQ-VAE on them (habit_run's VQ-VAE steps and settings)."""
+    from omg.lit.habit import HabitVQModule
+
+    out = tmp_path_factory.mktemp("habit_flow")
+    snapshots = _Snapshots()
+    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, **TINY_FIT, spec=spec), out / "vq", 310,
+                       callbacks=[snapshots.callback])
+    return {"vq": vq.eval(), "vq_path": vq_path, "snapshots": snapshots}
+
+
 @torch.no_grad()
-def test_transfer_carries_the_target_habits_and_keeps_the_path(habit_run):
+@pytest.mark.parametrize("order", ["kl_then_flows", "flow_prior"])
+def test_transfer_carries_the_target_habits_and_keeps_the_path(habit_run, order, request):
     from omg.callbacks.habit import crops
     from omg.data.datamodule import ClipDataset, MotionDataModule
 
     vq, prior, evaluator = habit_run["vq"], habit_run["prior"], habit_run["evaluator"]
+    if order == "flow_prior":  # the paper's order: the VQ-VAE's own flows, pretrained with its encoders
+        vq = prior = request.getfixturevalue("habit_flow_run")["vq"]
     data = MotionDataModule(str(QUATVEL / "train"), max_len=64, min_len=64, clips="windows", verify_shards=False)
     train = crops(ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples, 64)
 
@@ -347,10 +393,10 @@ def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
     main(["test", "--config", str(tmp_path / "eval.yaml"), "--ckpt_path", str(habit_run["prior_path"])])
     printed = capsys.readouterr().out
     assert "| quantizer | FID | Intra-FID | downstream FID | Diversity | 1-NNA | MPJPE (m) |" in printed
-    assert "| EMA-reset |" in printed and "| real motion |" in printed
+    assert "| EMA-reset, KL then flows |" in printed and "| real motion |" in printed  # omg's earlier order
     rows = json.loads((tmp_path / "table.json").read_text())
-    assert set(rows["EMA-reset"]) >= {"fid", "intra_fid", "diversity", "one_nna", "mpjpe"}
-    assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+    assert set(rows["EMA-reset, KL then flows"]) >= {"fid", "intra_fid", "diversity", "one_nna", "mpjpe"}
+    assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset, KL then flows"].values())
     assert json.loads(next((tmp_path / "run").rglob("habit_eval.json")).read_text())["settings"]["mode"] == "transfer"
 
 
@@ -440,3 +486,159 @@ def test_transfer_writes_the_model_rotations_and_omg_generate_makes_the_same_tra
     np.testing.assert_array_equal(np.load(tmp_path / "g/sample_000.features.npy"), features)
     settings = json.loads((tmp_path / "g/generation.json").read_text())
     assert settings["family"] == "habit" and settings["category"] == "horse" and settings["habit"] == "prior sample"
+
+
+# ----------------------------------------------------------------------------- the paper's training order
+
+
+def test_pretraining_trains_encoders_and_flows_on_the_flow_prior_kl_and_the_vqvae_has_no_kl():
+    """habit_order flow_prior (the default): the pretraining loss is the habit statistics + flow_weight ·
+    (log q(z|m) − log p_flow(z)) per dimension, and its gradient reaches the encoders and the flows, not the
+    VQ-VAE; the VQ-VAE's loss then trains the VQ-VAE only, with no KL term."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.habit import HabitVQModule
+    from omg.models.habit import habit_statistics
+
+    data = MotionDataModule(str(QUATVEL / "train"), batch_size=8, max_len=64, min_len=64, clips="windows",
+                            batches_per_epoch=1, num_workers=0, shuffle_buffer=32, verify_shards=False)
+    batch = next(iter(data.train_dataloader()))
+    torch.manual_seed(0)
+    module = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=data.spec).train()
+    assert module.habit_order == "flow_prior" and module.habit_steps(10) == 2
+    with torch.no_grad():  # an untrained flow is the identity: make it a real density first
+        for p in module.flows.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    out = module.habit_losses(batch, torch.Generator().manual_seed(3))
+
+    # by hand, with the same posterior sample
+    category = module.category_index(batch["category"])
+    mu, log_sigma = module.habit_encoders(batch["motion"], batch["mask"], category)
+    eps = torch.randn(mu.shape, generator=torch.Generator().manual_seed(3))
+    z = mu + log_sigma.exp() * eps
+    log_q = torch.distributions.Normal(mu, log_sigma.exp()).log_prob(z).sum(-1)
+    log_p = torch.stack([module.flows.flows[int(k)].log_prob(z[i:i + 1])[0] for i, k in enumerate(category)])
+    kl = (log_q - log_p).mean() / z.shape[1]
+    rotations = batch["motion"][..., 4:35 * 4]  # SMAL-35's local rotations but the root's (no path)
+    stats = torch.nn.functional.smooth_l1_loss(module.habit_stats(z), habit_statistics(rotations, batch["mask"]))
+    torch.testing.assert_close(out["flow_kl"], kl)
+    torch.testing.assert_close(out["loss"], stats + module.flow_weight * kl)
+
+    def grads(loss):
+        module.zero_grad()
+        loss.backward()
+        return {name: p.grad is not None and bool(p.grad.abs().sum() > 0) for name, p in module.named_parameters()}
+
+    reached = grads(out["loss"])
+    for part in ("habit_encoders.", "flows.", "habit_stats."):
+        assert any(v for k, v in reached.items() if k.startswith(part)), part
+    assert not any(v for k, v in reached.items() if k.startswith("vqvae."))
+    # the flows learn from the KL term alone (the statistics do not see them): the NLL of the posterior
+    only_kl = grads(module.habit_losses(batch, torch.Generator().manual_seed(3))["flow_kl"])
+    assert any(v for k, v in only_kl.items() if k.startswith("flows."))
+
+    losses, _, _ = module.losses(batch, torch.Generator().manual_seed(3))
+    assert "kl" not in losses
+    reached = grads(losses["loss"])
+    assert any(v for k, v in reached.items() if k.startswith("vqvae."))
+    assert not any(v for k, v in reached.items() if k.startswith(("habit_encoders.", "flows.", "habit_stats.")))
+
+
+def test_the_default_order_pretrains_then_freezes_the_encoders_and_flows(habit_flow_run):
+    snap = habit_flow_run["snapshots"]
+    assert set(snap.at) == {"start", "pretrained", "end"}
+    for part in ("habit_encoders.", "flows."):
+        assert snap.changed("start", "pretrained", part), part  # trained in the pretraining ...
+        assert not snap.changed("pretrained", "end", part), part  # ... and frozen after it
+    assert not snap.changed("start", "pretrained", "vqvae.")  # the VQ-VAE waits for the pretrained encoders
+    assert snap.changed("pretrained", "end", "vqvae.")
+
+
+def test_omg_transfer_and_generate_work_from_a_checkpoint_of_the_default_order(habit_flow_run, shared_motion,
+                                                                                tmp_path):
+    """No stage 2: the checkpoint's own flows give the habit latent, through `omg transfer` and `omg generate`."""
+    from omg.cli import main
+
+    clip = shared_motion / "quadruped" / "mann_dog" / "D1_007_KAN01_001.bvh"
+    ckpt = str(habit_flow_run["vq_path"])
+    main(["transfer", str(clip), "--to", "horse", "--ckpt", ckpt, "--no_preview", "--out", str(tmp_path / "t")])
+    settings = json.loads((tmp_path / "t/transfer.json").read_text())
+    assert settings["habit"] == "prior sample" and settings["habit_order"] == "flow_prior"
+    features = np.load(tmp_path / "t/transfer.features.npy")
+    assert np.isfinite(features).all() and np.isfinite(np.load(tmp_path / "t/transfer.joints.npy")).all()
+    main(["generate", "--ckpt", ckpt, "--from_motion", str(clip), "--animal", "horse", "--num_samples", "1",
+          "--no_preview", "--out", str(tmp_path / "g")])
+    np.testing.assert_array_equal(np.load(tmp_path / "g/sample_000.features.npy"), features)
+    generated = json.loads((tmp_path / "g/generation.json").read_text())
+    assert generated["category"] == "horse" and generated["habit"] == "prior sample"
+    # the latent is a sample of horse's pretrained flow, drawn with the seed
+    vq = habit_flow_run["vq"]
+    z = vq.habit_latents(vq.categories.index("horse"), 1, seed=0)
+    assert torch.equal(z, vq.flows.sample(vq.categories.index("horse"), 1, torch.Generator().manual_seed(0)))
+
+
+def test_omg_test_evaluates_the_default_order_with_its_own_flows(habit_run, habit_flow_run, tmp_path, capsys):
+    """configs/mini/habit_eval.yaml on a VQ-VAE of the default order, without a stage-2 checkpoint: the
+    prior module starts from the flows pretrained with the encoders."""
+    import yaml
+
+    from omg.cli import main
+    from omg.lit.habit import HabitPriorModule
+
+    prior = HabitPriorModule(str(habit_flow_run["vq_path"]))
+    assert all(torch.equal(a, b) for a, b in zip(prior.flows.state_dict().values(),
+                                                  habit_flow_run["vq"].flows.state_dict().values()))
+    config = yaml.safe_load((REPO / "configs" / "mini" / "habit_eval.yaml").read_text())
+    config["trainer"]["callbacks"][0]["init_args"].update(evaluator=str(habit_run["evaluator_path"]), replications=1,
+                                                          table=str(tmp_path / "table.json"))
+    config["trainer"]["default_root_dir"] = str(tmp_path / "run")
+    config["model"]["init_args"]["vq_ckpt"] = str(habit_flow_run["vq_path"])
+    config["data"]["val"] = str(QUATVEL / "val")
+    (tmp_path / "eval.yaml").write_text(yaml.safe_dump(config))
+    main(["test", "--config", str(tmp_path / "eval.yaml")])
+    assert "| EMA-reset |" in capsys.readouterr().out
+    rows = json.loads((tmp_path / "table.json").read_text())
+    assert list(rows) == ["EMA-reset"] and all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+
+
+def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_order(tmp_path):
+    """A VQ-VAE or prior checkpoint written before habit_order existed (no such hyper-parameter, no flows in the
+    VQ-VAE) loads as what it is, omg's earlier order, and transfers."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import load_module
+    from omg.lit.habit import HabitPriorModule, HabitVQModule
+
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    old = HabitVQModule(CATEGORIES, habit_order="kl_then_flows", flavor="tiny", text_encoder="hash", spec=spec)
+    hparams = {k: v for k, v in old.hparams.items() if k not in ("habit_order", "habit_fraction", "flow_weight")}
+    torch.save({"state_dict": old.state_dict(), "hyper_parameters": hparams,
+                "module_class": "omg.lit.habit.HabitVQModule"}, tmp_path / "vq.ckpt")
+    vq = load_module(tmp_path / "vq.ckpt", default_class=HabitVQModule)
+    assert vq.habit_order == "kl_then_flows" and vq.flows is None and vq.row_label == "EMA-reset, KL then flows"
+    prior = HabitPriorModule(str(tmp_path / "vq.ckpt"))
+    torch.save({"state_dict": prior.state_dict(), "hyper_parameters": {**prior.hparams, "vq": hparams},
+                "module_class": "omg.lit.habit.HabitPriorModule"}, tmp_path / "prior.ckpt")
+    moved = load_module(tmp_path / "prior.ckpt", default_class=HabitPriorModule)
+    assert moved.vq.habit_order == "kl_then_flows"
+    motion = torch.zeros(1, 8, spec.feature_dim)
+    assert torch.isfinite(moved.vq.transfer(motion, 1, moved.habit_latents(1, 1))).all()
+
+
+def test_the_default_order_under_ddp_asks_for_unused_parameters():
+    """Each phase of flow_prior leaves a part of the model without gradient: plain DDP would hang or fail at the
+    first step, so fit start says which strategy to use (one line)."""
+    import lightning as L
+
+    from omg.data.datamodule import MotionDataModule
+    from omg.errors import UsageError
+    from omg.lit.habit import HabitVQModule
+
+    spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
+    for strategy, order, refused in (("ddp", "flow_prior", True), ("ddp", "kl_then_flows", False),
+                                     ("ddp_find_unused_parameters_true", "flow_prior", False)):
+        module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", text_encoder="hash", spec=spec)
+        module.trainer = L.Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False)
+        if refused:
+            with pytest.raises(UsageError, match="set trainer.strategy ddp_find_unused_parameters_true"):
+                module.on_fit_start()
+        else:
+            module.on_fit_start()

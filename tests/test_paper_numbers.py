@@ -60,18 +60,25 @@ def quatvel():
                             verify_shards=False)
 
 
-def test_habit_stage1_loss_is_the_papers_mix(quatvel):
-    """L = smooth L1 (motion) + 0.5 · smooth L1 (velocity channels) + 0.02 · commitment (+ KL), by default."""
+@pytest.mark.parametrize("order", ["flow_prior", "kl_then_flows"])
+def test_habit_stage1_loss_is_the_papers_mix(quatvel, order):
+    """L = smooth L1 (motion) + 0.5 · smooth L1 (velocity channels) + 0.02 · commitment, by default; the
+    VQ-VAE of the paper's order (its encoders pretrained under their flows) has no KL term, omg's earlier
+    order adds kl_weight · KL(q || N(0, I))."""
     assert HABIT_MIX.items() <= _defaults(HabitVQModule).items()
     torch.manual_seed(0)
-    module = HabitVQModule(CATEGORIES, flavor="tiny", spec=quatvel.spec).eval()
+    module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", spec=quatvel.spec).eval()
     batch = next(iter(quatvel.train_dataloader()))
     out, recon, _ = module.losses(batch)
     v = module.num_joints * 4  # quatvel: 35 quaternions, then the joint velocities
     mask = batch["mask"].float()
     torch.testing.assert_close(out["motion"], masked_smooth_l1(recon, batch["motion"], mask))
     torch.testing.assert_close(out["velocity"], masked_smooth_l1(recon[..., v:], batch["motion"][..., v:], mask))
-    expected = out["motion"] + 0.5 * out["velocity"] + 0.02 * out["commitment"] + module.kl_weight * out["kl"]
+    expected = out["motion"] + 0.5 * out["velocity"] + 0.02 * out["commitment"]
+    if order == "kl_then_flows":
+        expected = expected + module.kl_weight * out["kl"]
+    else:
+        assert "kl" not in out
     torch.testing.assert_close(out["loss"], expected)
     assert out["velocity"] > 0 and out["commitment"] > 0
 
@@ -84,15 +91,19 @@ class _LearningRates(L.Callback):
         self.seen.append(trainer.optimizers[0].param_groups[0]["lr"])
 
 
-def test_habit_learning_rate_steps_from_2e4_to_1e5_for_the_second_half(quatvel, tmp_path):
+@pytest.mark.parametrize("order, steps, expected", [
+    ("kl_then_flows", 8, [2e-4] * 4 + [1e-5] * 4),
+    ("flow_prior", 10, [2e-4] * 2 + [2e-4] * 4 + [1e-5] * 4),  # 2 habit pretraining steps at lr, then the VQ-VAE's 8
+])
+def test_habit_learning_rate_steps_from_2e4_to_1e5_for_the_second_half(quatvel, tmp_path, order, steps, expected):
     torch.manual_seed(0)
-    module = HabitVQModule(CATEGORIES, flavor="tiny", spec=quatvel.spec)
+    module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", spec=quatvel.spec)
     rates = _LearningRates()
-    trainer = L.Trainer(accelerator="cpu", max_steps=8, logger=False, enable_checkpointing=False,
+    trainer = L.Trainer(accelerator="cpu", max_steps=steps, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path),
                         limit_val_batches=0, callbacks=[rates])
     trainer.fit(module, datamodule=quatvel)
-    assert rates.seen == pytest.approx([2e-4] * 4 + [1e-5] * 4)
+    assert rates.seen == pytest.approx(expected)
 
 
 def test_omgpt_config_has_the_papers_numbers():
@@ -115,7 +126,12 @@ def test_habit_configs_have_the_papers_numbers():
     args = cfg.model.init_args
     assert {k: args[k] for k in HABIT_MIX} == HABIT_MIX
     assert (args.quantizer, args.code_reset, args.condition_decoder, args.ema_decay) == ("soft", True, False, 0.99)
-    assert cfg.trainer.max_steps == 200000 and cfg.data.batch_size == 32 and cfg.data.max_len == cfg.data.min_len == 64
+    # the paper's order: each category's habit encoder pretrained under its flow prior, then the VQ-VAE's
+    # 200K iterations on the pretrained encoders
+    assert args.habit_order == _defaults(HabitVQModule)["habit_order"] == "flow_prior"
+    assert parse(REPO / "configs/mini/habit_vqvae.yaml").model.init_args.habit_order == "flow_prior"  # the mini too
+    assert cfg.trainer.max_steps - int(args.habit_fraction * cfg.trainer.max_steps) == 200000
+    assert cfg.data.batch_size == 32 and cfg.data.max_len == cfg.data.min_len == 64
     base = HabitConfig.from_name(args.flavor)
     assert (base.num_codes, base.down_t, base.dilation_growth, base.width) == (512, 2, 3, 512)
     assert (base.habit_layers, base.habit_width, base.habit_heads) == (4, 512, 8)

@@ -426,14 +426,19 @@ def load_module(
 
     The module restores its own extras (the EMA) through ``on_load_checkpoint``; with
     ``use_ema`` the EMA weights then replace the trained ones for inference. ``expect``: the
-    class (or a base class) the caller needs.
+    class (or a base class) the caller needs. A class with a ``checkpoint_hparams(hparams, state)``
+    static method reads its older checkpoints' hyper-parameters through it (HabitVQModule's from
+    before ``habit_order``).
     """
     ckpt = load_checkpoint(path)
     _check_rebuildable(ckpt, path)
     cls = resolve_class(ckpt["module_class"] or (class_path(default_class) if default_class else None), path)
     if expect is not None and not issubclass(cls, expect):
         raise UsageError(f"{path} holds a {class_path(cls)} checkpoint, not a {class_path(expect)}")
-    module = build_module(cls, ckpt["hyper_parameters"], path)
+    hparams = ckpt["hyper_parameters"]
+    if callable(upgrade := getattr(cls, "checkpoint_hparams", None)):  # a class's older checkpoints
+        hparams = upgrade(hparams, ckpt["state_dict"])
+    module = build_module(cls, hparams, path)
     check_weights(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     module.to(map_location)  # before the EMA is rebuilt, so that it lands on the same device

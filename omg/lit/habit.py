@@ -1,18 +1,30 @@
-"""Habit transfer training: the category-conditioned VQ-VAE (``HabitVQModule``, stage 1) and the
-per-category flow priors of the habit latent (``HabitPriorModule``, stage 2), on ``quatvel``
-shards whose clips carry their species as ``category``.
+"""Habit transfer training: the category-conditioned VQ-VAE (``HabitVQModule``) and the per-category
+flow priors of the habit latent, on ``quatvel`` shards whose clips carry their species as
+``category``, in one of two orders (``HabitVQModule.habit_order``):
 
-Stage 1 loss (the paper's): smooth L1 on the normalised motion + α · smooth L1 on its velocity
-channels + β · commitment (the embedding term is the codebook's EMA update), plus
-``kl_weight`` · KL(q(z | m) || N(0, I)), which keeps each category's posterior in a region its
-flow can model. Stage 2 fits each category's flow to the frozen posterior by negative
-log-likelihood (change of variables). Transfer (``HabitVQModule.transfer``, ``omg transfer``):
-encode the source motion with the target category's habit latent (a sample of its prior) and
-text embedding, quantize, decode with the target's condition.
+- ``flow_prior`` (default, the paper's order, "Behave Your Motion" Sec. 3: each category's habit
+  encoder is pretrained under its flow prior, and the VQ-VAE is trained on the pretrained
+  encoders). One ``omg fit`` in two phases: for the first ``habit_fraction`` of the steps the
+  encoders and flows train together, the posterior q(z | m) regularised by its category's flow
+  (``flow_weight`` · KL(q || p_flow), estimated with a posterior sample: log q(z | m) − log p_flow(z),
+  whose gradient on the flow is the NLL of the posterior under it) while the latent alone must
+  tell the crop's habit statistics (each local joint rotation's mean and spread over time: the reconstruction
+  that keeps the latent informative; the paper's text does not say which it used); then the
+  encoders and flows are frozen and the VQ-VAE trains with no KL term. The checkpoint holds the
+  flows: ``omg transfer`` and ``omg generate`` draw the habit latent from them, no stage 2.
+- ``kl_then_flows`` (omg's earlier order, a named option): the encoders train inside the VQ-VAE
+  with ``kl_weight`` · KL(q(z | m) || N(0, I)) from the first step, and ``HabitPriorModule`` fits
+  each category's flow afterwards to the frozen posterior by NLL (stage 2).
+
+VQ-VAE loss (the paper's): smooth L1 on the normalised motion + α · smooth L1 on its velocity
+channels + β · commitment (the embedding term is the codebook's EMA update). Transfer
+(``HabitVQModule.transfer``, ``omg transfer``): encode the source motion with the target category's
+habit latent (a sample of its prior) and text embedding, quantize, decode with the target's condition.
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -25,9 +37,21 @@ from omg.errors import UsageError
 from omg.lit.base import OmgModule
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import masked_smooth_l1
-from omg.models.habit import CategoryFlows, CategoryHabitEncoders, HabitConfig, MotionVQVAE, Quantizer, gaussian_kl
+from omg.models.habit import (
+    CategoryFlows,
+    CategoryHabitEncoders,
+    HabitConfig,
+    HabitStatsDecoder,
+    MotionVQVAE,
+    Quantizer,
+    flow_prior_kl,
+    gaussian_kl,
+    habit_statistics,
+)
 from omg.motion import DataSpec, get_representation
 from omg.skeleton import get_skeleton
+
+HABIT_ORDERS = ("flow_prior", "kl_then_flows")
 
 
 def step_lr(lr: float, lr_after: float, switch_fraction: float):
@@ -42,10 +66,19 @@ def step_lr(lr: float, lr_after: float, switch_fraction: float):
 
 
 class HabitVQModule(OmgModule):
-    """Stage 1: the motion VQ-VAE conditioned on each category's habit latent and text embedding.
+    """The motion VQ-VAE conditioned on each category's habit latent and text embedding; in the default
+    ``habit_order`` it first pretrains the per-category habit encoders under their flow priors.
 
     Args:
         categories: the known categories (species names of the training clips' ``category``).
+        habit_order: ``flow_prior`` (default, the paper's): the first ``habit_fraction`` of the run trains
+            the habit encoders with their flow priors (KL(q || p_flow) + the habit statistics), the rest
+            the VQ-VAE on the frozen encoders, without a KL term; the checkpoint holds the flows.
+            ``kl_then_flows`` (omg's earlier order): the encoders train inside the VQ-VAE with
+            ``kl_weight`` · KL(q || N(0, I)) from the first step, and ``HabitPriorModule`` (stage 2) fits
+            the flows afterwards.
+        habit_fraction: the share of the run's steps that pretrains the encoders and flows (``flow_prior``).
+        flow_weight: weight of KL(q(z | m) || p_flow(z)) per latent dimension in that pretraining.
         flavor: model size preset (``base``: the paper's T2M-GPT sizes; ``mini``, ``tiny`` for CPU runs).
         habit: HabitConfig fields to override.
         quantizer: ``soft`` (softmax sampling at ``temperature``, the paper's) or ``nearest``.
@@ -58,14 +91,15 @@ class HabitVQModule(OmgModule):
             short run's target habit replace the source's.
         alpha: weight of the velocity reconstruction term (paper: 0.5).
         beta: commitment weight (paper: 0.02).
-        kl_weight: weight of KL(q(z | m) || N(0, I)) on the habit posterior.
+        kl_weight: weight of KL(q(z | m) || N(0, I)) on the habit posterior (``kl_then_flows`` only).
         text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
             (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
         species_file: a YAML of extra or overriding species descriptions (omg.text.habit).
         descriptions, category_embeddings: filled in when the module is first built (the descriptions
             and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
             needed to transfer to a known category).
-        lr, lr_after, lr_switch: AdamW lr until ``lr_switch`` of the run, then ``lr_after``.
+        lr, lr_after, lr_switch: AdamW lr until ``lr_switch`` of the VQ-VAE's steps, then ``lr_after`` (the
+            habit pretraining runs at ``lr``).
         weight_decay, betas, warmup_steps: AdamW and a linear warm-up.
         spec: the data's representation (quatvel), skeleton, fps and stats; linked by ``omg fit``.
     """
@@ -76,6 +110,9 @@ class HabitVQModule(OmgModule):
     def __init__(
         self,
         categories: list[str],
+        habit_order: str = "flow_prior",
+        habit_fraction: float = 0.2,
+        flow_weight: float = 0.01,
         flavor: str = "base",
         habit: dict[str, Any] | None = None,
         quantizer: str = "soft",
@@ -102,6 +139,13 @@ class HabitVQModule(OmgModule):
         super().__init__()
         if not categories or len(set(categories)) != len(categories):
             raise UsageError(f"model.categories must list distinct category names, got {categories!r}")
+        if habit_order not in HABIT_ORDERS:
+            raise UsageError(f"model.habit_order must be one of {', '.join(HABIT_ORDERS)} (flow_prior: the paper's "
+                             f"encoders pretrained under their flows; kl_then_flows: KL to N(0, I), flows fitted "
+                             f"after), got {habit_order!r}")
+        if not 0 < habit_fraction < 1 or not flow_weight >= 0:
+            raise UsageError("model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
+                             f"encoders) and model.flow_weight >= 0, got {habit_fraction}, {flow_weight}")
         if lr <= 0 or lr_after <= 0 or not 0 <= lr_switch <= 1 or weight_decay < 0 or warmup_steps < 0:
             raise UsageError("model.lr and model.lr_after must be > 0, model.lr_switch in [0, 1], model.weight_decay "
                              f"and model.warmup_steps >= 0; got {lr}, {lr_after}, {lr_switch}, {weight_decay}, "
@@ -115,6 +159,7 @@ class HabitVQModule(OmgModule):
         self.lr, self.lr_after, self.lr_switch = lr, lr_after, lr_switch
         self.weight_decay, self.betas, self.warmup_steps = weight_decay, betas, warmup_steps
         self.alpha, self.beta, self.kl_weight = alpha, beta, kl_weight
+        self.habit_order, self.habit_fraction, self.flow_weight = habit_order, habit_fraction, flow_weight
         if category_embeddings is None:  # first build: describe and embed the categories once
             descriptions, category_embeddings = embed_categories(self.categories, text_encoder, text_encoder_args,
                                                                  species_file)
@@ -130,6 +175,10 @@ class HabitVQModule(OmgModule):
         quant = Quantizer(self.config.num_codes, self.config.code_dim, quantizer, temperature, ema_decay, code_reset)
         self.vqvae = MotionVQVAE(D, self.category_text.shape[1], self.config, quant, condition_decoder)
         self.habit_encoders = CategoryHabitEncoders(D, len(self.categories), self.config)
+        self.flows: CategoryFlows | None = None
+        if habit_order == "flow_prior":  # pretrained with the encoders, kept in the checkpoint for transfer
+            self.flows = CategoryFlows(len(self.categories), self.config)
+            self.habit_stats = HabitStatsDecoder(self.num_joints * 4 - 4, self.config)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
         N, J, Z = len(self.categories), self.num_joints, self.config.habit_dim
@@ -142,11 +191,20 @@ class HabitVQModule(OmgModule):
         self.register_buffer("habit_count", torch.zeros(N, dtype=torch.float64))
         self._generator: torch.Generator | None = None
 
+    @staticmethod
+    def checkpoint_hparams(hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them (``omg.lit.checkpoint.load_module``): one
+        written before ``habit_order`` existed holds no flows and was trained in omg's earlier order."""
+        if "habit_order" not in hparams and not any(k.startswith("flows.") for k in state):
+            return {**hparams, "habit_order": "kl_then_flows"}
+        return hparams
+
     # -- categories and features -------------------------------------------------------
     @property
     def row_label(self) -> str:
-        """The paper's table row this model is: EMA or EMA-reset."""
-        return "EMA-reset" if self.vqvae.quantizer.code_reset else "EMA"
+        """The paper's table row this model is: EMA or EMA-reset (with ", KL then flows" in omg's earlier order)."""
+        row = "EMA-reset" if self.vqvae.quantizer.code_reset else "EMA"
+        return row if self.habit_order == "flow_prior" else f"{row}, KL then flows"
 
     def category_index(self, names: Sequence[str]) -> Tensor:
         try:
@@ -183,24 +241,83 @@ class HabitVQModule(OmgModule):
     def habit_posterior(self, motion: Tensor, mask: Tensor, category: Tensor) -> tuple[Tensor, Tensor]:
         return self.habit_encoders(motion, mask, category)
 
+    @staticmethod
+    def _sample(mu: Tensor, log_sigma: Tensor, generator: torch.Generator | None) -> Tensor:
+        """The reparameterised posterior sample."""
+        return mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+
+    def habit_steps(self, total_steps: int | None = None) -> int:
+        """The optimizer steps that pretrain the habit encoders and flows (``flow_prior``; 0 otherwise): the
+        first ``habit_fraction`` of the run's ``total_steps`` (default: the fitting trainer's)."""
+        if self.habit_order != "flow_prior":
+            return 0
+        if total_steps is None:
+            trainer = self._trainer
+            if trainer is None or not trainer.training:
+                return 0
+            cached = self.__dict__.get("_habit_steps")
+            if cached is None or cached[0] is not trainer:
+                self.__dict__["_habit_steps"] = cached = (trainer, int(trainer.estimated_stepping_batches))
+            total_steps = cached[1]
+        return int(self.habit_fraction * total_steps)
+
+    def on_fit_start(self) -> None:
+        super().on_fit_start()
+        from lightning.pytorch.strategies import DDPStrategy
+
+        strategy = self.trainer.strategy
+        if (self.habit_order == "flow_prior" and isinstance(strategy, DDPStrategy) and self.trainer.world_size > 1
+                and not strategy._ddp_kwargs.get("find_unused_parameters")):
+            raise UsageError("model.habit_order flow_prior trains one part of the model in each phase (the habit "
+                             "encoders and flows, then the VQ-VAE), which DDP must be told: set trainer.strategy "
+                             "ddp_find_unused_parameters_true")
+
+    def pretraining(self) -> bool:
+        """Whether this training step pretrains the habit encoders and flows (the first phase of ``flow_prior``)."""
+        return self.training and self.global_step < self.habit_steps()
+
+    def habit_losses(self, batch: dict, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """The habit pretraining (``flow_prior``): the crop's habit statistics (mean and spread over time of
+        each local joint rotation channel but the root's, which with the velocities holds the path) from its
+        posterior sample (smooth L1) + ``flow_weight`` · KL(q(z | m) || p_flow(z)) per latent dimension, a
+        one-sample estimate."""
+        motion, mask = batch["motion"], batch["mask"]
+        category = self.category_index(batch["category"])
+        mu, log_sigma = self.habit_posterior(motion, mask, category)
+        z = self._sample(mu, log_sigma, generator) if self.training else mu
+        rotations = motion[..., 4:self.num_joints * 4]  # local joint rotations but the root's: no path
+        stats = (self.habit_stats(z) - habit_statistics(rotations, mask)).abs()
+        stats = torch.where(stats < 1, 0.5 * stats.square(), stats - 0.5).mean()  # smooth L1
+        kl = flow_prior_kl(z, mu, log_sigma, self.flows, category).mean() / z.shape[1]
+        return {"loss": stats + self.flow_weight * kl, "habit_stats": stats, "flow_kl": kl}
+
     def losses(self, batch: dict, generator: torch.Generator | None = None) -> tuple[dict[str, Tensor], Tensor, dict]:
+        """The VQ-VAE's losses; in ``flow_prior`` on the frozen (pretrained) habit encoders, with no KL term."""
         motion, mask = batch["motion"], batch["mask"].float()  # (B, T, D) normalised, (B, T)
         category = self.category_index(batch["category"])
-        mu, log_sigma = self.habit_posterior(motion, batch["mask"], category)
-        z = mu
-        if self.training:  # the reparameterised posterior sample
-            z = mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+        frozen = self.flows is not None
+        if frozen:
+            self.habit_encoders.eval()  # pretrained: no dropout, no gradient
+        with torch.no_grad() if frozen else contextlib.nullcontext():
+            mu, log_sigma = self.habit_posterior(motion, batch["mask"], category)
+        z = self._sample(mu, log_sigma, generator) if self.training else mu
         recon, _, terms = self.vqvae(motion, z, self.category_text[category], batch["mask"], generator)
         v = self.num_joints * 4  # quatvel: quaternions first, then the joint velocities
         motion_loss = masked_smooth_l1(recon, motion, mask)
         velocity_loss = masked_smooth_l1(recon[..., v:], motion[..., v:], mask)
-        kl = gaussian_kl(mu, log_sigma).mean()
-        loss = motion_loss + self.alpha * velocity_loss + self.beta * terms["commitment"] + self.kl_weight * kl
+        loss = motion_loss + self.alpha * velocity_loss + self.beta * terms["commitment"]
         out = {"loss": loss, "motion": motion_loss, "velocity": velocity_loss, "commitment": terms["commitment"],
-               "embedding": terms["embedding"], "kl": kl, "perplexity": terms["perplexity"]}
+               "embedding": terms["embedding"], "perplexity": terms["perplexity"]}
+        if not frozen:  # kl_then_flows: the posterior kept near N(0, I) for the flows fitted after
+            out["kl"] = kl = gaussian_kl(mu, log_sigma).mean()
+            out["loss"] = loss + self.kl_weight * kl
         return out, recon, {"category": category, "mu": mu}
 
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
+        """The habit pretraining's losses in its steps, else the VQ-VAE's. One AdamW holds every part: the part
+        a phase leaves alone gets no gradient, and AdamW skips it."""
+        if self.pretraining():
+            return self.habit_losses(batch, self.generator())
         losses, _, extra = self.losses(batch, self.generator())
         self._accumulate(batch, extra["category"], extra["mu"])
         return losses
@@ -220,6 +337,9 @@ class HabitVQModule(OmgModule):
         losses, recon, extra = self.losses(batch)
         n = len(batch["motion"])
         self.log_dict({f"{stage}/{k}": v for k, v in losses.items()}, batch_size=n, sync_dist=True)
+        if self.flows is not None:  # the habit pretraining's terms (posterior means)
+            habit = self.habit_losses(batch)
+            self.log_dict({f"{stage}/{k}": habit[k] for k in ("habit_stats", "flow_kl")}, batch_size=n, sync_dist=True)
         if "offsets" in batch:
             real = self.representation.decode(self.denormalize(batch["motion"]), batch["offsets"])
             pred = self.representation.decode(self.denormalize(recon), batch["offsets"])
@@ -231,16 +351,29 @@ class HabitVQModule(OmgModule):
         self.validation_step(batch, batch_idx, stage="test")
 
     def lr_factor(self, total_steps: int):
-        """The paper's step schedule (``lr``, then ``lr_after`` from ``lr_switch`` of the run), after a linear
-        warm-up over ``warmup_steps``."""
-        after, warmup = step_lr(self.lr, self.lr_after, self.lr_switch)(total_steps), self.warmup_steps
+        """The paper's step schedule over the VQ-VAE's steps (``lr``, then ``lr_after`` from ``lr_switch`` of
+        them), after a linear warm-up over ``warmup_steps``; in ``flow_prior`` the habit pretraining before it
+        runs at ``lr`` after its own warm-up."""
+        habit = self.habit_steps(total_steps)  # < total_steps: habit_fraction < 1
+        after, warmup = step_lr(self.lr, self.lr_after, self.lr_switch)(total_steps - habit), self.warmup_steps
 
         def factor(step: int) -> float:
-            return after(step) * min(1.0, (step + 1) / warmup) if warmup else after(step)
+            phase = step if step < habit else step - habit
+            value = 1.0 if step < habit else after(phase)
+            return value * min(1.0, (phase + 1) / warmup) if warmup else value
 
         return factor
 
     # -- transfer --------------------------------------------------------------------------
+    @torch.no_grad()
+    def habit_latents(self, category: int, count: int, seed: int = 0, temperature: float = 1.0) -> Tensor:
+        """(count, Z) samples of the category's flow prior, pretrained with its encoder (``flow_prior``)."""
+        if self.flows is None:
+            raise UsageError("this VQ-VAE was trained with habit_order kl_then_flows and holds no flow priors: fit "
+                             "them with `omg fit --config configs/mini/habit_prior.yaml` and pass --prior_ckpt")
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        return self.flows.sample(category, count, gen, temperature)
+
     @torch.no_grad()
     def transfer(self, motion: Tensor, target: int, z: Tensor, seed: int = 0, quantizer: str | None = None,
                  text: Tensor | None = None) -> Tensor:
@@ -319,8 +452,10 @@ class HabitVQModule(OmgModule):
     def transfer_motions(self, request: GenerationRequest, prior: HabitPriorModule | None = None
                          ) -> list[GeneratedMotion]:
         """The source motion moved onto ``request.species`` with its habits, ``num_samples`` times with seeds
-        ``seed`` + k: the habit latent is a sample of ``prior``'s flow for the category, or without it the mean
-        of the category's posterior; the model's rotations and root come out as they are."""
+        ``seed`` + k: the habit latent is a sample of the category's flow, ``prior``'s or without it this
+        checkpoint's own (``flow_prior``), else the mean of the category's posterior; the model's rotations and
+        root come out as they are."""
+        prior = prior if prior is not None else (self if self.flows is not None else None)
         source, options = request.source, request.options
         condition = self.species_condition(request.species, options.get("species_file"))
         k = self.categories.index(condition["category"])
@@ -352,6 +487,7 @@ class HabitVQModule(OmgModule):
 
     def generation_settings(self, request: GenerationRequest, prior: HabitPriorModule | None = None
                             ) -> dict[str, Any]:
+        prior = prior if prior is not None else (self if self.flows is not None else None)
         condition = self.species_condition(request.species, request.options.get("species_file"))
         k = self.categories.index(condition["category"])
         return {
@@ -359,7 +495,7 @@ class HabitVQModule(OmgModule):
             "retrieved": condition["retrieved"], "distance": condition["distance"],
             "description": condition.get("description"),
             "condition": "its own description" if condition["retrieved"] else f"{condition['category']}'s description",
-            "habit": "prior sample" if prior is not None else "posterior mean",
+            "habit": "prior sample" if prior is not None else "posterior mean", "habit_order": self.habit_order,
             "temperature": request.options.get("temperature", 1.0),
             "quantizer": request.options.get("quantizer") or self.vqvae.quantizer.mode,
             "frames": len(request.source["features"]), "target_offsets": self.category_offsets(k).tolist()}
@@ -422,7 +558,10 @@ def embed_categories(categories: list[str], text_encoder: str, text_encoder_args
 
 
 class HabitPriorModule(OmgModule):
-    """Stage 2: each known category's flow prior p(z), fitted by NLL to the frozen stage-1 habit posterior.
+    """Stage 2 of ``habit_order: kl_then_flows``: each known category's flow prior p(z), fitted by NLL to the
+    frozen stage-1 habit posterior. On a VQ-VAE of the default order (``flow_prior``, whose flows were
+    pretrained with its encoders) it starts from those flows: built without fitting, it is that
+    checkpoint as ``omg test`` evaluates it (configs/mini/habit_eval.yaml).
 
     Args:
         vq_ckpt: the HabitVQModule checkpoint to fit on (frozen); read once, when the prior is first
@@ -456,10 +595,13 @@ class HabitPriorModule(OmgModule):
         self.save_hyperparameters()
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         self.posterior_sample = posterior_sample
+        hparams_from_file = vq is None
         if vq is None:
             self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
             vq = dict(self.vq.hparams)
         else:  # the structure: the weights come with this checkpoint's
+            # a prior written before habit_order existed fitted a VQ-VAE of omg's earlier order
+            vq = {"habit_order": "kl_then_flows", **vq}
             self.vq = build_module(HabitVQModule, vq, "model.init_args.vq")
         self.hparams["vq"] = dict(vq)
         self.vq.requires_grad_(False).eval()
@@ -467,6 +609,8 @@ class HabitPriorModule(OmgModule):
         if spec is not None:
             self.vq.spec.check_compatible(DataSpec.coerce(spec), f"the VQ-VAE {vq_ckpt or ''}".strip(), "the data")
         self.flows = CategoryFlows(len(self.vq.categories), self.vq.config)
+        if vq_ckpt is not None and hparams_from_file and self.vq.flows is not None:  # flow_prior: its pretrained flows
+            self.flows.load_state_dict(self.vq.flows.state_dict())
 
     @property
     def categories(self) -> list[str]:

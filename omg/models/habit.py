@@ -12,6 +12,11 @@
 - ``HabitEncoder``: a transformer posterior q(z | m) = N(mu, sigma) for each known category.
 - ``CouplingFlow`` / ``CategoryFlows``: the habit prior p(z) of each category, a normalizing flow
   of affine coupling layers over an isotropic Gaussian, trained by negative log-likelihood.
+- ``HabitStatsDecoder`` / ``habit_statistics``: what the habit encoders are pretrained to tell under
+  their flow priors (``habit_order: flow_prior``): the mean and standard deviation over time of each
+  local joint rotation channel of a motion crop (not the root's nor the velocities: they hold the
+  path), from its habit latent alone; ``flow_prior_kl``: the one-sample estimate of
+  KL(q(z | m) || p_flow(z)) that regularises the posterior there instead of KL to N(0, I).
 
 Plain torch; shapes in comments (B batch, T frames, D features, C code width, K codes, Z habit
 latent width, E text embedding width, N categories).
@@ -342,6 +347,36 @@ def gaussian_kl(mu: Tensor, log_sigma: Tensor) -> Tensor:
     return 0.5 * (mu.square() + (2 * log_sigma).exp() - 1 - 2 * log_sigma).sum(-1)
 
 
+def gaussian_log_prob(z: Tensor, mu: Tensor, log_sigma: Tensor) -> Tensor:
+    """log N(z; mu, diag sigma²) per row: (B, Z) -> (B,)."""
+    return (-0.5 * ((z - mu) / log_sigma.exp()).square() - log_sigma - 0.5 * math.log(2 * math.pi)).sum(-1)
+
+
+def habit_statistics(motion: Tensor, mask: Tensor) -> Tensor:
+    """(B, T, C) normalised motion channels, (B, T) bool -> (B, 2 C): each channel's mean and standard deviation
+    over the real frames (a carriage is a mean, a nod or a sway a spread: the time-invariant part of a habit)."""
+    w = mask.to(motion.dtype)[..., None]  # (B, T, 1)
+    n = w.sum(1).clamp_min(1)  # (B, 1)
+    mean = (motion * w).sum(1) / n
+    std = (((motion - mean[:, None]).square() * w).sum(1) / n).clamp_min(1e-8).sqrt()
+    return torch.cat([mean, std], dim=-1)
+
+
+class HabitStatsDecoder(nn.Module):
+    """z (B, Z) -> the ``habit_statistics`` (B, 2 C) of C motion channels: the reconstruction that makes the
+    habit latent informative while each encoder is pretrained under its flow prior (an MLP shared by the
+    categories: the latent alone must tell them)."""
+
+    def __init__(self, channels: int, c: HabitConfig):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(c.habit_dim, c.habit_width), nn.ReLU(),
+                                 nn.Linear(c.habit_width, c.habit_width), nn.ReLU(),
+                                 nn.Linear(c.habit_width, 2 * channels))
+
+    def forward(self, z: Tensor) -> Tensor:
+        return self.net(z)
+
+
 # ----------------------------------------------------------------------------- flow prior
 
 
@@ -421,7 +456,15 @@ class CategoryFlows(nn.Module):
         return self.flows[category].sample(count, generator, temperature)
 
 
+def flow_prior_kl(z: Tensor, mu: Tensor, log_sigma: Tensor, flows: CategoryFlows, category: Tensor) -> Tensor:
+    """KL(q(z | m) || p_flow(z)) per row, estimated with the posterior sample z (B, Z): log q(z | m) −
+    log p_flow(z) under each row's category's flow. Its gradient trains the encoder (through the
+    reparameterised z and mu, sigma) and the flow (the NLL of the posterior sample under it): (B,)."""
+    return gaussian_log_prob(z, mu, log_sigma) - flows.log_prob(z, category)
+
+
 __all__ = [
     "AffineCoupling", "CategoryFlows", "CategoryHabitEncoders", "CouplingFlow", "FLAVORS", "HabitConfig",
-    "HabitEncoder", "MotionVQVAE", "QUANTIZERS", "Quantizer", "gaussian_kl",
+    "HabitEncoder", "HabitStatsDecoder", "MotionVQVAE", "QUANTIZERS", "Quantizer", "flow_prior_kl", "gaussian_kl",
+    "gaussian_log_prob", "habit_statistics",
 ]  # fmt: skip

@@ -2,7 +2,8 @@
 
 The source (BVH, DeepMimic or ``.npy``) is retargeted onto SMAL-35 and encoded as ``quatvel``
 features; the habit VQ-VAE re-encodes it with the target category's habit latent (a sample of
-its flow prior, or without ``--prior_ckpt`` the mean of its posterior) and text embedding and
+its flow prior: the checkpoint's own in the default training order, ``--prior_ckpt``'s in
+``kl_then_flows``, where without it the mean of its posterior) and text embedding and
 decodes it. A target the model does not know is described by the species book (or by the text
 given); its habit latent is that of the known category whose description is nearest (Euclidean, the
 paper's retrieval), while its own description's embedding stays the condition (the paper swaps only
@@ -51,9 +52,10 @@ def transfer(
     Args:
         source: a BVH, DeepMimic (.json/.txt) or .npy (quatvel features or SMAL-35 joint positions) motion
         to: the target species: a known category (e.g. horse), a species of the species book, or a description
-        ckpt: the HabitVQModule checkpoint (stage 1)
-        prior_ckpt: the HabitPriorModule checkpoint (stage 2): the habit latent is a sample of the target's
-            flow prior; without it, the mean of the target's posterior
+        ckpt: the HabitVQModule checkpoint (in the default order ``flow_prior`` it holds the flow priors)
+        prior_ckpt: the HabitPriorModule checkpoint (stage 2 of ``kl_then_flows``): the habit latent is a sample
+            of the target's flow prior; without it, the checkpoint's own flows (``flow_prior``) or the mean of the
+            target's posterior
         species_file: a YAML of extra species descriptions (name: description)
         joint_map: the source rig's joint map (a registered name or a YAML file; default: detected)
         seed: random seed (prior sample and soft quantization)

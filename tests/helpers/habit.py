@@ -9,7 +9,7 @@ QUATVEL = REPO / "shards" / "mini" / "animal_quatvel"
 CATEGORIES = ["dog", "cat", "fox", "horse", "cow", "deer", "sheep"]
 
 
-def fit(module, out, steps: int, batch_size: int = 32, seed: int = 0):
+def fit(module, out, steps: int, batch_size: int = 32, seed: int = 0, callbacks=()):
     import lightning as L
 
     from omg.data.datamodule import MotionDataModule
@@ -20,7 +20,7 @@ def fit(module, out, steps: int, batch_size: int = 32, seed: int = 0):
     module = module(data.spec) if callable(module) and not isinstance(module, L.LightningModule) else module
     trainer = L.Trainer(accelerator="cpu", max_steps=steps, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(out),
-                        gradient_clip_val=1.0, limit_val_batches=0)
+                        gradient_clip_val=1.0, limit_val_batches=0, callbacks=list(callbacks))
     trainer.fit(module, datamodule=data)
     module.hparams["_class_path"] = f"{type(module).__module__}.{type(module).__qualname__}"  # as LightningCLI records
     path = out / "last.ckpt"
