@@ -79,9 +79,9 @@ class Settings:
         self.flags = set(flags or ())
         self.options = set(options or ()) | {f"--{key}" for key in self.types} | self.flags
 
-    def type_of(self, key: str, given: list[tuple[str, Any, bool]]) -> Any:
-        """The type hint of ``key`` (``given``: all the user's settings, for types that depend on
-        another setting, such as a model's class); None where unknown."""
+    def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
+        """The type hint to check ``value`` of ``key`` against (``given``: all the user's settings,
+        for types that depend on another setting, such as a model's class); None where unknown."""
         return self.types.get(key)
 
     def name_of(self, key: str) -> str:
@@ -129,7 +129,7 @@ def given_settings(argv: list[str], settings: Settings) -> list[tuple[str, Any, 
         i += 1
         if arg == "--":
             break
-        if not arg.startswith("-") or arg in settings.flags or arg in ("-h", "--help"):
+        if not arg.startswith("-") or arg in settings.flags or arg in ("-h", "--help", "--print_config"):
             continue
         name, sep, value = arg.partition("=")
         if not sep:
@@ -172,7 +172,7 @@ def locate(argv: list[str], settings: Settings) -> tuple[str, Any, Any, BaseExce
     argument, a value that fails only with the others)."""
     given = given_settings(argv, settings)
     for key, value, from_command_line in given:
-        hint = settings.type_of(key, given)
+        hint = settings.type_of(key, given, value)
         if hint is None:
             continue
         error = check_alone(hint, value, from_command_line)

@@ -247,15 +247,20 @@ class LightningSettings(Settings):
         return None
 
     def name_of(self, key: str) -> str:
-        """``model.KEY`` named ``model.init_args.KEY``, as the model's keys are (its class is chosen)."""
+        """``model.KEY`` named ``model.init_args.KEY``, as the model's keys are (its class is chosen);
+        ``model.class_path`` named ``model``."""
         root, _, rest = key.partition(".")
-        if root == "model" and rest and rest.split(".")[0] not in ("class_path", "init_args", "dict_kwargs"):
+        if root == "model" and rest == "class_path":
+            return "model"
+        if root == "model" and rest and rest.split(".")[0] not in ("init_args", "dict_kwargs"):
             return f"model.init_args.{rest}"
         return key
 
-    def type_of(self, key: str, given: list[tuple[str, Any, bool]]) -> Any:
+    def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
         import typing
 
+        if key in ("model", "model.class_path"):  # a class by name (a mapping would be checked without its data)
+            return typing.Optional[L.LightningModule] if isinstance(value, str) else None
         root, _, rest = key.partition(".")
         if not rest:
             if key == "seed_everything":
@@ -283,7 +288,6 @@ class OmgLightningCLI(LightningCLI):
     line too. Only LightningCLI's and jsonargparse's public methods are overridden or called."""
 
     def __init__(self, command: str, args: list[str]):
-        from lightning.pytorch.cli import LightningArgumentParser
         import docstring_parser
 
         self.command = command  # LightningCLI's own ``subcommand`` stays None (run=False)
@@ -293,7 +297,6 @@ class OmgLightningCLI(LightningCLI):
             model_class=L.LightningModule,
             subclass_mode_model=True,
             datamodule_class=MotionDataModule,
-            parser_class=LightningArgumentParser,
             parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc},
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
@@ -319,7 +322,11 @@ class OmgLightningCLI(LightningCLI):
 
         from omg.tools.args import explain, locate, underscore_options
 
-        options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in parser.get_defaults().keys()}
+        try:
+            keys = list(parser.get_defaults().keys())
+        except Exception:  # noqa: BLE001 - defaults that do not parse are reported by the parse itself
+            keys = []
+        options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
         settings = LightningSettings(self.command, options, self.method_arguments)
         args = underscore_options(list(args), options)
         try:
@@ -379,10 +386,9 @@ class OmgLightningCLI(LightningCLI):
         loss, a lost peer or a collective timeout ends as one line."""
         from omg.lit.base import NonFiniteLoss
 
-        self.preflight()
-        kwargs = self.command_kwargs()
         try:
-            getattr(self.trainer, self.command)(**kwargs)
+            self.preflight()
+            getattr(self.trainer, self.command)(**self.command_kwargs())
         except NonFiniteLoss as e:  # one line: its step and its batch's clips say where to look
             raise UsageError(str(e)) from None
         except RuntimeError as e:  # a lost peer or a collective timeout (Lightning has torn the run down)
