@@ -139,8 +139,6 @@ class StepProgressBar(RichProgressBar):
             return
         self.retitled = (self.train_progress_bar_id, trainer.current_epoch)
         description = f"Epoch {trainer.current_epoch}"
-        if len(self.validation_description) > len(description):  # as Lightning pads it, against flicker
-            description = f"{description:{len(self.validation_description)}}"
         if self.theme.description:
             description = f"[{self.theme.description}]{description}"
         self.progress.update(self.train_progress_bar_id, description=description)
