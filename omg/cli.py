@@ -41,7 +41,6 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM
 SIGINT_EXIT = 128 + 2  # ... by SIGINT (Ctrl-C)
 SIGPIPE_EXIT = 128 + 13  # ... and by SIGPIPE (a reader that closed our stdout)
-FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"
 
 
 def _usage() -> str:
@@ -72,33 +71,6 @@ def plugins_main(argv: list[str]) -> None:
     run(plugins, argv, "omg plugins")
 
 
-def _lightning_cli() -> type:
-    """OmgLightningCLI whose parsers mark their errors with the failing key (``omg.tools.args``)
-    (a stalled data read ends as a UsageError of its own: ``omg.data.deadline``)."""
-    from lightning.pytorch.cli import LightningArgumentParser
-
-    from omg.tools.args import KeyedErrors, explain
-    from omg.tools.lightning import OmgLightningCLI
-
-    class Parser(KeyedErrors, LightningArgumentParser):
-        pass
-
-    class CLI(OmgLightningCLI):
-        def init_parser(self, **kwargs):
-            self.parser_class = Parser
-            return super().init_parser(**kwargs)
-
-        def instantiate_classes(self) -> None:
-            try:
-                super().instantiate_classes()
-            except UnicodeDecodeError:
-                raise
-            except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
-                raise UsageError(explain(e)) from None
-
-    return CLI
-
-
 def lightning_main(argv: list[str]) -> None:
     import logging
 
@@ -109,6 +81,7 @@ def lightning_main(argv: list[str]) -> None:
     from omg.data.datamodule import TooManyBadSamples
     from omg.tools.args import check_config_files, explain, file_arguments, is_utf8
     from omg.tools.common import last_line
+    from omg.tools.lightning import FIT_HINT, OmgLightningCLI
 
     logging.getLogger("lightning.fabric.utilities.seed").setLevel(logging.WARNING)
     # Lightning's advertising and its own deprecation notices are not the user's business; the CLI
@@ -120,10 +93,9 @@ def lightning_main(argv: list[str]) -> None:
     # omg's stream splits every epoch exactly among the loader workers, so its length is exact
     warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined.*")
     check_config_files(argv)
-    cli_class = _lightning_cli()
-    sys.argv = ["omg", *argv]  # LightningCLI reads sys.argv; passing args as well makes it warn
+    sys.argv = ["omg", *argv]  # the command line as Lightning's launchers see it (and as it was)
     try:
-        cli_class()
+        OmgLightningCLI(argv[0], argv[1:]).run_command()
     except UnicodeDecodeError as e:  # a config file given to another key (--data FILE, ...)
         binary = [f"{flag} {value}" for flag, value in file_arguments(argv)
                   if flag != "--ckpt_path" and not is_utf8(value)]

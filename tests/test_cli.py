@@ -8,6 +8,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import lightning  # noqa: F401  (imported outside capture: its log handler keeps the stderr it first sees)
 import pytest
 
 from helpers import REPO
@@ -181,3 +182,18 @@ def test_cpu_threads_follow_the_trainable_work(tmp_path, monkeypatch):
     assert threads_for(big) == 2
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     assert threads_for(small) == 2
+
+
+@pytest.mark.parametrize("extra, line", [
+    (["--model.ema_decay", "abc"], "model.init_args.ema_decay: expected a number, got 'abc'"),
+    (["--trainer.max-steps", "abc"], "trainer.max_steps: expected an integer, got 'abc'"),
+    (["--config", "{bad}"], "trainer.max_steps: expected an integer, got 'abc'"),
+    (["--seed_everything", "abc"], "seed_everything: expected true or false or an integer, got 'abc'"),
+])
+def test_fit_errors_name_the_key(capsys, tmp_path, monkeypatch, extra, line):
+    """A bad value for omg fit names its key, from the command line or a config file (each setting
+    is checked on its own against the type of its key: jsonargparse's public API only)."""
+    monkeypatch.setattr(sys, "argv", list(sys.argv))
+    (tmp_path / "bad.yaml").write_text("trainer:\n  max_steps: abc\n")
+    extra = [a.format(bad=tmp_path / "bad.yaml") for a in extra]
+    _assert_usage_error(capsys, ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *extra], line)

@@ -59,7 +59,7 @@ DYNAMIC: dict[tuple[str, str], str] = {
         "modules already imported",
     ("omg.evaluation", "build_evaluator"):
         "a config's evaluator class_path, user input: configs/ are checked by test_every_config_class_path_imports",
-    ("omg.tools.lightning", "OmgLightningCLI._check_ckpt_class"):
+    ("omg.tools.lightning", "OmgLightningCLI.check_ckpt_class"):
         "the config's model class_path, which jsonargparse imported already (user input; configs/ are checked "
         "by test_every_config_class_path_imports)",
 }

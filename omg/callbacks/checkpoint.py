@@ -45,9 +45,9 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     and renames it over the final name; remote paths keep Lightning's own save."""
 
     def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Any | None = None) -> None:
-        from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
+        from fsspec.utils import get_protocol
 
-        if storage_options is not None or not _is_local_file_protocol(path):
+        if storage_options is not None or get_protocol(str(path)) != "file":  # a local file, as Lightning tells
             return super().save_checkpoint(checkpoint, path, storage_options)
         path = Path(path)
         get_filesystem(path).makedirs(str(path.parent), exist_ok=True)

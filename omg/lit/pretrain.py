@@ -175,12 +175,19 @@ class MotionDiffusionModule(OmgModule):
         super().on_save_checkpoint(checkpoint)
         checkpoint["noise_rng"] = self._gather_noise_states()
 
+    def attached_trainer(self):
+        """The Trainer this module is attached to, None outside a run (``self.trainer`` raises there)."""
+        try:
+            return self.trainer
+        except RuntimeError:
+            return None
+
     def _gather_noise_states(self) -> Tensor:
         """Every rank's noise-RNG state, (world size, state bytes): each rank draws its own
         timesteps and noise, and a resumed run must give each rank its own back. Lightning calls
         ``on_save_checkpoint`` on every rank, so the gather is collective-safe."""
         state = self.noise_generator().get_state()  # (n,) uint8, on the CPU for every device
-        trainer = self._trainer
+        trainer = self.attached_trainer()
         if trainer is None or trainer.world_size == 1:
             return state[None]
         return self.all_gather(state.to(self.device)).reshape(trainer.world_size, -1).cpu()
@@ -189,7 +196,7 @@ class MotionDiffusionModule(OmgModule):
         if "noise_rng" in checkpoint:
             states = checkpoint["noise_rng"]
             states = states[None] if states.ndim == 1 else states  # one rank's, as older omg wrote
-            trainer = self._trainer
+            trainer = self.attached_trainer()
             rank, world = (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
             self._noise_gen, self._noise_state, self._noise_seed = None, None, None
             if rank < len(states):

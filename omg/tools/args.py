@@ -10,10 +10,12 @@ signature parameters as options or as one-value positionals, so that one paramet
 with ``nargs``), and ``bool`` parameters as flags without a value (``--preview`` /
 ``--no_preview``, jsonargparse's ``ActionYesNo``).
 
-Bad input is one line, ``<key>: <reason>``. ``KeyedErrors`` marks each exception a value check
-raises with the key, the action (and so the type) and the value it checked; ``explain`` builds
-the line from those marks, from a ``UsageError`` a component raised, or from the innermost
-exception of the chain: never from the text of jsonargparse's nested messages.
+Bad input is one line, ``<key>: <reason>``. Only jsonargparse's public API is used: a parse that
+fails raises ``ArgumentError`` (``exit_on_error=False``); ``locate`` then checks each setting the
+user gave on its own against its key's type (``Settings``, from the function's signature) with a
+one-option parser, and ``explain`` builds the line from the setting that fails alone (its key,
+type and value), from a ``UsageError`` a component raised, or from the innermost exception of the
+chain: never from the text of jsonargparse's nested messages.
 """
 
 from __future__ import annotations
@@ -22,13 +24,12 @@ import argparse
 import inspect
 import math
 import shlex
-import sys
 import types
 import typing
 from pathlib import Path, PurePath
 from typing import Any, Callable
 
-from jsonargparse import ActionConfigFile, ActionSubCommands, ActionYesNo, ArgumentParser, Namespace
+from jsonargparse import ActionConfigFile, ActionYesNo, ArgumentParser, Namespace
 from jsonargparse.typing import NonNegativeInt, PositiveInt, restricted_number_type
 
 from omg.errors import UsageError
@@ -53,78 +54,134 @@ PositiveFiniteFloat = number_type("PositiveFiniteFloat", float, [(">", 0.0), ("<
 Fraction = number_type("Fraction", float, [(">=", 0.0), ("<", 1.0)], "a number in [0, 1)")
 
 __all__ = ["FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt", "Seed", "number_type",
-           "function_parser", "run", "run_subcommands", "explain", "KeyedErrors", "check_config_files",
+           "function_parser", "run", "run_subcommands", "explain", "Settings", "locate", "check_config_files",
            "underscore_options"]
 
 
 # -- errors -----------------------------------------------------------------------------------
-_MARK = "_omg_argument"  # (key, action, value) of the check that raised an exception
+# jsonargparse raises one ArgumentError for bad input, its text nested (a union's every member, a
+# class's every candidate). The key at fault is found again with public calls only: each setting
+# the user gave (``--key VALUE`` on the command line, ``key: value`` in a ``--config`` file) is
+# checked on its own against its key's type, by a one-option jsonargparse parser; the first that
+# fails alone is the one to name. ``Settings`` knows the keys' types: the tools' from their
+# functions' signatures (``function_parser``), ``omg fit``'s from the classes it configures
+# (``omg.tools.lightning``).
 
 
-def _mark(error: BaseException, key: str, action, value) -> None:
-    if not hasattr(error, _MARK):  # the innermost check that saw it names it
-        try:
-            setattr(error, _MARK, (key, action, value))
-        except AttributeError:
-            pass
+class Settings:
+    """The keys a parser takes and their types: ``types`` (key -> type hint), ``flags`` (options
+    that take no value, ``--preview`` / ``--no_preview``), ``options`` (every long option, for
+    ``underscore_options``)."""
+
+    def __init__(self, types: dict[str, Any] | None = None, flags: set[str] | None = None,
+                 options: set[str] | None = None):
+        self.types = dict(types or {})
+        self.flags = set(flags or ())
+        self.options = set(options or ()) | {f"--{key}" for key in self.types} | self.flags
+
+    def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
+        """The type hint to check ``value`` of ``key`` against (``given``: all the user's settings,
+        for types that depend on another setting, such as a model's class); None where unknown."""
+        return self.types.get(key)
+
+    def name_of(self, key: str) -> str:
+        """How an error names ``key`` (as the user spelled it, unless a parser spells it otherwise)."""
+        return key
 
 
-def _marked_check_type(self, value, **kwargs):
-    """An action's ``_check_type_``, marking what it raises with the action's key and the value."""
+def _config_settings(text_or_path: str, loader: Callable[[str], Any]) -> list[tuple[str, Any, bool]]:
+    """``(key, value, False)`` of every key of a ``--config`` (a file, or a mapping given inline),
+    nested keys dotted, outer keys before inner ones."""
     try:
-        return type(self)._check_type_(self, value, **kwargs)
-    except (TypeError, ValueError) as e:
-        _mark(e, self.dest, self, value)
-        raise
+        path = Path(text_or_path)
+        value = loader(read_text(text_or_path, "--config") if path.is_file() else text_or_path)
+    except Exception:  # noqa: BLE001 - jsonargparse reports a config it cannot read
+        return []
+    pairs: list[tuple[str, Any, bool]] = []
+
+    def walk(mapping: dict, prefix: str) -> None:
+        for key, item in mapping.items():
+            pairs.append((f"{prefix}{key}", item, False))
+            if isinstance(item, dict):
+                walk(item, f"{prefix}{key}.")
+
+    if isinstance(value, dict):
+        walk(value, "")
+    return pairs
 
 
-def _watch(parser: ArgumentParser) -> None:
-    """Mark the errors of every value check of ``parser`` and of its subcommands' parsers."""
-    for action in parser._actions:
-        if isinstance(action, ActionSubCommands):
-            for subparser in action.choices.values():
-                _watch(subparser)
-        elif hasattr(type(action), "_check_type_") and "_check_type_" not in vars(action):
-            action._check_type_ = types.MethodType(_marked_check_type, action)  # deepcopy rebinds it to the copy
+def given_settings(argv: list[str], settings: Settings) -> list[tuple[str, Any, bool]]:
+    """``(key, value, from_command_line)`` of every setting in ``argv``, in its order, a
+    ``--config``'s keys at its place; positionals and flags are left out (they have no value to
+    check)."""
+    try:
+        from jsonargparse import get_loader
+
+        loader = get_loader("yaml")
+    except (ImportError, ValueError):  # pragma: no cover - a jsonargparse without get_loader
+        import yaml
+
+        loader = yaml.safe_load
+    pairs: list[tuple[str, Any, bool]] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        i += 1
+        if arg == "--":
+            break
+        if not arg.startswith("-") or arg in settings.flags or arg in ("-h", "--help", "--print_config"):
+            continue
+        name, sep, value = arg.partition("=")
+        if not sep:
+            if i == len(argv):
+                break
+            value, i = argv[i], i + 1
+        if name in ("--config", "-c"):
+            pairs += _config_settings(value, loader)
+        elif name.startswith("--"):
+            pairs.append((name[2:], value, True))
+    return pairs
 
 
-class KeyedErrors:
-    """A mixin for jsonargparse parsers: every exception a value check raises carries the key it
-    checked (``explain`` reads it). Values from the command line are checked by their actions
-    (watched before parsing); values from config files, defaults and nested class parsers (which
-    jsonargparse makes of the parent's class) go through ``_check_value_key``. Where a jsonargparse
-    version calls neither, errors lose their key and ``explain`` falls back to the innermost reason."""
+def check_alone(hint: Any, value: Any, from_command_line: bool) -> BaseException | None:
+    """The error jsonargparse raises for ``value`` as a ``hint`` (given on the command line or in a
+    config file), on a parser of that one option; None when it passes (or the type cannot stand
+    alone)."""
+    from jsonargparse import ArgumentError
 
-    def parse_args(self, args=None, *rest, **kwargs):
-        _watch(self)
-        args = underscore_options(sys.argv[1:] if args is None else list(args), option_names(self))
-        return super().parse_args(args, *rest, **kwargs)
+    try:
+        parser = ArgumentParser(exit_on_error=False)
+        parser.add_argument("--value", type=hint)
+    except Exception:  # noqa: BLE001 - a type jsonargparse takes only in its context
+        return None
+    try:
+        if from_command_line:
+            parser.parse_args([f"--value={value}"])
+        else:
+            parser.parse_object({"value": value})
+    except (ArgumentError, TypeError, ValueError) as e:
+        return e
+    except Exception:  # noqa: BLE001 - not a type error: not this key's fault
+        return None
+    return None
 
-    def parse_object(self, *args, **kwargs):
-        _watch(self)
-        return super().parse_object(*args, **kwargs)
 
-    def _check_value_key(self, action, value, key, *args, **kwargs):
-        try:
-            return super()._check_value_key(action, value, key, *args, **kwargs)
-        except (TypeError, ValueError) as e:
-            if not isinstance(action, ActionSubCommands):  # its subcommand's parser names the key
-                _mark(e, key, action, value)
-            raise
+def locate(argv: list[str], settings: Settings) -> tuple[str, Any, Any, BaseException] | None:
+    """``(key, type hint, value, error)`` of the first setting in ``argv`` that fails its type on
+    its own; None when each passes alone (the error is another one: an unknown key, a missing
+    argument, a value that fails only with the others)."""
+    given = given_settings(argv, settings)
+    for key, value, from_command_line in given:
+        hint = settings.type_of(key, given, value)
+        if hint is None:
+            continue
+        error = check_alone(hint, value, from_command_line)
+        if error is not None:
+            return settings.name_of(key), hint, value, error
+    return None
 
 
 # -- option spellings ----------------------------------------------------------------------------
-def option_names(parser: ArgumentParser) -> set[str]:
-    """Every long option of ``parser`` and of its subcommands' parsers."""
-    names: set[str] = set()
-    for action in parser._actions:
-        if isinstance(action, ActionSubCommands):
-            for subparser in action.choices.values():
-                names |= option_names(subparser)
-        names.update(s for s in action.option_strings if s.startswith("--"))
-    return names
-
-
 def underscore_options(argv: list[str], known: set[str]) -> list[str]:
     """``argv`` with option names spelled with dashes (``--num-samples``, ``--trainer.max-steps``,
     the earlier CLI's spelling) in the underscore spelling the parsers know; help shows only that one.
@@ -149,8 +206,10 @@ def underscore_options(argv: list[str], known: set[str]) -> list[str]:
     return out
 
 
-class OmgArgumentParser(KeyedErrors, ArgumentParser):
-    """The tools' jsonargparse parser."""
+class OmgArgumentParser(ArgumentParser):
+    """The tools' jsonargparse parser; ``function_parser`` gives it its ``settings``."""
+
+    settings: Settings = Settings()
 
 
 def _chain(error: BaseException) -> list[BaseException]:
@@ -160,10 +219,6 @@ def _chain(error: BaseException) -> list[BaseException]:
         chain.append(error)
         error = error.__cause__ or (None if error.__suppress_context__ else error.__context__)
     return chain
-
-
-def _typehint(action) -> Any:
-    return getattr(action, "_typehint", None) or getattr(action, "type", None)
 
 
 def describe(hint) -> str | None:
@@ -195,44 +250,29 @@ def _first_line(error: BaseException) -> str:
     return lines[0] if lines else type(error).__name__
 
 
-def _is_subclass_action(action) -> bool:
-    """The action takes a class (``class_path`` / ``init_args``), not a plain value."""
-    hint = _typehint(action)
-    hints = [h for h in typing.get_args(hint) if h is not type(None)] or [hint]
-    plain = (bool, int, float, str, bytes, PurePath, list, tuple, dict, set)
-    return any(inspect.isclass(h) and not issubclass(h, plain) for h in hints)
-
-
-def explain(error: BaseException, hint: str = "") -> str:
+def explain(error: BaseException, hint: str = "", where: tuple[str, Any, Any, BaseException] | None = None) -> str:
     """One line for a parsing error: ``<key>: <reason>``.
 
     A UsageError in the chain (a component refusing its value) is the reason as it is. Otherwise
-    the marks of the failed checks give the key, joined outer to inner (``model.init_args.lr``),
-    and the innermost mark's type and value the reason (``expected an integer >= 1, got '-2'``);
-    for types without a wording, the innermost exception's first line. ``hint`` is added to
-    errors that name no key (unrecognized arguments, unknown config keys, missing arguments)."""
+    ``where`` (``locate``: the setting that fails on its own) gives the key, and its type and value
+    the reason (``expected an integer >= 1, got '-2'``); for types without a wording, the first
+    line of the innermost exception of that setting's check. Without ``where``, the innermost
+    exception's first line, and ``hint`` after it (unrecognized arguments, unknown config keys,
+    missing arguments)."""
     chain = _chain(error)
     usage = next((e for e in chain if isinstance(e, UsageError)), None)
     if usage is not None:
         return str(usage)
-    marks = [getattr(e, _MARK) for e in chain if hasattr(e, _MARK)]
-    parts: list[tuple[str, Any]] = []
-    for key, action, _ in marks:
-        if not parts or parts[-1][0] != key:
-            parts.append((key, action))
-    key = ""
-    for i, (name, action) in enumerate(parts):
-        key = name if i == 0 else f"{key}{'.init_args.' if _is_subclass_action(parts[i - 1][1]) else '.'}{name}"
-    reason = None
-    if marks:
-        _, action, value = marks[-1]
-        wanted = describe(_typehint(action))
+    if where is not None:
+        key, type_hint, value, check_error = where
+        usage = next((e for e in _chain(check_error) if isinstance(e, UsageError)), None)
+        if usage is not None:
+            return str(usage)
+        wanted = describe(type_hint)
         if wanted and isinstance(value, (str, int, float, bool, list, dict, PurePath, type(None))):
-            reason = f"expected {wanted}, got {value!r}"
-    if reason is None:
-        reason = _first_line(chain[-1])
-    if key:
-        return f"{key}: {reason}"
+            return f"{key}: expected {wanted}, got {value!r}"
+        return f"{key}: {_first_line(_chain(check_error)[-1])}"
+    reason = _first_line(chain[-1])
     return f"{reason}; {hint}" if hint else reason
 
 
@@ -307,7 +347,8 @@ def function_parser(function: Callable, prog: str, positional: str | None = None
     """A jsonargparse parser for ``function``'s parameters (``add_function_arguments``), with
     ``--config`` / ``--print_config``; ``positional`` (a list parameter) takes the positional
     arguments (``nargs``), ``as_positional`` makes the parameters without a default positional;
-    ``bool`` parameters are flags (``--name`` / ``--no_name``)."""
+    ``bool`` parameters are flags (``--name`` / ``--no_name``). Its ``settings`` hold the types of
+    the options, from the signature."""
     description, helps = _docs(function)
     parser = OmgArgumentParser(prog=prog, description=description, exit_on_error=False)
     parser.add_argument("--config", action=ActionConfigFile,
@@ -324,19 +365,35 @@ def function_parser(function: Callable, prog: str, positional: str | None = None
         parser.add_argument(positional, nargs=nargs, type=item, help=helps.get(positional), **default)
     flags = [name for name in params if hints.get(name) is bool]
     skip = {*flags, *([positional] if positional else []), *([RECORDED] if RECORDED in params else [])}
-    parser.add_function_arguments(function, as_group=False, as_positional=as_positional, skip=skip)
+    added = parser.add_function_arguments(function, as_group=False, as_positional=as_positional, skip=skip)
+    flag_options: set[str] = set()
     for name in flags:
-        parser.add_argument(f"--{name}", action=ActionYesNo, default=params[name].default, help=helps.get(name))
+        action = parser.add_argument(f"--{name}", action=ActionYesNo, default=params[name].default,
+                                     help=helps.get(name))
+        flag_options.update(action.option_strings)
+    typed = {}
+    for key in added or []:
+        if key in hints and key in params:
+            hint = hints[key]
+            typed[key] = typing.Optional[hint] if params[key].default is None and hint is not Any else hint
+    parser.settings = Settings(typed, flag_options, {"--config", "--print_config"})
     return parser
 
 
-def parse(parser: ArgumentParser, argv: list[str], help_prog: str | None = None) -> Namespace:
-    """``argv`` parsed; bad input a one-line UsageError."""
+def parse(parser: ArgumentParser, argv: list[str], help_prog: str | None = None,
+          settings: Settings | None = None) -> Namespace:
+    """``argv`` parsed; bad input a one-line UsageError (``explain``; ``settings``: the parser's,
+    by default its ``settings`` attribute)."""
+    from jsonargparse import ArgumentError
+
+    settings = settings or getattr(parser, "settings", None) or Settings()
     check_config_files(argv)
+    argv = underscore_options(argv, settings.options)
     try:
         return parser.parse_args(argv)
-    except argparse.ArgumentError as e:
-        raise UsageError(explain(e, hint=f"see `{help_prog or parser.prog} --help`")) from None
+    except (ArgumentError, argparse.ArgumentError) as e:
+        where = locate(argv, settings)
+        raise UsageError(explain(e, hint=f"see `{help_prog or parser.prog} --help`", where=where)) from None
 
 
 def call(function: Callable, config: Namespace, command: str):
@@ -359,12 +416,19 @@ def run_subcommands(prog: str, description: str, commands: dict[str, tuple[Calla
     ``function_parser`` keyword arguments)), as jsonargparse subcommands."""
     parser = OmgArgumentParser(prog=prog, description=description, exit_on_error=False)
     subcommands = parser.add_subcommands(dest="subcommand")
+    subparsers = {}
     for name, (function, kwargs) in commands.items():
-        subparser = function_parser(function, f"{prog} {name}", **kwargs)
-        subcommands.add_subcommand(name, subparser, help=_docs(function)[0].split("\n")[0])
+        subparsers[name] = function_parser(function, f"{prog} {name}", **kwargs)
+        subcommands.add_subcommand(name, subparsers[name], help=_docs(function)[0].split("\n")[0])
     if not argv:
         parser.print_help()
         return None
-    config = parse(parser, argv, help_prog=f"{prog} {argv[0]}" if argv[0] in commands else prog)
+    # the options of every subcommand are spelled with underscores (as jsonargparse nests them)
+    # and the keys of the one given are checked alone, without its name
+    options = set().union(*(p.settings.options for p in subparsers.values()))
+    chosen = subparsers.get(argv[0])
+    settings = Settings(chosen.settings.types, chosen.settings.flags) if chosen else Settings()
+    settings.options = options
+    config = parse(parser, argv, help_prog=f"{prog} {argv[0]}" if chosen else prog, settings=settings)
     name = config.subcommand
     return call(commands[name][0], config[name], " ".join([prog, shlex.join(argv)]))

@@ -34,8 +34,10 @@ from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
+from omg.tools.args import Settings
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
+FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"  # after errors that name no key
 
 
 class SaveRunConfig(SaveConfigCallback):
@@ -117,25 +119,243 @@ def distributed_failure(error: BaseException) -> str | None:
 
 class StepProgressBar(RichProgressBar):
     """Lightning's rich bar, its epoch told without a total when the run is bounded by steps
-    (``max_epochs=-1`` made it read "Epoch 7/-2")."""
+    (``max_epochs=-1`` made it read "Epoch 7/-2").
 
-    def _get_train_description(self, current_epoch: int) -> str:
-        if self.trainer.max_epochs is not None and self.trainer.max_epochs >= 0:
-            return super()._get_train_description(current_epoch)
-        return f"Epoch {current_epoch}"
+    Through the public hooks: after Lightning's ``on_train_epoch_start`` (and ``on_train_batch_end``,
+    which makes the bar when a run resumes mid-epoch) the train task's description is set again on
+    the bar's ``progress``, as RichProgressBar words it, without the total."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.retitled: tuple | None = None  # (task, epoch) whose description was last set here
+
+    def retitle(self, trainer: L.Trainer) -> None:
+        """The train task's description without the total, once per task and epoch."""
+        if trainer.max_epochs is not None and trainer.max_epochs >= 0:
+            return
+        if self.progress is None or self.train_progress_bar_id is None:
+            return
+        if self.retitled == (self.train_progress_bar_id, trainer.current_epoch):
+            return
+        self.retitled = (self.train_progress_bar_id, trainer.current_epoch)
+        description = f"Epoch {trainer.current_epoch}"
+        if self.theme.description:
+            description = f"[{self.theme.description}]{description}"
+        self.progress.update(self.train_progress_bar_id, description=description)
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        super().on_train_epoch_start(trainer, pl_module)
+        self.retitle(trainer)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args, **kwargs) -> None:
+        super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
+        self.retitle(trainer)
+
+
+def hpc_resume_path(root_dir: Any) -> str | None:
+    """The SLURM requeue checkpoint Lightning loads for ``ckpt_path="hpc"`` (and on its own in a SLURM
+    job without a ckpt_path): ``hpc_ckpt_N.ckpt`` with the highest N in ``root_dir``, the trainer's
+    default_root_dir, joined as Lightning joins it. Lightning's own answer is a property of its
+    private checkpoint connector; this is the same choice, from the folder."""
+    from lightning.fabric.utilities.cloud_io import get_filesystem
+
+    root = str(root_dir)
+    fs = get_filesystem(root)
+    if not fs.isdir(root):
+        return None
+    versions = []
+    for name in (os.path.basename(str(p).rstrip("/")) for p in fs.ls(root, detail=False)):
+        if "hpc_ckpt_" in name and (digits := re.sub("[^0-9]", "", name.split("hpc_ckpt_")[-1])):
+            versions.append(int(digits))
+    if not versions:
+        return None
+    name = f"hpc_ckpt_{max(versions)}.ckpt"
+    return os.path.join(root, name) if "://" not in root else root.rstrip(fs.sep) + fs.sep + name
+
+
+def last_checkpoints(callback: ModelCheckpoint) -> list[Path]:
+    """The ``last*.ckpt`` files in a ModelCheckpoint's folder (``last.ckpt``, ``last-v1.ckpt``, ...),
+    the files Lightning looks among for ``ckpt_path="last"``."""
+    from lightning.fabric.utilities.cloud_io import get_filesystem
+
+    if callback.dirpath is None:
+        return []
+    fs = get_filesystem(str(callback.dirpath))
+    if not fs.exists(str(callback.dirpath)):
+        return []
+    pattern = rf"^{re.escape(callback.CHECKPOINT_NAME_LAST)}(-(\d+))?"
+    return sorted(Path(os.path.normpath(p)) for p in fs.ls(str(callback.dirpath), detail=False)
+                  if Path(p).suffix == callback.FILE_EXTENSION and re.match(pattern, Path(p).stem))
+
+
+SEED_TYPE = bool | int  # LightningCLI's --seed_everything
+
+
+class LightningSettings(Settings):
+    """The types of ``omg fit``'s keys, for ``omg.tools.args.locate``: ``trainer.KEY`` from the Trainer,
+    ``data.KEY`` from the data module, ``model.KEY`` / ``model.init_args.KEY`` from the model class
+    the settings name (``model: CLASS`` or ``model.class_path``), the subcommand's own arguments
+    (``ckpt_path``, ...) from its Trainer method; deeper keys have no type here."""
+
+    def __init__(self, command: str, options: set[str], method_arguments: list[str]):
+        super().__init__(options=options)
+        self.command, self.method_arguments = command, method_arguments
+
+    @staticmethod
+    def parameter_type(cls: Any, name: str) -> Any:
+        import inspect
+        import typing
+
+        for klass in getattr(cls, "__mro__", [cls]):
+            init = getattr(klass, "__init__", None)
+            try:
+                param = inspect.signature(init).parameters.get(name)
+                hints = typing.get_type_hints(init) if param is not None else {}
+            except Exception:  # noqa: BLE001 - a signature that cannot be read has no type to check
+                return None
+            if param is not None and param.kind not in (param.VAR_POSITIONAL, param.VAR_KEYWORD):
+                hint = hints.get(name)
+                if hint is None or hint is Any:
+                    return None
+                return typing.Optional[hint] if param.default is None else hint
+        return None
+
+    @staticmethod
+    def model_class(given: list[tuple[str, Any, bool]]) -> type | None:
+        name = None
+        for key, value, _ in given:
+            if key == "model" and isinstance(value, str):
+                name = value
+            elif key == "model" and isinstance(value, dict) and isinstance(value.get("class_path"), str):
+                name = value["class_path"]
+            elif key == "model.class_path" and isinstance(value, str):
+                name = value
+        if not name:
+            return None
+        module, _, attr = name.rpartition(".")
+        if module:  # a module jsonargparse imported (omg's own are imported with this one); no import here
+            return getattr(sys.modules.get(module), attr, None)
+        pending, seen = [L.LightningModule], set()
+        while pending:  # a short name: the LightningModule subclass of that name
+            cls = pending.pop()
+            if cls.__name__ == name:
+                return cls
+            seen.add(cls)
+            pending += [c for c in cls.__subclasses__() if c not in seen]
+        return None
+
+    def name_of(self, key: str) -> str:
+        """``model.KEY`` named ``model.init_args.KEY``, as the model's keys are (its class is chosen);
+        ``model.class_path`` named ``model``."""
+        root, _, rest = key.partition(".")
+        if root == "model" and rest == "class_path":
+            return "model"
+        if root == "model" and rest and rest.split(".")[0] not in ("init_args", "dict_kwargs"):
+            return f"model.init_args.{rest}"
+        return key
+
+    def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
+        import typing
+
+        if key in ("model", "model.class_path"):  # a class by name (a mapping would be checked without its data)
+            return typing.Optional[L.LightningModule] if isinstance(value, str) else None
+        root, _, rest = key.partition(".")
+        if not rest:
+            if key == "seed_everything":
+                return SEED_TYPE
+            if key in self.method_arguments:
+                return typing.get_type_hints(getattr(L.Trainer, self.command)).get(key)
+            return None
+        if root == "model":
+            rest = rest.removeprefix("init_args.")
+            cls = self.model_class(given)
+        else:
+            cls = {"trainer": L.Trainer, "data": MotionDataModule}.get(root)
+        if cls is None or "." in rest:
+            return None
+        return self.parameter_type(cls, rest)
 
 
 class OmgLightningCLI(LightningCLI):
-    def __init__(self, args: list[str] | None = None):
+    """``omg fit|validate|test|predict ARGS``: LightningCLI without its own subcommands (``run=False``),
+    the command's Trainer-method arguments (``--ckpt_path``, ...) added as LightningCLI adds them, and
+    the run started here (``run_command``): checks of ``--ckpt_path`` and the resolution of ``last``
+    and ``hpc`` before it, one-line errors after. Parse errors are one UsageError line
+    (``omg.tools.args``), dashed option names (``--trainer.max-steps``) taken as the underscored
+    ones, and a component refusing its value (a ValueError while the classes are built) is one
+    line too. Only LightningCLI's and jsonargparse's public methods are overridden or called."""
+
+    def __init__(self, command: str, args: list[str]):
+        import docstring_parser
+
+        self.command = command  # LightningCLI's own ``subcommand`` stays None (run=False)
+        self.method_arguments: list[str] = []
+        doc = docstring_parser.parse(getattr(L.Trainer, command).__doc__ or "").short_description or ""
         super().__init__(
             model_class=L.LightningModule,
             subclass_mode_model=True,
             datamodule_class=MotionDataModule,
-            parser_kwargs={"exit_on_error": False},
+            parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc},
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
             args=args,
+            run=False,
         )
+
+    # -- parsing --------------------------------------------------------------------------------
+    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+        from lightning.pytorch.cli import LRSchedulerTypeTuple
+        from torch.optim import Optimizer
+
+        parser.link_arguments("data", "model.init_args.spec", compute_fn=lambda data: data.spec, apply_on="instantiate")
+        # the optimizer and scheduler options LightningCLI adds next (added here, so that the command's
+        # arguments follow them, in the order of LightningCLI's own subcommands), then the command's
+        parser.add_optimizer_args((Optimizer,))
+        parser.add_lr_scheduler_args(LRSchedulerTypeTuple)
+        skip = set(self.subcommands()[self.command])
+        self.method_arguments = list(parser.add_method_arguments(L.Trainer, self.command, skip=skip))
+
+    def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
+        from jsonargparse import ArgumentError
+
+        from omg.tools.args import explain, locate, underscore_options
+
+        try:
+            keys = list(parser.get_defaults().keys())
+        except Exception:  # noqa: BLE001 - defaults that do not parse are reported by the parse itself
+            keys = []
+        options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
+        settings = LightningSettings(self.command, options, self.method_arguments)
+        args = underscore_options(list(args), options)
+        try:
+            self.config = parser.parse_args(args)
+        except ArgumentError as e:
+            raise UsageError(explain(e, hint=FIT_HINT, where=locate(args, settings))) from None
+
+    # -- building -------------------------------------------------------------------------------
+    def before_instantiate_classes(self) -> None:
+        """``--ckpt_path`` checked (and its hyper-parameters taken, as LightningCLI does); the default
+        logger: a versioned CSVLogger in default_root_dir (Lightning's own default is TensorBoard when
+        installed, in a lightning_logs/ subfolder)."""
+        self.check_ckpt_path()
+        trainer = self.config.trainer
+        # before anything is built or run: a file or an unwritable folder would fail only at the first write
+        # (a URL, s3://..., is Lightning's to open)
+        if "://" not in str(trainer.default_root_dir or ""):
+            check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
+        if trainer.logger is None or trainer.logger is True:
+            trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
+                                       init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
+
+    def instantiate_classes(self) -> None:
+        from omg.tools.args import explain
+
+        try:
+            super().instantiate_classes()
+        except UnicodeDecodeError:
+            raise
+        except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
+            raise UsageError(explain(e)) from None
 
     def instantiate_trainer(self, **kwargs) -> L.Trainer:
         """The configured Trainer, its checkpoints in the run directory, plus a checkpoint on
@@ -152,43 +372,32 @@ class OmgLightningCLI(LightningCLI):
         for i, callback in enumerate(trainer.callbacks):  # Lightning's default bar, not one the config names
             if type(callback) is RichProgressBar:
                 trainer.callbacks[i] = StepProgressBar()
-        if self.subcommand == "fit":
+        if self.command == "fit":
             saver = trainer.checkpoint_callback
             trainer.callbacks.append(InterruptCheckpoint(getattr(saver, "dirpath", None) or default))
         return trainer
 
-    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        parser.link_arguments("data", "model.init_args.spec", compute_fn=lambda data: data.spec, apply_on="instantiate")
-
-    def before_instantiate_classes(self) -> None:
-        """The default logger: a versioned CSVLogger in default_root_dir (Lightning's own default is
-        TensorBoard when installed, in a lightning_logs/ subfolder)."""
-        config = self.config[self.subcommand] if self.subcommand else self.config
-        trainer = config.trainer
-        # before anything is built or run: a file or an unwritable folder would fail only at the first write
-        # (a URL, s3://..., is Lightning's to open)
-        if "://" not in str(trainer.default_root_dir or ""):
-            check_output_dir(trainer.default_root_dir or ".", "trainer.default_root_dir")
-        if trainer.logger is None or trainer.logger is True:
-            trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
-                                       init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
-
-    def _run_subcommand(self, subcommand: str) -> None:
+    # -- running --------------------------------------------------------------------------------
+    def run_command(self) -> None:
+        """The command's Trainer method on the model and data, as LightningCLI's subcommands run it,
+        after the preflight checks and with the checkpoint to resume from resolved; a non-finite
+        loss, a lost peer or a collective timeout ends as one line."""
         from omg.lit.base import NonFiniteLoss
 
         try:
-            super()._run_subcommand(subcommand)
+            self.preflight()
+            getattr(self.trainer, self.command)(**self.command_kwargs())
         except NonFiniteLoss as e:  # one line: its step and its batch's clips say where to look
             raise UsageError(str(e)) from None
         except RuntimeError as e:  # a lost peer or a collective timeout (Lightning has torn the run down)
             if (what := distributed_failure(e)) is None:
                 raise
             trainer = self.trainer
-            again = " with --ckpt_path last to resume from the newest checkpoint" if subcommand == "fit" else ""
+            again = " with --ckpt_path last to resume from the newest checkpoint" if self.command == "fit" else ""
             raise UsageError(f"rank {trainer.global_rank} of {trainer.world_size}, step {trainer.global_step}: "
                              f"{what}; start the job again on every node{again}") from None
 
-    def _preflight(self) -> None:
+    def preflight(self) -> None:
         """Callbacks that can judge the model and the data before the run (a ``preflight(model,
         datamodule)`` method, e.g. EvalCallback's evaluator against the data) do so here: the
         Trainer's logger creates the run folder before any callback's ``setup``, which would leave
@@ -197,8 +406,6 @@ class OmgLightningCLI(LightningCLI):
             if callable(check := getattr(callback, "preflight", None)):
                 check(self.model, self.datamodule)
 
-    before_fit = before_validate = before_test = before_predict = _preflight
-
     # -- --ckpt_path -------------------------------------------------------------------------
     # Lightning reads --ckpt_path twice: LightningCLI right after parsing, to take the model's
     # hyper-parameters from it (and its class: a checkpoint of another class replaced the
@@ -206,13 +413,12 @@ class OmgLightningCLI(LightningCLI):
     # first (omg.lit.checkpoint: readable, CRC-checked, no pickled code), so a missing, truncated,
     # zeroed or foreign file, or a checkpoint of another class, is one UsageError line.
 
-    def _parse_ckpt_path(self) -> None:
+    def check_ckpt_path(self) -> None:
+        """``--ckpt_path FILE`` checked, and its hyper-parameters become the model's config (as
+        LightningCLI does for its subcommands), minus what would read data or run code."""
         from omg.lit.checkpoint import inert_hparams, inspect_checkpoint
 
-        subcommand = self.config.get("subcommand")
-        if not subcommand:
-            return
-        ckpt_path = self.config[subcommand].get("ckpt_path")
+        ckpt_path = self.config.get("ckpt_path")
         if not ckpt_path or str(ckpt_path) in SPECIAL_CKPT_PATHS:
             return
         try:
@@ -223,14 +429,14 @@ class OmgLightningCLI(LightningCLI):
             raise UsageError(f"--ckpt_path {ckpt_path}: a converted .safetensors file holds weights only and cannot "
                              "restore a run; pass a Lightning .ckpt or DeepSpeed checkpoint directory (to start from "
                              "its weights, use it as the model's pretrained checkpoint or with `omg generate`)")
-        strategy = self.config[subcommand].get("trainer", {}).get("strategy")
+        strategy = self.config.get("trainer", {}).get("strategy")
         if header["kind"] == "deepspeed" and "deepspeed" not in str(strategy).lower():
             raise UsageError(f"--ckpt_path {ckpt_path} is a DeepSpeed checkpoint directory, which only a DeepSpeed run "
                              f"restores (trainer.strategy is {strategy!r}); convert it with `omg convert-ckpt` to use "
                              "its weights elsewhere")
-        model = self.config[subcommand].get("model")
+        model = self.config.get("model")
         configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
-        cls = self._check_ckpt_class(ckpt_path, header["module_class"], configured)
+        cls = self.check_ckpt_class(ckpt_path, header["module_class"], configured)
         hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
         hparams.pop("_instantiator", None)
         # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
@@ -241,13 +447,13 @@ class OmgLightningCLI(LightningCLI):
         if "_class_path" in hparams:
             hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
         try:
-            self.config = self.parser.parse_object({subcommand: {"model": hparams}}, self.config)
+            self.config = self.parser.parse_object({"model": hparams}, self.config)
         except SystemExit:
             sys.stderr.write("Parsing of ckpt_path hyperparameters failed!\n")
             raise
 
     @staticmethod
-    def _check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> type | None:
+    def check_ckpt_class(ckpt_path: Any, recorded: str | None, configured: str | type | None) -> type | None:
         """UsageError unless the checkpoint's recorded class is the configured model's class (LightningCLI
         would otherwise replace the configured model by the recorded class, or restore its state into
         a module of another kind); the class, where known."""
@@ -272,7 +478,7 @@ class OmgLightningCLI(LightningCLI):
         raise UsageError(f"--ckpt_path {ckpt_path} holds a {recorded} checkpoint, but the config's model is "
                          f"{class_path(configured)}: resume with a checkpoint of that class{hint}")
 
-    def _hpc_checkpoint(self, ckpt_path: Any) -> str | None:
+    def hpc_checkpoint(self, ckpt_path: Any) -> str | None:
         """The SLURM checkpoint (``hpc_ckpt_N.ckpt`` in default_root_dir, written when SLURM requeues a
         run) that Lightning would load for ``--ckpt_path hpc``, or on its own in a SLURM job without a
         ``--ckpt_path``, after the checks every other checkpoint passes (omg.lit.checkpoint: readable,
@@ -284,7 +490,7 @@ class OmgLightningCLI(LightningCLI):
         if ckpt_path != "hpc" and not (ckpt_path is None and SLURMEnvironment.detect()):
             return None
         what = "--ckpt_path hpc" if ckpt_path == "hpc" else "resuming this SLURM job from its requeue checkpoint"
-        hpc = self.trainer._checkpoint_connector._hpc_resume_path  # Lightning's own choice: the highest N
+        hpc = hpc_resume_path(self.trainer.default_root_dir)  # Lightning's own choice: the highest N
         if hpc is None:
             if ckpt_path == "hpc":
                 raise UsageError(f"--ckpt_path hpc: {self.trainer.default_root_dir} holds no hpc_ckpt_N.ckpt "
@@ -294,37 +500,42 @@ class OmgLightningCLI(LightningCLI):
             header = inspect_checkpoint(hpc)
         except UsageError as e:
             raise type(e)(f"{what}: {e}") from None
-        self._check_ckpt_class(hpc, header["module_class"], type(self.model))
+        self.check_ckpt_class(hpc, header["module_class"], type(self.model))
         return hpc
 
-    def _prepare_subcommand_kwargs(self, subcommand: str) -> dict[str, Any]:
-        """Before the run: atomic checkpoint writes and no stale temporary files in the checkpoint
-        folders (omg.callbacks.checkpoint); ``--ckpt_path last`` resolved here to the newest of the
-        run's checkpoints that reads and passes its CRC check (``resume_candidate``: Lightning's
-        ``last*.ckpt``, the ModelCheckpoints' periodic/top-k files, a SIGTERM's checkpoint), with a
-        warning when a newer one does not read; ``--ckpt_path hpc`` and SLURM's own resume checked
-        (``_hpc_checkpoint``). A run resumed from either then brings its top-k folders back to their
-        policy (``TopKHousekeeping``); one resumed from a checkpoint named by its path does not (the
-        files of the steps after it are the user's to keep)."""
+    def command_kwargs(self) -> dict[str, Any]:
+        """The Trainer method's arguments, as LightningCLI passes them (the model, the data module,
+        the command's own arguments); before the run: atomic checkpoint writes and no stale
+        temporary files in the checkpoint folders (omg.callbacks.checkpoint); ``--ckpt_path last``
+        resolved here to the newest of the run's checkpoints that reads and passes its CRC check
+        (``resume_candidate``: Lightning's ``last*.ckpt``, the ModelCheckpoints' periodic/top-k
+        files, a SIGTERM's checkpoint), with a warning when a newer one does not read;
+        ``--ckpt_path hpc`` and SLURM's own resume checked (``hpc_checkpoint``). A run resumed from
+        either then brings its top-k folders back to their policy (``TopKHousekeeping``); one
+        resumed from a checkpoint named by its path does not (the files of the steps after it are
+        the user's to keep)."""
         from omg.callbacks.checkpoint import TopKHousekeeping, prepare_checkpointing, written_checkpoints
         from omg.lit.checkpoint import resume_candidate
 
-        kwargs = super()._prepare_subcommand_kwargs(subcommand)
+        kwargs = {key: self.config_init[key] for key in self.method_arguments if key in self.config_init}
+        kwargs["model"] = self.model
+        if self.datamodule is not None:
+            kwargs["datamodule"] = self.datamodule
         prepare_checkpointing(self.trainer)
         resumed = False  # from the run's own newest checkpoint, whose folder then goes back to its top-k policy
-        if hpc := self._hpc_checkpoint(kwargs.get("ckpt_path")):
+        if hpc := self.hpc_checkpoint(kwargs.get("ckpt_path")):
             kwargs["ckpt_path"], resumed = hpc, True
         if kwargs.get("ckpt_path") == "last":
             callbacks = [cb for cb in self.trainer.checkpoint_callbacks if isinstance(cb, ModelCheckpoint)]
-            run = [Path(p) for cb in callbacks for p in cb._find_last_checkpoints(self.trainer)]
+            run = [p for cb in callbacks for p in last_checkpoints(cb)]
             run += [p for cb in callbacks for p in written_checkpoints(cb)]
             run += [Path(cb.ckpt_path) for cb in self.trainer.callbacks  # a SIGTERM's or Ctrl-C's checkpoint
                     if isinstance(cb, (InterruptCheckpoint, OnExceptionCheckpoint)) and Path(cb.ckpt_path).is_file()]
             found = resume_candidate(run, sorted({p.parent for p in run}), warn=rank_zero_warn)
             if found is not None:
                 resolved, header = found
-                self._check_ckpt_class(resolved, header["module_class"], type(self.model))
+                self.check_ckpt_class(resolved, header["module_class"], type(self.model))
                 kwargs["ckpt_path"], resumed = str(resolved), True
-        if resumed and subcommand == "fit":
+        if resumed and self.command == "fit":
             self.trainer.callbacks.append(TopKHousekeeping())
         return kwargs
