@@ -623,22 +623,30 @@ def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_o
     assert torch.isfinite(moved.vq.transfer(motion, 1, moved.habit_latents(1, 1))).all()
 
 
-def test_the_default_order_under_ddp_asks_for_unused_parameters():
+def test_the_default_order_under_ddp_asks_for_unused_parameters(tmp_path):
     """Each phase of flow_prior leaves a part of the model without gradient: plain DDP would hang or fail at the
-    first step, so fit start says which strategy to use (one line)."""
+    first step, so fit start says which strategy to use (one line). The check reads the DDP wrapper the strategy
+    has put around the module by then (one gloo rank here)."""
     import lightning as L
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
 
     from omg.data.datamodule import MotionDataModule
     from omg.errors import UsageError
     from omg.lit.habit import HabitVQModule
 
     spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
-    for strategy, order, refused in (("ddp", "flow_prior", True), ("ddp", "kl_then_flows", False),
-                                     ("ddp_find_unused_parameters_true", "flow_prior", False)):
-        module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", text_encoder="hash", spec=spec)
-        module.trainer = L.Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False)
-        if refused:
-            with pytest.raises(UsageError, match="set trainer.strategy ddp_find_unused_parameters_true"):
+    dist.init_process_group("gloo", store=dist.FileStore(str(tmp_path / "store"), 1), rank=0, world_size=1)
+    try:
+        for find_unused, order, refused in ((False, "flow_prior", True), (False, "kl_then_flows", False),
+                                            (True, "flow_prior", False)):
+            module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", text_encoder="hash", spec=spec)
+            module.trainer = L.Trainer(accelerator="cpu", devices=1, logger=False)
+            module.trainer.strategy.model = DistributedDataParallel(module, find_unused_parameters=find_unused)
+            if refused:
+                with pytest.raises(UsageError, match="set trainer.strategy ddp_find_unused_parameters_true"):
+                    module.on_fit_start()
+            else:
                 module.on_fit_start()
-        else:
-            module.on_fit_start()
+    finally:
+        dist.destroy_process_group()

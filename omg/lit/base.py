@@ -92,6 +92,13 @@ class OmgModule(L.LightningModule):
     weight_decay: float
     warmup_steps: int
 
+    def attached_trainer(self) -> L.Trainer | None:
+        """The Trainer this module is attached to, None outside a run (``self.trainer`` raises there)."""
+        try:
+            return self.trainer
+        except RuntimeError:
+            return None
+
     def save_hyperparameters(self, *args, frame=None, **kwargs) -> None:
         super().save_hyperparameters(*args, frame=frame or inspect.currentframe().f_back, **kwargs)
         if isinstance(spec := self.hparams.get("spec"), DataSpec):

@@ -252,7 +252,7 @@ class HabitVQModule(OmgModule):
         if self.habit_order != "flow_prior":
             return 0
         if total_steps is None:
-            trainer = self._trainer
+            trainer = self.attached_trainer()
             if trainer is None or not trainer.training:
                 return 0
             cached = self.__dict__.get("_habit_steps")
@@ -263,11 +263,11 @@ class HabitVQModule(OmgModule):
 
     def on_fit_start(self) -> None:
         super().on_fit_start()
-        from lightning.pytorch.strategies import DDPStrategy
+        from torch.nn.parallel import DistributedDataParallel
 
-        strategy = self.trainer.strategy
-        if (self.habit_order == "flow_prior" and isinstance(strategy, DDPStrategy) and self.trainer.world_size > 1
-                and not strategy._ddp_kwargs.get("find_unused_parameters")):
+        wrapped = self.trainer.strategy.model  # DDP has wrapped the module by now (Trainer._run: setup, then this hook)
+        if (self.habit_order == "flow_prior" and isinstance(wrapped, DistributedDataParallel)
+                and not wrapped.find_unused_parameters):
             raise UsageError("model.habit_order flow_prior trains one part of the model in each phase (the habit "
                              "encoders and flows, then the VQ-VAE), which DDP must be told: set trainer.strategy "
                              "ddp_find_unused_parameters_true")

@@ -175,13 +175,6 @@ class MotionDiffusionModule(OmgModule):
         super().on_save_checkpoint(checkpoint)
         checkpoint["noise_rng"] = self._gather_noise_states()
 
-    def attached_trainer(self):
-        """The Trainer this module is attached to, None outside a run (``self.trainer`` raises there)."""
-        try:
-            return self.trainer
-        except RuntimeError:
-            return None
-
     def _gather_noise_states(self) -> Tensor:
         """Every rank's noise-RNG state, (world size, state bytes): each rank draws its own
         timesteps and noise, and a resumed run must give each rank its own back. Lightning calls
