@@ -355,6 +355,9 @@ ROWS = [
     ("bench-following-fps-nan", ["bench", "following", "--input", "{in}", "--fps", "nan"]),
     ("bench-sides-manifest-missing", ["bench", "sides", "--manifests", "[{in}/nope.json]", "--encoders", "[hash]"]),
     ("bench-sides-manifest-binary", ["bench", "sides", "--manifests", "[{in}/elf.bin]", "--encoders", "[hash]"]),
+    ("bench-sides-prompts-missing", ["bench", "sides", "--prompts", "{in}/nope.yaml", "--encoders", "[hash]"]),
+    ("bench-sides-no-captions", ["bench", "sides", "--prompts", "none", "--encoders", "[hash]"]),
+    ("bench-sides-encoder-option", ["bench", "sides", "--encoders", "[hash:dim]"]),
     ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
     ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
 ]
@@ -574,6 +577,9 @@ SAYS = {
     "bench-following-fps-nan": "fps: expected a finite number > 0, got 'nan'",
     "bench-sides-manifest-missing": "--manifests: {in}/nope.json is not a clip manifest",
     "bench-sides-manifest-binary": "--manifests: {in}/elf.bin is not a clip manifest",
+    "bench-sides-prompts-missing": "the prompt file {in}/nope.yaml: no such file",
+    "bench-sides-no-captions": "--manifests or --prompts: no captions to measure",
+    "bench-sides-encoder-option": "--encoders: 'hash:dim': options are key=value pairs",
     "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
     "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
 }

@@ -161,26 +161,97 @@ def test_mirror_prob_is_checked(shared_motion, tmp_path):
     MotionDataModule(train=str(shards), mirror_prob=0.0)  # off: any representation
 
 
+def test_side_spans_sign_the_words_mirroring_swaps():
+    from omg.text.sides import side_spans
+
+    text = "turns right after raising his Left hand, all right, then spins counter-clockwise"
+    spans = side_spans(text)
+    assert [(text[a:b], sign) for a, b, sign in spans] == [("right", -1), ("Left", 1), ("counter-clockwise", 1)]
+    assert side_spans("a bright, leftover light.") == []
+
+
+def cosine_distance(a, b) -> float:
+    return float(1 - torch.nn.functional.cosine_similarity(a.double(), b.double(), dim=-1))
+
+
 def test_side_separation_of_text_features():
     from omg.text import build_text_encoder
-    from omg.text.sides import side_separation
+    from omg.text.sides import FEATURES, side_separation, side_tokens
 
     captions = [("a person waves the left hand.", "wave-left"), ("a person waves the right hand.", "wave-right"),
                 ("a person waves the left hand sadly.", "wave-left"), ("a person runs forward.", "run"),
                 ("a person bows.", "bow")]
     encoder = build_text_encoder("hash")
     out = side_separation(encoder, captions)
-    assert set(out) == {"sentence", "tokens"} and out["sentence"]["captions"] == 3
-    for r in out.values():
-        assert 0 < r["side"] < r["action"] and r["ratio"] == pytest.approx(r["side"] / r["action"])
-        assert 0 <= r["rank"] <= 1
-    # the mirror of "waves the left hand" is the caption "waves the right hand": their sentence distance
-    features = encoder(["a person waves the left hand.", "a person waves the right hand."]).eot_embedding().double()
-    direct = 1 - torch.nn.functional.cosine_similarity(features[0], features[1], dim=0)
-    only_side = side_separation(encoder, captions[:2] + captions[3:])
-    assert only_side["sentence"]["side"] == pytest.approx(float(direct))
+    assert set(out) == set(FEATURES) and out["sentence"]["captions"] == 3
+    for name, r in out.items():
+        assert 0 < r["side"] and r["ratio"] == pytest.approx(r["side"] / r["action"]) and 0 <= r["rank"] <= 1
+        # the whole captions: a side swap is a small change (the hash encoder's side word alone is random)
+        assert name == "side word" or r["side"] < r["action"]
+    # the mirror of "waves the left hand" is the caption "waves the right hand": their distances
+    left, right = "a person waves the left hand.", "a person waves the right hand."
+    features = encoder([left, right])
+    only_side = side_separation(encoder, [(left, "wave-left"), (right, "wave-right")] + captions[3:])
+    assert only_side["sentence"]["side"] == pytest.approx(cosine_distance(*features.eot_embedding()))
+    assert only_side["token mean"]["side"] == pytest.approx(
+        cosine_distance(features.tokens[0, :-1].mean(0), features.tokens[1, :-1].mean(0)))
+    # ... and the side word's: the token of "left" (position 5 of [start] a person waves the left ...)
+    # to its nearest token of the mirrored caption, and that of "right" to the left caption's, averaged
+    assert side_tokens(encoder, left) == side_tokens(encoder, right) == [5]
+    nearest = [min(cosine_distance(features.tokens[a, 5], t) for t in features.tokens[b, :8])
+               for a, b in ((0, 1), (1, 0))]
+    assert only_side["side word"]["side"] == pytest.approx(sum(nearest) / 2) and min(nearest) > 0.1
+    # the other style of the same action differs elsewhere: its side word is there, unchanged
+    assert out["side word"]["same_action"] == pytest.approx(0, abs=1e-9)
+    # a caption that is its own "mirror" (a side word in an idiom) is not compared; a pair of identical
+    # captions is 0 apart on every feature
+    same = side_separation(encoder, [(left, "wave-left"), (left, "wave-left"), ("a person bows.", "bow")])
+    assert same["sentence"]["captions"] == 1
+    twin = side_separation(encoder, [("he turns left.", "turn-left"), ("he turns left.", "turn-left"),
+                                     ("he bows.", "bow")])
+    assert twin["tokens"]["same_action"] != twin["tokens"]["same_action"]  # nan: no other text of that action
     with pytest.raises(ValueError, match="no caption names a side"):
         side_separation(encoder, captions[3:])
+    with pytest.raises(ValueError, match="nothing to compare a side swap with"):  # the mirror action is no other
+        side_separation(encoder, captions[:3])
+
+
+def test_side_separation_is_zero_for_an_encoder_blind_to_sides():
+    """An encoder that reads "right" as "left" cannot tell a caption from its mirror: 0 on every feature."""
+    from omg.text.hashed import HashTextEncoder
+    from omg.text.sides import side_separation
+
+    class SideBlind(HashTextEncoder):
+        def _encode(self, texts):
+            return super()._encode([t.replace("right", "left") for t in texts])
+
+    out = side_separation(SideBlind(), [("a person walks to the left.", "walk-left"),
+                                        ("a person runs forward.", "run"), ("a person bows.", "bow")])
+    for r in out.values():
+        assert r["side"] == pytest.approx(0, abs=1e-9) and r["action"] > 0.1 and r["rank"] == 0
+
+
+def test_minilm_side_gain_separates_left_from_right():
+    from omg.text import build_text_encoder
+    from omg.text.sides import side_separation
+
+    captions = [("a person walks to the left.", "walk-left"), ("a person walks forward.", "walk"),
+                ("a person bows.", "bow"), ("a person runs forward.", "run")]
+    plain, gained = build_text_encoder("minilm"), build_text_encoder("minilm", side_gain=2.0)
+    before, after = side_separation(plain, captions), side_separation(gained, captions)
+    assert before["sentence"]["ratio"] < 0.15 < 0.3 < after["sentence"]["ratio"]  # measured: 0.07 -> 0.5
+    assert after["side word"]["side"] > 2 * before["side word"]["side"]
+    # captions with no side word are encoded exactly as without the gain
+    texts = ["a person bows.", "a person walks forward, all right."]
+    assert torch.equal(plain(texts).tokens, gained(texts).tokens)
+    # a left and a right word move by the same amount along opposite directions
+    u = gained.side_direction()
+    left, right = gained(["he turns left."]).tokens[0], gained(["he turns right."]).tokens[0]
+    left0, right0 = plain(["he turns left."]).tokens[0], plain(["he turns right."]).tokens[0]
+    assert float((left[3] - left0[3]) @ u) == pytest.approx(2.0 * float(left0[3].norm()), rel=1e-4)
+    assert float((right[3] - right0[3]) @ u) == pytest.approx(-2.0 * float(right0[3].norm()), rel=1e-4)
+    with pytest.raises(UsageError, match="side_gain"):
+        build_text_encoder("minilm", side_gain=-1)
 
 
 def test_bench_sides_reads_manifests_and_fails_in_one_line(tmp_path, capsys):
@@ -190,9 +261,16 @@ def test_bench_sides_reads_manifests_and_fails_in_one_line(tmp_path, capsys):
     manifest.write_text(json.dumps({"clips": [
         {"texts": ["a person walks to the left."], "labels": {"content": "walk-left"}},
         {"texts": ["a person walks forward."], "labels": {"content": "walk"}}]}))
-    main(["bench", "sides", "--manifests", f"[{manifest}]", "--encoders", "[hash]"])
+    main(["bench", "sides", "--manifests", f"[{manifest}]", "--encoders", "[hash]", "--prompts", "none"])
     out = capsys.readouterr().out
-    assert "| hash | sentence | 1 |" in out and "| hash | tokens | 1 |" in out
+    for feature in ("sentence", "token mean", "tokens", "side word"):
+        assert f"| manifests | hash | {feature} | 1 |" in out
+    assert "prompt set" not in out
+    # the built-in prompt set: its 28 prompts that name a side; encoder options after a colon
+    main(["bench", "sides", "--encoders", "[hash, 'hash:dim=32']"])
+    out = capsys.readouterr().out
+    assert "| prompt set | hash | side word | 28 |" in out and "| prompt set | hash:dim=32 | sentence | 28 |" in out
+    assert "manifests" not in out
     (tmp_path / "bad.json").write_text("[]")
     with pytest.raises(SystemExit) as exit_info:
         main(["bench", "sides", "--manifests", f"[{tmp_path / 'bad.json'}]", "--encoders", "[hash]"])

@@ -117,6 +117,20 @@ class TextEncoder(nn.Module):
         warnings.warn(f"{self.name}: prompt {shown!r} is longer than its {self.max_tokens}-token context; "
                       f"truncated to the first {self.max_tokens} tokens (the end-of-text token kept last)")
 
+    def token_spans(self, text: str) -> list[tuple[int, int]] | None:
+        """Per token of ``text``'s features (start and end tokens included), the (start, end)
+        characters of ``text`` it covers, (0, 0) for special tokens; None where unknown. This
+        default reads a ``tokenizers`` tokenizer held as ``tokenizer`` (the BERT encoders')."""
+        try:
+            from tokenizers import Tokenizer
+        except ImportError:
+            return None
+        tokenizer = getattr(self, "tokenizer", None)
+        if not isinstance(tokenizer, Tokenizer):
+            return None
+        enc = tokenizer.encode(text)
+        return [(0, 0) if special else tuple(span) for span, special in zip(enc.offsets, enc.special_tokens_mask)]
+
     # no_grad, not inference_mode: the features feed trainable layers that save them for backward
     @torch.no_grad()
     def sentence_embedding(self, features: TextFeatures) -> Tensor:

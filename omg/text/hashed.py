@@ -42,6 +42,10 @@ class HashTextEncoder(TextEncoder):
             words = words[: self.max_tokens - 2]
         return [START] + [2 + _stable_hash(w) % self.vocab_size for w in words] + [END]
 
+    def token_spans(self, text: str) -> list[tuple[int, int]]:
+        words = [m.span() for m in re.finditer(r"[\w']+", text)][: self.max_tokens - 2]
+        return [(0, 0), *words, (0, 0)]
+
     def _encode(self, texts: list[str]) -> list[Tensor]:
         out = []
         for text in texts:
