@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 
 from omg.errors import UsageError
 from omg.lit.base import OmgModule
@@ -47,6 +48,7 @@ from omg.models.habit import (
     flow_prior_kl,
     gaussian_kl,
     habit_statistics,
+    posterior_sample,
 )
 from omg.motion import DataSpec, get_representation
 from omg.skeleton import get_skeleton
@@ -241,11 +243,6 @@ class HabitVQModule(OmgModule):
     def habit_posterior(self, motion: Tensor, mask: Tensor, category: Tensor) -> tuple[Tensor, Tensor]:
         return self.habit_encoders(motion, mask, category)
 
-    @staticmethod
-    def _sample(mu: Tensor, log_sigma: Tensor, generator: torch.Generator | None) -> Tensor:
-        """The reparameterised posterior sample."""
-        return mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
-
     def habit_steps(self, total_steps: int | None = None) -> int:
         """The optimizer steps that pretrain the habit encoders and flows (``flow_prior``; 0 otherwise): the
         first ``habit_fraction`` of the run's ``total_steps`` (default: the fitting trainer's)."""
@@ -284,10 +281,9 @@ class HabitVQModule(OmgModule):
         motion, mask = batch["motion"], batch["mask"]
         category = self.category_index(batch["category"])
         mu, log_sigma = self.habit_posterior(motion, mask, category)
-        z = self._sample(mu, log_sigma, generator) if self.training else mu
+        z = posterior_sample(mu, log_sigma, generator) if self.training else mu
         rotations = motion[..., 4:self.num_joints * 4]  # local joint rotations but the root's: no path
-        stats = (self.habit_stats(z) - habit_statistics(rotations, mask)).abs()
-        stats = torch.where(stats < 1, 0.5 * stats.square(), stats - 0.5).mean()  # smooth L1
+        stats = F.smooth_l1_loss(self.habit_stats(z), habit_statistics(rotations, mask))
         kl = flow_prior_kl(z, mu, log_sigma, self.flows, category).mean() / z.shape[1]
         return {"loss": stats + self.flow_weight * kl, "habit_stats": stats, "flow_kl": kl}
 
@@ -300,7 +296,7 @@ class HabitVQModule(OmgModule):
             self.habit_encoders.eval()  # pretrained: no dropout, no gradient
         with torch.no_grad() if frozen else contextlib.nullcontext():
             mu, log_sigma = self.habit_posterior(motion, batch["mask"], category)
-        z = self._sample(mu, log_sigma, generator) if self.training else mu
+        z = posterior_sample(mu, log_sigma, generator) if self.training else mu
         recon, _, terms = self.vqvae(motion, z, self.category_text[category], batch["mask"], generator)
         v = self.num_joints * 4  # quatvel: quaternions first, then the joint velocities
         motion_loss = masked_smooth_l1(recon, motion, mask)
@@ -449,13 +445,18 @@ class HabitVQModule(OmgModule):
     def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
         return self.transfer_motions(request)
 
+    def habit_prior(self, prior: HabitPriorModule | None = None) -> HabitPriorModule | HabitVQModule | None:
+        """What draws the habit latents of a transfer: ``prior`` when given, else this checkpoint's own flows
+        (``flow_prior``), else None (the category's posterior mean)."""
+        return prior if prior is not None else (self if self.flows is not None else None)
+
     def transfer_motions(self, request: GenerationRequest, prior: HabitPriorModule | None = None
                          ) -> list[GeneratedMotion]:
         """The source motion moved onto ``request.species`` with its habits, ``num_samples`` times with seeds
         ``seed`` + k: the habit latent is a sample of the category's flow, ``prior``'s or without it this
         checkpoint's own (``flow_prior``), else the mean of the category's posterior; the model's rotations and
         root come out as they are."""
-        prior = prior if prior is not None else (self if self.flows is not None else None)
+        prior = self.habit_prior(prior)
         source, options = request.source, request.options
         condition = self.species_condition(request.species, options.get("species_file"))
         k = self.categories.index(condition["category"])
@@ -487,7 +488,7 @@ class HabitVQModule(OmgModule):
 
     def generation_settings(self, request: GenerationRequest, prior: HabitPriorModule | None = None
                             ) -> dict[str, Any]:
-        prior = prior if prior is not None else (self if self.flows is not None else None)
+        prior = self.habit_prior(prior)
         condition = self.species_condition(request.species, request.options.get("species_file"))
         k = self.categories.index(condition["category"])
         return {
@@ -626,9 +627,7 @@ class HabitPriorModule(OmgModule):
         category = self.vq.category_index(batch["category"])
         with torch.no_grad():
             mu, log_sigma = self.vq.habit_posterior(batch["motion"], batch["mask"], category)
-        z = mu
-        if self.posterior_sample and self.training:
-            z = mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+        z = posterior_sample(mu, log_sigma, generator) if self.posterior_sample and self.training else mu
         return -self.flows.log_prob(z, category).mean() / z.shape[1]
 
     loss_name = "NLL"

@@ -347,6 +347,12 @@ def gaussian_kl(mu: Tensor, log_sigma: Tensor) -> Tensor:
     return 0.5 * (mu.square() + (2 * log_sigma).exp() - 1 - 2 * log_sigma).sum(-1)
 
 
+def posterior_sample(mu: Tensor, log_sigma: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """The reparameterised sample z = mu + sigma * eps of q(z | m), eps drawn on the CPU (the same draws on any
+    device): (B, Z) -> (B, Z)."""
+    return mu + log_sigma.exp() * torch.randn(mu.shape, generator=generator, device="cpu").to(mu)
+
+
 def gaussian_log_prob(z: Tensor, mu: Tensor, log_sigma: Tensor) -> Tensor:
     """log N(z; mu, diag sigma²) per row: (B, Z) -> (B,)."""
     return (-0.5 * ((z - mu) / log_sigma.exp()).square() - log_sigma - 0.5 * math.log(2 * math.pi)).sum(-1)
@@ -466,5 +472,5 @@ def flow_prior_kl(z: Tensor, mu: Tensor, log_sigma: Tensor, flows: CategoryFlows
 __all__ = [
     "AffineCoupling", "CategoryFlows", "CategoryHabitEncoders", "CouplingFlow", "FLAVORS", "HabitConfig",
     "HabitEncoder", "HabitStatsDecoder", "MotionVQVAE", "QUANTIZERS", "Quantizer", "flow_prior_kl", "gaussian_kl",
-    "gaussian_log_prob", "habit_statistics",
+    "gaussian_log_prob", "habit_statistics", "posterior_sample",
 ]  # fmt: skip
