@@ -25,7 +25,7 @@ from torch import Tensor
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
 from omg.text.base import TextEncoder, bert_hidden_states, building_on_meta
-from omg.text.sides import side_spans
+from omg.text.sides import token_sides
 
 
 @TEXT_ENCODERS.register("minilm")
@@ -80,11 +80,10 @@ class MiniLMTextEncoder(TextEncoder):
 
     def _emphasise_sides(self, x: Tensor, text: str, offsets, special) -> None:
         """``side_gain`` (module docstring), in place on one text's token features ``x``."""
-        spans = side_spans(text)
-        if not spans:
+        signs = token_sides(text, [(0, 0) if sp else tuple(span) for span, sp in zip(offsets, special)])
+        if not any(signs):
             return
         u = self.side_direction().to(x)
-        for i, ((a, b), sp) in enumerate(zip(offsets, special)):
-            sign = next((s for start, end, s in spans if a < end and start < b), 0)
-            if sign and not sp:
+        for i, sign in enumerate(signs):
+            if sign:
                 x[i] += self.side_gain * sign * x[i].norm() * u

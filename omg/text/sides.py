@@ -86,14 +86,21 @@ def _cosine_distance(a, b):
     return 1 - F.normalize(a, dim=-1) @ F.normalize(b, dim=-1).T
 
 
+def token_sides(text: str, spans: list[tuple[int, int]]) -> list[int]:
+    """Per token of ``text`` given by its (start, end) characters ((0, 0) for a special token), the
+    sign of the side word it is part of (``side_spans``: +1 left, -1 right), 0 for any other token."""
+    sides = side_spans(text)
+    return [next((sign for start, end, sign in sides if a < end and start < b), 0) if b > a else 0
+            for a, b in spans]
+
+
 def side_tokens(encoder, text: str) -> list[int] | None:
     """The positions, in ``encoder``'s token features of ``text``, of the tokens of its side words
-    (``side_spans``); None where the encoder does not say which characters each token covers."""
+    (``token_sides``); None where the encoder does not say which characters each token covers."""
     spans = encoder.token_spans(text)
     if spans is None:
         return None
-    sides = side_spans(text)
-    return [i for i, (a, b) in enumerate(spans) if b > a and any(a < end and start < b for start, end, _ in sides)]
+    return [i for i, sign in enumerate(token_sides(text, spans)) if sign]
 
 
 FEATURES = ("sentence", "token mean", "tokens", "side word")
