@@ -159,6 +159,9 @@ ROWS = [
     ("gen-guidance-nan", [*TEXT, "--guidance", "nan"]),
     ("gen-guidance-inf", [*TEXT, "--guidance", "inf"]),
     ("gen-guidance-overflow", [*TEXT, "--guidance", "1e308"]),
+    ("gen-stance-root-2", [*TEXT, "--stance_root", "2"]),
+    ("gen-stance-root-habit", ["generate", "--from_motion", "{in}/still.npy", "--animal", "horse", "--ckpt", "{habit}",
+                               "--no_preview", "--out", "{out}", "--stance_root", "1"]),
     ("gen-device-banana", [*UNCOND, "--device", "banana"]),
     ("gen-device-cuda99", [*UNCOND, "--device", "cuda:99"]),
     ("gen-out-is-file", [*UNCOND, "--out", "{in}/afile"]),
@@ -381,6 +384,8 @@ SAYS = {
     "gen-guidance-nan": "guidance: expected a finite number, got 'nan'",
     "gen-guidance-inf": "guidance: expected a finite number, got 'inf'",
     "gen-guidance-overflow": "NaN or inf motions: a diverged checkpoint ({cn}) or --guidance 1e+308 too large",
+    "gen-stance-root-2": "stance_root: expected a number in [0, 1], got '2'",
+    "gen-stance-root-habit": "(HabitVQModule) takes no option stance_root; its options: temperature",
     "gen-device-banana": "--device 'banana': not a device",
     "gen-device-cuda99": "--device cuda:99: ",  # the reason depends on the GPUs this machine has
     "gen-out-is-file": "--out {in}/afile: not a folder",

@@ -41,10 +41,26 @@ def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
     return trainer.datamodule.val_clips().samples, trainer.datamodule
 
 
-def check_generative(module: L.LightningModule, key: str) -> None:
+def check_generative(module: L.LightningModule, key: str, sampling: dict[str, Any] | None = None) -> None:
     if not callable(getattr(module, "sample", None)):
         raise UsageError(f"{key} needs a generative model with sample(texts, lengths, *, steps, guidance, seed, "
                          f"use_ema); {type(module).__name__} has none")
+    if (sampling or {}).get("stance_root") is not None:
+        if not callable(check := getattr(module, "checked_stance_root", None)):
+            raise UsageError(f"{key}.stance_root: {type(module).__name__} is not a diffusion model that can step its "
+                             "root by the stance foot")
+        check(sampling["stance_root"], f"{key}.stance_root")
+
+
+def sampling_settings(key: str, steps: int, guidance: float | None, use_ema: bool, sampler: str,
+                      stance_root: float | None) -> dict[str, Any]:
+    """The keyword arguments a callback passes to the model's ``sample``; ``stance_root`` only when set
+    (the families without it take none)."""
+    SAMPLERS.get(sampler)  # an unknown name fails here, not after training
+    if stance_root is not None and not 0 <= stance_root <= 1:
+        raise UsageError(f"{key}.stance_root must be in [0, 1] (0: off), got {stance_root!r}")
+    settings = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
+    return settings if stance_root is None else {**settings, "stance_root": stance_root}
 
 
 def conditioning(module: L.LightningModule, texts: list[str]) -> list[str] | None:
@@ -71,9 +87,9 @@ class EvalCallback(Callback):
         replications: passes of the test protocol (T2M/MDM: 20).
         mm_prompts, mm_repeats: MultiModality generates each of the first mm_prompts prompts
             mm_repeats times (T2M: 100 × 30).
-        steps, guidance, use_ema, sampler: sampling settings passed to the model's ``sample``
+        steps, guidance, use_ema, sampler, stance_root: sampling settings passed to the model's ``sample``
             (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler)
-            (guidance None: the model's own guidance_scale).
+            (guidance, stance_root None: the model's own).
         batch_size: prompts generated at once on each rank.
         seed: seeds the prompt sets and the sampling; a run is deterministic for a seed.
         reference: also report the set-wise metrics of the real motions as ``real/<metric>``.
@@ -103,6 +119,7 @@ class EvalCallback(Callback):
         guidance: float | None = None,
         use_ema: bool = True,
         sampler: str = "ddim",
+        stance_root: float | None = None,
         batch_size: int = 64,
         seed: int = 0,
         reference: bool = True,
@@ -137,8 +154,7 @@ class EvalCallback(Callback):
         self.every_n_steps, self.replications = every_n_steps, replications
         if self.prompt_file is None:
             self.num_prompts = num_prompts
-        SAMPLERS.get(sampler)  # an unknown name fails here, not after training
-        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
+        self.sampling = sampling_settings(key, steps, guidance, use_ema, sampler, stance_root)
         self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
                                      reference=reference)
         self.seed = seed
@@ -153,7 +169,7 @@ class EvalCallback(Callback):
     def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None) -> None:
         """The checks that need no trainer: ``omg.tools.lightning`` runs them before the run creates its
         folder, ``setup`` again for a Trainer used without the CLI."""
-        check_generative(model, "EvalCallback")
+        check_generative(model, "EvalCallback", self.sampling)
         if self.prompt_file is None:
             check_eval_data(data, "EvalCallback")
         elif data is None:

@@ -11,11 +11,10 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 
-from omg.callbacks.eval import check_generative, conditioning
+from omg.callbacks.eval import check_generative, conditioning, sampling_settings
 from omg.callbacks.run import run_dir, sampling
 from omg.errors import UsageError
 from omg.io.render import render_gif
-from omg.registry import SAMPLERS
 
 
 class RenderCallback(Callback):
@@ -31,8 +30,9 @@ class RenderCallback(Callback):
         num_samples: samples per prompt, side by side.
         seconds: length of each sample.
         every_n_steps: render every this many optimizer steps; also once at the end of fit.
-        steps, guidance, use_ema, sampler: sampling settings passed to the model's ``sample``
-            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler).
+        steps, guidance, use_ema, sampler, stance_root: sampling settings passed to the model's ``sample``
+            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler; guidance, stance_root None:
+            the model's own).
         seed: the sampling seed.
         max_frames, dpi: GIF size (frames are subsampled to at most max_frames).
     """
@@ -48,6 +48,7 @@ class RenderCallback(Callback):
         guidance: float | None = None,
         use_ema: bool = True,
         sampler: str = "ddim",
+        stance_root: float | None = None,
         seed: int = 0,
         max_frames: int = 60,
         dpi: int = 60,
@@ -59,13 +60,12 @@ class RenderCallback(Callback):
             raise UsageError(f"RenderCallback.prompts must be a non-empty list of non-empty captions, got {prompts!r}")
         self.prompts, self.num_prompts, self.num_samples, self.seconds = prompts, num_prompts, num_samples, seconds
         self.every_n_steps, self.seed = every_n_steps, seed
-        SAMPLERS.get(sampler)  # an unknown name fails here, not after training
-        self.sampling = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
+        self.sampling = sampling_settings("RenderCallback", steps, guidance, use_ema, sampler, stance_root)
         self.max_frames, self.dpi = max_frames, dpi
         self._last_step = -1
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        check_generative(pl_module, "RenderCallback")
+        check_generative(pl_module, "RenderCallback", self.sampling)
         self.spec = trainer.datamodule.spec if trainer.datamodule is not None else pl_module.spec
         if not getattr(pl_module, "text_conditional", False):
             self._texts = [""] * self.num_prompts

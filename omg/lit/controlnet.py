@@ -38,6 +38,8 @@ class ControlNetModule(MotionDiffusionModule):
         vel_weight, foot_weight, ema_decay: as for ``PretrainModule``.
         activation_checkpointing: recompute the activations of the frozen blocks, their trainable
             copies and the MoC blocks in backward; applied by ``configure_model``.
+        stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
+            in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
         base: the pretrained model's flavor, DiT overrides and spec; filled from ``pretrained``
             and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
@@ -63,6 +65,7 @@ class ControlNetModule(MotionDiffusionModule):
         foot_weight: float = 30.0,
         ema_decay: float = 0.9999,
         activation_checkpointing: bool = False,
+        stance_root: float = 0.0,
         base: dict[str, Any] | None = None,
         spec: DataSpec | dict | None = None,
     ):
@@ -76,7 +79,7 @@ class ControlNetModule(MotionDiffusionModule):
         super().__init__(base["flavor"], base["dit"], base["spec"], lr=lr, weight_decay=weight_decay, betas=betas,
                          warmup_steps=warmup_steps, vel_weight=vel_weight, foot_weight=foot_weight,
                          ema_decay=ema_decay, loss_weighting="uniform",
-                         activation_checkpointing=activation_checkpointing)
+                         activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
         self.eot_drop, self.guidance_scale = eot_drop, guidance_scale
         if pretrained_weights is not None:

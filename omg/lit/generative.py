@@ -148,6 +148,9 @@ def check_request(card: GenerationCard, request: GenerationRequest, what: str = 
                          f"{request.steps}")
     if request.sampler is not None and not card.samplers:
         raise UsageError(f"--sampler: {what} has no sampler to choose")
+    if unknown := sorted(set(request.options) - set(card.options)):
+        takes = ", ".join(card.options) or "none"
+        raise UsageError(f"{what} takes no option {', '.join(unknown)}; its options: {takes}")
     if request.species is not None and not card.open_species and request.species not in card.species:
         known = ", ".join(card.species) or "none (train the model first)"
         raise UsageError(f"unknown animal {request.species!r}; this checkpoint knows: {known}")

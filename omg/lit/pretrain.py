@@ -48,7 +48,8 @@ class MotionDiffusionModule(OmgModule):
 
     def __init__(self, flavor: str, dit: dict[str, Any] | None, spec: DataSpec | dict | None, *, lr: float,
                  weight_decay: float, betas: tuple[float, float], warmup_steps: int, vel_weight: float,
-                 foot_weight: float, ema_decay: float, loss_weighting: str, activation_checkpointing: bool):
+                 foot_weight: float, ema_decay: float, loss_weighting: str, activation_checkpointing: bool,
+                 stance_root: float = 0.0):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
             raise UsageError("model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; "
@@ -73,6 +74,7 @@ class MotionDiffusionModule(OmgModule):
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
         self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))
+        self.stance_root = self.checked_stance_root(stance_root, "model.stance_root")
         self.geometric_loss = GeometricLoss(self.representation, self.spec.fps)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
@@ -209,7 +211,7 @@ class MotionDiffusionModule(OmgModule):
     def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
                guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
                autocast: torch.dtype | None = None, compile: bool = False,
-               seeds: Sequence[int] | None = None) -> Tensor:
+               seeds: Sequence[int] | None = None, stance_root: float | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
         generated at its own length (frames beyond it are padding, to be ignored).
 
@@ -222,6 +224,8 @@ class MotionDiffusionModule(OmgModule):
         ``torch.bfloat16``) runs the network under autocast
         (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
         ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
+        ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
+        foot (``stance_denoiser``).
         """
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
@@ -238,6 +242,9 @@ class MotionDiffusionModule(OmgModule):
                 denoise = autocasting(denoise, self.device.type, autocast)
             if compile:
                 denoise = torch.compile(denoise)
+            strength = self.stance_root if stance_root is None else self.checked_stance_root(stance_root, "stance_root")
+            if strength:
+                denoise = self.stance_denoiser(denoise, mask, strength)
             shape = (*mask.shape, self.config.input_dim)
             given = {} if seeds is None else {"noise": row_noise(seeds, mask, shape[-1], dtype)}
             x = solver(self.diffusion, denoise, shape, steps=steps, generator=gen, device=self.device, dtype=dtype,
@@ -248,6 +255,24 @@ class MotionDiffusionModule(OmgModule):
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
         return lambda x, t: self.model(x, t, mask)
 
+    def checked_stance_root(self, strength: float, key: str) -> float:
+        """``strength`` if it is in [0, 1] and the representation can step its root by the stance foot."""
+        if not 0 <= strength <= 1:
+            raise UsageError(f"{key} must be in [0, 1] (0: off), got {strength!r}")
+        if strength and not self.representation.stance_root:
+            self.representation.root_from_stance(torch.zeros(0))  # its one-line refusal
+        return float(strength)
+
+    def stance_denoiser(self, denoise: Denoiser, mask: Tensor, strength: float) -> Denoiser:
+        """Contact-aware sampling: every x̂0 the network estimates gets its root stepped by its own stance
+        foot (``Representation.root_from_stance``), so the sampler moves towards motion whose planted feet
+        stay planted, and the last estimate, the sample, has them still."""
+        def stepped(x: Tensor, t: Tensor) -> Tensor:
+            x0 = denoise(x, t)  # (B, T, D) normalised
+            moved = self.normalize(self.representation.root_from_stance(self.denormalize(x0), strength))
+            return torch.where(mask[..., None], moved, x0)  # frames past a motion's length as they were
+        return stepped
+
     # -- the generation interface (omg.lit.generative) ------------------------------------
     def generation_card(self) -> GenerationCard:
         return GenerationCard(
@@ -255,7 +280,9 @@ class MotionDiffusionModule(OmgModule):
             inputs=("text", "unconditional") if self.text_conditional else ("unconditional",),  # D_u: the prior
             max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
-            guidance=getattr(self, "guidance_scale", None), row_seeds=True)
+            guidance=getattr(self, "guidance_scale", None), row_seeds=True,
+            options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
+            if self.representation.stance_root else {})
 
     def read_source(self, path, joint_map: str | None = None):
         raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
@@ -277,7 +304,7 @@ class MotionDiffusionModule(OmgModule):
             features = self.sample(texts, [request.frames] * len(batch), steps=steps,
                                    sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
                                    use_ema=False, autocast=request.autocast, compile=request.compile,
-                                   seeds=seeds)  # (n, T, D)
+                                   seeds=seeds, stance_root=request.options.get("stance_root"))  # (n, T, D)
             joints = self.representation.decode(features.float())  # (n, T, J, 3)
             for i, (prompt, k) in enumerate(batch):
                 seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
@@ -290,7 +317,8 @@ class MotionDiffusionModule(OmgModule):
         return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
                 "sampler": request.sampler or "ddim",
                 "guidance_scale": (request.guidance if request.guidance is not None else self.guidance_scale)
-                if request.prompts else None, "batch_size": request.batch_size}
+                if request.prompts else None, "batch_size": request.batch_size,
+                "stance_root": request.options.get("stance_root", self.stance_root)}
 
 
 def row_noise(seeds: Sequence[int], mask: Tensor, dim: int, dtype: torch.dtype) -> Tensor:
@@ -326,6 +354,8 @@ class PretrainModule(MotionDiffusionModule):
         loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
         activation_checkpointing: recompute each block's activations in backward (less memory,
             about a third more compute); applied by ``configure_model``.
+        stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
+            in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
     """
 
@@ -342,9 +372,11 @@ class PretrainModule(MotionDiffusionModule):
         ema_decay: float = 0.9999,
         loss_weighting: str = "uniform",
         activation_checkpointing: bool = False,
+        stance_root: float = 0.0,
         spec: DataSpec | dict | None = None,
     ):
         super().__init__(flavor, dit, spec, lr=lr, weight_decay=weight_decay, betas=betas, warmup_steps=warmup_steps,
                          vel_weight=vel_weight, foot_weight=foot_weight, ema_decay=ema_decay,
-                         loss_weighting=loss_weighting, activation_checkpointing=activation_checkpointing)
+                         loss_weighting=loss_weighting, activation_checkpointing=activation_checkpointing,
+                         stance_root=stance_root)
         self.save_hyperparameters()

@@ -107,6 +107,15 @@ class Representation(ABC):
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None
 
+    stance_root: ClassVar[bool] = False  # whether ``root_from_stance`` is defined
+
+    def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+        """(..., T', D) features with the root's horizontal motion taken from the stance foot: where a
+        foot is planted, the root steps so that the foot stays still (sampling's ``stance_root``).
+        Representations without foot contacts and a root velocity raise."""
+        raise UsageError(f"representation {self.name!r} cannot step its root by the stance foot (stance_root): "
+                         "that needs foot contacts and a root velocity in the features, as humanml3d263 has")
+
     def finalize_stats(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Turn per-feature mean/std over a dataset into the normalisation to store.
 

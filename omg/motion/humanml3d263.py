@@ -36,6 +36,8 @@ bone of its kinematic chain (the root for the first bone of each chain).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -231,6 +233,37 @@ class HumanML3D263(Representation):
 
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
         return features[..., 259:263]
+
+    stance_root = True
+
+    def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
+        """(..., T, 263) -> the features with the root's XZ velocity [1:3] moved ``strength`` of the way to
+        the step that keeps the stance foot still, at every step t -> t+1 where a foot joint is in contact
+        (its contact feature > 0.5) at both frames. The stance foot is the contact joint that moves least
+        in the world under the features' own root step: the foot the body rolls over. Other features are
+        unchanged, so the pose, heading and height stay and only the path changes.
+
+        Why: a sampled motion's root velocity and its legs come out of one network unconstrained, and
+        guidance extrapolates them apart: the body glides while the stance foot slides (the small recipe's
+        walks: the lowest foot moved at 0.4 m/s). A real clip's features satisfy this nearly (its planted
+        feet are still up to HumanML3D's loose contact speed): the step keeps 96-99 % of its path.
+        """
+        heading, root = _root_heading_position(features)  # (..., T, 4), (..., T, 3)
+        ric = features[..., 4:67].unflatten(-1, (21, 3))  # (..., T, 21, 3) joints 1..21 around the root
+        feet = [j - 1 for j in FEET_LEFT + FEET_RIGHT]
+        around = quat_apply(quat_conjugate(heading)[..., None, :], ric[..., feet, :])  # (..., T, 4, 3) world axes
+        moved = around[..., 1:, :, :] - around[..., :-1, :, :]  # (..., T-1, 4, 3) each foot joint's step about the root
+        contact = features[..., 259:263] > 0.5  # (..., T, 4) in FEET_LEFT + FEET_RIGHT order
+        planted = contact[..., 1:, :] & contact[..., :-1, :]  # (..., T-1, 4)
+        own_step = (root[..., 1:, :] - root[..., :-1, :])[..., None, :]  # (..., T-1, 1, 3)
+        world = (own_step + moved)[..., [0, 2]].norm(dim=-1).masked_fill(~planted, math.inf)  # (..., T-1, 4)
+        stance = world.argmin(-1, keepdim=True)  # (..., T-1, 1)
+        step = -torch.gather(moved, -2, stance[..., None].expand(*stance.shape, 3)).squeeze(-2)  # (..., T-1, 3)
+        velocity = quat_apply(heading[..., 1:, :], step)[..., [0, 2]]  # into frame t+1's heading, as [1:3] is stored
+        weight = strength * planted.any(-1, keepdim=True).to(features.dtype)  # (..., T-1, 1)
+        out = features.clone()
+        out[..., :-1, 1:3] = features[..., :-1, 1:3] + weight * (velocity - features[..., :-1, 1:3])
+        return out
 
     def mirror_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The mirror image in HumanML3D's canonical frame (x -> -x, left <-> right joints): the root's

@@ -30,7 +30,7 @@ from pathlib import Path, PurePath
 from typing import Any, Callable
 
 from jsonargparse import ActionConfigFile, ActionYesNo, ArgumentParser, Namespace
-from jsonargparse.typing import NonNegativeInt, PositiveInt, restricted_number_type
+from jsonargparse.typing import ClosedUnitInterval, NonNegativeInt, PositiveInt, restricted_number_type
 
 from omg.errors import UsageError
 from omg.files import read_text
@@ -52,6 +52,7 @@ Seed = number_type("Seed", int, [(">=", 0), ("<", 2**63)], "an integer in [0, 2^
 FiniteFloat = number_type("FiniteFloat", float, [(">", -math.inf), ("<", math.inf)], "a finite number")
 PositiveFiniteFloat = number_type("PositiveFiniteFloat", float, [(">", 0.0), ("<", math.inf)], "a finite number > 0")
 Fraction = number_type("Fraction", float, [(">=", 0.0), ("<", 1.0)], "a number in [0, 1)")
+WANTED[ClosedUnitInterval] = "a number in [0, 1]"  # jsonargparse's
 
 __all__ = ["FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt", "Seed", "number_type",
            "function_parser", "run", "run_subcommands", "explain", "Settings", "locate", "check_config_files",

@@ -20,7 +20,14 @@ import numpy as np
 
 from omg.errors import UsageError
 from omg.models.dit import FLAVORS
-from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt, number_type, run_subcommands
+from omg.tools.args import (
+    ClosedUnitInterval,
+    NonNegativeInt,
+    PositiveFiniteFloat,
+    PositiveInt,
+    number_type,
+    run_subcommands,
+)
 from omg.tools.common import last_line
 from omg.tools.gpu import bench_gpu
 from omg.tools.plan import bench_plan
@@ -349,6 +356,7 @@ def bench_sample(
     precision: Literal["fp32", "bf16-mixed", "bf16"] | None = None,
     token_steps: NonNegativeInt = 0,
     compile: bool = False,
+    stance_root: ClosedUnitInterval = 0.0,
     command: str = "omg bench sample",
 ) -> None:
     """Seconds per motion of guided sampling (frozen DiT + ControlNet).
@@ -366,6 +374,7 @@ def bench_sample(
             padded to CLIP's 77 vs trimmed to the longest caption, and the text-only work (MoC keys, values,
             gates, AdaIN) done at every step vs once per caption (0: skip; with --steps 0: only this)
         compile: sample through torch.compile (compiled during the warm-up, not timed)
+        stance_root: step the root of every estimate by its stance foot (``MotionDiffusionModule.stance_denoiser``)
         command: the command line, printed with the results
     """
     import torch
@@ -398,12 +407,14 @@ def bench_sample(
     for batch in batch_sizes:
         prompts = ["a person walks forward and waves"] * batch
         # warm-up (and compilation): the same shapes as the timed run
-        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast, compile=compile)
+        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast, compile=compile,
+                      stance_root=stance_root)
         if device == "cuda":
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         start = time.perf_counter()
-        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast, compile=compile)
+        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast, compile=compile,
+                      stance_root=stance_root)
         if device == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start

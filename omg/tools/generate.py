@@ -27,7 +27,7 @@ from omg.lit.generative import (
 )
 from omg.registry import SAMPLERS
 from omg.retarget import read_rig
-from omg.tools.args import FiniteFloat, PositiveInt, Seed, number_type, run
+from omg.tools.args import ClosedUnitInterval, FiniteFloat, PositiveInt, Seed, number_type, run
 from omg.tools.common import removing_created
 from omg.tools.export import OutputFormat
 
@@ -54,6 +54,7 @@ def generate(
     preview: bool = True,
     preview_count: PositiveInt = MAX_PREVIEW,
     clean_contacts: bool = False,
+    stance_root: ClosedUnitInterval | None = None,
     to_rig: Path | None = None,
     joint_map: str | None = None,
     format: OutputFormat = "bvh",
@@ -89,6 +90,8 @@ def generate(
         preview: write preview.gif
         preview_count: motions shown side by side in preview.gif
         clean_contacts: pin planted feet in the BVH files (removes foot skating)
+        stance_root: OMG checkpoints of humanml3d263 motion: step the root by the stance foot at every
+            sampling step, this much in [0, 1] (default: the checkpoint's; removes foot sliding while sampling)
         to_rig: write each motion onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
         format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
@@ -129,7 +132,8 @@ def generate(
     card = module.generation_card()
     request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps), num_samples=num_samples,
                                 seed=seed, steps=steps, sampler=sampler, guidance=guidance, species=animal,
-                                batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile)
+                                batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile,
+                                options={} if stance_root is None else {"stance_root": stance_root})
     if human_ckpt is not None:
         request.source_module = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
     request.source = from_motion  # read once the card says the model takes it
