@@ -71,6 +71,7 @@ class Representation(ABC):
 
     name: ClassVar[str]
     frames_dropped: ClassVar[int] = 0  # T' = T - frames_dropped (velocities need a next frame)
+    stance_root: ClassVar[bool] = False  # whether ``root_from_stance`` is defined
 
     def __init__(self, skeleton: Skeleton | str):
         self.skeleton = get_skeleton(skeleton)
@@ -106,8 +107,6 @@ class Representation(ABC):
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor | None:
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None
-
-    stance_root: ClassVar[bool] = False  # whether ``root_from_stance`` is defined
 
     def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         """(..., T', D) features with the root's horizontal motion taken from the stance foot: where a

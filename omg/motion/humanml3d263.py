@@ -135,6 +135,7 @@ class HumanML3D263(Representation):
 
     name = "humanml3d263"
     frames_dropped = 1
+    stance_root = True  # foot contacts and a root velocity: root_from_stance
 
     def __init__(self, skeleton: Skeleton | str = "smpl22", feat_bias: float = 1.0):
         super().__init__(skeleton)
@@ -234,8 +235,6 @@ class HumanML3D263(Representation):
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
         return features[..., 259:263]
 
-    stance_root = True
-
     def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         """(..., T, 263) -> the features with the root's XZ velocity [1:3] moved ``strength`` of the way to
         the step that keeps the stance foot still, at every step t -> t+1 where a foot joint is in contact
@@ -246,7 +245,7 @@ class HumanML3D263(Representation):
         Why: a sampled motion's root velocity and its legs come out of one network unconstrained, and
         guidance extrapolates them apart: the body glides while the stance foot slides (the small recipe's
         walks: the lowest foot moved at 0.4 m/s). A real clip's features satisfy this nearly (its planted
-        feet are still up to HumanML3D's loose contact speed): the step keeps 96-99 % of its path.
+        feet are still up to HumanML3D's loose contact speed): the step keeps 95-99 % of its path.
         """
         heading, root = _root_heading_position(features)  # (..., T, 4), (..., T, 3)
         ric = features[..., 4:67].unflatten(-1, (21, 3))  # (..., T, 21, 3) joints 1..21 around the root

@@ -54,9 +54,9 @@ PositiveFiniteFloat = number_type("PositiveFiniteFloat", float, [(">", 0.0), ("<
 Fraction = number_type("Fraction", float, [(">=", 0.0), ("<", 1.0)], "a number in [0, 1)")
 WANTED[ClosedUnitInterval] = "a number in [0, 1]"  # jsonargparse's
 
-__all__ = ["FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt", "Seed", "number_type",
-           "function_parser", "run", "run_subcommands", "explain", "Settings", "locate", "check_config_files",
-           "underscore_options"]
+__all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt",
+           "Seed", "number_type", "function_parser", "run", "run_subcommands", "explain", "Settings", "locate",
+           "check_config_files", "underscore_options"]
 
 
 # -- errors -----------------------------------------------------------------------------------
