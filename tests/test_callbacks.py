@@ -222,3 +222,28 @@ def test_omg_fit_versions_runs_and_omg_test_prints_the_protocol(evaluator_ckpt, 
     for key in ("following", "following/parts", "foot_skating", *(f"following/{c}" for c in CATEGORIES)):
         assert 0 <= report["metrics"][key]["mean"] <= 1, key
     assert "real/following" not in report["metrics"]
+
+
+def test_callbacks_pass_stance_root_to_the_sampler_and_refuse_it_for_other_models(tmp_path):
+    from omg.callbacks.eval import check_generative
+
+    data = _data()
+    module = _module(data)
+    seen, sample = [], module.sample
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("stance_root"))
+        return sample(*args, **kwargs)
+
+    module.sample = spy
+    render = RenderCallback(num_prompts=1, num_samples=1, seconds=0.5, every_n_steps=1, steps=2, max_frames=3, dpi=30,
+                            stance_root=1.0)
+    _trainer(tmp_path, 1, [render]).fit(module, data)
+    assert seen and set(seen) == {1.0}
+
+    class OtherFamily:  # a generative model without a stance foot to step by (OmniMotionGPT, habit transfer)
+        def sample(self, *args, **kwargs): ...
+
+    with pytest.raises(UsageError, match="EvalCallback.stance_root: OtherFamily is not a diffusion model"):
+        check_generative(OtherFamily(), "EvalCallback", {"stance_root": 1.0})
+    check_generative(OtherFamily(), "EvalCallback", {"steps": 2})  # not asked for: no check
