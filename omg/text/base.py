@@ -75,6 +75,11 @@ class TextFeatures:
         return self.tokens[torch.arange(len(self.eot), device=self.eot.device), self.eot]
 
 
+def encoding_spans(encoding) -> list[tuple[int, int]]:
+    """A ``tokenizers`` Encoding's tokens as the (start, end) characters each covers, (0, 0) for special tokens."""
+    return [(0, 0) if special else tuple(span) for span, special in zip(encoding.offsets, encoding.special_tokens_mask)]
+
+
 class TextEncoder(nn.Module):
     """A frozen text encoder: ``encoder(texts) -> TextFeatures`` on the encoder's device.
 
@@ -128,8 +133,7 @@ class TextEncoder(nn.Module):
         tokenizer = getattr(self, "tokenizer", None)
         if not isinstance(tokenizer, Tokenizer):
             return None
-        enc = tokenizer.encode(text)
-        return [(0, 0) if special else tuple(span) for span, special in zip(enc.offsets, enc.special_tokens_mask)]
+        return encoding_spans(tokenizer.encode(text))
 
     # no_grad, not inference_mode: the features feed trainable layers that save them for backward
     @torch.no_grad()

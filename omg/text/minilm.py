@@ -24,7 +24,7 @@ from torch import Tensor
 
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
-from omg.text.base import TextEncoder, bert_hidden_states, building_on_meta
+from omg.text.base import TextEncoder, bert_hidden_states, building_on_meta, encoding_spans
 from omg.text.sides import token_sides
 
 
@@ -73,14 +73,14 @@ class MiniLMTextEncoder(TextEncoder):
         for b, n in enumerate(lengths):
             x = hidden[b, :n].clone()
             if encodings is not None:
-                self._emphasise_sides(x, texts[b], encodings[b].offsets[:n], encodings[b].special_tokens_mask[:n])
+                self._emphasise_sides(x, texts[b], encoding_spans(encodings[b])[:n])
             x[-1] = x.mean(0)  # [SEP] <- the mean-pooled sentence embedding
             out.append(x)
         return out
 
-    def _emphasise_sides(self, x: Tensor, text: str, offsets, special) -> None:
+    def _emphasise_sides(self, x: Tensor, text: str, spans: list[tuple[int, int]]) -> None:
         """``side_gain`` (module docstring), in place on one text's token features ``x``."""
-        signs = token_sides(text, [(0, 0) if sp else tuple(span) for span, sp in zip(offsets, special)])
+        signs = token_sides(text, spans)
         if not any(signs):
             return
         u = self.side_direction().to(x)
