@@ -93,7 +93,11 @@ def lightning_main(argv: list[str]) -> None:
     # omg's stream splits every epoch exactly among the loader workers, so its length is exact
     warnings.filterwarnings("ignore", message=".*IterableDataset.*has `__len__` defined.*")
     check_config_files(argv)
-    sys.argv = ["omg", *argv]  # the command line as Lightning's launchers see it (and as it was)
+    # the command line as Lightning's launchers see it: `--trainer.devices N` on one machine starts ranks
+    # 1..N-1 by running it again, as `python -m MODULE ARGS` when omg was started as a module (`python -m
+    # omg`, `python -m omg.cli`), else as `python ABSPATH(sys.argv[0]) ARGS`: the program itself, so
+    # sys.argv[0] stays what it is (the console script's path), not a name that is no file
+    sys.argv = [sys.argv[0], *argv]
     try:
         OmgLightningCLI(argv[0], argv[1:]).run_command()
     except UnicodeDecodeError as e:  # a config file given to another key (--data FILE, ...)
@@ -132,6 +136,9 @@ def main(argv: list[str] | None = None) -> None:
             sys.stdout.flush()  # here rather than at exit, so that a closed stdout is handled below
     except BrokenPipeError:
         _stdout_closed()
+    except KeyboardInterrupt:  # Ctrl-C before a run sets its own handler: reading configs, fetching manifests
+        print("omg: interrupted by Ctrl-C", file=sys.stderr)
+        raise SystemExit(SIGINT_EXIT) from None
 
 
 def _run(argv: list[str]) -> None:

@@ -1,13 +1,18 @@
 """Files that readers never see half-written: every file omg writes (shards, manifests,
 checkpoints, BVH, previews, settings) goes through ``atomic_path``. And the checks made before
-reading or writing: ``file_problem`` (what a path is when it is no regular file) and
-``check_output_dir`` (an output folder that can be created and written)."""
+reading or writing: ``read_file`` (the one way a user's file is read: a regular file only, at most
+a bound of bytes), ``file_problem`` (what a path is when it is no regular file) and
+``check_output_dir`` (an output folder that can be created and written, with no folder where an
+output file goes)."""
 
 from __future__ import annotations
 
+import fnmatch
 import io
 import json
 import os
+import re
+import stat
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,6 +21,13 @@ from typing import Iterator
 import numpy as np
 
 from omg.errors import UsageError
+
+# The most bytes read from a user's file of each kind: far above any real one, so that a file that
+# never ends (a symbolic link to /dev/zero, a log still being written) is refused, not read until
+# memory runs out.
+TEXT_MAX_BYTES = 16 * 2**20  # prompts files, configs, joint maps, species files, settings (UTF-8 text)
+MOTION_MAX_BYTES = 256 * 2**20  # a motion or rig: BVH, ASF/AMC, DeepMimic, a .npy array (hours of mocap)
+MANIFEST_MAX_BYTES = 256 * 2**20  # a clip manifest (JSON, about 1 KiB a clip with its texts)
 
 
 @contextmanager
@@ -51,10 +63,54 @@ def file_problem(path: str | Path) -> str | None:
     return "no such file"
 
 
-def check_output_dir(path: str | Path, what: str = "--out") -> Path:
-    """``path`` can be (or already is) a folder to write in: neither it nor a parent is an existing
-    file, and the nearest existing one takes new entries; a one-line UsageError naming ``what`` otherwise."""
+def _size(n: int) -> str:
+    return f"{n // 2**20} MiB" if n % 2**20 == 0 else f"{n} bytes"
+
+
+def read_file(path: str | Path, what: str, max_bytes: int) -> bytes:
+    """The bytes of the regular file at ``path`` (symbolic links followed), at most ``max_bytes`` of
+    them; a one-line UsageError naming ``what`` (the option, e.g. "--to_rig") otherwise: a folder,
+    a FIFO, a device, nothing there, or a larger file. The one way omg reads a file a user names.
+
+    The file is opened non-blocking (a FIFO swapped in after the check cannot block the open) and
+    checked again on the open descriptor, which is what is read; the read stops one byte past the
+    bound, as files such as /proc's report no size."""
     path = Path(path)
+    where = f"{what} {path}" if what else str(path)
+    if problem := file_problem(path):
+        raise UsageError(f"{where}: {problem}")
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError as e:
+        raise UsageError(f"{where}: cannot be read ({e.strerror or e})") from None
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):  # replaced between the check and the open
+            raise UsageError(f"{where}: not a regular file (a FIFO, socket or device); a file is expected")
+        too_large = f"{where}: larger than the {_size(max_bytes)} omg reads from such a file"
+        if info.st_size > max_bytes:
+            raise UsageError(f"{too_large} ({info.st_size} bytes)")
+        try:
+            data = f.read(max_bytes + 1)
+        except OSError as e:
+            raise UsageError(f"{where}: cannot be read ({e.strerror or e})") from None
+    if len(data) > max_bytes:  # grew while read, or reports no size
+        raise UsageError(too_large)
+    return data
+
+
+def check_output_dir(path: str | Path, what: str = "--out", files: tuple[str, ...] = ()) -> Path:
+    """``path`` can be (or already is) a folder to write in: neither it nor a parent is an existing
+    file, the nearest existing one takes new entries, and no entry named like one of ``files`` (glob
+    patterns of the files a command writes there) is a folder, which the output file's rename
+    (``atomic_path``) cannot replace; a one-line UsageError naming ``what`` otherwise."""
+    path = Path(path)
+    if files and path.is_dir():
+        for entry in sorted(path.iterdir()):
+            if (any(fnmatch.fnmatchcase(entry.name, pattern) for pattern in files) and entry.is_dir()
+                    and not entry.is_symlink()):  # a rename replaces a link, also one to a folder
+                raise UsageError(f"{what} {path}: {entry.name} is a folder, where an output file goes; "
+                                 "move it away or choose another folder")
     for p in [path, *path.parents]:
         if p.exists() and not p.is_dir():
             where = "" if p == path else f" (its parent {p} is a file)"
@@ -96,17 +152,34 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def read_text(path: str | Path, what: str) -> str:
-    """A UTF-8 text file's contents; a missing file, a folder or another encoding is a UsageError."""
+def read_text(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES) -> str:
+    """A UTF-8 text file's contents (``read_file``); a missing file, a folder, a larger file than
+    ``max_bytes`` or another encoding is a UsageError."""
     path = Path(path)
-    if problem := file_problem(path):  # a FIFO would block the read forever
-        raise UsageError(f"{what} {path}: {problem}")
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise UsageError(f"{what} {path}: cannot be read ({e.strerror or e})") from None
+    data = read_file(path, what, max_bytes)
     try:
         return data.decode("utf-8-sig")  # a byte-order mark (Windows editors) is not part of the text
     except UnicodeDecodeError as e:
         raise UsageError(f"{what} {path}: not a UTF-8 text file (byte 0x{data[e.start]:02x} at offset {e.start}); "
                          "save it as UTF-8") from None
+
+
+def read_yaml(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES):
+    """A YAML file (``read_text``) read by the safe loader: a tag that would build a Python object
+    (``!!python/object/apply:os.system``) or any other unknown tag, and bad syntax, are one UsageError
+    naming ``what``, the file and the line."""
+    import yaml
+
+    path = Path(path)
+    try:
+        return yaml.safe_load(read_text(path, what, max_bytes))
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = str(getattr(e, "problem", None) or e).splitlines()[0]
+        tag = re.fullmatch(r"could not determine a constructor for the tag '(?:tag:yaml\.org,2002:)?(.*)'", problem)
+        if tag:
+            name = f"!!{tag.group(1)}" if problem.count("tag:yaml.org,2002:") else tag.group(1)
+            raise UsageError(f"{what} {path}: the YAML tag {name}{at} is not allowed; tags that make Python objects "
+                             "are never read, give plain values") from None
+        raise UsageError(f"{what} {path}: not valid YAML{at} ({problem})") from None

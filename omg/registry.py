@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 import inspect
 from importlib.metadata import entry_points
-from pathlib import Path, PurePath
+from pathlib import PurePath
 from typing import Any, Iterator, TypeVar
 
 from omg.errors import UsageError
@@ -89,9 +89,11 @@ class Registry:
     def describe(self, name: str) -> str:
         obj = self.get(name)
         if isinstance(obj, PurePath):  # a data file (joint maps): its first comment line, or its path
+            from omg.files import read_text
+
             try:
-                first = Path(obj).read_text().splitlines()[0]
-            except (OSError, IndexError, UnicodeDecodeError):
+                first = read_text(obj, "joint map").splitlines()[0]
+            except (UsageError, IndexError):
                 first = ""
             return first.lstrip("# ").strip() if first.startswith("#") else str(obj)
         doc = inspect.getdoc(obj) or ""

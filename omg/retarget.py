@@ -56,6 +56,7 @@ import torch.nn.functional as F
 import yaml
 
 from omg.errors import UsageError
+from omg.files import read_text
 from omg.io.rig import RigMotion
 from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
 from omg.motion.base import Clip
@@ -80,9 +81,7 @@ def load_joint_map(path: str | Path) -> JointMap:
     """A joint map from YAML (format in the module docstring; the built-in ones are in omg/joint_maps/)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise UsageError(f"joint map {path}: cannot read the file ({e.strerror})") from None
+        data = yaml.safe_load(read_text(path, "joint map"))
     except yaml.YAMLError as e:
         raise UsageError(f"joint map {path}: not valid YAML ({str(e).splitlines()[0]})") from None
     if not isinstance(data, dict) or not isinstance(data.get("joints"), dict) or not data.get("target"):
@@ -591,7 +590,7 @@ def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path |
 
     if Path(path).suffix.lower() != ".bvh":
         raise UsageError(f"--to_rig {path}: the rig must be a .bvh file (its HIERARCHY is the rig)")
-    rig = read_bvh(path)
+    rig = read_bvh(path, what="--to_rig")  # a regular file of bounded size: no FIFO or /dev/zero
     skel = get_skeleton(skeleton)
     plan = _plan(skel, _rig_joint_map(rig, skel, joint_map), source_names(rig))
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))

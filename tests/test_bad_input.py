@@ -24,6 +24,7 @@ import yaml
 
 from helpers import BANDAI_RIG, DOG_RIG, REPO, TINY_BVH, TINY_DIT, rig_bvh
 from omg.cli import main
+from omg.files import MOTION_MAX_BYTES
 from omg.skeleton import SMPL22
 
 
@@ -99,6 +100,11 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "rigs/dog.bvh").write_text(rig_bvh(DOG_RIG))
     (d / "rigs/flat.bvh").write_text(rig_bvh(BANDAI_RIG, zero=True))
     (d / "rigs/motion_only.bvh").write_text("MOTION\nFrames: 1\nFrame Time: 0.05\n0 0 0\n")
+    (d / "rigs/folder.bvh").mkdir()  # --to_rig: no regular file (a FIFO or /dev/zero: tests/test_user_files.py)
+    (d / "rigs/null.bvh").symlink_to(os.devnull)
+    with open(d / "rigs/huge.bvh", "wb") as f:  # sparse: one byte over the bound, no disk used
+        f.truncate(MOTION_MAX_BYTES + 1)
+    (d / "python_tag.yaml").write_text("model: !!python/object/apply:os.system ['echo pwned']\n")
     (d / "empty").mkdir()
     (d / "user").mkdir()
     (d / "user/keep.txt").write_text("the user's own file\n")
@@ -117,6 +123,8 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "gen_binary/generation.json").write_bytes(b"\xff\xfe{\x00")
     (d / "gen_dir/generation.json").mkdir()
     (d / "gen_bvhdir/sample_000.bvh").mkdir()  # where the BVH file would go
+    (d / "gen_glbdir/sample_000.glb").mkdir(parents=True)
+    (d / "transfer_bvhdir/transfer.bvh").mkdir(parents=True)
     # SLURM requeue checkpoints (hpc_ckpt_N.ckpt in default_root_dir): one holding a pickled object
     # that a weights-only load refuses, and a torn one
     (d / "hpc_pickled").mkdir()
@@ -151,6 +159,9 @@ ROWS = [
     ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
     ("gen-prompts-binary", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/elf.bin"]),
     ("gen-prompts-nul", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/nul.txt"]),
+    ("gen-prompt-lone-surrogate", [*GEN, "a person \ud800 walks", "--ckpt", "{cn}", "--out", "{out}"]),
+    ("gen-prompt-c1-control", [*GEN, "a person\x85walks", "--ckpt", "{cn}", "--out", "{out}"]),
+    ("gen-animal-control-character", [*TEXT, "--animal", "do\x07g"]),
     ("gen-prompts-dir", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}"]),
     ("gen-prompts-missing", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/nope.txt"]),
     ("gen-length-nan", [*UNCOND, "--length", "nan"]),
@@ -176,6 +187,8 @@ ROWS = [
     ("gen-nan-weights", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{out}"]),
     ("gen-ckpt-bare-state-dict", [*GEN, "--unconditional", "--ckpt", "{in}/bare.ckpt", "--out", "{out}"]),
     ("gen-fails-in-user-folder", [*GEN, "--unconditional", "--ckpt", "{nanck}", "--out", "{in}/user"]),
+    ("gen-out-holds-bvh-folder", [*UNCOND, "--out", "{in}/gen_bvhdir"]),
+    ("gen-out-holds-glb-folder", [*UNCOND, "--out", "{in}/gen_glbdir", "--format", "glb"]),
     # omg export (writes beside its inputs: nothing may appear there either)
     ("export-fps-nan", [*EXPORT, "--fps", "nan"]),
     ("export-fps-inf", [*EXPORT, "--fps", "inf"]),
@@ -199,6 +212,10 @@ ROWS = [
     ("export-rig-not-bvh", [*RIG_EXPORT, "--to_rig", "{in}/afile"]),
     ("export-joint-map-without-rig", [*RIG_EXPORT, "--joint_map", "bandai"]),
     ("export-rig-wrong-map", [*RIG_EXPORT, "--to_rig", "{in}/rigs/human.bvh", "--joint_map", "cmu"]),
+    ("export-rig-dir", [*RIG_EXPORT, "--to_rig", "{in}/rigs/folder.bvh"]),
+    ("export-rig-device", [*RIG_EXPORT, "--to_rig", "{in}/rigs/null.bvh"]),
+    ("export-rig-oversize", [*RIG_EXPORT, "--to_rig", "{in}/rigs/huge.bvh"]),
+    ("export-joint-map-dir", [*RIG_EXPORT, "--to_rig", "{in}/rigs/human.bvh", "--joint_map", "{in}/empty"]),
     # omg shards build
     ("build-fps-nan", [*SYNTH_BUILD, "--fps", "nan"]),
     ("build-fps-inf", [*SYNTH_BUILD, "--fps", "inf"]),
@@ -260,6 +277,9 @@ ROWS = [
     ("transfer-source-dir", [*TRANSFER, "{in}/empty", "--out", "{out}"]),
     ("transfer-source-fifo", [*TRANSFER, "{in}/fifo.npy", "--out", "{out}"]),
     ("transfer-rig-human", [*TRANSFER, "{in}/still.npy", "--out", "{out}", "--to_rig", "{in}/rigs/human.bvh"]),
+    ("transfer-out-holds-bvh-folder", [*TRANSFER, "{in}/still.npy", "--out", "{in}/transfer_bvhdir"]),
+    ("transfer-species-file-dir", ["transfer", "{in}/still.npy", "--to", "fox", "--ckpt", "{habit}", "--no_preview",
+                                   "--out", "{out}", "--species_file", "{in}/empty"]),  # fox: a species of the book
     # omg generate's animal options on a checkpoint that is not OmniMotionGPT's
     ("gen-animal-on-controlnet", [*TEXT, "--animal", "dog"]),
     ("gen-from-motion-on-controlnet", [*TEXT, "--from_motion", "{in}/bvh/tiny.bvh"]),
@@ -309,6 +329,7 @@ ROWS = [
     ("bench-plan-mfu-zero", ["bench", "plan", "--mfu", "0"]),
     ("bench-plan-offload-ddp", ["bench", "plan", "--strategy", "ddp", "--offload"]),
     ("bench-plan-not-planned", ["bench", "plan", "--configs", f"[{REPO}/configs/habit_vqvae.yaml]"]),
+    ("bench-plan-python-tag", ["bench", "plan", "--configs", "[{in}/python_tag.yaml]"]),
     ("bench-gpu-few-steps", ["bench", "gpu", "--dry_run", "--train_steps", "5"]),
     ("bench-gpu-shards-missing", ["bench", "gpu", "--dry_run", "--shards", "{in}/nope"]),
     ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
@@ -363,6 +384,10 @@ ROWS = [
     ("bench-sides-encoder-option", ["bench", "sides", "--encoders", "[hash:dim]"]),
     ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
     ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
+    # omg serve (checked before a checkpoint loads or a port is bound)
+    ("serve-out-is-file", ["serve", "--ckpt", "{cn}", "--out", "{in}/afile"]),
+    ("serve-out-in-proc", ["serve", "--ckpt", "{cn}", "--out", "/proc/omg-out"]),
+    ("serve-allowed-hosts-port", ["serve", "--ckpt", "{cn}", "--allowed_hosts", "[localhost:8000]"]),
 ]
 
 
@@ -376,6 +401,9 @@ SAYS = {
     "gen-prompts-latin1": "--prompts_file {in}/latin1.txt: not a UTF-8 text file (byte 0xe9",
     "gen-prompts-binary": "--prompts_file {in}/elf.bin: not a UTF-8 text file (byte 0xff",
     "gen-prompts-nul": "--prompts_file {in}/nul.txt: line 1 holds the control character",
+    "gen-prompt-lone-surrogate": "prompt 1 holds a lone surrogate or undecodable byte '\\ud800'",
+    "gen-prompt-c1-control": "prompt 1 holds the control character '\\x85'",
+    "gen-animal-control-character": "--animal holds the control character '\\x07'",
     "gen-prompts-dir": "--prompts_file {in}: is a directory; a file is expected",
     "gen-prompts-missing": "--prompts_file {in}/nope.txt: no such file",
     "gen-length-nan": "length: expected a number of seconds in (0, 60], got 'nan'",
@@ -400,6 +428,8 @@ SAYS = {
     "gen-nan-weights": "the model produced NaN or inf motions: a diverged checkpoint ({nanck})",
     "gen-ckpt-bare-state-dict": "{in}/bare.ckpt is a bare state dict: it holds weights without the module's hyper",
     "gen-fails-in-user-folder": "the model produced NaN or inf motions: a diverged checkpoint ({nanck})",
+    "gen-out-holds-bvh-folder": "--out {in}/gen_bvhdir: sample_000.bvh is a folder, where an output file goes",
+    "gen-out-holds-glb-folder": "--out {in}/gen_glbdir: sample_000.glb is a folder, where an output file goes",
     "export-fps-nan": "fps: expected a finite number > 0, got 'nan'",
     "export-fps-inf": "fps: expected a finite number > 0, got 'inf'",
     "export-fps-neg": "fps: expected a finite number > 0, got '-3'",
@@ -424,6 +454,11 @@ SAYS = {
     "export-rig-not-bvh": "--to_rig {in}/afile: the rig must be a .bvh file",
     "export-joint-map-without-rig": "--joint_map names the map of the --to_rig rig; give --to_rig",
     "export-rig-wrong-map": "{in}/rigs/human.bvh: joint map 'cmu' needs joints the file lacks: Spine1, Neck1",
+    "export-rig-dir": "--to_rig {in}/rigs/folder.bvh: is a directory; a file is expected",
+    "export-rig-device": "--to_rig {in}/rigs/null.bvh: not a regular file (a FIFO, socket or device)",
+    "export-rig-oversize": "--to_rig {in}/rigs/huge.bvh: larger than the 256 MiB omg reads from such a file "
+                           f"({MOTION_MAX_BYTES + 1} bytes)",
+    "export-joint-map-dir": "joint map {in}/empty: is a directory; a file is expected",
     "build-fps-nan": "fps: expected a number of frames per second in (0, 1000], got 'nan'",
     "build-fps-inf": "fps: expected a number of frames per second in (0, 1000], got 'inf'",
     "build-fps-neg": "fps: expected a number of frames per second in (0, 1000], got '-20'",
@@ -452,7 +487,7 @@ SAYS = {
     "build-option-not-mapping": "option: expected a mapping such as {{key: value}}, got 'num_clips=2'",
     "build-option-bad-yaml": "option: expected a mapping such as {{key: value}}, got '{{seed: [1, 2'",
     "build-option-neg-count": "--option.num_clips -1: expected a finite number >= 0",
-    "build-joint-map-binary": "--option.joint_map {in}/random.bin: not a UTF-8 text file",
+    "build-joint-map-binary": "joint map {in}/random.bin: not a UTF-8 text file",
     "build-empty-source": "no clip could be written to {out}/a/b (the source was empty)",
     "build-fails-in-user-folder": "no clip could be written to {in}/user/val (none of the 1 source items went to it)",
     "build-workers-zero": "workers: expected an integer >= 1, got '0'",
@@ -478,6 +513,9 @@ SAYS = {
     "transfer-source-fifo": "SOURCE {in}/fifo.npy: not a regular file (a FIFO",
     "transfer-rig-human": "{in}/rigs/human.bvh: the rig is a human rig (its names fit joint map 'bandai', onto "
     "smpl22), the motion is on smal35",
+    "transfer-out-holds-bvh-folder": "--out {in}/transfer_bvhdir: transfer.bvh is a folder, where an output file "
+                                     "goes",
+    "transfer-species-file-dir": "species file {in}/empty: is a directory; a file is expected",
     "gen-animal-on-controlnet": "{cn} (ControlNetModule) does not generate from a species (--animal); it takes "
                                 "prompts",
     "gen-from-motion-on-controlnet": "{cn} (ControlNetModule) does not generate from a source motion (--from_motion); "
@@ -523,6 +561,8 @@ SAYS = {
     "bench-plan-mfu-zero": "mfu: expected a number in (0, 1], got '0'",
     "bench-plan-offload-ddp": "--offload needs a ZeRO --strategy (zero1, zero2, zero3)",
     "bench-plan-not-planned": "HabitVQModule is not PretrainModule or ControlNetModule; the planner covers",
+    "bench-plan-python-tag": "--configs {in}/python_tag.yaml: the YAML tag !!python/object/apply:os.system at line 1 "
+                             "is not allowed",
     "bench-gpu-few-steps": "--train_steps must be above the 5 untimed warm-up steps, got 5",
     "bench-gpu-shards-missing": "--shards {in}/nope: no train/manifest.json",
     "bench-sample-frames-neg": "frames: expected an integer >= 1, got '-1'",
@@ -587,6 +627,9 @@ SAYS = {
     "bench-sides-encoder-option": "--encoders: 'hash:dim': options are key=value pairs",
     "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
     "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
+    "serve-out-is-file": "--out {in}/afile: not a folder",
+    "serve-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
+    "serve-allowed-hosts-port": "--allowed_hosts 'localhost:8000': give host names or addresses without a port",
 }
 
 
@@ -626,7 +669,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu", "bench rig"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

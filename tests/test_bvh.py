@@ -171,5 +171,5 @@ def test_malformed(tmp_path, name, edit, reason, line):
 
 
 def test_missing_file(tmp_path):
-    with pytest.raises(BvhError, match="cannot read"):
+    with pytest.raises(UsageError, match="nope.bvh: no such file"):
         read_bvh(tmp_path / "nope.bvh")

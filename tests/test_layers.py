@@ -42,7 +42,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("models", ("omg.models", "omg.diffusion", "omg.samplers", "omg.losses", "omg.metrics")),
     ("training", ("omg.lit", "omg.callbacks", "omg.evaluation")),
     ("tools", ("omg.tools",)),
-    ("cli", ("omg.cli",)),
+    ("cli", ("omg.cli", "omg.__main__")),
 ]
 
 # (module, function) -> why its import_module with a computed name is allowed; where the names are

@@ -338,6 +338,116 @@ def test_a_stalled_read_ends_shards_inspect(h263_shards, tmp_path):
     assert "--timeout=2" in line and "stalled" in line
 
 
+def test_a_stalled_manifest_fetch_ends_the_run_within_data_timeout(tmp_path):
+    """The manifest of a `pipe:` set is read before training: a command that never ends is bounded by
+    data.timeout like a shard's read (it was stopped only after 600 s), and is killed."""
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / "manifest.json")
+    config = write_config(tmp_path / "c.yaml", f"pipe:cat {fifo}/manifest.json", tmp_path / "run", timeout=2)
+    log = tmp_path / "err.txt"
+    line = finish(omg_process("fit", "--config", config, log=log), log, within=90, leftovers=str(fifo))
+    assert line.startswith("omg: error: the manifests of data.train were not read in data.timeout=2 s"), line
+    assert not (tmp_path / "run").exists()
+
+
+def test_ctrl_c_during_a_stalled_manifest_fetch_is_one_line(tmp_path):
+    """Before training starts no handler of the run's is set: Ctrl-C is Python's KeyboardInterrupt, which
+    ends the fetch at once; its command is killed and the CLI says so in one line (not a traceback)."""
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / "manifest.json")
+    config = write_config(tmp_path / "c.yaml", f"pipe:cat {fifo}/manifest.json", tmp_path / "run")
+    log = tmp_path / "err.txt"
+    process = omg_process("fit", "--config", config, log=log, new_session=True)
+    _wait_for(lambda: processes(f"cat {fifo}/manifest.json"), process, timeout=240)
+    os.killpg(process.pid, signal.SIGINT)
+    try:
+        process.wait(60)
+    except subprocess.TimeoutExpired:
+        pass
+    left = processes(str(fifo))
+    kill_all([process.pid, *left])
+    process.wait()
+    err = log.read_text()
+    assert process.returncode == SIGINT_EXIT and "Traceback" not in err, err[-2000:]
+    assert [ln for ln in err.splitlines() if ln.startswith("omg:")] == ["omg: interrupted by Ctrl-C"], err[-2000:]
+    assert not left, f"left behind: {left}"
+
+
+# -- the end of a stalled run: a stop signal ends it at once, and nothing it started outlives it, SIGKILL
+# included. data.timeout is left at its default (600 s): the stall itself would hold the run for 10 minutes.
+
+def stalled_fit(h263_shards, tmp_path, num_workers: int) -> tuple[subprocess.Popen, Path, str]:
+    """`omg fit` (as a terminal starts it) on a set whose shards never arrive, once it reads one:
+    (the process, its stderr, the stalled set's folder)."""
+    train = stalling_set(h263_shards / "train", tmp_path / "fifo")
+    config = write_config(tmp_path / "c.yaml", train, tmp_path / "run", num_workers=num_workers)
+    log = tmp_path / "err.txt"
+    process = omg_process("fit", "--config", config, log=log, new_session=True)
+    _wait_for(lambda: processes(f"cat {tmp_path / 'fifo'}/shard-"), process, timeout=240)
+    time.sleep(0.5)  # the main process is waiting for the batch
+    return process, log, str(tmp_path / "fifo")
+
+
+def kill_all(pids: list[int]) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.mark.slow  # an `omg fit` process stalled, then stopped: about 30 s on 2 cores
+@pytest.mark.parametrize("stop, num_workers", [(signal.SIGTERM, 0), (signal.SIGINT, 1)],
+                         ids=["sigterm-no-workers", "ctrl-c-one-worker"])
+def test_a_stop_signal_ends_a_stalled_run_with_its_usual_line(h263_shards, tmp_path, stop, num_workers):
+    """SIGTERM (to omg, as `kill` and schedulers send it) or Ctrl-C (to the terminal's process group) while
+    the batch read is stalled: Lightning's handlers only set a flag for the end of the step, which a stalled
+    read never reaches. The run ends within a few seconds (omg.data.deadline.STOP_GRACE_S) as at a step's
+    end, with its exit code and line, and its `pipe:` commands and data workers end with it."""
+    process, log, fifo = stalled_fit(h263_shards, tmp_path, num_workers)
+    start = time.monotonic()
+    if stop == signal.SIGINT:
+        os.killpg(process.pid, signal.SIGINT)
+    else:
+        process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(90)
+    except subprocess.TimeoutExpired:
+        pass
+    took = time.monotonic() - start
+    left = processes(fifo) + processes(str(tmp_path / "c.yaml"))
+    kill_all([process.pid, *left])
+    process.wait()
+    err = log.read_text()
+    print(f"{stop.name} with {num_workers} workers: ended {took:.1f} s after the signal")
+    assert process.returncode == {signal.SIGTERM: SIGTERM_EXIT, signal.SIGINT: SIGINT_EXIT}[stop], err[-2000:]
+    assert took < 45  # STOP_GRACE_S and the interpreter's exit, on a busy machine
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("omg:") and "interrupted" in ln]
+    said = "SIGTERM" if stop == signal.SIGTERM else "Ctrl-C"
+    assert lines == [f"omg: interrupted by {said} at step 0; no checkpoint was written"], err[-2000:]
+    assert not left, f"left behind: {left}"
+
+
+@pytest.mark.parametrize("num_workers", [0, 1])
+def test_no_pipe_command_outlives_a_killed_run(h263_shards, tmp_path, num_workers):
+    """omg SIGKILLed while its `pipe:` command (started by the main process, or by a data worker) is stalled:
+    the command, the shell around it and the worker end with it (Linux's parent-death signal), where they
+    used to run on for good."""
+    process, log, fifo = stalled_fit(h263_shards, tmp_path, num_workers)
+    readers = processes(fifo)
+    assert readers
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + 20
+    while (left := processes(fifo) + processes(str(tmp_path / "c.yaml"))) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    kill_all(left)
+    assert not left, f"still running after omg was SIGKILLed: {left}"
+
+
 def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, tmp_path):
     """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
     import threading

@@ -77,7 +77,7 @@ def test_a_user_file_adds_and_overrides_species(tmp_path, book):
     assert set(mine.names) == set(book.names) | {"okapi"}
     assert book.description("horse") != mine.description("horse")  # the packaged book is untouched
 
-    cases = {"missing.yaml": "does not exist", "list.yaml": "must map species names to descriptions, got a list",
+    cases = {"missing.yaml": "no such file", "list.yaml": "must map species names to descriptions, got a list",
              "blank.yaml": "'lynx' needs a non-empty description", "bad.yaml": "is not valid YAML",
              "twice.yaml": "'Red Fox' is given twice"}
     (tmp_path / "list.yaml").write_text("- dog\n- cat\n")

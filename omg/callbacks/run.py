@@ -66,6 +66,10 @@ class InterruptCheckpoint(Callback):
     ``setup``, before the data workers fork, so that they, which get a terminal's Ctrl-C too, go on
     serving the last step rather than die with a KeyboardInterrupt.
 
+    A step whose batch read is stalled would never get to its end: ``omg.data.deadline`` then gives the
+    read ``STOP_GRACE_S`` and raises the ``SIGTERMException`` the loop would have raised (no
+    interrupted.ckpt: the step did not end; the line names the last periodic checkpoint).
+
     On several ranks Lightning shares the signal through collectives of its own at points that
     differ between ranks, and a checkpoint (a collective too) cannot be slotted in safely: the
     run stops at its last periodic checkpoint. ``omg fit`` then exits non-zero (``omg.cli``)

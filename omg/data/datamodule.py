@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import math
+import multiprocessing
 import os
 import signal
 import time
@@ -50,6 +51,7 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 from omg.data.deadline import deadline
 from omg.data.mixture import load_mixture
 from omg.data.shards import Manifest, ShardError, decode_sample, iter_tar
+from omg.data.shards.remote import end_with_parent
 from omg.data.windows import CLIP_MODES, Collate, WindowSampler, make_item, mirror_item, pick_text
 from omg.errors import UsageError
 from omg.motion import DataSpec, Representation, get_representation
@@ -300,7 +302,7 @@ class StreamLoader(DataLoader):
                 # not a read in the main process (num_workers 0) nor the fd fetch from a stopped worker
                 with deadline(self.fetch_timeout, stalled_message(self.fetch_timeout, "no training batch arrived")):
                     batch = next(batches, None)
-            except UsageError:
+            except BaseException:  # a stall, or a stop signal during one (omg.data.deadline): no worker is left
                 stop_workers(batches)
                 raise
             if batch is None:
@@ -374,8 +376,11 @@ def stop_workers(batches, grace: float = 2.0) -> None:
 def exit_on_sigterm(worker_id: int) -> None:
     """A data worker's ``worker_init_fn``: SIGTERM raises SystemExit, so the worker unwinds and a shard
     read it abandons kills its ``pipe:`` command (``omg.data.shards``) instead of leaving it running
-    (torch's handler ends the process at once)."""
+    (torch's handler ends the process at once). And the worker is killed when the main process ends,
+    SIGKILL included: torch's own check of that waits for the worker's next index, which a stalled read
+    never asks for (its ``pipe:`` command then goes with it: ``omg.data.shards.remote.dies_with_parent``)."""
     signal.signal(signal.SIGTERM, _exit_on_signal)
+    end_with_parent(signal.SIGKILL, multiprocessing.parent_process().pid)
 
 
 def _exit_on_signal(signum, frame):
@@ -448,10 +453,11 @@ class MotionDataModule(L.LightningDataModule):
             (``omg.data.mixture``). Not needed by ``omg validate`` and ``omg test``, which read ``val``.
         val: the same for validation (a small set: it is loaded into memory), or None.
         batch_size: samples per batch on each rank.
-        max_len / min_len: sample length bounds in frames (OMG pretraining: windows of up to 300
-            frames; HumanML3D fine-tuning: whole clips of up to 196 frames at 20 fps). Whole clips
+        max_len / min_len: sample length bounds in frames (OMG pretraining: windows l ~ U[1, L], L = 300
+            frames at 30 fps; HumanML3D fine-tuning: whole clips of up to 196 frames at 20 fps). Whole clips
             shorter than ``min_len`` are not trained on (the papers' filters: HumanML3D 20, AnimalML3D
-            10 frames); windows use a shorter clip whole.
+            10 frames); windows use a shorter clip whole. ``min_len`` unset: 1 for windows (OMG Sec. 3.1,
+            a window may be a single keyframe), 40 for whole clips (HumanML3D's loader).
         clips: how samples are cut from clips: ``windows`` (sliding random windows, long takes
             sampled in proportion to their length: unlabeled pretraining), ``whole`` (the whole
             clip, a random ``max_len`` crop when longer: captioned data), or ``auto``: what the
@@ -478,7 +484,7 @@ class MotionDataModule(L.LightningDataModule):
         val: str | list[str | dict[str, Any]] | None = None,
         batch_size: int = 32,
         max_len: int = 300,
-        min_len: int = 40,
+        min_len: int | None = None,
         clips: str = "auto",
         batches_per_epoch: int = 1000,
         num_workers: int = 2,
@@ -503,7 +509,8 @@ class MotionDataModule(L.LightningDataModule):
             raise UsageError(f"data.timeout must be >= 0 seconds (0: no limit), got {timeout}")
         if not 0 <= max_bad_fraction <= 1:  # also NaN
             raise UsageError(f"data.max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
-        if not 1 <= min_len <= max_len:  # else the first batch would fail, after the run folder was written
+        # else the first batch would fail, after the run folder was written (None: the mode's default)
+        if not 1 <= (1 if min_len is None else min_len) <= max_len:
             raise UsageError(f"data.min_len and data.max_len must satisfy 1 <= min_len <= max_len, "
                              f"got min_len={min_len}, max_len={max_len}")
         if clips not in ("auto", *CLIP_MODES):
@@ -517,10 +524,13 @@ class MotionDataModule(L.LightningDataModule):
         self.train_urls, self.val_urls, self.shard_checks, manifest = [], [], {}, None
         self.mixture = None
         if train:
-            self.mixture = load_mixture(train, "data.train")
+            # the manifests too: a pipe: command or URL that never answers is a stall like a shard's
+            with deadline(timeout, stalled_message(timeout, "the manifests of data.train were not read")):
+                self.mixture = load_mixture(train, "data.train")
             self.train_urls, manifest, self.shard_checks = self.mixture.urls, self.mixture.manifest, self.mixture.checks
         if val:
-            self.val_urls, val_manifest, val_checks = resolve_shards(val, "data.val")
+            with deadline(timeout, stalled_message(timeout, "the manifests of data.val were not read")):
+                self.val_urls, val_manifest, val_checks = resolve_shards(val, "data.val")
             if manifest is not None:  # else every validation sample would fail to decode, one by one
                 manifest.spec().check_compatible(val_manifest.spec(), f"data.train ({manifest.location})",
                                                  f"data.val ({val_manifest.location})")

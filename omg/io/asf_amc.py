@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES, read_file
 from omg.io.rig import RigMotion
 from omg.rotations import euler_to_quat, quat_conjugate, quat_mul
 
@@ -61,10 +62,7 @@ def _fixed_axes_quat(angles: np.ndarray, order: str) -> torch.Tensor:
 def read_asf(path: str | Path) -> dict:
     """The skeleton of an ASF file as a dict: units, root spec, bones, hierarchy."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as e:
-        raise _error(path, None, f"cannot read the file ({e.strerror})") from None
+    lines = read_file(path, "", MOTION_MAX_BYTES).decode("utf-8", errors="replace").splitlines()
     asf = {"length": 1.0, "degrees": True, "root_order": ["TX", "TY", "TZ", "RX", "RY", "RZ"], "root_axis": "XYZ",
            "root_position": np.zeros(3), "root_orientation": np.zeros(3), "bones": {}, "children": {}}  # fmt: skip
     section, bone, n_bone = None, None, 0
@@ -146,11 +144,13 @@ def _order(words: list[str], src, line: int) -> str:
 
 
 def read_amc(
-    path: str | Path, asf: str | Path | None = None, fps: float = AMC_FPS, scale: float | None = None
+    path: str | Path, asf: str | Path | None = None, fps: float = AMC_FPS, scale: float | None = None, *,
+    what: str = "",
 ) -> RigMotion:
     """Read an AMC motion with its ASF skeleton (default: ``NN.asf`` beside ``NN_MM.amc``).
 
-    ``scale`` (metres per file unit) defaults to 0.0254 / the ASF length multiplier.
+    ``scale`` (metres per file unit) defaults to 0.0254 / the ASF length multiplier; ``what`` (the
+    option that named the AMC file) leads the line when it is no file to read.
     """
     path = Path(path)
     asf_path = Path(asf) if asf is not None else find_asf(path)
@@ -181,7 +181,7 @@ def read_amc(
     has_children = {p for p in parents if p >= 0}
     end_sites = [(j, vectors[j]) for j in range(1, J) if j not in has_children]
 
-    frames = _parse_amc(path, skel, names, bones)
+    frames = _parse_amc(path, skel, names, bones, what)
     T = len(frames)
     to_rad = np.pi / 180.0 if frames.degrees else 1.0  # AMC values
     asf_rad = np.pi / 180.0 if skel["degrees"] else 1.0  # ASF axes and orientation
@@ -247,11 +247,8 @@ class _Frames:
         return len(self.root)
 
 
-def _parse_amc(path: Path, skel: dict, names: list[str], bones: list) -> _Frames:
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as e:
-        raise _error(path, None, f"cannot read the file ({e.strerror})") from None
+def _parse_amc(path: Path, skel: dict, names: list[str], bones: list, what: str = "") -> _Frames:
+    lines = read_file(path, what, MOTION_MAX_BYTES).decode("utf-8", errors="replace").splitlines()
     degrees = skel["degrees"]
     widths = {"root": len(skel["root_order"])}
     widths.update({names[j]: len(bones[j]["dof"]) for j in range(1, len(names)) if bones[j]["dof"]})

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import atomic_write
+from omg.files import MOTION_MAX_BYTES, atomic_write, read_file
 from omg.io.rig import RigMotion
 from omg.rotations import euler_to_quat, quat_to_euler
 from omg.skeleton import Skeleton, get_skeleton
@@ -33,17 +33,15 @@ def _error(src: str, line: int | None, reason: str) -> BvhError:
     return BvhError(f"{src}:{line}: {reason}" if line else f"{src}: {reason}")
 
 
-def read_bvh(path: str | Path, scale: float | None = None) -> RigMotion:
+def read_bvh(path: str | Path, scale: float | None = None, *, what: str = "") -> RigMotion:
     """Read a BVH file. ``scale`` multiplies lengths into metres; ``None`` takes CMU's BVH
     conversions (cgspeed rigs, with ``LHipJoint`` and ``RHipJoint`` joints) to be in CMU
     units (``CMU_SCALE``), other files to be in centimetres (0.01) when their rest pose (end
-    sites included) is taller or wider than ``CM_ABOVE`` units, in metres otherwise."""
+    sites included) is taller or wider than ``CM_ABOVE`` units, in metres otherwise. ``what``
+    (the option that named the file, e.g. "--to_rig") leads the line when it is no file to read."""
     path = Path(path)
     src = str(path)
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError as e:
-        raise _error(src, None, f"cannot read the file ({e.strerror})") from None
+    lines = read_file(path, what, MOTION_MAX_BYTES).decode("utf-8", errors="replace").splitlines()
     names, parents, offsets, channels, end_sites, motion_line = _parse_hierarchy(lines, src)
     fps, values = _parse_motion(lines, motion_line, sum(len(c) for c in channels), src)
 

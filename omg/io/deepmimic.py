@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES, read_file
 from omg.io.rig import RigMotion, sample_frames
 from omg.rotations import quat_normalize
 
@@ -34,11 +35,9 @@ class DeepMimicError(UsageError):
     """A malformed DeepMimic motion or character file; the message names the file and the reason."""
 
 
-def _load_json(path: Path) -> dict:
+def _load_json(path: Path, what: str = "") -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8", errors="replace"))
-    except OSError as e:
-        raise DeepMimicError(f"{path}: cannot read the file ({e.strerror})") from None
+        data = json.loads(read_file(path, what, MOTION_MAX_BYTES).decode("utf-8", errors="replace"))
     except json.JSONDecodeError as e:
         raise DeepMimicError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}; truncated file?)") from None
     if not isinstance(data, dict):
@@ -52,9 +51,8 @@ def is_deepmimic_motion(path: str | Path) -> bool:
     Only the start of the file is read; a truncated motion still counts (and fails to read).
     """
     try:
-        with open(path, encoding="utf-8", errors="replace") as f:
-            head = f.read(4096)
-    except OSError:
+        head = read_file(path, "", MOTION_MAX_BYTES)[:4096].decode("utf-8", errors="replace")
+    except UsageError:  # no file to read (a FIFO would block an open)
         return False
     return head.lstrip().startswith("{") and '"Frames"' in head
 
@@ -121,8 +119,9 @@ def read_character(path: str | Path) -> tuple[list[str], list[int], np.ndarray, 
     return names, parents, np.asarray(offsets, dtype=np.float64), types, end_sites
 
 
-def read_deepmimic(path: str | Path, character: str | Path | None = None) -> RigMotion:
-    """Read a DeepMimic motion; ``character`` defaults to the character file beside it.
+def read_deepmimic(path: str | Path, character: str | Path | None = None, *, what: str = "") -> RigMotion:
+    """Read a DeepMimic motion; ``character`` defaults to the character file beside it. ``what`` (the
+    option that named the motion file) leads the line when it is no file to read.
 
     fps comes from the frame durations (the last frame's, often 0, is ignored); uneven
     durations are resampled to the median rate.
@@ -130,7 +129,7 @@ def read_deepmimic(path: str | Path, character: str | Path | None = None) -> Rig
     path = Path(path)
     char_path = Path(character) if character is not None else find_character(path)
     names, parents, offsets, types, end_sites = read_character(char_path)
-    data = _load_json(path)
+    data = _load_json(path, what)
     if "Frames" not in data:
         what = "a character file" if "Skeleton" in data else "not a motion"
         raise DeepMimicError(f"{path}: {what} (no \"Frames\" list)")

@@ -17,8 +17,9 @@ from omg.io.rig import RigMotion
 MOTION_SUFFIXES = (".bvh", ".amc", ".json", ".txt")
 
 
-def read_motion(path: str | Path, **options) -> RigMotion:
-    """Read a motion file; ``options`` go to the format's reader (unknown ones are an error)."""
+def read_motion(path: str | Path, *, what: str = "", **options) -> RigMotion:
+    """Read a motion file; ``options`` go to the format's reader (unknown ones are an error). ``what``
+    (the option that named the file, e.g. "--from_motion") leads the line when it is no file to read."""
     path = Path(path)
     suffix = path.suffix.lower()
     allowed = {".bvh": {"scale"}, ".amc": {"asf", "fps", "scale"}, ".json": {"character"}, ".txt": {"character"}}
@@ -31,11 +32,11 @@ def read_motion(path: str | Path, **options) -> RigMotion:
     if suffix == ".bvh":
         from omg.io.bvh import read_bvh
 
-        return read_bvh(path, **options)
+        return read_bvh(path, **options, what=what)
     if suffix == ".amc":
         from omg.io.asf_amc import read_amc
 
-        return read_amc(path, **{k: v for k, v in options.items() if v is not None})
+        return read_amc(path, **{k: v for k, v in options.items() if v is not None}, what=what)
     from omg.io.deepmimic import read_deepmimic
 
-    return read_deepmimic(path, **options)
+    return read_deepmimic(path, **options, what=what)

@@ -20,6 +20,7 @@ import yaml
 from torch import Tensor
 
 from omg.errors import UsageError
+from omg.files import read_text
 from omg.text.base import TextEncoder
 
 BUILTIN = "species.yaml"
@@ -34,13 +35,7 @@ def species_key(name: str) -> str:
 def read_species_file(path: Path | str) -> dict[str, str]:
     """A YAML file of ``name: description`` -> {species key: description}; bad files are one-line errors."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UsageError(f"species file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise UsageError(f"cannot read species file {path}: {e}") from None
-    return parse_species(text, str(path))
+    return parse_species(read_text(path, "species file"), str(path))  # a regular UTF-8 file of bounded size
 
 
 def parse_species(text: str, where: str) -> dict[str, str]:

@@ -739,6 +739,7 @@ def bench_sides(manifests: tuple[Path, ...] = (), prompts: str | None = "followi
         One row per (captions, encoder, feature): side, same_action, action, ratio, same_ratio, rank,
         captions.
     """
+    from omg.files import MANIFEST_MAX_BYTES, read_file
     from omg.text.sides import side_separation
 
     sets = []
@@ -746,8 +747,8 @@ def bench_sides(manifests: tuple[Path, ...] = (), prompts: str | None = "followi
         captions = []
         for path in manifests:
             try:
-                clips = json.loads(Path(path).read_text())["clips"]
-            except (OSError, ValueError, KeyError, TypeError) as e:
+                clips = json.loads(read_file(path, "", MANIFEST_MAX_BYTES))["clips"]
+            except (OSError, ValueError, KeyError, TypeError) as e:  # ValueError: also read_file's UsageError
                 raise UsageError(f"--manifests: {path} is not a clip manifest ({{\"clips\": [...]}}): {e}") from None
             captions += [(t, str((c.get("labels") or {}).get("content", t)))
                          for c in clips for t in c.get("texts") or []]

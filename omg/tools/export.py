@@ -7,6 +7,7 @@ representation and the prompts, which become the previews' captions).
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import torch
 
 from omg.errors import UsageError
 from omg.export import EULER_ORDERS, FORMATS, export_motion
-from omg.files import check_output_dir, read_text
+from omg.files import MOTION_MAX_BYTES, check_output_dir, read_file, read_text
 from omg.retarget import read_rig
 from omg.skeleton import Skeleton, get_skeleton
 from omg.tools.args import PositiveFiniteFloat, run
@@ -175,8 +176,9 @@ def _prompt(settings: dict, stem: str) -> list[str]:
 
 def _load_positions(path: Path, skeleton: Skeleton, representation: str | None) -> np.ndarray:
     """(T, J, 3) joint positions from a joints file, or decoded from a features file."""
+    data = read_file(path, "", MOTION_MAX_BYTES)  # a regular file (a FIFO in a folder would block), bounded
     try:
-        array = np.load(path, allow_pickle=False)
+        array = np.load(io.BytesIO(data), allow_pickle=False)
     except (OSError, ValueError) as e:
         raise UsageError(f"{path}: cannot read as a .npy array ({e})") from None
     if not np.issubdtype(array.dtype, np.number):

@@ -9,6 +9,7 @@ in metres, Y up, and ``sample_NNN.bvh`` (rotations solved by IK on the model's s
 
 from __future__ import annotations
 
+import unicodedata
 from pathlib import Path
 from typing import Literal
 
@@ -117,6 +118,8 @@ def generate(
     from omg.lit.pretrain import PretrainModule
 
     prompts = read_prompts(prompts or [], prompts_file)
+    if animal is not None:  # a description of an animal goes to the text encoder as a prompt does
+        check_plain_text(animal, "--animal")
     if unconditional == bool(prompts) and from_motion is None:
         raise UsageError("give prompts (or --prompts_file) for text-to-motion, or --unconditional to sample the "
                          "motion prior")
@@ -127,7 +130,8 @@ def generate(
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    out = check_output_dir(out)  # every input is checked before anything is written
+    # every input is checked before anything is written; a folder where a motion file goes would fail the write
+    out = check_output_dir(out, files=output_files("sample_*", format, "generation.json", preview))
     module = generative_module(ckpt, load_module(ckpt, default_class=PretrainModule, use_ema=ema))
     card = module.generation_card()
     request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps), num_samples=num_samples,
@@ -158,6 +162,11 @@ def generate(
     frames = settings["frames"]
     print(f"wrote {len(motions)} motions of {frames} frames ({frames / card.fps:g} s at {card.fps:g} fps) to {out}")
     return settings
+
+
+def output_files(names: str, format: str, settings_file: str, preview: bool) -> tuple[str, ...]:
+    """Glob patterns of the files ``write_generation`` writes for motions named like ``names``."""
+    return (f"{names}.*.npy", f"{names}.{format}", settings_file, *(("preview.gif",) if preview else ()))
 
 
 def generative_module(ckpt: Path, module) -> GenerativeModule:
@@ -242,15 +251,25 @@ def write_generation(out: Path, motions: list[GeneratedMotion], card: Generation
 
 
 def _control_character(text: str) -> str | None:
-    return next((c for c in text if (ord(c) < 32 and c != "\t") or ord(c) == 127 or 0xDC80 <= ord(c) <= 0xDCFF), None)
+    """The first character of ``text`` no text encoder should see: a control character but tab (C0, DEL, C1), or a
+    surrogate, which UTF-8 cannot encode (an undecodable byte of the command line, or JSON's lone ``\\ud800``)."""
+    return next((c for c in text if c != "\t" and unicodedata.category(c) in ("Cc", "Cs")), None)
+
+
+def check_plain_text(text: str, what: str) -> str:
+    """``text`` when it is plain text (``_control_character``); one line naming ``what`` otherwise. The one check of
+    text given to a model, for ``omg generate`` and ``omg serve`` alike."""
+    if (c := _control_character(text)) is not None:
+        kind = "the control character" if unicodedata.category(c) == "Cc" else "a lone surrogate or undecodable byte"
+        raise UsageError(f"{what} holds {kind} {c!r}, which is not text; give plain text")
+    return text
 
 
 def read_prompts(prompts: list[str], prompts_file: str | Path | None = None) -> list[str]:
     """The prompts given and those of ``prompts_file`` (one per line), checked."""
     prompts = list(prompts)
     for i, prompt in enumerate(prompts):
-        if (c := _control_character(prompt)) is not None:
-            raise UsageError(f"prompt {i + 1} holds the control character or undecodable byte {c!r}; give plain text")
+        check_plain_text(prompt, f"prompt {i + 1}")
     if prompts_file:
         lines = read_text(prompts_file, "--prompts_file").splitlines()
         for number, line in enumerate(lines, start=1):

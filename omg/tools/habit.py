@@ -26,7 +26,7 @@ from omg.lit.generative import GenerationRequest
 from omg.retarget import read_rig
 from omg.tools.args import PositiveFiniteFloat, Seed, run
 from omg.tools.export import OutputFormat
-from omg.tools.generate import check_finite_motions, write_generation
+from omg.tools.generate import check_finite_motions, output_files, write_generation
 
 
 def transfer(
@@ -75,7 +75,7 @@ def transfer(
     from omg.lit.checkpoint import load_module
     from omg.lit.habit import HabitPriorModule, HabitVQModule
 
-    out = check_output_dir(out)
+    out = check_output_dir(out, files=(*output_files("transfer", format, "transfer.json", preview), "source.*.npy"))
     if to_rig_joint_map is not None and to_rig is None:
         raise UsageError("--to_rig_joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
     module = load_module(ckpt, default_class=HabitVQModule, expect=HabitVQModule)

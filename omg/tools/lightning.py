@@ -327,6 +327,7 @@ class OmgLightningCLI(LightningCLI):
         options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
         settings = LightningSettings(self.command, options, self.method_arguments)
         args = underscore_options(list(args), options)
+        self.args = args  # parsed again without defaults under --ckpt_path (``given_model_args``)
         try:
             self.config = parser.parse_args(args)
         except ArgumentError as e:
@@ -412,11 +413,32 @@ class OmgLightningCLI(LightningCLI):
     # configured model without a word), and the Trainer when the run starts. Both are checked here
     # first (omg.lit.checkpoint: readable, CRC-checked, no pickled code), so a missing, truncated,
     # zeroed or foreign file, or a checkpoint of another class, is one UsageError line.
+    # LightningCLI lets the checkpoint's hyper-parameters override the config and the command line
+    # alike; here what the user writes wins (omg.lit.checkpoint.run_hparams), except where it
+    # contradicts what the weights were made with.
+
+    def given_model_args(self) -> dict[str, Any]:
+        """The model's arguments that this run's config files and command line set, without the
+        defaults that the parse adds (jsonargparse's ``defaults=False``)."""
+        from jsonargparse import ArgumentError
+
+        from omg.tools.args import explain
+
+        try:
+            given = self.parser.parse_args(self.args, defaults=False)
+        except ArgumentError as e:  # the same arguments parsed with their defaults: not expected
+            raise UsageError(explain(e, hint=FIT_HINT)) from None
+        model = given.get("model")
+        init_args = model.get("init_args") if isinstance(model, Namespace) else None
+        return init_args.as_dict() if isinstance(init_args, Namespace) else {}
 
     def check_ckpt_path(self) -> None:
         """``--ckpt_path FILE`` checked, and its hyper-parameters become the model's config (as
-        LightningCLI does for its subcommands), minus what would read data or run code."""
-        from omg.lit.checkpoint import inert_hparams, inspect_checkpoint
+        LightningCLI does for its subcommands), minus what would read data or run code, and under
+        what the run's config files and command line set: checkpoint < config files < command line,
+        except for what shapes the weights, which comes from the checkpoint (a run that says
+        otherwise is refused; ``omg.lit.checkpoint.run_hparams``)."""
+        from omg.lit.checkpoint import inert_hparams, inspect_checkpoint, run_hparams
 
         ckpt_path = self.config.get("ckpt_path")
         if not ckpt_path or str(ckpt_path) in SPECIAL_CKPT_PATHS:
@@ -442,10 +464,12 @@ class OmgLightningCLI(LightningCLI):
         # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
         # run's config, never from the file: a checkpoint that named a `pipe:` command would run it
         hparams = inert_hparams(cls, hparams) if cls is not None else hparams
-        if not hparams:  # as LightningCLI: a checkpoint file's hyper-parameters become the model's config
+        class_path = hparams.pop("_class_path", None)  # LightningCLI's record of the class
+        hparams = run_hparams(cls, hparams, self.given_model_args(), ckpt_path)
+        if not hparams and class_path is None:  # as LightningCLI: the checkpoint's hyper-parameters become the model's
             return
-        if "_class_path" in hparams:
-            hparams = {"class_path": hparams.pop("_class_path"), "dict_kwargs": hparams}
+        if class_path is not None:
+            hparams = {"class_path": class_path, "dict_kwargs": hparams}
         try:
             self.config = self.parser.parse_object({"model": hparams}, self.config)
         except SystemExit:

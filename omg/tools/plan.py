@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Callable, Literal
 
 from omg.errors import UsageError
+from omg.files import read_yaml
 from omg.tools.args import PositiveInt, number_type
 
 Mfu = number_type("Mfu", float, [(">", 0.0), ("<=", 1.0)], "a number in (0, 1]")
@@ -289,18 +290,20 @@ def pretrained_flavor(path: Path, args: dict) -> str:
     config gives it, else that of the pretraining config beside it whose run folder
     (``trainer.default_root_dir``) holds ``model.init_args.pretrained``: the checkpoint need not
     exist yet when a run is planned."""
-    import yaml
-
     if isinstance(args.get("base"), dict) and "flavor" in args["base"]:
         return str(args["base"]["flavor"])
     pretrained = Path(str(args.get("pretrained") or ""))
     for other in sorted(path.parent.glob("*.y*ml")):
-        config = yaml.safe_load(other.read_text(encoding="utf-8", errors="replace"))
+        try:  # the configs beside it, read as the one given (a FIFO or a python tag among them is not one)
+            config = read_yaml(other, f"--configs {path}: the config beside it")
+        except UsageError:
+            continue
         try:
             model, root = config["model"], Path(config["trainer"]["default_root_dir"])
         except (KeyError, TypeError):
             continue
-        if str(model.get("class_path", "")).endswith("PretrainModule") and pretrained.is_relative_to(root):
+        if (isinstance(model, dict) and str(model.get("class_path", "")).endswith("PretrainModule")
+                and pretrained.is_relative_to(root)):
             return str((model.get("init_args") or {}).get("flavor", "base"))
     raise UsageError(f"--configs {path}: no pretraining config in {path.parent} writes model.init_args.pretrained "
                      f"{str(pretrained)!r} (its trainer.default_root_dir); set model.init_args.base.flavor")
@@ -311,11 +314,9 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
     ``configs/controlnet_*.yaml``); a ControlNet run lasts ``epochs`` epochs."""
     import json
 
-    import yaml
-
     from omg.files import read_text
 
-    config = yaml.safe_load(read_text(path, "--configs"))
+    config = read_yaml(path, "--configs")  # the safe loader: a python tag is one line, never run
     kind = "training"  # the module's class, once read
     try:
         model, data, trainer = config["model"], config["data"], config["trainer"]
@@ -328,7 +329,10 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
         strategy, offload, ds = trainer.get("strategy", "ddp"), False, {}
         if isinstance(strategy, dict):  # DeepSpeedStrategy with a JSON config
             ds_path = Path(strategy["init_args"]["config"])
-            ds = json.loads(read_text(ds_path, f"--configs {path}: its DeepSpeed config"))
+            try:
+                ds = json.loads(read_text(ds_path, f"--configs {path}: its DeepSpeed config"))
+            except json.JSONDecodeError as e:
+                raise UsageError(f"--configs {path}: its DeepSpeed config {ds_path} is not valid JSON ({e})") from None
             zero = ds.get("zero_optimization", {})
             strategy = f"zero{zero.get('stage', 0)}"
             offload = zero.get("offload_optimizer", {}).get("device", "none") == "cpu"

@@ -20,7 +20,7 @@ import numpy as np
 
 from omg.data.shards import BuildProgress, EncodedClip, ShardWriter, check_shards, merge_shard_sets, write_shards
 from omg.errors import UsageError
-from omg.files import check_output_dir
+from omg.files import check_output_dir, read_text
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import get_skeleton
@@ -444,7 +444,7 @@ def mixture_locations(arg: str) -> list[str]:
     elif arg.endswith((".yaml", ".yml")) and not Path(arg).exists():
         raise UsageError(f"{arg}: no such mixture config")
     elif arg.endswith((".yaml", ".yml", ".json")) and Path(arg).is_file():
-        where, config = f"{arg}: ", _yaml(Path(arg).read_text(encoding="utf-8"), arg)
+        where, config = f"{arg}: ", _yaml(read_text(arg, "the mixture config"), arg)
         data = config.get("data") if isinstance(config, dict) else None
         train = data.get("train") if isinstance(data, dict) else config if isinstance(config, list) else None
         if not train:

@@ -250,14 +250,17 @@ def check_shards(shard_dir: str | Path, timeout: float = 0.0, timeout_name: str 
     sample count, end-of-archive blocks and sha256 against the manifest. Raises
     ``UsageError`` only for a missing or invalid manifest, or a shard whose read takes over ``timeout``
     seconds (0: no limit; ``timeout_name`` is the option that sets it); every other fault is reported."""
-    manifest = Manifest.load(shard_dir)
+    def stalled(url: str) -> str:
+        return (f"{url} was not read in {timeout_name}={timeout:g} s: a stalled read; check the storage, "
+                f"or raise {timeout_name} (0 waits forever)")
+
+    with deadline(timeout, stalled(f"the manifest of {shard_dir}")):
+        manifest = Manifest.load(shard_dir)
     results = []
     for entry, url in zip(manifest["shards"], manifest.shard_urls):
         expected = manifest.expected(entry["name"])
         result = ShardCheck(entry["name"], checks=("file", "readable", "end-of-archive", *expected))
-        stalled = (f"{url} was not read in {timeout_name}={timeout:g} s: a stalled read; check the storage, "
-                   f"or raise {timeout_name} (0 waits forever)")
-        with deadline(timeout, stalled):
+        with deadline(timeout, stalled(url)):
             try:
                 # streamed without the size pre-check: a bad shard's samples are still decoded and named
                 for raw in _read_shard(url, whole=False, precheck=False, **expected):

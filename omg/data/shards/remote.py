@@ -1,16 +1,26 @@
 """Where shards and manifests live: local paths, URLs opened through fsspec, and ``pipe:`` commands
-(run with their arguments quoted, stopped with their process group after ``PIPE_TIMEOUT_S``)."""
+(run with their arguments quoted, stopped with their process group after ``PIPE_TIMEOUT_S``, and never
+outliving the process that started them: ``pipe_command``)."""
 
 from __future__ import annotations
 
 import os
 import signal
+import sys
+import threading
 from pathlib import Path
+from typing import Callable
 
 from omg.data.shards.schema import MANIFEST
 from omg.errors import UsageError
 
 PIPE_TIMEOUT_S = 600.0  # a pipe: command that prints a manifest (a few MB at most) and has not ended by then hangs
+
+# The shell that runs a pipe: command ($1) in a process group of its own: the command in the background,
+# waited for (its exit status is the shell's); on SIGTERM, the parent-death signal it is given, the whole
+# group is killed, so the command's own children (a pipeline, a shell's forks, `aws s3 cp`'s) go too.
+_GUARD = 'trap "kill -KILL 0" TERM; eval "$1" & wait $!'
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 
 
 def _local_path(url: str) -> Path | None:
@@ -81,9 +91,13 @@ def open_url(url: str):
         if utils.enforce_security:
             raise ValueError("pipe: URLs are disabled (WDS_SECURE is set)")
         # as webdataset.gopen, but the command in a process group of its own, which a read given up
-        # (a stall, a failed check, a reader that stops early) kills whole: see _abandon
-        return Pipe(url[len("pipe:"):], mode="rb", shell=True, bufsize=8192, ignore_status=[141],
-                    start_new_session=True)
+        # (a stall, a failed check, a reader that stops early) kills whole (see _abandon), as does
+        # this process's end, however it ends (pipe_command)
+        command = url[len("pipe:"):]
+        pipe = Pipe(pipe_command(command), mode="rb", bufsize=8192, ignore_status=[141], start_new_session=True,
+                    preexec_fn=dies_with_parent(signal.SIGTERM))
+        pipe.args = ((command,), {})  # what webdataset's messages name: the user's command, not the guard
+        return pipe
     opener, missing = _fsspec_opener(url)
     if opener is not None:
         return opener()
@@ -102,19 +116,58 @@ def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
         import subprocess
 
         # its own process group: on a timeout the shell and everything it started are stopped
-        with subprocess.Popen(url[len("pipe:"):], shell=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              start_new_session=True) as process:
+        with subprocess.Popen(pipe_command(url[len("pipe:"):]), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              start_new_session=True, preexec_fn=dies_with_parent(signal.SIGTERM)) as process:
             try:
                 out, err = process.communicate(timeout=timeout)
             except subprocess.TimeoutExpired:
                 _kill_group(process)
                 raise OSError(f"the command did not end within {timeout:g} s and was stopped") from None
+            except BaseException:  # data.timeout's alarm, a stop signal, Ctrl-C: the command is not waited for
+                _kill_group(process)
+                raise
         if process.returncode != 0:
             said = err.decode(errors="replace").strip().splitlines()
             raise OSError(f"the command exited with {process.returncode}" + (f": {said[-1]}" if said else ""))
         return out
     with open_url(url) as stream:
         return stream.read()
+
+
+def pipe_command(command: str) -> list[str]:
+    """The argv that runs a ``pipe:`` command through ``/bin/sh`` (as ``shell=True`` would) under the
+    guard that kills its whole process group on SIGTERM: start it with ``start_new_session=True``
+    and ``preexec_fn=dies_with_parent(signal.SIGTERM)``."""
+    return ["/bin/sh", "-c", _GUARD, "sh", command]
+
+
+def dies_with_parent(signum: int) -> Callable[[], None] | None:
+    """A ``preexec_fn`` that has Linux send the child ``signum`` when this process ends, SIGKILL
+    included (``prctl(PR_SET_PDEATHSIG)``); None elsewhere. The signal comes when the *thread* that
+    started the child ends, so only the main thread gets one (where omg and its data workers read);
+    a child started from another thread is ended by its reader only."""
+    if not sys.platform.startswith("linux") or threading.current_thread() is not threading.main_thread():
+        return None
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up before the fork: the child only calls it
+    parent = os.getpid()
+    return lambda: _set_parent_death_signal(prctl, signum, parent)
+
+
+def end_with_parent(signum: int, parent: int) -> None:
+    """Have Linux send this process ``signum`` when its parent process ``parent`` ends, SIGKILL
+    included (a forked data worker; see ``dies_with_parent``); nothing elsewhere."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        _set_parent_death_signal(ctypes.CDLL(None, use_errno=True).prctl, signum, parent)
+
+
+def _set_parent_death_signal(prctl, signum: int, parent: int) -> None:
+    prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0)
+    if os.getppid() != parent:  # the parent ended before the signal was set: it will never come
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _kill_group(process) -> None:

@@ -9,13 +9,17 @@ from elsewhere). See the README's "Serving" section for the routes and ``curl`` 
 
 from __future__ import annotations
 
+import ipaddress
 import logging
+import re
+import socket
 import tempfile
 from pathlib import Path
 
 import torch
 
 from omg.errors import UsageError
+from omg.files import check_output_dir
 from omg.tools.args import PositiveFiniteFloat, PositiveInt, run
 from omg.tools.generate import generative_module, resolve_device
 
@@ -67,6 +71,11 @@ def serve(
     max_wait: PositiveFiniteFloat = 0.05,
     max_samples: PositiveInt = 16,
     max_upload_mb: PositiveFiniteFloat = 20.0,
+    max_json_kb: PositiveFiniteFloat = 64.0,
+    read_timeout: PositiveFiniteFloat = 60.0,
+    result_ttl: PositiveFiniteFloat = 3600.0,
+    max_results_mb: PositiveFiniteFloat = 1024.0,
+    allowed_hosts: list[str] | None = None,
     out: Path | None = None,
     command: str = "",
 ) -> None:
@@ -83,7 +92,14 @@ def serve(
         max_batch: most motions sampled in one call (requests that arrive together are batched)
         max_wait: seconds a request waits for others to be batched with
         max_samples: most motions one request may ask for
-        max_upload_mb: largest upload (and request body) in MiB
+        max_upload_mb: largest upload in MiB (counted as the body arrives, chunked or not: 413 beyond it)
+        max_json_kb: largest JSON request body in KiB
+        read_timeout: seconds a request's body may take to arrive (408 and the connection closed after)
+        result_ttl: seconds a result's files are kept (then 410)
+        max_results_mb: MiB of all results' files together; the oldest results are dropped first
+        allowed_hosts: names a request's Host header may give besides the address bound (and this machine's
+            loopback names when that is a loopback or wildcard address); * for any. Other names are refused:
+            a web page cannot reach the server by rebinding its DNS name to it
         out: folder the results are written to (default: a temporary folder removed at exit)
         command: the command line (unused; kept for the command's record)
     """
@@ -95,18 +111,46 @@ def serve(
         raise UsageError("give at least one --ckpt")
     if not 0 <= port <= 65535:
         raise UsageError(f"--port {port}: give a port in 0..65535")
+    hosts = host_names(host, allowed_hosts)
+    if out is not None:  # before the checkpoints load: a file or /proc is one line, not a traceback later
+        out = check_output_dir(out, "--out")
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     models = load_models(ckpt, human_ckpt, device, ema)
     temporary = out is None
     results = Path(tempfile.mkdtemp(prefix="omg-serve-")) if temporary else Path(out)
     limits = Limits(max_batch=max_batch, max_wait=max_wait, max_samples=max_samples,
-                    max_upload_bytes=int(max_upload_mb * 2**20))
-    app = create_app(models, results, limits, remove_out=temporary)
+                    max_upload_bytes=int(max_upload_mb * 2**20), max_json_bytes=int(max_json_kb * 2**10),
+                    read_timeout=read_timeout, result_ttl=result_ttl,
+                    max_results_bytes=int(max_results_mb * 2**20))
+    app = create_app(models, results, limits, remove_out=temporary, allowed_hosts=hosts)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     print(f"omg serve: {', '.join(m.name for m in models)} on http://{host}:{port}/ (results in {results})",
           flush=True)
     # uvicorn finishes the requests in flight on Ctrl-C / SIGTERM, runs the app's shutdown, then re-raises the signal
     uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=600)
+
+
+def host_names(host: str, allowed: list[str] | None) -> tuple[str, ...]:
+    """The names a request's Host may give: the address bound; this machine's loopback names when it is a
+    loopback or wildcard address (and its host names for a wildcard); ``--allowed_hosts``."""
+    from omg.tools.serve.app import LOOPBACK
+
+    names = [host]
+    wildcard = host.strip("[]") in ("0.0.0.0", "::", "")
+    try:
+        loopback = ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        loopback = host.lower() == "localhost"
+    if loopback or wildcard:
+        names += LOOPBACK
+    if wildcard:
+        names += [socket.gethostname(), socket.getfqdn()]
+    for name in allowed or []:
+        if not re.fullmatch(r"\*|[A-Za-z0-9_.\-]+|\[?[0-9A-Fa-f:.]+\]?", name) or name.endswith(":"):
+            raise UsageError(f"--allowed_hosts {name!r}: give host names or addresses without a port or scheme "
+                             "(example.org, 192.168.1.5), or * for any")
+        names.append(name)
+    return tuple(dict.fromkeys(n.lower().strip("[]") for n in names))
 
 
 def main(argv: list[str]) -> None:

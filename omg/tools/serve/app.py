@@ -5,30 +5,43 @@ which inputs it takes, its frame limits, samplers and species. Sampling runs on 
 (one model call at a time, off the event loop); requests that arrive within ``max_wait`` seconds
 of each other for the same model and settings are answered by one ``generate`` call of at most
 ``max_batch`` motions when the card says ``row_seeds`` (each motion has its own noise seed, so
-it is the same alone or batched); other families answer their requests one after another.
+it is the same alone or batched); other families answer their requests one after another. A batched
+call that fails is re-run job by job, so that only the request at fault fails.
+
+Before FastAPI reads a byte, a pure-ASGI guard (``_Guard``) checks the ``Host`` (DNS rebinding) and the
+``Origin`` of writes (another site's page), the content type, and the body as it streams in: over its
+route's limit it is refused (413) whether chunked or not, and a body slower than ``read_timeout`` is cut
+off (408). Uploads are parsed on their own small thread pool, never on the sampling thread; results
+expire after ``result_ttl`` seconds and are capped at ``max_results_bytes`` in all, oldest dropped first.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
+import os
 import re
 import secrets
 import shutil
 import tempfile
+import threading
 import time
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 from fastapi import FastAPI, File, Form, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.exceptions import HTTPException
 
 from omg.errors import UsageError
 from omg.lit.generative import (
@@ -41,7 +54,7 @@ from omg.lit.generative import (
 )
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
-from omg.tools.generate import check_finite_motions, read_prompts, write_generation
+from omg.tools.generate import check_finite_motions, check_plain_text, read_prompts, write_generation
 
 log = logging.getLogger("omg.serve")
 STATIC = Path(__file__).parent / "static"
@@ -49,6 +62,8 @@ UPLOAD_SUFFIXES = (".bvh", ".npy", ".json", ".txt", ".amc", ".asf")
 EXAMPLES = {"text": ["a person walks forward and waves", "a person jumps in place twice", "a person kicks with the "
                      "right leg"],
             "species": ["a dog runs and jumps over a log", "a horse trots in a circle", "a cat sneaks forward"]}
+LOOPBACK = ("127.0.0.1", "localhost", "::1")  # the names of this machine a local page is loaded from
+WRITES = ("POST", "PUT", "PATCH", "DELETE")
 
 
 @dataclass
@@ -63,8 +78,8 @@ class Model:
     source_module: GenerativeModule | None = None
 
     def info(self) -> dict[str, Any]:
-        skeleton = get_skeleton(self.card.skeleton)
-        return {"name": self.name, "ckpt": self.ckpt, "module": type(self.module).__name__,
+        skeleton = get_skeleton(self.card.skeleton)  # the checkpoint's file name: no path of the server leaves it
+        return {"name": self.name, "ckpt": Path(self.ckpt).name, "module": type(self.module).__name__,
                 "card": self.card.to_dict(), "parents": list(skeleton.parents), "joints": list(skeleton.names),
                 "source_generator": self.source_module is not None,
                 "examples": EXAMPLES["species" if "species" in self.card.inputs else "text"]
@@ -78,6 +93,12 @@ class Limits:
     max_samples: int = 16  # motions one request may ask for
     max_prompt_chars: int = 300
     max_upload_bytes: int = 20 * 2**20
+    max_json_bytes: int = 64 * 2**10  # a JSON body: 16 prompts of 300 characters are under 10 KiB
+    read_timeout: float = 60.0  # seconds a request's body may take to arrive, from its headers on
+    result_ttl: float = 3600.0  # seconds a result's files are kept
+    max_results_bytes: int = 2**30  # all results' files together; the oldest are dropped first
+    parse_workers: int = 2  # uploads parsed at once (on their own threads, never the sampling thread)
+    parse_timeout: float = 60.0  # seconds an upload's parse may take before its request is answered 422
 
 
 @dataclass
@@ -114,21 +135,41 @@ class Batcher:
                 except TimeoutError:
                     break
             for group in _groups(jobs, self.limits.max_batch):
-                self.busy = sum(j.rows for j in group)
                 try:
-                    results = await loop.run_in_executor(self.worker, _sample, group, self.limits.max_batch)
-                except Exception as e:  # the group's requests answer 500; the server goes on
-                    log.exception("generation failed")
+                    await self._call(group)
+                except Exception as e:
+                    if len(group) == 1:
+                        _fail(group[0], e)
+                        continue
+                    # one request's fault (a prompt the text encoder chokes on) must not fail the others
+                    # batched with it: each is sampled on its own, so that only the offending one fails
+                    log.warning("a batch of %d requests failed (%s); sampling each alone", len(group), _one_line(e))
                     for job in group:
-                        if not job.future.done():
-                            job.future.set_exception(e)
-                else:
-                    self.calls += 1
-                    for job, motions in zip(group, results):
-                        if not job.future.done():
-                            job.future.set_result((motions, self.busy))
-                finally:
-                    self.busy = 0
+                        try:
+                            await self._call([job])
+                        except Exception as alone:
+                            _fail(job, alone)
+
+    async def _call(self, group: list[Job]) -> None:
+        """One ``generate`` call answering ``group`` (raises what the call raised, answering none)."""
+        self.busy = sum(j.rows for j in group)
+        try:
+            results = await asyncio.get_running_loop().run_in_executor(self.worker, _sample, group,
+                                                                       self.limits.max_batch)
+            self.calls += 1
+            for job, motions in zip(group, results):
+                if not job.future.done():
+                    job.future.set_result((motions, self.busy))
+        finally:
+            self.busy = 0
+
+
+def _fail(job: Job, e: Exception) -> None:
+    """The job's request answers the error: 422 for a UsageError (the request's fault), else 500."""
+    if not isinstance(e, UsageError):
+        log.error("generation failed", exc_info=e)
+    if not job.future.done():
+        job.future.set_exception(e)
 
 
 def _key(job: Job) -> tuple | None:
@@ -185,6 +226,8 @@ def _sample(group: list[Job], max_batch: int) -> list[list[GeneratedMotion]]:
 class GenerateBody(BaseModel):
     """A generation: ``num_samples`` motions per prompt (in total for an unconditional model)."""
 
+    model_config = ConfigDict(extra="forbid")  # a misspelt field ("num_sample") is an error, not a default
+
     model: str | None = Field(None, description="a loaded model's name (GET /v1/models); default: the first")
     prompts: list[str] = Field(default_factory=list, description="text prompts (for a text-conditioned model)")
     length: float | None = Field(None, gt=0, allow_inf_nan=False, description="seconds per motion (default 4)")
@@ -196,45 +239,64 @@ class GenerateBody(BaseModel):
     species: str | None = Field(None, description="the animal (models whose card takes a species)")
 
 
-def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False) -> FastAPI:
+def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
+               allowed_hosts: tuple[str, ...] = LOOPBACK) -> FastAPI:
     """The application serving ``models``; results are written under ``out`` (one folder per result), which
-    is removed at shutdown under ``remove_out`` (uvicorn re-raises SIGTERM after it: no later code runs)."""
+    is removed at shutdown under ``remove_out`` (uvicorn re-raises SIGTERM after it: no later code runs).
+    ``allowed_hosts``: the names a request's ``Host`` may give (``*``: any)."""
     limits = limits or Limits()
     by_name = {m.name: m for m in models}
     batcher = Batcher(limits)
+    results = Results(out, limits.result_ttl, limits.max_results_bytes)
+    parser = ThreadPoolExecutor(limits.parse_workers, thread_name_prefix="omg-upload")
+    parsing = _Count()  # uploads queued or being parsed
     out.mkdir(parents=True, exist_ok=True)
+    scrub = _scrubber(models, out)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        task = asyncio.create_task(batcher.run())
+        tasks = [asyncio.create_task(batcher.run()), asyncio.create_task(results.expire_every(60.0))]
         yield  # uvicorn has answered the requests in flight when this resumes
-        task.cancel()
+        for task in tasks:
+            task.cancel()
         batcher.worker.shutdown(wait=True)
+        parser.shutdown(wait=False, cancel_futures=True)
         if remove_out:
             shutil.rmtree(out, ignore_errors=True)
 
-    app = FastAPI(title="omg serve", version="1", lifespan=lifespan,
+    app = FastAPI(title="omg serve", version="1", lifespan=lifespan, default_response_class=_JSON,
                   description="Text-to-motion, animal motion and habit transfer from the checkpoints loaded; "
                               "each model's generation card says what it takes.")
-    app.state.batcher, app.state.models, app.state.limits = batcher, by_name, limits
+    app.state.batcher, app.state.models, app.state.limits, app.state.results = batcher, by_name, limits, results
+    app.add_middleware(_Guard, limits=limits, hosts=frozenset(h.lower().strip("[]") for h in allowed_hosts))
 
     @app.exception_handler(UsageError)
-    async def usage_error(request: Request, e: UsageError):
-        return JSONResponse({"detail": str(e)}, status_code=400)
+    async def usage_error(request: Request, e: UsageError):  # a value the request gave that cannot be served
+        return _error(422, scrub(str(e)))
+
+    @app.exception_handler(_Refusal)
+    async def refused(request: Request, e: _Refusal):
+        return _error(e.status, e.message, e.headers)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, e: HTTPException):  # 404, 405 (with its Allow header), a garbled form
+        detail = e.detail if isinstance(e.detail, str) else json.dumps(e.detail)
+        return _error(e.status_code, detail, e.headers)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, e: RequestValidationError):  # one line, not pydantic's list
         first = e.errors()[0]
-        where = ".".join(str(p) for p in first.get("loc", ()) if p not in ("body", "query", "path"))
-        return JSONResponse({"detail": f"{where or 'request'}: {first.get('msg', 'invalid')}"}, status_code=422)
+        loc = first.get("loc", ())
+        if first.get("type") == "json_invalid":  # not JSON at all: malformed, 400 (422 is for values)
+            return _error(400, f"the body is not valid JSON: {first.get('ctx', {}).get('error', 'a decode error')} "
+                               f"(at character {loc[-1] if loc else 0})")
+        where = ".".join(str(p) for p in loc if p not in ("body", "query", "path"))
+        return _error(422, f"{where or 'request'}: {first.get('msg', 'invalid')}")
 
-    @app.middleware("http")
-    async def upload_limit(request: Request, call_next):  # refused before the body is read
-        size = request.headers.get("content-length")
-        if size is not None and size.isdigit() and int(size) > limits.max_upload_bytes + 2**16:
-            return JSONResponse({"detail": f"the request is larger than the {limits.max_upload_bytes} bytes "
-                                           "allowed (--max_upload_mb)"}, status_code=413)
-        return await call_next(request)
+    @app.exception_handler(Exception)
+    async def crashed(request: Request, e: Exception):  # one line to the client, the traceback to the log
+        # uvicorn closes the connection after an exception: the client must not send its next request on it
+        return _error(500, f"the server failed: {scrub(_one_line(e))}", {"connection": "close"})
 
     @app.get("/healthz", summary="the server answers")
     async def healthz():
@@ -244,26 +306,29 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     async def list_models():
         return {"models": [m.info() for m in models],
                 "limits": {"max_batch": limits.max_batch, "max_samples": limits.max_samples,
-                           "max_prompt_chars": limits.max_prompt_chars, "max_upload_bytes": limits.max_upload_bytes}}
+                           "max_prompt_chars": limits.max_prompt_chars, "max_upload_bytes": limits.max_upload_bytes,
+                           "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl}}
 
     @app.get("/v1/status", summary="what the sampler is doing (the page's progress)")
     async def status():
-        return {"queued": batcher.queue.qsize(), "sampling": batcher.busy, "calls": batcher.calls}
+        return {"queued": batcher.queue.qsize(), "sampling": batcher.busy, "calls": batcher.calls,
+                "parsing": parsing.n}
 
     @app.post("/v1/generate", summary="motions from prompts (or none, for an unconditional model)")
     async def generate(body: GenerateBody):
         model = _model(by_name, models, body.model, "a request body")
         card = model.card
-        prompts = read_prompts(body.prompts)
-        if long := [i for i, p in enumerate(prompts) if len(p) > limits.max_prompt_chars]:
-            raise UsageError(f"prompt {long[0] + 1} is {len(prompts[long[0]])} characters long; at most "
-                             f"{limits.max_prompt_chars}")
+        prompts = _prompts(body.prompts, limits)
+        if body.species is not None:
+            _text(body.species, "species", limits)
         if body.sampler is not None:
             _sampler(card, body.sampler)
         rows = max(len(prompts), 1) * body.num_samples
         if rows > limits.max_samples:
             raise UsageError(f"{rows} motions asked for; at most {limits.max_samples} per request")
         length = body.length if body.length is not None else min(4.0, card.max_frames / card.fps)
+        if length * card.fps > 2 * card.max_frames:  # 1e308 s: no frame count to round
+            raise UsageError(_length_message(card, length))
         request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps),
                                     num_samples=body.num_samples, seed=body.seed, steps=body.steps,
                                     sampler=body.sampler, guidance=body.guidance, species=body.species,
@@ -282,75 +347,86 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                        num_samples: int = Form(1, ge=1), joint_map: str | None = Form(None)):
         chosen = _model(by_name, [m for m in models if "motion" in m.card.inputs], model, "a source motion")
         card = chosen.card
+        name = _upload_name(file.filename)
+        # every field is checked before the upload is read
         if num_samples > limits.max_samples:
             raise UsageError(f"{num_samples} motions asked for; at most {limits.max_samples} per request")
-        suffix = Path(file.filename or "").suffix.lower()
+        suffix = Path(name).suffix.lower()
         if suffix not in UPLOAD_SUFFIXES:
-            raise UsageError(f"the upload {file.filename!r} is not a motion file; give one of "
-                             f"{', '.join(UPLOAD_SUFFIXES)}")
-        data = await file.read(limits.max_upload_bytes + 1)
-        if len(data) > limits.max_upload_bytes:
-            raise _Refusal(413, f"the upload is larger than the {limits.max_upload_bytes} bytes allowed")
+            raise UsageError(f"the upload {name!r} is not a motion file; give one of {', '.join(UPLOAD_SUFFIXES)}")
         if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
             raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
-        with tempfile.TemporaryDirectory(prefix="omg-upload-") as folder:
-            path = Path(folder) / f"upload{suffix}"
-            path.write_bytes(data)
-            loop = asyncio.get_running_loop()
-            try:
-                source = await loop.run_in_executor(batcher.worker, chosen.module.read_source, path, joint_map)
-            except UsageError as e:
-                raise UsageError(str(e).replace(str(path), file.filename or "the upload")) from None
-            except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
-                raise UsageError(f"could not read the upload {file.filename!r} as a motion: "
-                                 f"{_one_line(e)}") from None
-        prompt_list = read_prompts(prompts)
+        if to is not None:
+            _text(to, "to", limits)
+        prompt_list = _prompts(prompts, limits)
+        data = await file.read(limits.max_upload_bytes + 1)
+        if len(data) > limits.max_upload_bytes:
+            raise _Refusal(413, f"the upload is larger than the {limits.max_upload_bytes} bytes allowed "
+                                "(--max_upload_mb)")
+        if parsing.n >= 4 * limits.parse_workers:  # bounded: a burst of uploads waits no longer than this
+            raise _Refusal(503, f"{parsing.n} uploads are being read; send this one again in a moment",
+                           {"Retry-After": "5"})
+        # parsed on the upload threads, never the sampling thread: a slow parse holds no one's generation;
+        # after parse_timeout the request is answered, and the parse ends on its own thread
+        parsing.add(1)
+        job = asyncio.wrap_future(parser.submit(_read_upload, chosen.module, data, suffix, joint_map, name, parsing))
+        try:
+            source = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
+        except asyncio.TimeoutError:
+            raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to read; send a "
+                             "shorter clip") from None
         # the source sets the length where the card says so; else as long as the source allows
         request = GenerationRequest(prompts=prompt_list or None, frames=card.max_frames,
                                     num_samples=1 if card.deterministic_source else num_samples, seed=seed,
                                     species=to, source=source, batch_size=limits.max_batch)
         _check(card, request, chosen, None)
-        return await _answer(chosen, request, request.num_samples * max(len(prompt_list), 1),
-                             {"source": file.filename})
+        return await _answer(chosen, request, request.num_samples * max(len(prompt_list), 1), {"source": name})
 
     @app.get("/v1/results/{result}/{name}", summary="a file of a result (BVH, .joints.npy, .features.npy, the "
                                                     "settings JSON)")
     async def result_file(result: str, name: str):
-        path = _result_path(out, result, name)
+        where = results.folder(result) if re.fullmatch(r"[0-9a-f]{12}", result) else None
+        if isinstance(where, str):
+            return _error(410, f"result {result} {where}; generate it again")
+        path = _result_path(out, result, name) if where is not None else None
         if path is None:
-            return JSONResponse({"detail": "no such result file"}, status_code=404)
+            return _error(404, "no such result file")
         return FileResponse(path, filename=f"{result}_{name}")
-
-    @app.exception_handler(_Refusal)
-    async def refused(request: Request, e: _Refusal):
-        return JSONResponse({"detail": e.message}, status_code=e.status)
 
     async def _answer(model: Model, request: GenerationRequest, rows: int, extra: dict) -> JSONResponse:
         started = time.perf_counter()
         try:
             motions, batched = await batcher.submit(model, request, rows)
-            check_finite_motions(motions, Path(model.ckpt))
+            check_finite_motions(motions, Path(Path(model.ckpt).name), f" or guidance {request.guidance:g} too large"
+                                 if request.guidance is not None else "")
             result = secrets.token_hex(6)
-            settings = {"model": model.name, "ckpt": model.ckpt, "module": type(model.module).__name__,
+            settings = {"model": model.name, "ckpt": Path(model.ckpt).name, "module": type(model.module).__name__,
                         "family": model.card.family, "prompts": request.prompts, "num_samples": request.num_samples,
                         "frames": request.frames, "fps": model.card.fps, "seed": request.seed, **extra,
                         **model.module.generation_settings(request), "row_seeds": model.card.row_seeds,
                         "representation": model.card.representation, "skeleton": model.card.skeleton}
+            settings = _public(settings)  # a module's settings may name a checkpoint by its absolute path
             folder = out / result
-            await asyncio.get_running_loop().run_in_executor(
-                None, lambda: write_generation(folder, motions, model.card, settings, preview=False))
+
+            def write() -> int:
+                write_generation(folder, motions, model.card, settings, preview=False)
+                return sum(f.stat().st_size for f in folder.iterdir())
+
+            size = await asyncio.get_running_loop().run_in_executor(None, write)
         except UsageError:
             raise
         except Exception as e:  # one line to the client, the traceback to the server's log
             log.exception("request failed")
-            return JSONResponse({"detail": f"generation failed: {_one_line(e)}"}, status_code=500)
+            return _error(500, f"generation failed: {scrub(_one_line(e))}")
+        results.add(result, size)
         skeleton = get_skeleton(model.card.skeleton)
         files = sorted(p.name for p in folder.iterdir())
         url = f"/v1/results/{result}"
-        return JSONResponse({
+        return _JSON({
             "id": result, "model": model.name, "fps": model.card.fps, "skeleton": model.card.skeleton,
             "parents": list(skeleton.parents), "batched_motions": batched,
             "seconds": round(time.perf_counter() - started, 3), "settings": f"{url}/generation.json",
+            "expires_in_s": limits.result_ttl,
             "motions": [{"title": m.title, "record": record, "frames": len(m.joints),
                          "joints": np.round(np.asarray(m.joints, np.float64), 4).tolist(),
                          "files": {kind: f"{url}/{record['file']}{ext}" for kind, ext in
@@ -367,16 +443,67 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     return app
 
 
+# -- answers ------------------------------------------------------------------------------------------------------
+
+
+class _JSON(JSONResponse):
+    """JSON in ASCII: a lone surrogate a client sent, echoed in a message, cannot break the answer's encoding."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False, separators=(",", ":")).encode("ascii")
+
+
+def _error(status: int, detail: str, headers: dict[str, str] | None = None) -> _JSON:
+    return _JSON({"detail": _one_line(detail)}, status_code=status, headers=headers)
+
+
 class _Refusal(Exception):
-    def __init__(self, status: int, message: str):
+    def __init__(self, status: int, message: str, headers: dict[str, str] | None = None):
         super().__init__(message)
-        self.status, self.message = status, message
+        self.status, self.message, self.headers = status, message, headers
+
+
+USER_TEXT = {"prompts", "title", "to", "species", "animal", "description", "source"}  # never rewritten by _public
+
+
+def _public(value: Any, key: str = "") -> Any:
+    """``value`` without the server's absolute paths (a checkpoint a module's settings name): their file names."""
+    if isinstance(value, dict):
+        return {k: _public(v, k) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_public(v, key) for v in value]
+    if isinstance(value, str) and key not in USER_TEXT and os.path.isabs(value):
+        return Path(value).name
+    return value
+
+
+def _scrubber(models: list[Model], out: Path):
+    """A message with the server's own paths (checkpoints, results, temporary files) replaced by their names."""
+    pairs = {}
+    for m in models:
+        for path in (Path(m.ckpt), Path(m.ckpt).resolve()):
+            pairs[str(path)] = path.name
+            pairs[str(path.parent)] = "<checkpoints>"
+    for path in (out, out.resolve()):
+        pairs[str(path)] = "<results>"
+    pairs[tempfile.gettempdir()] = "<tmp>"
+    order = sorted((p for p in pairs if len(p) > 1), key=len, reverse=True)
+
+    def scrub(text: str) -> str:
+        for path in order:
+            text = text.replace(path, pairs[path])
+        return text
+
+    return scrub
+
+
+# -- requests -----------------------------------------------------------------------------------------------------
 
 
 def _model(by_name: dict[str, Model], candidates: list[Model], name: str | None, takes: str = "") -> Model:
     if name is not None:
-        if name not in by_name:
-            raise UsageError(f"unknown model {name!r}; loaded: {', '.join(by_name) or 'none'}")
+        if name not in by_name:  # the model named is no resource of this server: 404, as for a result
+            raise _Refusal(404, f"unknown model {name!r}; loaded: {', '.join(by_name) or 'none'}")
         if by_name[name] not in candidates:
             raise UsageError(f"model {name!r} does not generate from {takes}; it takes "
                              f"{card_inputs(by_name[name].card)}")
@@ -384,6 +511,57 @@ def _model(by_name: dict[str, Model], candidates: list[Model], name: str | None,
     if not candidates:
         raise UsageError(f"no loaded model generates from {takes}")
     return candidates[0]
+
+
+def _prompts(prompts: list[str], limits: Limits) -> list[str]:
+    """``read_prompts``' checks (plain text, not empty), and the server's length limit."""
+    prompts = read_prompts(prompts)
+    if long := [i for i, p in enumerate(prompts) if len(p) > limits.max_prompt_chars]:
+        raise UsageError(f"prompt {long[0] + 1} is {len(prompts[long[0]])} characters long; at most "
+                         f"{limits.max_prompt_chars}")
+    return prompts
+
+
+def _text(text: str, what: str, limits: Limits) -> None:
+    """A species or an animal's description: text for the text encoder, as a prompt is."""
+    check_plain_text(text, what)
+    if len(text) > limits.max_prompt_chars:
+        raise UsageError(f"{what} is {len(text)} characters long; at most {limits.max_prompt_chars}")
+
+
+def _upload_name(filename: str | None) -> str:
+    """The upload's file name as messages and settings show it: its last part, printable, at most 100 characters."""
+    name = Path(filename or "upload").name or "upload"
+    name = "".join(c if c.isprintable() and not 0xD800 <= ord(c) <= 0xDFFF else "?" for c in name)
+    return name if len(name) <= 100 else name[:97] + "..."
+
+
+def _read_upload(module: GenerativeModule, data: bytes, suffix: str, joint_map: str | None, name: str,
+                 parsing: _Count) -> Any:
+    """The upload as the module's source motion, read from a temporary file (on an upload thread)."""
+    try:
+        with tempfile.TemporaryDirectory(prefix="omg-upload-") as folder:
+            path = Path(folder) / f"upload{suffix}"
+            path.write_bytes(data)
+            try:
+                return module.read_source(path, joint_map)
+            except UsageError as e:
+                raise UsageError(str(e).replace(str(path), name).replace(folder, "")) from None
+            except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
+                raise UsageError(f"could not read the upload {name!r} as a motion: {_one_line(e)}") from None
+    finally:
+        parsing.add(-1)
+
+
+class _Count:
+    """A count shared by the event loop and the upload threads."""
+
+    def __init__(self) -> None:
+        self.n, self._lock = 0, threading.Lock()
+
+    def add(self, k: int) -> None:
+        with self._lock:
+            self.n += k
 
 
 def _sampler(card: GenerationCard, name: str) -> None:
@@ -394,6 +572,13 @@ def _sampler(card: GenerationCard, name: str) -> None:
     SAMPLERS.get(name)
 
 
+def _length_message(card: GenerationCard, length: float) -> str:
+    frames = length * card.fps
+    return (f"length {length:g} s is {f'{frames:.0f}' if frames < 1e9 else 'too many'} frames; this model makes "
+            f"{card.min_frames / card.fps:g}..{card.max_frames / card.fps:g} s "
+            f"({card.min_frames}..{card.max_frames} frames at {card.fps:g} fps)")
+
+
 def _check(card: GenerationCard, request: GenerationRequest, model: Model, length: float | None) -> None:
     """``check_request`` with the API's words for the CLI's flags."""
     try:
@@ -401,14 +586,65 @@ def _check(card: GenerationCard, request: GenerationRequest, model: Model, lengt
     except UsageError as e:
         message = str(e)
         if length is not None and message.startswith("--length"):
-            message = (f"length {length:g} s is {request.frames} frames; this model makes "
-                       f"{card.min_frames / card.fps:g}..{card.max_frames / card.fps:g} s "
-                       f"({card.min_frames}..{card.max_frames} frames at {card.fps:g} fps)")
+            message = _length_message(card, length)
         for flag, field_ in (("--length", "length"), ("--steps", "steps"), ("--sampler", "sampler"),
                              ("--animal", "species"), ("--from_motion", "an uploaded motion (/v1/transfer)"),
                              ("--unconditional", "no prompts")):
             message = message.replace(flag, field_)
         raise UsageError(message) from None
+
+
+# -- results ------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Results:
+    """The results this server wrote under ``out``, oldest first. Each is kept ``ttl`` seconds and all of them
+    in ``max_bytes``, the oldest dropped first (never the one just written); the ids dropped are remembered (a
+    bounded number) to answer 410 rather than 404. Only these are served: other folders of ``out`` are not."""
+
+    out: Path
+    ttl: float
+    max_bytes: int
+    kept: OrderedDict = field(default_factory=OrderedDict)  # id -> (time.monotonic() when written, bytes)
+    gone: OrderedDict = field(default_factory=OrderedDict)  # id -> why it was dropped
+    total: int = 0
+
+    def add(self, result: str, size: int) -> None:
+        self.kept[result] = (time.monotonic(), size)
+        self.total += size
+        self.prune()
+
+    def prune(self) -> None:
+        now = time.monotonic()
+        while self.kept:
+            result, (written, _) = next(iter(self.kept.items()))
+            if now - written > self.ttl:
+                self._drop(result, f"has expired: results are kept {self.ttl:g} s (--result_ttl)")
+            elif self.total > self.max_bytes and len(self.kept) > 1:
+                self._drop(result, f"was dropped to keep all results under {self.max_bytes / 2**20:g} MiB "
+                                   "(--max_results_mb)")
+            else:
+                break
+
+    def folder(self, result: str) -> Path | str | None:
+        """The result's folder; why it is gone (410); None for an id this server never wrote (404)."""
+        self.prune()
+        return self.out / result if result in self.kept else self.gone.get(result)
+
+    async def expire_every(self, seconds: float) -> None:
+        """Expired results are removed from the disk also while no request comes."""
+        while True:
+            await asyncio.sleep(min(seconds, self.ttl))
+            self.prune()
+
+    def _drop(self, result: str, why: str) -> None:
+        _, size = self.kept.pop(result)
+        self.total -= size
+        shutil.rmtree(self.out / result, ignore_errors=True)
+        self.gone[result] = why
+        while len(self.gone) > 100_000:
+            self.gone.popitem(last=False)
 
 
 def _result_path(out: Path, result: str, name: str) -> Path | None:
@@ -419,9 +655,148 @@ def _result_path(out: Path, result: str, name: str) -> Path | None:
     return path if path.is_file() and path.resolve().parent == (out / result).resolve() else None
 
 
-def _one_line(e: BaseException) -> str:
+# -- the guard in front of the app --------------------------------------------------------------------------------
+
+
+class _BodyRefused(Exception):
+    """Raised into the app's read of a body that is over its limit or too slow; the guard answers instead."""
+
+
+class _Guard:
+    """A pure-ASGI layer in front of the app, before FastAPI reads a byte of the body:
+
+    - ``Host`` must name this server (``allowed_hosts``): a page of another site that rebinds its DNS name to
+      127.0.0.1 sends its own name, and is refused (400);
+    - a write (POST, ...) whose ``Origin`` (or, without one, ``Referer``) is another site's page is refused (403):
+      a plain HTML form of any site could otherwise post to ``/v1/transfer``; requests without either (curl,
+      scripts) are not a page's;
+    - the POST routes' content types (415);
+    - the body is counted as it streams in, chunked or with a ``Content-Length``: over its route's limit
+      (the upload limit for ``/v1/transfer``, the JSON limit for the others) the request is answered 413 and its
+      connection closed, so the rest is never read; a body that has not arrived ``read_timeout`` seconds after
+      the headers is answered 408 and closed."""
+
+    def __init__(self, app, limits: Limits, hosts: frozenset[str]):
+        self.app, self.limits, self.hosts = app, limits, hosts
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
+        limit, what = self._limit(scope["path"])
+        refusal = self._refusal(scope, headers, limit, what)
+        if refusal is not None:
+            return await _send_error(send, *refusal)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.limits.read_timeout
+        seen, complete, refused, answered = 0, False, [], False
+
+        async def receive_() -> dict:
+            nonlocal seen, complete
+            if refused:
+                raise _BodyRefused
+            if complete:  # the body is in: what comes now is the disconnect, whenever it comes
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), max(deadline - loop.time(), 0.0))
+            except asyncio.TimeoutError:
+                refused.append((408, f"the request's body did not arrive within {self.limits.read_timeout:g} s"))
+                raise _BodyRefused from None
+            if message["type"] != "http.request":
+                complete = True
+                return message
+            seen += len(message.get("body", b""))
+            if seen > limit:
+                refused.append((413, f"the request's body is larger than the {what}"))
+                raise _BodyRefused
+            complete = not message.get("more_body", False)
+            return message
+
+        async def send_(message: dict) -> None:
+            nonlocal answered
+            if refused:  # the app's own answer to the broken read (a 400) gives way to the refusal
+                if not answered and message["type"] == "http.response.start":
+                    answered = True
+                    await _send_error(send, *refused[0])
+                return
+            await send(message)
+
+        try:
+            await self.app(scope, receive_, send_)
+        except Exception:
+            if not refused:
+                raise
+        if refused and not answered:
+            await _send_error(send, *refused[0])
+
+    def _limit(self, path: str) -> tuple[int, str]:
+        if path == "/v1/transfer":  # the file and a few form fields
+            return (self.limits.max_upload_bytes + 2**16,
+                    f"{self.limits.max_upload_bytes} bytes allowed for an upload (--max_upload_mb)")
+        return self.limits.max_json_bytes, f"{self.limits.max_json_bytes} bytes allowed (--max_json_kb)"
+
+    def _refusal(self, scope, headers: dict[str, str], limit: int, what: str) -> tuple[int, str] | None:
+        host = headers.get("host")
+        if "*" not in self.hosts and _host_name(host) not in self.hosts:
+            return 400, (f"the Host {host!r} is not a name of this server; it answers to "
+                         f"{', '.join(sorted(self.hosts))} (--allowed_hosts)")
+        method, path = scope["method"], scope["path"]
+        if method in WRITES:
+            origin = headers.get("origin") or headers.get("referer")
+            if origin is not None and not _same_origin(origin, host or ""):
+                return 403, (f"a {method} from the page of {_origin(origin)!r} is refused: only this server's own "
+                             "page may send one")
+            kind = headers.get("content-type", "").split(";")[0].strip().lower()
+            if method != "POST":
+                pass
+            elif path == "/v1/generate" and kind and not (kind == "application/json" or kind.endswith("+json")):
+                return 415, f"{path} takes a JSON body (content-type: application/json), not {kind!r}"
+            elif path == "/v1/transfer" and kind != "multipart/form-data":
+                return 415, f"{path} takes a multipart form (content-type: multipart/form-data), not {kind or 'none'!r}"
+        length = headers.get("content-length", "")
+        if length.isdigit() and int(length) > limit:
+            return 413, f"the request's body is larger than the {what}"
+        return None
+
+
+async def _send_error(send, status: int, detail: str) -> None:
+    """One line of JSON, and the connection closed: the rest of a refused body is never read."""
+    body = json.dumps({"detail": _one_line(detail)}, ensure_ascii=True, separators=(",", ":")).encode("ascii")
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            (b"connection", b"close")]})
+    await send({"type": "http.response.body", "body": body})
+
+
+def _host_name(host: str | None) -> str | None:
+    """The name a Host header gives, lowercased, without its port ('[::1]:8000': '::1'); None if malformed."""
+    host = (host or "").strip().lower()
+    if host.startswith("["):
+        end = host.find("]")
+        return host[1:end] if end > 1 and host[end + 1:end + 2] in ("", ":") else None
+    if host.count(":") > 1:  # IPv6 without brackets: no Host header a browser sends
+        return None
+    return host.split(":")[0] or None
+
+
+def _origin(url: str) -> str:
+    parts = urlsplit(url)
+    return f"{parts.scheme}://{parts.netloc}" if parts.scheme and parts.netloc else url[:100]
+
+
+def _same_origin(url: str, host: str) -> bool:
+    """``url`` (an Origin or a Referer) is of this server's own page, the one at ``host`` (the Host header)."""
+    parts = urlsplit(url.strip())
+    if parts.scheme not in ("http", "https") or not parts.netloc:  # "null": a sandboxed or file:// page
+        return False
+    default = ":80" if parts.scheme == "http" else ":443"
+    netloc, host = parts.netloc.lower().rsplit("@", 1)[-1], host.lower()
+    return netloc.removesuffix(default) == host.removesuffix(default)
+
+
+def _one_line(e: BaseException | str) -> str:
     text = " ".join(str(e).split()) or type(e).__name__
     return text if len(text) <= 300 else text[:297] + "..."
 
 
-__all__ = ["Batcher", "GenerateBody", "Limits", "Model", "create_app"]
+__all__ = ["LOOPBACK", "Batcher", "GenerateBody", "Limits", "Model", "Results", "create_app"]
