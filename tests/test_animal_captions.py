@@ -115,7 +115,12 @@ def test_the_animal_a_prompt_generates_one_rule():
     assert about_animal("a person kicks with his left leg", "cat", known) == "a cat kicks with its left leg"
     assert about_animal("the cat sits", "cat", known) == "the cat sits"
     assert to_person("a dog jumps over a log", ["cat"]) == "a person jumps over a log"  # any species omg knows
-    assert find_animal("a milk cow leaps", ["milkcow"]) == "milkcow"
+    assert find_animal("a milk cow leaps", ["milk cow"]) == "milk cow"
+    # milkcow10L is the "milk cow" its captions say, in substitution and prompts: never the non-word "milkcow"
+    assert species_of("milkcow10L") == "milk cow"
+    assert to_animal("a person walks and then he stops", "milk cow") == "a milk cow walks and then it stops"
+    assert about_animal("a dog leaps over a fence", "milk cow") == "a milk cow leaps over a fence"
+    assert to_person("A milk cow lies down", ["milk cow"]) == "A person lies down"
 
 
 def test_later_mentions_follow_the_new_subject():

@@ -182,4 +182,4 @@ def test_full_habit_configs_embed_categories_with_bge_and_name_a_missing_snapsho
     assert HabitVQModule(**offline).category_text.shape[-1] == 384  # the named offline fallback builds
     evaluation = parse(REPO / "configs/habit_eval.yaml")
     callback = evaluation.trainer.callbacks[0].init_args
-    assert callback.mode == "transfer" and callback.evaluator.startswith("runs/evaluator_habit/")
+    assert callback.mode == "paper" and callback.evaluator.startswith("runs/evaluator_habit/")

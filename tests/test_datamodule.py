@@ -300,3 +300,34 @@ def test_long_clips_contribute_in_proportion_to_their_frames(tmp_path):
     ids = [i for b in _epoch(dm.train_dataloader()) for i in b["id"]]
     long_share = sum(int(i.split(".")[1]) % 2 == 0 for i in ids) / len(ids)
     assert abs(long_share - 0.8) < 0.04, long_share  # 160 / (160 + 40) of the frames
+
+
+def test_windows_default_to_the_papers_one_frame_minimum(toy_shards):
+    """Without data.min_len a window is l ~ U[1, L] (OMG Sec. 3.1: "even a single keyframe"); a whole captioned
+    clip still needs HumanML3D's 40 frames."""
+    assert WindowSampler().min_len == 1 and WindowSampler(mode="whole").min_len == 40
+    dm = MotionDataModule(str(toy_shards), num_workers=0)
+    assert dm.windows.mode == "windows" and dm.windows.min_len == 1, "OMG Sec. 3.1: l ~ U[1, L]"
+    assert WindowSampler(max_len=20, mode="whole").min_len == 20  # a cap below 40 is the floor
+    dm.trainer = SimpleNamespace(lightning_module=SimpleNamespace(clip_sampling="whole"))
+    assert dm.windows.min_len == 40
+    with pytest.raises(UsageError, match="min_len"):
+        _datamodule(toy_shards, min_len=0)
+
+
+@pytest.mark.parametrize("size", ["base", "large", "huge", "giant"])
+def test_pretraining_configs_draw_window_lengths_uniformly_from_1_to_300(toy_shards, size):
+    """configs/pretrain_{size}.yaml as `omg fit` parses it: l ~ U[1, 300] (OMG Sec. 3.1), each length about
+    equally often, 1 frame included."""
+    from scipy.stats import chisquare
+
+    from helpers import REPO
+    from helpers.configs import parse
+
+    data = parse(REPO / f"configs/pretrain_{size}.yaml").data.as_dict()
+    dm = MotionDataModule(**{**data, "train": str(toy_shards), "val": None, "num_workers": 0})
+    w, rng = dm.windows, np.random.default_rng(0)
+    assert (w.mode, w.min_len, w.max_len) == ("windows", 1, 300), f"{size}: OMG Sec. 3.1 draws l ~ U[1, L = 300]"
+    lengths = np.array([w.random(1000, rng)[1] for _ in range(30_000)])
+    assert lengths.min() == 1 and lengths.max() == 300, (lengths.min(), lengths.max())
+    assert chisquare(np.bincount(lengths, minlength=301)[1:]).pvalue > 1e-3

@@ -57,3 +57,22 @@ def test_generated_bvh_is_at_the_training_rate(prior_30fps, tmp_path):
     frame_time = float(bvh.split("Frame Time:")[1].split()[0])
     frames = int(bvh.split("Frames:")[1].split()[0])
     assert frame_time == pytest.approx(1 / 30, abs=1e-6) and frames == 30
+
+
+def test_omg_fit_refuses_a_prior_of_another_rate_in_one_line_naming_the_fix(prior_30fps, tmp_path, capsys):
+    """The README's rate statement: the paper's pretraining data is at 30 fps, a prior generates at its rate, and
+    `omg fit` of the ControlNet on 20-fps data (HumanML3D's) stops in one line naming what to set: pretraining shards
+    built with --fps 20 and data.max_len 200 (OMG's L = 300 frames at 30 fps, the same 10 s)."""
+    from helpers import REPO
+    from omg.cli import main
+
+    shards = shards_at(tmp_path / "s20", 20.0)
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", "--config", str(REPO / "configs/mini/controlnet.yaml"),
+              f"--model.init_args.pretrained={prior_30fps}", "--model.init_args.text_encoder=hash",
+              f"--data.train={shards}", "--data.val=null", "--data.num_workers=0", "--data.min_len=10",
+              f"--trainer.default_root_dir={tmp_path / 'run'}"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("omg: error: "), err
+    assert "fps 30.0 vs 20.0" in err and "--fps 20" in err and "data.max_len 200" in err, err

@@ -335,69 +335,121 @@ def test_cross_category_fid_averages_the_targets_with_enough_real_samples():
 
 
 @torch.no_grad()
-def test_transfer_metrics_compare_with_the_target_categorys_real_crops(habit_run):
-    """The paper's metrics score motion transferred onto a category against that category's real crops:
-    a stand-in transfer that returns the target's own real crops scores near 0 FID / Intra-FID, one that
-    returns the source crops unchanged scores far higher; MPJPE is against the source (0 for the latter)."""
-    from omg.callbacks.habit import crops, evaluate_habits
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+def test_the_papers_table_scores_own_category_output_and_the_transfers(habit_run):
+    """The paper's table (mode "paper", Sec. 4.4.1): FID, Intra-FID, Diversity and 1-NNA of the model's
+    own-category output against the real crops, Downstream of the transfers against the target's real crops,
+    MPJPE of the transfers against their sources. Stand-in transfers tell which motion each column reads: one
+    that keeps a crop moved onto its own category exactly and replaces a crop moved onto another category by
+    that category's real crops scores FID 0 and 1-NNA 0 (own output = the real crops), Downstream near 0 and
+    MPJPE > 0 (its transfers are not their sources)."""
+    from omg.callbacks.habit import evaluate_habits
 
     prior, evaluator = habit_run["prior"], habit_run["evaluator"]
-    data = MotionDataModule(str(QUATVEL / "train"), max_len=64, min_len=64, clips="windows", verify_shards=False)
-    items = [c for c in crops(ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples, 64)
-             if len(c["motion"]) == 64]
+    items = _train_crops()
     cats = prior.vq.categories
     real_of = {k: torch.stack([torch.from_numpy(np.asarray(c["motion"])) for c in items if c["category"] == name])
                for k, name in enumerate(cats) if any(c["category"] == name for c in items)}
+    category_of = {_key(torch.from_numpy(np.asarray(c["motion"]))): cats.index(c["category"]) for c in items}
 
-    def target_real(motion, k, gen):  # the target's real crops, drawn at random
+    def target_real(motion, k, gen):  # the target's real crops, drawn at random (own category included)
         return real_of[k][torch.randint(len(real_of[k]), (len(motion),), generator=gen)]
 
     def source(motion, k, gen):  # no transfer at all
         return motion
 
-    def run(move, mode="transfer"):
+    def habits_moved(motion, k, gen):  # own category: the crop itself; another: that category's real crops
+        drawn = target_real(motion, k, gen)
+        keep = torch.tensor([category_of[_key(m)] == k for m in motion])
+        return torch.where(keep[:, None, None], motion, drawn)
+
+    def run(move, mode="paper"):
         return evaluate_habits(prior, evaluator, items, seed=0, min_samples=5, diversity_pairs=50, mode=mode,
                                move=move)
 
-    moved, kept = run(target_real), run(source)
+    moved, kept = run(habits_moved), run(source)
+    assert set(moved) == {"fid", "intra_fid", "cross_category_fid", "diversity", "real_diversity", "one_nna", "mpjpe"}
+    # the own-category output is the real crops themselves in both: FID, Intra-FID 0, 1-NNA 0 (each crop's
+    # nearest other is its twin), Diversity the real crops'
+    for values in (moved, kept):
+        assert values["fid"] < 1e-6 and values["intra_fid"] < 1e-6 and values["one_nna"] == 0, values
+        assert values["diversity"] == pytest.approx(values["real_diversity"])
+    # Downstream and MPJPE read the transfers: habits moved onto the target score near 0 Downstream and leave
+    # their source; untransferred crops keep their source (MPJPE 0) and are far from the target's crops
+    assert moved["cross_category_fid"] < 0.1 * kept["cross_category_fid"], (moved, kept)
+    assert kept["mpjpe"] == 0 < moved["mpjpe"]
+    # the transfer-distribution diagnostic: every metric on the transfers against the target's real crops
+    moved, kept = run(target_real, "transfer_distribution"), run(source, "transfer_distribution")
     assert moved["intra_fid"] < 0.1 * kept["intra_fid"] and moved["fid"] < 0.05, (moved, kept)
-    # pooled FID and 1-NNA cannot tell: the untransferred crops, pooled over the targets, are real crops again
-    assert kept["mpjpe"] == 0 < moved["mpjpe"]  # MPJPE against the source
-    assert "cross_category_fid" not in moved
-    # the reconstruction diagnostic compares each crop with its own category: unchanged crops score 0
-    recon = run(source, mode="reconstruction")
-    assert recon["fid"] < 1e-6 and recon["mpjpe"] == 0 and recon["cross_category_fid"] > moved["intra_fid"]
+    assert kept["mpjpe"] == 0 < moved["mpjpe"] and "cross_category_fid" not in moved
     # the metrics are chosen by name through the registry, like the text evaluation's: any registered one is fed
     from omg.evaluation import parse_metrics
 
     chosen = parse_metrics(["fid", "foot_skating"], defaults=(), from_prompts=False)
     picked = evaluate_habits(prior, evaluator, items, seed=0, min_samples=5, diversity_pairs=50, move=source,
                              metrics=chosen)
-    assert set(picked) == {"fid", "foot_skating", "real_foot_skating"} and picked["fid"] == kept["fid"]
+    assert set(picked) == {"fid", "foot_skating", "real_foot_skating"} and picked["fid"] < 1e-6
     assert picked["foot_skating"] == picked["real_foot_skating"]  # untransferred crops skate as the real ones
 
 
-def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
+def test_the_habit_evaluation_has_one_mode_and_a_named_diagnostic(tmp_path):
+    """The paper's table is the default; the transfer-distribution figures are asked for by name; the earlier
+    modes' names are one error line listing both."""
+    from omg.callbacks.habit import HABIT_METRICS, HabitEvalCallback
+    from omg.errors import UsageError
+
+    (tmp_path / "evaluator.ckpt").write_bytes(b"")
+    callback = HabitEvalCallback(str(tmp_path / "evaluator.ckpt"))
+    assert callback.mode == "paper" and tuple(callback.metrics) == HABIT_METRICS
+    assert "cross_category_fid" not in HabitEvalCallback(str(tmp_path / "evaluator.ckpt"),
+                                                         mode="transfer_distribution").metrics
+    for old in ("transfer", "reconstruction"):
+        with pytest.raises(UsageError, match="one of paper, transfer_distribution") as error:
+            HabitEvalCallback(str(tmp_path / "evaluator.ckpt"), mode=old)
+        assert "\n" not in str(error.value)
+
+
+def _train_crops() -> list[dict]:
+    from omg.callbacks.habit import crops
+    from omg.data.datamodule import ClipDataset, MotionDataModule
+
+    data = MotionDataModule(str(QUATVEL / "train"), max_len=64, min_len=64, clips="windows", verify_shards=False)
+    return [c for c in crops(ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples, 64)
+            if len(c["motion"]) == 64]
+
+
+def _key(motion: torch.Tensor) -> bytes:
+    return motion.float().numpy().tobytes()
+
+
+def _eval_overlay(tmp_path, evaluator, replications: int, **callback) -> str:
+    """configs/mini/habit_eval.yaml with this test's evaluator, replications, table and run folder."""
     import yaml
 
-    from omg.cli import main
-
     config = yaml.safe_load((REPO / "configs" / "mini" / "habit_eval.yaml").read_text())
-    callback = config["trainer"]["callbacks"][0]["init_args"]
-    callback.update(evaluator=str(habit_run["evaluator_path"]), replications=2, table=str(tmp_path / "table.json"))
+    config["trainer"]["callbacks"][0]["init_args"].update(evaluator=str(evaluator), replications=replications,
+                                                          table=str(tmp_path / "table.json"), **callback)
     config["trainer"]["default_root_dir"] = str(tmp_path / "run")
-    config["model"]["init_args"]["vq_ckpt"] = str(habit_run["vq_path"])
     config["data"]["val"] = str(QUATVEL / "val")
     (tmp_path / "eval.yaml").write_text(yaml.safe_dump(config))
-    main(["test", "--config", str(tmp_path / "eval.yaml"), "--ckpt_path", str(habit_run["prior_path"])])
+    return str(tmp_path / "eval.yaml")
+
+
+def test_omg_test_prints_the_papers_table(habit_run, tmp_path, capsys):
+    """omg's earlier order: the stage-2 prior's checkpoint, under the config it was fitted with."""
+    from omg.cli import main
+
+    overlay = _eval_overlay(tmp_path, habit_run["evaluator_path"], 2)
+    main(["test", "--config", str(REPO / "configs/mini/habit_prior.yaml"), "--config", overlay,
+          "--ckpt_path", str(habit_run["prior_path"])])
     printed = capsys.readouterr().out
-    assert "| quantizer | FID | Intra-FID | downstream FID | Diversity | 1-NNA | MPJPE (m) |" in printed
+    assert "| quantizer | FID | Intra-FID | Downstream | Diversity | 1-NNA | MPJPE (m) |" in printed
     assert "| EMA-reset, KL then flows |" in printed and "| real motion |" in printed  # omg's earlier order
     rows = json.loads((tmp_path / "table.json").read_text())
-    assert set(rows["EMA-reset, KL then flows"]) >= {"fid", "intra_fid", "diversity", "one_nna", "mpjpe"}
+    assert set(rows["EMA-reset, KL then flows"]) >= {"fid", "intra_fid", "cross_category_fid", "diversity",
+                                                      "one_nna", "mpjpe"}
     assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset, KL then flows"].values())
-    assert json.loads(next((tmp_path / "run").rglob("habit_eval.json")).read_text())["settings"]["mode"] == "transfer"
+    report = json.loads(next((tmp_path / "run").rglob("habit_eval.json")).read_text())
+    assert report["settings"]["mode"] == "paper" and report["settings"]["min_samples"] == 5
 
 
 def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path, monkeypatch):
@@ -577,27 +629,32 @@ def test_omg_transfer_and_generate_work_from_a_checkpoint_of_the_default_order(h
 
 
 def test_omg_test_evaluates_the_default_order_with_its_own_flows(habit_run, habit_flow_run, tmp_path, capsys):
-    """configs/mini/habit_eval.yaml on a VQ-VAE of the default order, without a stage-2 checkpoint: the
-    prior module starts from the flows pretrained with the encoders."""
-    import yaml
-
+    """`omg test --config configs/mini/habit_vqvae.yaml --config configs/mini/habit_eval.yaml --ckpt_path` on a
+    VQ-VAE of the default order, without a stage-2 checkpoint: its own flows give the habit latents. A VQ-VAE of
+    omg's earlier order holds none: one error line naming its prior."""
     from omg.cli import main
     from omg.lit.habit import HabitPriorModule
 
     prior = HabitPriorModule(str(habit_flow_run["vq_path"]))
     assert all(torch.equal(a, b) for a, b in zip(prior.flows.state_dict().values(),
                                                   habit_flow_run["vq"].flows.state_dict().values()))
-    config = yaml.safe_load((REPO / "configs" / "mini" / "habit_eval.yaml").read_text())
-    config["trainer"]["callbacks"][0]["init_args"].update(evaluator=str(habit_run["evaluator_path"]), replications=1,
-                                                          table=str(tmp_path / "table.json"))
-    config["trainer"]["default_root_dir"] = str(tmp_path / "run")
-    config["model"]["init_args"]["vq_ckpt"] = str(habit_flow_run["vq_path"])
-    config["data"]["val"] = str(QUATVEL / "val")
-    (tmp_path / "eval.yaml").write_text(yaml.safe_dump(config))
-    main(["test", "--config", str(tmp_path / "eval.yaml")])
+    overlay = _eval_overlay(tmp_path, habit_run["evaluator_path"], 1, mode="transfer_distribution")
+    vqvae = str(REPO / "configs/mini/habit_vqvae.yaml")
+    tiny = "--model.init_args.flavor=tiny"  # the checkpoints' size: a config that says otherwise is refused
+    main(["test", "--config", vqvae, "--config", overlay, "--ckpt_path", str(habit_flow_run["vq_path"]), tiny])
+    assert "| EMA-reset (transfer distribution) |" in capsys.readouterr().out
+    main(["test", "--config", vqvae, "--config", overlay, "--ckpt_path", str(habit_flow_run["vq_path"]), tiny,
+          "--trainer.callbacks.init_args.mode", "paper"])
     assert "| EMA-reset |" in capsys.readouterr().out
     rows = json.loads((tmp_path / "table.json").read_text())
-    assert list(rows) == ["EMA-reset"] and all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values())
+    assert list(rows) == ["EMA-reset", "EMA-reset (transfer distribution)"]
+    assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values()) and "cross_category_fid" in rows["EMA-reset"]
+    with pytest.raises(SystemExit) as e:
+        main(["test", "--config", vqvae, "--config", overlay, "--ckpt_path", str(habit_run["vq_path"]), tiny,
+              "--model.init_args.habit_order=kl_then_flows"])  # as it was trained (the config's flow_prior is refused)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "holds no flow priors" in err and "habit_prior.yaml" in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_order(tmp_path):

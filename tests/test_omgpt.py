@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from helpers import REPO, TINY_DIT
-from helpers.omgpt import MINI, TINY, tiny_module
+from helpers.omgpt import MINI, TINY, fit_config, tiny_module
 from helpers.omgpt import data as _data
 from omg.errors import UsageError
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
@@ -52,12 +52,13 @@ def test_pooling_shapes_and_unpooling_zeros_exactly_the_non_primal_joints():
 
 
 def test_latent_decoder_predicts_each_frame_from_the_text_and_the_frames_before_it():
-    """D_t is a GPT over latent frames: frame t never reads input frame t (else it learns to copy Z
-    and ignore C, the collapse of the first mini runs), and the sentence feature changes every frame."""
+    """With ``latent_shift`` (omg's variant) D_t is a GPT over latent frames: frame t never reads input frame t
+    (else it learns to copy Z and ignore C, the collapse of the first mini runs), and the sentence feature changes
+    every frame."""
     from omg.models.omgpt import LatentTextDecoder
 
     torch.manual_seed(0)
-    decoder = LatentTextDecoder(OmniMotionConfig.from_name("mini", joint_dim=4), text_dim=8).eval()
+    decoder = LatentTextDecoder(OmniMotionConfig.from_name("mini", joint_dim=4, latent_shift=True), text_dim=8).eval()
     z, mask, text = torch.randn(2, 6, 7, 4), torch.ones(2, 6, dtype=torch.bool), torch.randn(2, 8)
     with torch.no_grad():
         out = decoder(text, z, mask)
@@ -80,7 +81,8 @@ def test_autoencoders_read_standardised_features():
 
     animal = _data(MINI / "animal_maa/train")
     module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
-                              flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec, ema_decay=0)
+                              flavor="mini", config={**TINY, "root_velocity": True}, text_encoder="hash",
+                              spec=animal.spec, ema_decay=0, standardize=True)
     std, mean = torch.tensor(animal.spec.std), torch.tensor(animal.spec.mean)
     ae = module.model.animal["ae"]
     D = len(std)
@@ -101,12 +103,51 @@ def test_autoencoders_read_standardised_features():
     torch.testing.assert_close(step, torch.ones(9))
     flat = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
                             flavor="mini", config={**TINY, "root_velocity": False}, text_encoder="hash",
-                            spec=animal.spec, ema_decay=0)
+                            spec=animal.spec, ema_decay=0, standardize=True)
     torch.testing.assert_close(flat.model.animal["ae"].feature_scale, std.clamp_min(0.05))
     raw = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
                            flavor="mini", config={**TINY, "root_velocity": False}, text_encoder="hash",
                            spec=animal.spec, ema_decay=0, standardize=False)
     assert (raw.model.human["ae"].feature_scale == 1).all() and (raw.model.human["ae"].feature_mean == 0).all()
+
+
+def test_module_defaults_are_the_paper_and_the_variant_is_its_config():
+    """Built with no arguments but its data, ``OmniMotionModule`` and its networks are the paper's (§3.1): raw maa
+    in and out, absolute root translation, D_t unshifted, retrieval as the evaluation protocol draws (32 nearest
+    clips by similarity at 0.1). omg's variant is its config: configs/omgpt_variant.yaml and configs/mini/omgpt.yaml
+    turn the three switches on, and configs/omgpt.yaml says the paper's values rather than inheriting them."""
+    import inspect
+
+    import yaml
+
+    from omg.lit.omgpt import OmniMotionModule
+
+    defaults = {k: p.default for k, p in inspect.signature(OmniMotionModule).parameters.items()}
+    assert {k: defaults[k] for k in ("standardize", "human_source", "retrieval_top_k", "retrieval_draw",
+                                     "retrieval_temperature", "retrieval_bank")} == {
+        "standardize": False, "human_source": "retrieval", "retrieval_top_k": 32, "retrieval_draw": "similarity",
+        "retrieval_temperature": 0.1, "retrieval_bank": None}
+    paper = OmniMotionConfig()
+    assert (paper.latent_shift, paper.root_velocity) == (False, False)
+    assert OmniMotionConfig.from_name("mini").latent_shift is False  # a preset changes sizes, not the model
+    animal = _data(MINI / "animal_maa/train")
+    module = OmniMotionModule(human_data=dict(train=str(MINI / "human_maa/train"), batch_size=4, num_workers=0),
+                              text_encoder="hash", spec=animal.spec)
+    assert module.hparams["config"]["latent_shift"] is False and module.hparams["config"]["root_velocity"] is False
+    assert module.model.animal["text_decoder"].shift is False
+    for domain in ("human", "animal"):  # raw maa: the autoencoders' units are the features' own
+        ae = getattr(module.model, domain)["ae"]
+        assert (ae.feature_scale == 1).all() and (ae.feature_mean == 0).all()
+    assert (module.retrieval_top_k, module.retrieval_draw, module.retrieval_temperature) == (32, "similarity", 0.1)
+
+    switches = ("latent_shift", "root_velocity", "standardize")
+
+    def said(path):  # the three switches as the YAML itself sets them (None: not said)
+        args = yaml.safe_load((REPO / path).read_text())["model"]["init_args"]
+        return {k: (args.get("config") or {}).get(k, args.get(k)) for k in switches}
+
+    assert said("configs/omgpt.yaml") == dict.fromkeys(switches, False)
+    assert said("configs/omgpt_variant.yaml") == said("configs/mini/omgpt.yaml") == dict.fromkeys(switches, True)
 
 
 def _known_motion(skeleton, T=12, seed=0):
@@ -198,7 +239,8 @@ def test_fit_then_generate_an_animal_from_a_real_bvh(omgpt_ckpt, shared_motion, 
     module = load_module(omgpt_ckpt)
     assert set(module.animal_names) == {"cat", "cow", "deer", "dog", "fox", "horse", "sheep"}
     # the checkpoint holds every network field, resolved (a later default cannot change what it means)
-    resolved = OmniMotionConfig.from_name("mini", **TINY)
+    resolved = OmniMotionConfig.from_name("mini", **fit_config())
+    assert resolved.latent_shift and resolved.root_velocity  # configs/mini/omgpt.yaml's variant, at TINY's sizes
     assert module.hparams["config"] == {f: getattr(resolved, f) for f in resolved.__dataclass_fields__ if f != "name"}
     out = tmp_path / "dog"
     _cli("generate", "a dog jumps over a log", "--ckpt", str(omgpt_ckpt), "--animal", "dog", "--from_motion", str(bvh),
@@ -250,29 +292,38 @@ def test_generated_animals_land_on_the_users_rig(omgpt_ckpt, shared_motion, tmp_
     assert np.abs(read_bvh(tmp_path / "bvh/sample_000.bvh").positions() - expected).max() < 1e-3
 
 
-def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
+@pytest.fixture(scope="module")
+def tiny_controlnet(tmp_path_factory):
+    """A ControlNet of 2 steps on a tiny DiT of 2 steps (mini humans, hash text): the human generator of the chain
+    and of the evaluation."""
     import lightning as L
 
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.pretrain import PretrainModule
 
+    root = tmp_path_factory.mktemp("controlnet")
     torch.manual_seed(0)
     human = _data(MINI / "human263/train", max_len=40)
     trainer_args = dict(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=tmp_path)
+                        enable_model_summary=False, default_root_dir=root)
     pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec, warmup_steps=1, ema_decay=0)
     trainer = L.Trainer(max_steps=2, **trainer_args)
     trainer.fit(pretrain, human)
-    trainer.save_checkpoint(tmp_path / "pretrain.ckpt")
-    controlnet = ControlNetModule(pretrained=str(tmp_path / "pretrain.ckpt"), text_encoder="hash",
+    trainer.save_checkpoint(root / "pretrain.ckpt")
+    controlnet = ControlNetModule(pretrained=str(root / "pretrain.ckpt"), text_encoder="hash",
                                   moc={"d_c": 16, "num_experts": 2}, spec=human.spec, warmup_steps=1, ema_decay=0)
     trainer = L.Trainer(max_steps=2, **trainer_args)
     trainer.fit(controlnet, _data(MINI / "human263/train", max_len=40))
-    trainer.save_checkpoint(tmp_path / "controlnet.ckpt")
+    trainer.save_checkpoint(root / "controlnet.ckpt")
+    return root / "controlnet.ckpt"
+
+
+def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tiny_controlnet, tmp_path):
+    from omg.lit.controlnet import ControlNetModule
 
     out = tmp_path / "chain"
     _cli("generate", "a horse jumps forward", "--ckpt", str(omgpt_ckpt),
-         "--human_ckpt", str(tmp_path / "controlnet.ckpt"), "--length", "1.5", "--num_samples", "2", "--steps", "3",
+         "--human_ckpt", str(tiny_controlnet), "--length", "1.5", "--num_samples", "2", "--steps", "3",
          "--out", str(out))
     settings = json.loads((out / "generation.json").read_text())
     assert [s["animal"] for s in settings["samples"]] == ["horse", "horse"]
@@ -288,7 +339,7 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     from omg.lit.omgpt import generate_human
     from omg.motion.maa import maa_from_positions
 
-    generator = load_module(tmp_path / "controlnet.ckpt", expect=ControlNetModule)
+    generator = load_module(tiny_controlnet, expect=ControlNetModule)
     generator.spec = replace(generator.spec, fps=40.0)  # as if trained on 40 fps shards
     prompts, lengths = ["a person jumps forward"], torch.tensor([30])
     human, _ = generate_human(generator, prompts, lengths, 7, 20.0, steps=3)
@@ -298,28 +349,98 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tmp_path):
     torch.testing.assert_close(human[0], torch.from_numpy(expected), atol=1e-5, rtol=1e-4)
 
 
-def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
-    """`omg test` with configs/mini/omgpt_eval.yaml (scaled down): ID and OOD reports from an animal evaluator."""
+SMALL_EVAL = {"num_prompts": 8, "replications": 2, "mm_prompts": 2, "mm_repeats": 3, "steps": 2,
+              "metrics": ["fid", {"r_precision": {"pool_size": 4}}, "mm_dist", {"diversity": {"num_pairs": 4}},
+                          {"multimodality": {"num_pairs": 2}}]}
+
+
+@pytest.fixture(scope="module")
+def small_eval(tmp_path_factory):
+    """configs/mini/omgpt_eval.yaml scaled down (SMALL_EVAL, 2 generator steps) with an untrained animal evaluator
+    (hash text); its path and the evaluator's."""
     import yaml
 
     from omg.lit.evaluator import EvaluatorModule
 
+    root = tmp_path_factory.mktemp("omgpt_eval")
     torch.manual_seed(0)
     evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data(MINI / "animal_maa/val").spec)
-    evaluator_path = tmp_path / "evaluator.ckpt"
+    evaluator_path = root / "evaluator.ckpt"
     torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
                 "module_class": "omg.lit.evaluator.EvaluatorModule"}, evaluator_path)
     config = yaml.safe_load((REPO / "configs/mini/omgpt_eval.yaml").read_text())
-    config["trainer"]["default_root_dir"] = str(tmp_path / "eval")
-    small = {"evaluator": str(evaluator_path), "num_prompts": 8, "replications": 2, "mm_prompts": 2, "mm_repeats": 3,
-             "metrics": ["fid", {"r_precision": {"pool_size": 4}}, "mm_dist", {"diversity": {"num_pairs": 4}},
-                         {"multimodality": {"num_pairs": 2}}]}
     for callback in config["trainer"]["callbacks"]:
         if "evaluator" in callback["init_args"]:
-            callback["init_args"].update(small)
-    path = tmp_path / "eval.yaml"
+            callback["init_args"].update({**SMALL_EVAL, "evaluator": str(evaluator_path)})
+    path = root / "eval.yaml"
     path.write_text(yaml.safe_dump(config))
-    _cli("test", "--config", str(path), "--ckpt_path", str(omgpt_ckpt), "--trainer.enable_progress_bar=false")
+    return path, evaluator_path
+
+
+def test_evaluation_starts_from_generated_human_motion_by_default():
+    """The paper's tables start from human motion sampled from a generative model (Fig. 2c): both evaluation
+    configs name an OMG ControlNet checkpoint, the one the README trains (mini: the quick start's), as
+    model.init_args.human_source; retrieval is the named overlay, whose bank is never the prompts' split."""
+    from helpers.configs import parse
+
+    mini, full = parse(REPO / "configs/mini/omgpt_eval.yaml"), parse(REPO / "configs/omgpt_eval.yaml")
+    for evaluation, generator in ((mini, "mini/controlnet.yaml"), (full, "controlnet_base.yaml")):
+        root = parse(REPO / "configs" / generator).trainer.default_root_dir
+        assert evaluation.model.init_args.human_source == f"{root}/checkpoints/last.ckpt"
+    assert all(c.init_args.steps == 20 for c in mini.trainer.callbacks if "steps" in c.init_args)
+    for overlay, evaluation in (("mini/omgpt_eval_retrieval.yaml", mini), ("omgpt_eval_retrieval.yaml", full)):
+        args = parse(REPO / "configs" / overlay).model.init_args
+        prompts = {c.init_args.prompts for c in evaluation.trainer.callbacks
+                   if c.class_path.endswith("OODEvalCallback")}
+        assert args.human_source == "retrieval" and args.retrieval_bank.endswith("/train")
+        assert prompts and args.retrieval_bank not in prompts
+
+
+def test_retrieval_never_starts_a_generation_from_the_prompts_own_clip(omgpt_ckpt, small_eval, tmp_path, capsys):
+    """`omg test` with the retrieval overlay and a bank that holds the OOD prompts' own clips (the human validation
+    split, beside the training split): every clip captioned by a prompt is left out, and no OOD generation starts
+    from its prompt's own clip (drawn from, the own clip is the nearest: hash text gives the same caption
+    similarity 1). The bank the checkpoint keeps is that split alone: one line. An ID prompt's own clip is an
+    animal's, which a human bank cannot hold (an smal35 bank is one line)."""
+    path, _ = small_eval
+    overlay = REPO / "configs/mini/omgpt_eval_retrieval.yaml"
+    both = "[shards/mini/human_maa/train, shards/mini/human_maa/val]"
+    _cli("test", "--config", str(path), "--config", str(overlay), "--ckpt_path", str(omgpt_ckpt),
+         "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={tmp_path / 'eval'}",
+         f"--model.init_args.retrieval_bank={both}")
+    capsys.readouterr()
+    run = next((tmp_path / "eval").glob("version_*"))
+    settings = json.loads((run / "eval_ood.json").read_text())["settings"]
+    # 10 validation clips, and 2 training clips that share a caption with one of them
+    assert (settings["human_source"], settings["retrieval_excluded"], settings["retrieval_clips"]) == ("retrieval", 12,
+                                                                                                       88)
+    assert settings["generations"] == 2 * (8 + 2 * 3) and settings["from_prompt_clip"] == 0
+
+    for extra, message in (
+        (["--model.init_args.retrieval_bank=null"],
+         "omg: error: OODEvalCallback: every clip retrieval draws from (the human validation clips kept in the "
+         "checkpoint) is captioned by one of the prompts; set model.init_args.retrieval_bank"),
+        (["--model.init_args.retrieval_bank=shards/mini/animal_maa/val"],
+         "omg: error: model.init_args.retrieval_bank: the checkpoint's human data and its shards differ:"),
+        ([f"--model.init_args.human_source={tmp_path}/missing.ckpt"],
+         f"omg: error: model.init_args.human_source: no OMG ControlNet checkpoint at {tmp_path}/missing.ckpt"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            _cli("test", "--config", str(path), "--config", str(overlay), "--ckpt_path", str(omgpt_ckpt),
+                 "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={tmp_path / 'bad'}", *extra)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1 and err.startswith(message), err
+    assert not (tmp_path / "bad").exists()
+
+
+def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tiny_controlnet, small_eval, tmp_path, capsys):
+    """`omg test` with configs/mini/omgpt_eval.yaml (scaled down): ID and OOD reports from an animal evaluator, the
+    human motion from the ControlNet the config names (here the tiny one)."""
+    import yaml
+
+    path, evaluator_path = small_eval
+    _cli("test", "--config", str(path), "--ckpt_path", str(omgpt_ckpt), "--trainer.enable_progress_bar=false",
+         f"--trainer.default_root_dir={tmp_path / 'eval'}", f"--model.init_args.human_source={tiny_controlnet}")
     printed = capsys.readouterr().out
     assert "OOD prompts" in printed and "| fid_ood |" in printed and "| r_precision/top1 |" in printed
     run = next((tmp_path / "eval").glob("version_*"))
@@ -328,8 +449,10 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
     assert {"fid", "r_precision/top1", "mm_dist", "diversity", "multimodality"} <= set(in_distribution)
     assert {"fid_ood", "r_precision/top3", "diversity"} <= set(ood["metrics"]) and "fid" not in ood["metrics"]
     assert len(ood["metrics"]["fid_ood"]["values"]) == 2 and ood["settings"]["protocol"] == "OOD"
+    assert ood["settings"]["human_source"] == str(tiny_controlnet) and ood["settings"]["sampling_steps"] == 2
     sides = json.loads((run / "eval_sides.json").read_text())["sides"]  # SideTransferCallback, in the same run
     assert "One-sided human actions made into animals" in printed and sides["dog/leg"]["clips"] > 10
+    small = {**SMALL_EVAL, "evaluator": str(evaluator_path)}
 
     # the paper's self-evaluation: configs/mini/omgpt_self_eval.yaml over the same config
     overlay = yaml.safe_load((REPO / "configs/mini/omgpt_self_eval.yaml").read_text())
@@ -340,7 +463,7 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tmp_path, capsys):
                                                              "init_args": {"checkpoint": str(omgpt_ckpt)}}})
     (tmp_path / "self_eval.yaml").write_text(yaml.safe_dump(overlay))
     _cli("test", "--config", str(path), "--config", str(tmp_path / "self_eval.yaml"), "--ckpt_path", str(omgpt_ckpt),
-         "--trainer.enable_progress_bar=false")
+         "--trainer.enable_progress_bar=false", f"--model.init_args.human_source={tiny_controlnet}")
     run = next((tmp_path / "self_eval").glob("version_*"))
     for report in ("eval.json", "eval_ood.json"):
         assert json.loads((run / report).read_text())["settings"]["evaluator"] == "OmniMotionSelfEvaluator"
@@ -593,7 +716,8 @@ def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys
         _cli("fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=5",
              f"--trainer.default_root_dir={tmp_path / 'resumed'}", "--trainer.enable_progress_bar=false",
              "--trainer.val_check_interval=100", "--trainer.enable_model_summary=false",
-             "--data.batch_size=4", "--model.init_args.human_data.batch_size=4", f"--ckpt_path={crafted}")
+             "--data.batch_size=4", "--model.init_args.human_data.batch_size=4", f"--ckpt_path={crafted}",
+             "--model.init_args.text_encoder=hash", f"--model.init_args.config={json.dumps(fit_config())}")
     finally:
         sys.argv[:] = saved
     resumed = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", map_location="cpu", weights_only=True)

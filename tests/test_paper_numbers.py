@@ -1,6 +1,7 @@
-"""The animal systems' paper numbers: OmniMotionGPT's loss weights (§3.1-3.2, Appendix C) and
-implementation details (§5), Behave Your Motion's stage-1 loss mix and 2e-4 -> 1e-5 step schedule, in
-the modules' total losses and in the paper configs."""
+"""The papers' numbers, read as a user gets them (the configs as `omg fit` parses them, the modules they build, the
+defaults): OMG's budgets, MoC sizes and 200 DDIM steps (Sec. 3.2, 4.1); OmniMotionGPT's loss weights (§3.1-3.2,
+Appendix C), training on C̃^a and implementation details (§5); Behave Your Motion's stage-1 loss mix, 2e-4 -> 1e-5
+step schedule and evaluation protocol. Each assertion names the section; changing a number fails its test."""
 
 from __future__ import annotations
 
@@ -159,3 +160,137 @@ def test_omgpt_paper_config_is_the_paper_and_the_variant_is_named():
     assert _omgpt_switches(REPO / "configs/mini/omgpt.yaml") == variant
     mini = yaml.safe_load((REPO / "configs/mini/omgpt.yaml").read_text())["model"]["init_args"]
     assert {*mini["config"], "standardize"} >= set(variant) and mini["standardize"]  # said, not inherited
+
+
+# -- OMG (Liang et al., CVPR 2024) ------------------------------------------------------------------------------
+SIZES = ("base", "large", "huge", "giant")
+OMG_SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
+            "mean": [0.0] * 263, "std": [1.0] * 263}
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_omg_pretraining_configs_have_the_papers_budget(size):
+    """configs/pretrain_{size}.yaml as `omg fit` parses it: 1M iterations of AdamW at 1e-4 (Sec. 4.1); the global
+    batch of 256 on one 8-GPU node and the windows l ~ U[1, 300] are tests/test_configs.py's and
+    tests/test_datamodule.py's."""
+    cfg = parse(REPO / f"configs/pretrain_{size}.yaml")
+    assert cfg.trainer.max_steps == 1_000_000, f"{size}: OMG Sec. 4.1 pretrains for 1M iterations"
+    assert cfg.model.init_args.lr == 1e-4, f"{size}: OMG Sec. 4.1: AdamW, learning rate 1e-4"
+
+
+def _controlnet_on_meta(cfg):
+    """The ControlNetModule a config builds, on meta, on a described mini base (no checkpoint or CLIP here)."""
+    from omg.lit.controlnet import ControlNetModule
+
+    init = {**cfg.model.init_args.as_dict(), "spec": OMG_SPEC, "text_encoder": "hash", "text_encoder_args": {},
+            "base": {"flavor": "mini", "dit": None, "spec": OMG_SPEC}}
+    with torch.device("meta"):
+        return ControlNetModule(**init)
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_omg_controlnet_configs_have_the_papers_budget_and_controllers(size):
+    """configs/controlnet_{size}.yaml: batch 64, 500 epochs of HumanML3D's 23,384 training clips (Sec. 4.1), and the
+    MoC the module builds from it: K = 12 experts of width d_c = 256, γ = 24, β = 0.25 (Sec. 3.2, 4.1)."""
+    cfg = parse(REPO / f"configs/controlnet_{size}.yaml")
+    per_step = cfg.data.batch_size * 8 * cfg.trainer.accumulate_grad_batches  # on one 8-GPU node
+    assert per_step == 64, f"{size}: OMG Sec. 4.1: batch size 64, got {per_step}"
+    assert cfg.trainer.max_steps == 23384 * 500 // 64, f"{size}: OMG Sec. 4.1: 500 epochs of 23,384 clips at batch 64"
+    clips_per_epoch = cfg.data.batches_per_epoch * cfg.data.batch_size * 8
+    assert abs(clips_per_epoch - 23384) <= per_step / 2, f"{size}: an epoch is one pass of HumanML3D's 23,384 clips"
+    moc = _controlnet_on_meta(cfg).controlnet.config
+    assert (moc.num_experts, moc.d_c, moc.gamma, moc.beta) == (12, 256, 24.0, 0.25), \
+        f"{size}: OMG Sec. 4.1: K = 12, d_c = 256, γ = 24, β = 0.25; got {moc}"
+    assert moc.experts == "moc" and moc.token_masks and moc.zero_init and moc.wiring == "per_layer"  # the full model
+
+
+def test_omg_samples_with_200_ddim_steps_by_default():
+    """OMG reports DDIM sampling with 200 steps (Sec. 4.1): what `omg generate`, `omg serve` and the evaluation
+    use when no --steps / --sampler is given (the card's default, and the steps the sampler is run with)."""
+    from omg.callbacks.eval import EvalCallback
+    from omg.lit.generative import GenerationRequest
+    from omg.lit.pretrain import PretrainModule
+
+    torch.manual_seed(0)
+    module = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 16, "n_heads": 2}, spec=OMG_SPEC,
+                            ema_decay=0).eval()
+    assert module.generation_card().default_steps == 200, "OMG Sec. 4.1: 200 DDIM steps"
+    runs, sample = [], module.sample
+
+    def recorded(*args, **kw):  # the real sampler, its steps and sampler noted
+        runs.append((kw["steps"], kw["sampler"]))
+        return sample(*args, **kw)
+
+    module.sample = recorded
+    request = GenerationRequest(prompts=None, frames=2)
+    module.generate(request)
+    assert runs == [(200, "ddim")], f"OMG Sec. 4.1: DDIM, 200 steps; sampled with {runs}"
+    settings = module.generation_settings(request)
+    assert (settings["steps"], settings["sampler"]) == (200, "ddim")
+    evaluation = _defaults(EvalCallback)  # `omg test`'s text-to-motion evaluation
+    assert (evaluation["steps"], evaluation["sampler"]) == (200, "ddim"), "OMG Sec. 4.1: DDIM, 200 steps"
+
+
+# -- OmniMotionGPT (Yang et al. 2023) ---------------------------------------------------------------------------
+def test_omnimotiongpt_cross_domain_terms_read_the_caption_about_the_animal():
+    """§3.2: the cross-domain terms (L_cons through D_t^a, L_CLIP~) read C̃^a, the human caption with its subject
+    replaced by the paired animal's species, not the human caption C^h."""
+    from omg.text.omgpt import to_animal
+
+    assert to_animal("A man walks forward and he waves his arm", "dog") == "A dog walks forward and it waves its arm"
+    torch.manual_seed(0)
+    animal = _data(MINI / "animal_maa/train")
+    module = tiny_module(animal.spec)
+    module.companion.start()
+    batch, human = next(iter(animal.train_dataloader())), module.companion.next()
+    read, sentence = [], module.sentence
+
+    def recorded(texts):  # the real sentence features, the captions they were taken of noted
+        read.append(list(texts))
+        return sentence(texts)
+
+    module.sentence = recorded
+    module.losses(batch, human)
+    assert read[:2] == [list(human["text"]), list(batch["text"])] and len(read) == 3  # C^h, C^a, then the cross
+    pairs = [batch["category"][i % len(batch["text"])] for i in range(len(human["text"]))]  # human i, animal i mod B_a
+    expected = [to_animal(text, species) if text else "" for text, species in zip(human["text"], pairs)]
+    assert any(expected) and read[2] != list(human["text"]), "OmniMotionGPT §3.2 trains the cross terms on C̃^a"
+    assert read[2] == expected, "OmniMotionGPT §3.2: C̃^a, the subject replaced by the paired animal"
+
+
+def test_omnimotiongpt_paper_config_builds_the_papers_widths():
+    """§5: joint transformers of width 16 and 2 layers, temporal ones of width 256 and 2 layers, pooling l = 4, the
+    latent decoder D_t of width 256 and 4 layers: configs/omgpt.yaml as `omg fit` parses it, in the module it builds."""
+    from omg.lit.omgpt import OmniMotionModule
+
+    def maa(skeleton: str, dim: int) -> dict:
+        return {"representation": "maa", "skeleton": skeleton, "fps": 20.0, "feature_dim": dim, "mean": [0.0] * dim,
+                "std": [1.0] * dim}
+
+    init = {**parse(REPO / "configs/omgpt.yaml").model.init_args.as_dict(), "spec": maa("smal35", 216),
+            "human_spec": maa("smpl22", 138), "text_encoder": "hash", "text_encoder_args": {}}
+    with torch.device("meta"):
+        module = OmniMotionModule(**init)
+    c = module.config
+    widths = {"joint": (c.joint_dim, c.joint_layers), "temporal": (c.temporal_dim, c.temporal_layers),
+              "latent": (c.latent_dim, c.latent_layers), "pool": c.pool, "max_frames": c.max_frames}
+    assert widths == {"joint": (16, 2), "temporal": (256, 2), "latent": (256, 4), "pool": 4, "max_frames": 196}, \
+        f"OmniMotionGPT §5's networks, got {widths}"
+    for domain in ("human", "animal"):
+        decoder = getattr(module.model, domain)["text_decoder"]
+        assert decoder.embed.out_features == 256 and len(decoder.blocks.layers) == 4, domain  # D_t as built
+
+
+# -- Behave Your Motion: the habit evaluation -------------------------------------------------------------------
+def test_habit_evaluation_protocol_is_the_papers():
+    """configs/habit_eval.yaml as `omg test` parses it, and HabitEvalCallback's defaults: a category is a downstream
+    (transfer) target with >= 5 real samples, Diversity over 300 pairs (Sec. 4.4.1), on the VQ-VAE's 64-frame crops."""
+    from omg.callbacks.habit import HabitEvalCallback
+
+    cfg = parse(REPO / "configs/habit_eval.yaml")
+    callback = next(c for c in cfg.trainer.callbacks if c.class_path.endswith("HabitEvalCallback")).init_args
+    defaults = _defaults(HabitEvalCallback)
+    for key, paper in (("min_samples", 5), ("diversity_pairs", 300)):
+        assert callback[key] == defaults[key] == paper, f"Behave Your Motion Sec. 4.4.1: {key} = {paper}"
+    crop = callback.crop_len or cfg.data.max_len
+    assert crop == parse(REPO / "configs/habit_vqvae.yaml").data.max_len == 64, "the VQ-VAE's 64-frame crops"

@@ -196,3 +196,31 @@ def test_trains_with_weights_cast_to_bf16(h263_shards):
     losses["loss"].backward()
     assert module.model.input_proj.weight.grad.dtype == torch.bfloat16
     assert module.sample(None, [12], steps=3).dtype == torch.bfloat16
+
+
+def test_a_single_frame_window_trains(h263_shards, tmp_path):
+    """OMG Sec. 3.1 draws l ~ U[1, L]: a window may be one keyframe. Padded into a batch of longer windows, its
+    prediction is its prediction alone (the padding is masked out of attention, RoPE at position 0), and `omg fit`
+    trains on windows of one frame only, to finite weights."""
+    from omg.cli import main
+
+    torch.manual_seed(0)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, spec=MotionDataModule(str(h263_shards / "train")).spec).model
+    for p in model.parameters():  # past the zero-initialised output and gates, so the outputs say something
+        p.data.normal_(0, 0.05)
+    x, t = torch.randn(3, 30, model.config.input_dim), torch.tensor([10, 500, 999])
+    mask = torch.arange(30)[None] < torch.tensor([1, 30, 7])[:, None]
+    with torch.no_grad():
+        padded, alone = model(x, t, mask), model(x[:1, :1], t[:1])
+    assert alone.abs().mean() > 0.01
+    torch.testing.assert_close(padded[:1, :1], alone)
+
+    root = tmp_path / "run"
+    main(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), f"--data.train={h263_shards}/train",
+          "--data.val=null", "--data.max_len=1", "--data.min_len=1", "--data.batch_size=4", "--data.num_workers=0",
+          "--trainer.max_steps=2", "--trainer.limit_val_batches=0", "--trainer.callbacks.every_n_train_steps=2",
+          f"--trainer.default_root_dir={root}", f"--trainer.callbacks.dirpath={root}/checkpoints",
+          "--trainer.enable_progress_bar=false", TINY_DIT_ARG])
+    state = _final_state(root / "checkpoints/last.ckpt")
+    assert state["global_step"] == 2
+    assert all(torch.isfinite(v).all() for v in state["state_dict"].values() if v.is_floating_point())

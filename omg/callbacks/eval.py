@@ -208,12 +208,16 @@ class EvalCallback(Callback):
             self._fixed = prompts
 
         def generate(texts: list[str], lengths: Tensor, seed: int) -> Tensor:
-            return module.sample(conditioning(module, texts), lengths, seed=seed, **self.sampling)
+            return self.generate(module, texts, lengths, seed)
 
         with sampling(module), trainer.precision_plugin.forward_context():
             return evaluate(generate, self.evaluator, prompts, self.metrics, seed=self.seed, replication=replication,
                             settings=self.settings, spec=self.spec, device=module.device,
                             rank=trainer.global_rank, world_size=trainer.world_size)
+
+    def generate(self, module: L.LightningModule, texts: list[str], lengths: Tensor, seed: int) -> Tensor:
+        """The model's motions for a batch of prompts (``OODEvalCallback`` also counts what they started from)."""
+        return module.sample(conditioning(module, texts), lengths, seed=seed, **self.sampling)
 
     # -- fit -------------------------------------------------------------------------------
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:

@@ -1,17 +1,21 @@
-"""``HabitEvalCallback``: the paper's evaluation of habit transfer at ``omg test`` on a HabitPriorModule.
+"""``HabitEvalCallback``: the paper's table of habit transfer at ``omg test``, on a HabitVQModule of the
+paper's order (its own flows) or a HabitPriorModule.
 
-Validation clips are cut into fixed-length crops. ``mode="transfer"`` (default, the paper's
-definition): the crops of the other categories are transferred onto every category c with at least
-``min_samples`` real crops, with habit latents drawn from c's prior; FID, per-category Intra-FID,
-Diversity and 1-NNA compare the transferred motion with c's real crops, MPJPE the transferred motion
-with its source. The pooled FID and 1-NNA barely see habits (untransferred crops, pooled over the
-targets, are the real mixture again); Intra-FID is the one that does. ``mode="reconstruction"`` (a
-diagnostic, omg's figures before): each crop through the VQ-VAE with a latent of its own category's
-prior against the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
+Validation clips are cut into fixed-length crops. ``mode="paper"`` (default: "Behave Your Motion"
+Sec. 4.4.1, one table of six columns): FID, Intra-FID, Diversity and 1-NNA of the model's
+*own-category* output (each crop through the VQ-VAE with a habit latent of its own category's
+prior, against the real crops: the paper notes that a pure reconstruction model "naturally
+achieves low FID and Intra-FID", so these are the model's output in the crop's own category);
+Downstream, the per-category FID of every crop transferred to every other category with at least
+``min_samples`` real crops against that category's real crops (``cross_category_fid``); and MPJPE of
+those transfers against their sources. ``mode="transfer_distribution"`` (a named diagnostic, omg's
+figures before): FID, Intra-FID, Diversity and 1-NNA of the transferred crops against the target
+category's real crops, MPJPE against the source; pooled over the targets, untransferred crops are
+the real mixture again, so there Intra-FID is the figure that sees whether habits moved.
 Features are those of a motion evaluator trained on the same representation
-(``configs/mini/habit_evaluator.yaml``). Each replication
-draws new prior samples and codes; the table row is the VQ-VAE's quantizer (EMA or EMA-reset),
-and rows of earlier runs written to the same ``table`` file are printed with it.
+(``configs/mini/habit_evaluator.yaml``). Each replication draws new prior samples and codes; the
+table row is the VQ-VAE's quantizer (EMA or EMA-reset), and rows of earlier runs written to the
+same ``table`` file are printed with it.
 """
 
 from __future__ import annotations
@@ -34,8 +38,8 @@ from omg.files import atomic_write, write_json
 from omg.metrics import EvalBatch
 from omg.registry import METRICS
 
-COLUMNS = {  # summary key -> the paper's column
-    "fid": "FID", "intra_fid": "Intra-FID", "cross_category_fid": "downstream FID", "diversity": "Diversity",
+COLUMNS = {  # summary key -> the paper's column (Behave Your Motion, Sec. 4.4.1: its six)
+    "fid": "FID", "intra_fid": "Intra-FID", "cross_category_fid": "Downstream", "diversity": "Diversity",
     "one_nna": "1-NNA", "mpjpe": "MPJPE (m)",
 }  # fmt: skip
 
@@ -69,53 +73,85 @@ def _stack(items: list[dict]) -> tuple[Tensor, Tensor, Tensor]:
     return motion, mask, torch.from_numpy(np.stack([it["offsets"] for it in items]))
 
 
-MODES = ("transfer", "reconstruction")
+MODES = ("paper", "transfer_distribution")
+HABIT_METRICS = ("fid", "intra_fid", "cross_category_fid", "diversity", "one_nna", "mpjpe")  # the paper's table
+# mode "paper": these are fed the transfers (every crop onto every other target category); the others the
+# model's own-category output, as the paper computes FID, Intra-FID, Diversity and 1-NNA (Sec. 4.4.1)
+ON_TRANSFERS = frozenset({"cross_category_fid", "mpjpe"})
+# mode "transfer_distribution": every metric is fed the transfers, against the target's real crops; its
+# Intra-FID is the per-target FID that cross_category_fid would repeat
+DISTRIBUTION_METRICS = ("fid", "intra_fid", "diversity", "one_nna", "mpjpe")
 
 
-def prior_move(prior) -> Callable[[Tensor, int, torch.Generator], Tensor]:
+def check_mode(mode: str) -> None:
+    if mode not in MODES:
+        raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)} (paper: the paper's table; "
+                         f"transfer_distribution: the diagnostic of transferred crops against the target's), "
+                         f"got {mode!r}")
+
+
+def default_metrics(mode: str) -> tuple[str, ...]:
+    return HABIT_METRICS if mode == "paper" else DISTRIBUTION_METRICS
+
+
+def habit_parts(model) -> tuple[nn.Module, nn.Module]:
+    """(the VQ-VAE, the flow priors) a habit evaluation transfers with: a HabitPriorModule's VQ-VAE and its
+    flows, or a HabitVQModule of the paper's order (``flow_prior``) and the flows it holds."""
+    if hasattr(model, "vq") and hasattr(model, "flows"):  # HabitPriorModule
+        return model.vq, model.flows
+    if not hasattr(model, "vqvae") or not hasattr(model, "flows"):
+        raise UsageError(f"HabitEvalCallback evaluates a HabitVQModule or HabitPriorModule, not a "
+                         f"{type(model).__name__}")
+    if model.flows is None:
+        raise UsageError("HabitEvalCallback: this VQ-VAE was trained in omg's earlier order (kl_then_flows) and "
+                         "holds no flow priors; test its stage-2 prior: omg test --config "
+                         "configs/mini/habit_prior.yaml --config configs/mini/habit_eval.yaml --ckpt_path PRIOR.ckpt")
+    return model, model.flows
+
+
+def prior_move(model) -> Callable[[Tensor, int, torch.Generator], Tensor]:
     """The transfer the evaluation scores: ``motion`` (B, T, D) onto category ``k`` with habit latents
     drawn from k's flow prior (the code sampling seeded from ``gen``)."""
+    vq, flows = habit_parts(model)
+
     def move(motion: Tensor, k: int, gen: torch.Generator) -> Tensor:
-        z = prior.flows.sample(k, len(motion), gen)
-        return prior.vq.transfer(motion, k, z, seed=int(torch.randint(2**31, (1,), generator=gen)))
+        z = flows.sample(k, len(motion), gen)
+        return vq.transfer(motion, k, z, seed=int(torch.randint(2**31, (1,), generator=gen)))
     return move
 
 
-HABIT_METRICS = ("fid", "intra_fid", "diversity", "one_nna", "mpjpe")  # the paper's table (Behave Your Motion, Sec. 4)
-
-
 @torch.no_grad()
-def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, min_samples: int = 5,
-                    batch_size: int = 64, diversity_pairs: int = 300, mode: str = "transfer",
+def evaluate_habits(model, evaluator: nn.Module, items: list[dict], seed: int, min_samples: int = 5,
+                    batch_size: int = 64, diversity_pairs: int = 300, mode: str = "paper",
                     move: Callable[[Tensor, int, torch.Generator], Tensor] | None = None,
                     metrics: dict[str, dict] | None = None) -> dict[str, float]:
-    """One replication of the paper's metrics for a HabitPriorModule on real crops ``items``.
+    """One replication of the habit evaluation of ``model`` (a HabitVQModule of the paper's order or a
+    HabitPriorModule) on real crops ``items``.
 
-    ``mode="transfer"`` (the paper's): every crop of another category is transferred onto each category c
-    with at least ``min_samples`` real crops; FID, Intra-FID (per target category), Diversity and 1-NNA
-    of the transferred motion against c's real crops, MPJPE of the transferred motion against its source.
-    ``mode="reconstruction"`` (a diagnostic): each crop through the VQ-VAE onto its own category against
-    the real crops, plus the downstream FID of the transfers (``cross_category_fid``).
-    ``move(motion, k, gen)``: the transfer scored (default: the prior's, ``prior_move``). ``metrics``: registered
-    metrics by name with their options (``parse_metrics``; default ``HABIT_METRICS``), each fed through
+    The transfers: every crop of another category onto each category c with at least ``min_samples`` real
+    crops. ``mode="paper"`` (the paper's table): FID, Intra-FID, Diversity and 1-NNA of the model's
+    own-category output (each crop onto its own category) against the real crops; Downstream
+    (``cross_category_fid``: per target, the transfers against its real crops) and MPJPE of the transfers
+    against their sources (``ON_TRANSFERS``). ``mode="transfer_distribution"`` (a diagnostic): every metric
+    on the transfers, against the target's real crops (MPJPE against the source).
+    ``move(motion, k, gen)``: the transfer scored (default: the model's, ``prior_move``). ``metrics``: registered
+    metrics by name with their options (``parse_metrics``; default ``default_metrics(mode)``), each fed through
     ``eval_update`` (a reference metric, Diversity, also for the real crops as ``real_<name>``)."""
-    if mode not in MODES:
-        raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
-    vq = prior.vq
-    move = move or prior_move(prior)
+    check_mode(mode)
+    vq, _ = habit_parts(model)
+    move = move or prior_move(model)
     cats = vq.categories
     known = [it for it in items if it["category"] in cats]
     counts = {c: sum(it["category"] == c for it in known) for c in cats}
     targets = [k for k, c in enumerate(cats) if counts[c] >= min_samples]
-    if len(known) < 2 or (mode == "transfer" and (not targets or len(targets) == len(known))):
-        raise UsageError(f"the {mode} evaluation needs validation crops of the model's categories {cats}, "
+    if not targets or not any(len(known) > counts[cats[k]] for k in targets):
+        raise UsageError(f"the habit evaluation needs validation crops of the model's categories {cats}, "
                          f"{min_samples} of a target category and others to transfer onto it; got {counts}")
     E = evaluator.encode_motion(torch.from_numpy(np.asarray(known[0]["motion"]))[None]).shape[-1]
-    real_count = sum(counts[cats[k]] for k in targets) if mode == "transfer" else len(known)
+    real_count = len(known) if mode == "paper" else sum(counts[cats[k]] for k in targets)
     pairs = min(diversity_pairs, real_count)
-    chosen = dict(metrics if metrics is not None else parse_metrics(None, defaults=HABIT_METRICS, from_prompts=False))
-    if mode == "reconstruction":
-        chosen.setdefault("cross_category_fid", {})
+    chosen = dict(metrics if metrics is not None else parse_metrics(None, defaults=default_metrics(mode),
+                                                                    from_prompts=False))
     context = {"num_features": E, "categories": cats, "num_pairs": pairs, "seed": seed, "min_samples": min_samples,
                "skeleton": vq.spec.skeleton, "fps": vq.spec.fps}
     metrics = {}
@@ -123,7 +159,10 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
         metrics[name] = build_metric(name, options, context, key="HabitEvalCallback.metrics")
         if getattr(METRICS.get(name), "reference", False):  # also described for the real crops
             metrics[f"real_{name}"] = build_metric(name, options, context, key="HabitEvalCallback.metrics")
-    cross = metrics.pop("cross_category_fid", None) if mode == "reconstruction" else None
+    # which metrics read which motion: in the paper's table the transfers feed ON_TRANSFERS, the own-category
+    # output the rest; the diagnostic feeds every metric the transfers
+    on_transfers = {n: m for n, m in metrics.items() if mode != "paper" or n.removeprefix("real_") in ON_TRANSFERS}
+    on_own = {n: m for n, m in metrics.items() if n not in on_transfers}
     gen = torch.Generator().manual_seed(seed)
     rep = vq.representation
     for part in _batches(known, batch_size):
@@ -131,37 +170,29 @@ def evaluate_habits(prior, evaluator: nn.Module, items: list[dict], seed: int, m
         category = torch.tensor([cats.index(it["category"]) for it in part], device=vq.device)
         real = evaluator.encode_motion(motion, mask)
         source = rep.decode(motion, offsets)
-        batches = []
-        if mode == "reconstruction":
-            recon = torch.empty_like(motion)
+        if on_own:  # each crop onto its own category, against all the real crops
+            own = torch.empty_like(motion)
             for k in category.unique().tolist():
                 rows = category == k
-                recon[rows] = move(motion[rows], k, gen)
-            batches.append(EvalBatch(real=real, gen=evaluator.encode_motion(recon, mask), category=category,
-                                     mask=mask, real_joints=source, gen_joints=rep.decode(recon, offsets)))
-        transferred = []  # reconstruction: (features, target) of the transfers, for the downstream FID
+                own[rows] = move(motion[rows], k, gen)
+            batch = EvalBatch(real=real, gen=evaluator.encode_motion(own, mask), category=category, mask=mask,
+                              real_joints=source, gen_joints=rep.decode(own, offsets))
+            for name, metric in on_own.items():
+                metric.eval_update(batch, real=name.startswith("real_"))
+        if not on_transfers:
+            continue
         for k in targets:  # every crop of another category onto category k, against k's real crops
             rows = category != k
             if not rows.any():
                 continue
             moved = move(motion[rows], k, gen)
             into = torch.full((int(rows.sum()),), k, device=vq.device)
-            features = evaluator.encode_motion(moved, mask[rows])
-            if mode == "reconstruction":
-                transferred.append((features, into))
-                continue
-            own = category == k
-            batches.append(EvalBatch(real=real[own], gen=features, category=category[own], gen_category=into,
-                                     mask=mask[rows], real_joints=source[rows],
-                                     gen_joints=rep.decode(moved, offsets[rows])))
-        if cross is not None and transferred:
-            cross.eval_update(EvalBatch(real=real, category=category, gen=torch.cat([f for f, _ in transferred]),
-                                        gen_category=torch.cat([c for _, c in transferred])))
-        for batch in batches:
-            for name, metric in metrics.items():
+            target = category == k
+            batch = EvalBatch(real=real[target], gen=evaluator.encode_motion(moved, mask[rows]),
+                              category=category[target], gen_category=into, mask=mask[rows],
+                              real_joints=source[rows], gen_joints=rep.decode(moved, offsets[rows]))
+            for name, metric in on_transfers.items():
                 metric.eval_update(batch, real=name.startswith("real_"))
-    if cross is not None:
-        metrics["cross_category_fid"] = cross
     out = {name: metric.compute() for name, metric in metrics.items()}
     return {name: float(v[name.removeprefix("real_")] if isinstance(v, dict) else v) for name, v in out.items()}
 
@@ -181,32 +212,34 @@ def paper_table(rows: dict[str, dict[str, dict]]) -> str:
 
 
 class HabitEvalCallback(Callback):
-    """The habit-transfer evaluation at ``omg test`` (a HabitPriorModule checkpoint, data.val the real motion).
+    """The habit-transfer evaluation at ``omg test`` (a HabitVQModule checkpoint of the paper's order, or a
+    HabitPriorModule one; data.val the real motion).
 
     Args:
         evaluator: a motion evaluator checkpoint trained on the same representation (EvaluatorModule).
-        mode: ``transfer`` (the paper's metrics of transferred motion) or ``reconstruction`` (the
-            diagnostic of each crop reconstructed onto its own category); a reconstruction row is
-            labelled "<quantizer> (reconstruction)".
+        mode: ``paper`` (the paper's table: FID, Intra-FID, Diversity, 1-NNA of the own-category output,
+            Downstream and MPJPE of the transfers) or ``transfer_distribution`` (the diagnostic of the
+            transfers against the target's real crops; its row is labelled "<quantizer> (transfer
+            distribution)").
         replications: passes with new prior samples and codes; mean ± 95% CI.
         crop_len: frames per evaluated crop (default: data.max_len).
         crop_stride: frames between crop starts (default: crop_len, crops that do not overlap); a small
             validation set gives more crops with overlapping ones, but then a real crop's nearest
             neighbour is often its overlapping twin, which biases 1-NNA upwards.
-        min_samples: a category is a downstream target when it has this many real crops (paper: 5).
+        min_samples: a category is a transfer target when it has this many real crops (paper: 5).
         diversity_pairs: Diversity's pairs (paper: 300; fewer when there are fewer crops).
         seed: seeds every replication.
         table: a JSON file that collects the rows (EMA, EMA-reset) of the runs that wrote to it; the
             whole table is printed and written beside it as markdown.
         metrics: registered metrics by name, as ``EvalCallback.metrics`` (default: the paper's FID,
-            Intra-FID, Diversity, 1-NNA and MPJPE; a plugin's metric is fed the same batches).
+            Intra-FID, Downstream, Diversity, 1-NNA and MPJPE; a plugin's metric is fed the own-category
+            output in ``paper`` mode, the transfers in ``transfer_distribution``).
     """
 
     def __init__(self, evaluator: str, replications: int = 5, crop_len: int | None = None,
                  crop_stride: int | None = None, min_samples: int = 5, diversity_pairs: int = 300, seed: int = 0,
-                 table: str | None = None, mode: str = "transfer", metrics: list[str | dict] | None = None):
-        if mode not in MODES:
-            raise UsageError(f"HabitEvalCallback.mode: one of {', '.join(MODES)}, got {mode!r}")
+                 table: str | None = None, mode: str = "paper", metrics: list[str | dict] | None = None):
+        check_mode(mode)
         if not Path(evaluator).exists():
             raise UsageError(f"HabitEvalCallback.evaluator: no evaluator checkpoint at {evaluator}; train one with "
                              "`omg fit --config configs/mini/habit_evaluator.yaml`")
@@ -217,15 +250,14 @@ class HabitEvalCallback(Callback):
         self.crop_stride, self.mode = crop_stride, mode
         self.min_samples, self.diversity_pairs, self.seed = min_samples, diversity_pairs, seed
         self.table = Path(table) if table else None
-        self.metrics = parse_metrics(metrics, key="HabitEvalCallback.metrics", defaults=HABIT_METRICS,
+        self.metrics = parse_metrics(metrics, key="HabitEvalCallback.metrics", defaults=default_metrics(mode),
                                      from_prompts=False)
         self.evaluator: nn.Module | None = None
 
     def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None = None) -> None:
         """The checks that need no trainer: ``omg.tools.lightning`` runs them before the run creates its
         folder, ``setup`` again for a Trainer used without the CLI."""
-        if not hasattr(model, "flows") or not hasattr(model, "vq"):
-            raise UsageError(f"HabitEvalCallback evaluates a HabitPriorModule, not a {type(model).__name__}")
+        habit_parts(model)  # a model with flow priors to draw the habit latents from
         if self.evaluator is None:
             self.evaluator = build_evaluator(self.evaluator_path, key="HabitEvalCallback.evaluator")
         check_evaluator_spec(self.evaluator, model.spec, key="HabitEvalCallback.evaluator")
@@ -241,7 +273,8 @@ class HabitEvalCallback(Callback):
         items = crops(data.val_clips().samples, length, self.crop_stride)
         evaluator = self.evaluator.to(pl_module.device)
         pl_module.eval()
-        label = pl_module.vq.row_label + (" (reconstruction)" if self.mode == "reconstruction" else "")
+        vq, _ = habit_parts(pl_module)
+        label = vq.row_label + (" (transfer distribution)" if self.mode == "transfer_distribution" else "")
 
         def replication(r: int) -> dict[str, float]:
             values = evaluate_habits(pl_module, evaluator, items, self.seed + r, self.min_samples,

@@ -5,7 +5,9 @@ replaced by an animal name (``omg.text.omgpt.to_animal``); no real animal motion
 so the real set of FID-OOD is the whole real animal set: each prompt is paired with a random real
 animal clip (training and validation sets of ``data``), cut to the prompt's length. The metrics are
 those of ``EvalCallback`` on these prompts, logged as ``ood/<metric>`` with ``fid`` as ``fid_ood``; ``omg test`` writes
-``eval_ood.json`` / ``eval_ood.md`` beside the in-distribution ``eval.json``.
+``eval_ood.json`` / ``eval_ood.md`` beside the in-distribution ``eval.json``. Where the model retrieves its human
+motion, no generation may start from the prompt's own clip: every clip captioned by a prompt is left out of the
+retrieval bank, and the report counts the generations whose human clip carries their prompt's caption (0).
 
 ``SideTransferCallback`` measures what no animal-trained judge can: whether a one-sided human
 action ("kicks with the left leg") keeps its side when the model makes it into each animal.
@@ -29,7 +31,7 @@ from omg.errors import UsageError
 from omg.evaluation import PromptSet, markdown_table, write_report
 from omg.files import atomic_write, write_json
 from omg.models.omgpt import primal_joints
-from omg.text.omgpt import one_sided_limb, to_animal
+from omg.text.omgpt import caption_key, one_sided_limb, to_animal
 
 
 class OODEvalCallback(EvalCallback):
@@ -52,14 +54,33 @@ class OODEvalCallback(EvalCallback):
         self.prompt_shards, self.animals, self.max_frames = prompts, animals, max_frames
         self._captions: list[tuple[str, int]] | None = None  # (caption, clip length)
         self._real: list[dict] | None = None
+        self._sources: dict[str, set[str]] = {}  # a prompt about an animal -> the human captions it was made from
+        self._source: dict[str, Any] = {}  # where the model's human motion came from, for the report
 
-    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        super().setup(trainer, pl_module, stage)
-        urls, manifest, checks = resolve_shards(self.prompt_shards)
-        human = ClipDataset.from_shards(urls, manifest["feature_dim"], self._windows, checks=checks).samples
-        self._captions = [(t, len(s["motion"])) for s in human for t in s["texts"]]
+    def preflight(self, model: L.LightningModule, data: L.LightningDataModule | None) -> None:
+        """``EvalCallback``'s checks, the prompts read, and the model's human source checked: a generator
+        that is there, or a retrieval bank without the clips whose captions are the prompts."""
+        super().preflight(model, data)
+        if self._captions is None:
+            urls, manifest, checks = resolve_shards(self.prompt_shards, "OODEvalCallback.prompts")
+            windows = WindowSampler(self.max_frames, 1, "whole")
+            human = ClipDataset.from_shards(urls, manifest["feature_dim"], windows, checks=checks).samples
+            self._captions = [(t, len(s["motion"])) for s in human for t in s["texts"]]
         if not self._captions:
             raise UsageError(f"OODEvalCallback.prompts: {self.prompt_shards} holds no captions")
+        source = getattr(model, "human_source", None)
+        if source == "retrieval" and callable(getattr(model, "exclude_from_retrieval", None)):
+            excluded, left = model.exclude_from_retrieval([c for c, _ in self._captions], "OODEvalCallback")
+            self._source = {"human_source": "retrieval", "retrieval_bank": model.retrieval_bank or "checkpoint",
+                            "retrieval_clips": left, "retrieval_excluded": excluded, "generations": 0,
+                            "from_prompt_clip": 0}
+        elif source is not None:
+            if callable(check := getattr(model, "check_human_source", None)):
+                check()
+            self._source = {"human_source": str(source)}
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        super().setup(trainer, pl_module, stage)  # preflight: the prompts
         data = trainer.datamodule
         real = list(self._samples)
         if getattr(data, "train_urls", None):
@@ -81,6 +102,7 @@ class OODEvalCallback(EvalCallback):
             length = max(2, min(frames, len(real["motion"]), self.max_frames))
             start = int(rng.integers(len(real["motion"]) - length + 1))
             texts.append(to_animal(caption, animal))
+            self._sources.setdefault(texts[-1], set()).add(caption_key(caption))
             windows.append(real["motion"][start:start + length])
             categories.append(animal)
             offsets.append(real["meta"].get("offsets"))
@@ -97,9 +119,21 @@ class OODEvalCallback(EvalCallback):
         values = super().run_once(trainer, module, replication)
         return {rename(k): v for k, v in values.items()}
 
+    def generate(self, module: L.LightningModule, texts: list[str], lengths: torch.Tensor, seed: int) -> torch.Tensor:
+        """``EvalCallback``'s, counting (on this rank) the retrieved human clips captioned by their prompt's
+        own caption: the human motion must not be the prompt's answer."""
+        motion = super().generate(module, texts, lengths, seed)
+        if self._source.get("human_source") == "retrieval":
+            drawn = [{caption_key(t) for t in clip} for clip in module.retrieved]
+            self._source["generations"] += len(texts)
+            self._source["from_prompt_clip"] += sum(bool(self._sources.get(t, set()) & d)
+                                                    for t, d in zip(texts, drawn))
+        return motion
+
     @rank_zero_only
     def _report(self, directory: Path, summary: dict, settings: dict) -> None:
-        settings = {**settings, "prompts": self.prompt_shards, "animals": self.animals, "protocol": "OOD"}
+        settings = {**settings, "prompts": self.prompt_shards, "animals": self.animals, "protocol": "OOD",
+                    **self._source}
         # logged as ood/<metric>, reported as <metric>
         summary = {key.removeprefix("ood/"): value for key, value in summary.items()}
         json_path, md_path = write_report(directory, summary, settings, name=self.report_name)

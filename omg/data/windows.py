@@ -3,9 +3,11 @@
 Two ways to cut, chosen by what the model learns from:
 
 - ``windows`` (unlabeled pretraining, OMG Sec. 3.1): sliding random windows, a length
-  l ~ U[min_len, min(L, T)] and a start i ~ U[0, T - l] (OMG: L = 300 frames). A long take
-  yields proportionally more windows than a short clip (``visits``), so every frame of the
-  data is equally likely to be trained on. Clips shorter than ``min_len`` are used whole.
+  l ~ U[min_len, min(L, T)] and a start i ~ U[0, T - l]. The paper's l ~ U[1, L] ("even a single
+  keyframe") is the default (``min_len`` 1; L = 300 frames at 30 fps in the pretraining configs);
+  ``min_len`` 60 gives omg's earlier U[60, L]. A long take yields proportionally more windows than
+  a short clip (``visits``), so every frame of the data is equally likely to be trained on. Clips
+  shorter than ``min_len`` are used whole.
 - ``whole`` (captioned data: a caption describes its whole clip): the clip itself, cropped at
   a random start to ``max_len`` only when longer, as HumanML3D's loaders do (196 frames);
   clips shorter than ``min_len`` are not trained on (the papers' length filters: HumanML3D
@@ -24,20 +26,25 @@ from omg.motion import length_mask
 from omg.text.sides import mirror_caption
 
 CLIP_MODES = ("windows", "whole")
+# the shortest sample of each mode when data.min_len is not given: a window may be a single frame
+# (OMG Sec. 3.1: l ~ U[1, L]); a whole captioned clip needs 40 (HumanML3D's loader, min_motion_len)
+DEFAULT_MIN_LEN = {"windows": 1, "whole": 40}
 
 
 @dataclass(frozen=True)
 class WindowSampler:
     max_len: int = 300
-    min_len: int = 40
+    min_len: int | None = None  # None: DEFAULT_MIN_LEN of the mode
     mode: str = "windows"  # one of CLIP_MODES
 
     def __post_init__(self):
+        if self.mode not in CLIP_MODES:
+            raise UsageError(f"data.clips must be one of {', '.join(CLIP_MODES)}, got {self.mode!r}")
+        if self.min_len is None:
+            object.__setattr__(self, "min_len", min(DEFAULT_MIN_LEN[self.mode], self.max_len))
         if not 1 <= self.min_len <= self.max_len:
             raise UsageError("windows need 1 <= min_len <= max_len, "
                              f"got min_len={self.min_len}, max_len={self.max_len}")
-        if self.mode not in CLIP_MODES:
-            raise UsageError(f"data.clips must be one of {', '.join(CLIP_MODES)}, got {self.mode!r}")
 
     def __call__(self, num_frames: int, rng: np.random.Generator) -> tuple[int, int]:
         """(start, length) of the next training sample of a clip, by ``mode``."""

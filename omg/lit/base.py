@@ -77,7 +77,12 @@ class OmgModule(L.LightningModule):
     ``location_hparams`` the hyper-parameters that name data or files to open (a second shard set,
     a companion checkpoint): a checkpoint's values of those are never used, since a checkpoint is
     inert and self-contained (``omg.lit.checkpoint.load_module`` drops them; ``--ckpt_path`` takes
-    them from the run's config). They give
+    them from the run's config). They list in ``architecture_hparams`` the hyper-parameters a
+    checkpoint's weights were made with (widths, depths, the data's spec, the text encoder, the
+    codebook, what the module fills in from its data): under ``--ckpt_path`` those always come from
+    the checkpoint and a config that says otherwise is refused; every other one (sampling,
+    evaluation, optimisation, loss weights) is the run's to set (``omg.lit.checkpoint.run_hparams``).
+    They give
     their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
     and ``warmup_steps``; ``make_optimizer`` (AdamW) and ``lr_factor`` (linear warm-up then cosine
     decay over the run) are the hooks of a family whose paper says otherwise.
@@ -85,6 +90,7 @@ class OmgModule(L.LightningModule):
 
     frozen_prefixes: tuple[str, ...] = ()
     location_hparams: tuple[str, ...] = ()
+    architecture_hparams: tuple[str, ...] = ()  # the weights' own: from the checkpoint under --ckpt_path
     ema_decay: float = 0.0  # the weight EMA's decay (0: none), over ``trainable_module()``
     ema: EMA | None = None
     lr: float

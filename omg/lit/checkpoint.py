@@ -360,6 +360,58 @@ def inert_hparams(cls: type, hparams: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in hparams.items() if k not in drop}
 
 
+def _plain(value: Any) -> Any:
+    """A hyper-parameter's value as YAML and JSON give it (tuples as lists, mappings as dicts), for comparison."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _shown(value: Any, width: int = 80) -> str:
+    text = json.dumps(_plain(value), default=str)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def _contradiction(trained: Any, given: Any, key: str) -> tuple[str, str, str] | None:
+    """(the key, the checkpoint's value, the run's) where ``given`` says otherwise than ``trained``; None where it
+    agrees. A mapping agrees when each field it names has the checkpoint's value (``dit: {n_layers: 2}`` against
+    a checkpoint trained with ``{n_layers: 2, d_model: 32}``): the fields it leaves out come from the checkpoint.
+    A field the checkpoint does not name was its preset's default, which the names alone do not tell: naming it
+    is a contradiction (name the checkpoint's fields only, or leave the mapping out)."""
+    trained, given = _plain(trained), _plain(given)
+    if trained is None and isinstance(given, dict):  # no overrides (``dit: null``): each field its default
+        trained = {}
+    if isinstance(trained, dict) and isinstance(given, dict):
+        for field, value in given.items():
+            if field not in trained:
+                return f"{key}.{field}", "its default (the field unset)", _shown(value)
+            if found := _contradiction(trained[field], value, f"{key}.{field}"):
+                return found
+        return None
+    return None if trained == given else (key, _shown(trained), _shown(given))
+
+
+def run_hparams(cls: type | None, hparams: dict[str, Any], given: dict[str, Any], src: PathLike) -> dict[str, Any]:
+    """The hyper-parameters a run under ``--ckpt_path`` takes from the checkpoint ``src``: checkpoint < config
+    files < command line. ``given``: the model's arguments that the run's config files and command line set
+    (their defaults left out). The class's ``architecture_hparams`` (``OmgModule``: what the weights were made
+    with) always come from the checkpoint, and a run that gives one of them another value is refused in one
+    line naming it; every other hyper-parameter the run gives (sampling, evaluation, the optimizer, loss
+    weights) is the run's, and those it does not give are the checkpoint's. A ``null`` given for an
+    architecture hyper-parameter (a run's saved config.yaml lists ``base: null``, ``animals: null``, the
+    values the module fills in) leaves it to the checkpoint."""
+    architecture = set(getattr(cls, "architecture_hparams", ()))
+    for key in sorted(architecture & set(given) & set(hparams)):
+        if given[key] is not None and (found := _contradiction(hparams[key], given[key], key)):
+            name, trained, says = found
+            raise UsageError(f"--model.init_args.{name}: the checkpoint {src} was trained with {trained}; this run's "
+                             f"config says {says} (what shapes the weights comes from the checkpoint: leave it out, "
+                             "or pass a checkpoint trained with it)")
+    return {k: v for k, v in hparams.items() if k in architecture or k not in given}
+
+
 def _check_rebuildable(ckpt: dict[str, Any], src: PathLike) -> None:
     """UsageError for a file that holds weights but nothing to rebuild the module from."""
     if not ckpt["hyper_parameters"] and not recorded_class(ckpt):

@@ -47,6 +47,8 @@ class ControlNetModule(MotionDiffusionModule):
 
     text_conditional = True
     frozen_prefixes = ("text_encoder.",)  # rebuilt from its own weights, never saved with ours
+    # the weights' own (the frozen model's flavor, DiT and spec are in `base`); text_encoder_args may move its files
+    architecture_hparams = ("text_encoder", "moc", "base", "spec")
     clip_sampling = "whole"  # a caption describes its whole clip (HumanML3D: up to 196 frames)
 
     def __init__(
@@ -91,9 +93,11 @@ class ControlNetModule(MotionDiffusionModule):
         if self.data_spec is not None:
             # a motion prior learns velocities per frame: fine-tuning it at another rate, or
             # generating at its rate from clips of another, would change what every frame means
-            self.spec.check_compatible(self.data_spec, "the pretrained model", "the fine-tuning shards",
-                                       hint="rebuild the shards to match the pretrained model (`omg shards build "
-                                            f"... --fps {self.spec.fps:g}`), or pretrain on shards like these")
+            hint = ("rebuild the shards to match the pretrained model (`omg shards build "
+                    f"... --fps {self.spec.fps:g}`), or pretrain on shards like these")
+            if self.spec.conflicts(self.data_spec, ("fps",)):
+                hint = rate_hint(self.spec.fps, self.data_spec.fps)
+            self.spec.check_compatible(self.data_spec, "the pretrained model", "the fine-tuning shards", hint=hint)
             self.register_buffer("data_mean", torch.tensor(self.data_spec.mean), persistent=False)
             self.register_buffer("data_std", torch.tensor(self.data_spec.std), persistent=False)
 
@@ -144,6 +148,16 @@ class ControlNetModule(MotionDiffusionModule):
         text = self.encode_text(list(texts))
         terms = self.controlnet.text_terms(text.tokens, text.mask, text.eot, fold_biases=True)  # once, not per step
         return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask)
+
+
+def rate_hint(prior_fps: float, data_fps: float) -> str:
+    """What to do when the fine-tuning data is not at the prior's rate. The prior is not resampled: it learnt
+    per-frame velocities at its rate and generates at it, and HumanML3D (its features and its evaluator) exists
+    at 20 fps only, so the prior is pretrained at the data's rate, its windows kept at OMG's 10 s (Sec. 3.1:
+    L = 300 frames at 30 fps)."""
+    return (f"pretrain the prior on shards built at the fine-tuning data's {data_fps:g} fps (`omg shards build ... "
+            f"--fps {data_fps:g}`) with data.max_len {round(300 * data_fps / 30)} (OMG's L = 300 frames at 30 fps, the "
+            f"same 10 s), or fine-tune on shards built at the prior's --fps {prior_fps:g}")
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:

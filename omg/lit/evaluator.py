@@ -43,6 +43,7 @@ class EvaluatorModule(OmgModule):
 
     clip_sampling = "whole"  # a caption describes its whole clip (omg.data.windows)
     frozen_prefixes = ("evaluator.text_encoder.",)  # the backbone is rebuilt from its own weights
+    architecture_hparams = ("text_encoder", "flavor", "evaluator", "spec")  # r_precision_pool etc.: the run's
 
     def __init__(
         self,

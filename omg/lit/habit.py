@@ -9,7 +9,7 @@ flow priors of the habit latent, on ``quatvel`` shards whose clips carry their s
   (``flow_weight`` · KL(q || p_flow), estimated with a posterior sample: log q(z | m) − log p_flow(z),
   whose gradient on the flow is the NLL of the posterior under it) while the latent alone must
   tell the crop's habit statistics (each local joint rotation's mean and spread over time: the reconstruction
-  that keeps the latent informative; the paper's text does not say which it used); then the
+  that keeps the latent informative, omg's own phase-1 design); then the
   encoders and flows are frozen and the VQ-VAE trains with no KL term. The checkpoint holds the
   flows: ``omg transfer`` and ``omg generate`` draw the habit latent from them, no stage 2.
 - ``kl_then_flows`` (omg's earlier order, a named option): the encoders train inside the VQ-VAE
@@ -25,6 +25,7 @@ habit latent (a sample of its prior) and text embedding, quantize, decode with t
 from __future__ import annotations
 
 import contextlib
+import io
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,10 @@ class HabitVQModule(OmgModule):
 
     clip_sampling = "windows"  # fixed-length crops: data.min_len = data.max_len
     frozen_prefixes = ()
+    # what the weights and codebook were made with (code_reset names the paper's row); quantizer and
+    # temperature (how codes are drawn), the loss weights and the optimizer are the run's
+    architecture_hparams = ("categories", "habit_order", "flavor", "habit", "code_reset", "condition_decoder",
+                            "text_encoder", "descriptions", "category_embeddings", "spec")
 
     def __init__(
         self,
@@ -129,7 +134,9 @@ class HabitVQModule(OmgModule):
         text_encoder_args: dict[str, Any] | None = None,
         species_file: str | None = None,
         descriptions: dict[str, str] | None = None,
-        category_embeddings: list[list[float]] | None = None,
+        # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
+        # minutes to parse under `omg test --ckpt_path` (it is filled in, never written by hand)
+        category_embeddings: list | None = None,
         lr: float = 2e-4,
         lr_after: float = 1e-5,
         lr_switch: float = 0.5,
@@ -429,9 +436,11 @@ class HabitVQModule(OmgModule):
 
         if not to or not to.strip():
             raise UsageError("--to is empty: give a species name (e.g. horse) or a description of the animal")
+        # a known category in the book's spelling too: "milk cow", "Milk_Cow" and "milk_cow" are AnimalML3D's "milk cow"
+        known = {species_key(name): name for name in self.categories}
         key = species_key(to) if len(to.split()) < 3 else to
-        if key in self.categories:
-            return {"target": to, "category": key, "retrieved": False, "distance": 0.0}
+        if key in known:
+            return {"target": to, "category": known[key], "retrieved": False, "distance": 0.0}
         book = SpeciesBook.load(species_file)
         description = book.describe(to)
         encoder = self.text_encoder()
@@ -506,7 +515,7 @@ def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) ->
     """A motion file as features of ``rep`` (quatvel): {features (T, D), offsets (J, 3) of the source, root_start
     (3,), category (the source's, or ""), name}. ``.npy``: quatvel features (T, D) or joint positions (T, J, 3) at
     ``fps``; other files are read and retargeted onto the representation's skeleton."""
-    from omg.files import file_problem
+    from omg.files import MOTION_MAX_BYTES, file_problem, read_file
     from omg.motion import Clip
 
     skeleton = rep.skeleton
@@ -516,7 +525,7 @@ def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) ->
              "category": "", "name": path.name}
     if path.suffix.lower() == ".npy":
         try:
-            array = np.load(path, allow_pickle=False)
+            array = np.load(io.BytesIO(read_file(path, "SOURCE", MOTION_MAX_BYTES)), allow_pickle=False)
         except (OSError, ValueError) as e:
             raise UsageError(f"SOURCE {path}: not a readable .npy array ({e})") from None
         if array.dtype.kind in "fc" and not np.isfinite(array).all():  # the model would sample from NaN
@@ -534,7 +543,7 @@ def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) ->
         from omg.io.read import read_motion
         from omg.retarget import retarget
 
-        clip = retarget(read_motion(path), skeleton, joint_map=joint_map, fps=fps)
+        clip = retarget(read_motion(path, what="SOURCE"), skeleton, joint_map=joint_map, fps=fps)
     if len(clip.positions) < 2:
         raise UsageError(f"SOURCE {path}: {len(clip.positions)} frame(s), need 2 or more")
     features, meta = rep.encode(clip)
@@ -561,8 +570,8 @@ def embed_categories(categories: list[str], text_encoder: str, text_encoder_args
 class HabitPriorModule(OmgModule):
     """Stage 2 of ``habit_order: kl_then_flows``: each known category's flow prior p(z), fitted by NLL to the
     frozen stage-1 habit posterior. On a VQ-VAE of the default order (``flow_prior``, whose flows were
-    pretrained with its encoders) it starts from those flows: built without fitting, it is that
-    checkpoint as ``omg test`` evaluates it (configs/mini/habit_eval.yaml).
+    pretrained with its encoders) it starts from those flows: built without fitting, it transfers as that
+    checkpoint does (``omg test`` evaluates such a checkpoint directly: configs/mini/habit_eval.yaml).
 
     Args:
         vq_ckpt: the HabitVQModule checkpoint to fit on (frozen); read once, when the prior is first
@@ -577,6 +586,7 @@ class HabitPriorModule(OmgModule):
     clip_sampling = "windows"
     frozen_prefixes = ()  # the frozen VQ-VAE is saved with the flows: the checkpoint is self-contained
     location_hparams = ("vq_ckpt",)
+    architecture_hparams = ("vq", "spec")  # the frozen VQ-VAE's; posterior_sample and the optimizer are the run's
 
     def __init__(self, vq_ckpt: str | None = None, posterior_sample: bool = True, lr: float = 2e-4,
                  weight_decay: float = 0.0, betas: tuple[float, float] = (0.9, 0.99), warmup_steps: int = 0,

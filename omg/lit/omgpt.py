@@ -20,7 +20,8 @@ displacement in m/s), the latent and velocity errors as they come. Inference
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import io
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,7 @@ from omg.motion.maa import maa_from_positions, root_translation
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
 from omg.text import build_text_encoder
-from omg.text.omgpt import about_animal, choose_animal, to_animal, to_person
+from omg.text.omgpt import about_animal, caption_key, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
 
@@ -71,22 +72,28 @@ class OmniMotionModule(OmgModule):
             per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
             compare standardised features; without it (``false``) both see raw maa, where the many
             near-constant 6D numbers let a network that outputs the mean pose reach a small loss.
-            Not in the paper (raw maa: ``false``, configs/omgpt.yaml); omg's variant (default on,
-            configs/omgpt_variant.yaml). It moves the balance the paper's weights were set for:
-            reconstruction is then in std units while L_ee (end-effector velocity, x100) and the
-            translation loss stay in metres per frame.
+            Not in the paper (raw maa: ``false``, the default, configs/omgpt.yaml); omg's variant
+            (configs/omgpt_variant.yaml, configs/mini/omgpt.yaml) turns it on. It moves the balance
+            the paper's weights were set for: reconstruction is then in std units while L_ee
+            (end-effector velocity, x100) and the translation loss stay in metres per frame.
         human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (a
-            human validation clip whose caption is near the prompt made about "a person", drawn
-            among the ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
-            checkpoint (omg's own text-to-motion, from the prompt made about "a person"). A file,
-            so not taken from a checkpoint: a loaded checkpoint retrieves unless the config (or
-            ``--human_ckpt``) names one.
-        retrieval_draw: how retrieval draws among the top k: ``uniform`` (each equally likely: with
-            k = 3, repeated generations of a prompt come from 3 human clips at most) or
-            ``similarity`` (clip i with probability softmax(similarity_i / retrieval_temperature),
-            so a large k lets repeated generations differ while near captions stay likelier).
-            The paper generates human motion with a text-to-motion model; retrieval is omg's
-            stand-in.
+            human clip whose caption is near the prompt made about "a person", drawn among the
+            ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
+            checkpoint (omg's own text-to-motion, from the prompt made about "a person"; the
+            paper's tables start from human motion "sampled from generative models", Fig. 2c, and
+            configs/omgpt_eval.yaml names one). A file, so not taken from a checkpoint: a loaded
+            checkpoint retrieves unless the config (or ``--human_ckpt``) names one.
+        retrieval_top_k, retrieval_draw, retrieval_temperature: how retrieval draws among the top k
+            (default: the evaluation protocol's, 32 clips by similarity at 0.1): ``uniform`` (each
+            equally likely: with k = 3, repeated generations of a prompt come from 3 human clips at
+            most) or ``similarity`` (clip i with probability softmax(similarity_i /
+            retrieval_temperature), so a large k lets repeated generations differ while near
+            captions stay likelier). The paper generates human motion with a text-to-motion model;
+            retrieval is omg's stand-in.
+        retrieval_bank: human shards (smpl22 maa, captioned) that retrieval draws from instead of
+            the validation clips kept in the checkpoint: an evaluation's bank must not be the split
+            whose captions are its prompts (``OODEvalCallback`` also drops every clip captioned by
+            a prompt, ``exclude_from_retrieval``). A location, so not taken from a checkpoint.
         animals: each animal category's mean bone offsets; filled from the animal training set
             when training starts and kept in checkpoints (what ``--animal`` accepts).
         human_spec, spec: the human and the animal data's specs (filled from the shards and kept
@@ -104,7 +111,10 @@ class OmniMotionModule(OmgModule):
     text_conditional = True
     clip_sampling = "whole"  # a caption describes its whole clip
     frozen_prefixes = ("text_encoder.", "human_generator.")
-    location_hparams = ("human_data", "human_source")
+    location_hparams = ("human_data", "human_source", "retrieval_bank")
+    # what the weights were trained with or on; the retrieval, loss and optimizer settings are the run's
+    architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "animals",
+                            "human_spec", "spec", "human_bank")
 
     def __init__(
         self,
@@ -127,12 +137,13 @@ class OmniMotionModule(OmgModule):
         cross_clip_weight: float = 1.0,
         ee_weight: float = 100.0,
         translation_weight: float = 1.0,
-        standardize: bool = True,
+        standardize: bool = False,
         std_floor: float = 0.05,
         human_source: str = "retrieval",
-        retrieval_top_k: int = 3,
-        retrieval_draw: str = "uniform",
+        retrieval_top_k: int = 32,
+        retrieval_draw: str = "similarity",
         retrieval_temperature: float = 0.1,
+        retrieval_bank: str | list | None = None,
         animals: dict[str, list] | None = None,
         human_spec: DataSpec | dict | None = None,
         spec: DataSpec | dict | None = None,
@@ -179,6 +190,9 @@ class OmniMotionModule(OmgModule):
                         "cross_clip": cross_clip_weight, "ee": ee_weight, "translation": translation_weight}
         self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in (animals or {}).items()}
         self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
+        self.retrieval_bank = retrieval_bank or None
+        self.retrieval_excluded: frozenset[str] = frozenset()  # captions whose clips retrieval never draws
+        self.retrieved: list[list[str]] = []  # the captions of the clip each prompt of the last retrieval drew
         self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
         self.config = OmniMotionConfig.from_name(flavor, **(config or {}))
         # every field, resolved: a checkpoint keeps meaning what it meant when a later version changes a default
@@ -199,7 +213,8 @@ class OmniMotionModule(OmgModule):
             getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale,
                                                           1.0 / s.fps if standardize and s.fps > 0 else None)
         self.human_generator = None  # an OMG ControlNet module, loaded when first needed
-        self._bank: dict | None = None  # retrieval: the human validation clips and their caption features
+        self._bank: dict | None = None  # retrieval: the human clips drawn from and their caption features
+        self._bank_samples: list[dict] | None = None  # the clips of retrieval_bank, read once
         self._companion_state: dict | None = None
         if human_bank is not None:  # shapes only: the clips come with the weights
             frames = sum(human_bank["lengths"])
@@ -420,21 +435,71 @@ class OmniMotionModule(OmgModule):
             from omg.lit.checkpoint import load_module
             from omg.lit.controlnet import ControlNetModule
 
-            self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
+            self.check_human_source()
+            try:
+                self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
+            except UsageError as e:
+                raise UsageError(f"model.init_args.human_source: {e}") from None
         return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
 
+    def check_human_source(self) -> None:
+        """One line unless ``human_source`` is ``retrieval`` or names a file (an evaluation checks it before it
+        starts: a generator that is not there would otherwise fail at its first prompt)."""
+        source = str(self.human_source)
+        if source != "retrieval" and "://" not in source and not Path(source).exists():
+            raise UsageError(f"model.init_args.human_source: no OMG ControlNet checkpoint at {source} (train one, "
+                             "e.g. `omg fit --config configs/mini/controlnet.yaml`, or set it to retrieval)")
+
+    def retrieval_clips(self, motion: bool = True) -> list[dict]:
+        """The human clips retrieval may draw from, exclusions not applied: ``{"motion" (T, 138) un-normalised,
+        "offsets" (22, 3), "texts"}`` of ``retrieval_bank`` when set, else of the validation clips kept in the
+        checkpoint (``motion=False``: texts only, which needs no weights loaded)."""
+        if self.retrieval_bank is not None:
+            if self._bank_samples is None:
+                self._bank_samples = read_retrieval_bank(self.retrieval_bank, self.human_spec, self.config.max_frames)
+            return self._bank_samples
+        bank = self.hparams.get("human_bank")
+        if not bank or getattr(self, "human_bank_motion", None) is None:
+            raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
+                             "captioned clips in human_data.val, or before checkpoints kept them): give the human "
+                             "motion with --from_motion or --human_ckpt, or human shards as "
+                             "model.init_args.retrieval_bank")
+        if not motion:
+            return [{"texts": list(t)} for t in bank["captions"]]
+        clips = self.human_bank_motion.cpu().split(list(bank["lengths"]))
+        return [{"motion": m, "offsets": o, "texts": list(t)}
+                for m, o, t in zip(clips, self.human_bank_offsets.cpu(), bank["captions"])]
+
+    def exclude_from_retrieval(self, captions: Iterable[str], key: str) -> tuple[int, int]:
+        """Retrieval never draws a clip captioned by one of ``captions`` (an evaluation's prompts: a generation
+        must not start from the prompt's own clip); (clips left out, clips left). ``key`` names the evaluation
+        in the one-line error when no clip is left."""
+        excluded = frozenset(caption_key(c) for c in captions)
+        if self.retrieval_bank is None and not self.hparams.get("human_bank") and self.companion is not None:
+            self.retrieval_excluded, self._bank = excluded, None  # a fit builds its bank when it starts
+            return 0, 0
+        clips = self.retrieval_clips(motion=False)
+        left = sum(not excluded & {caption_key(t) for t in c["texts"]} for c in clips)
+        if not left:
+            raise UsageError(f"{key}: {self._nothing_left()}")
+        self.retrieval_excluded, self._bank = excluded, None
+        return len(clips) - left, left
+
+    def _nothing_left(self) -> str:
+        where = self.retrieval_bank or "the human validation clips kept in the checkpoint"
+        return (f"every clip retrieval draws from ({where}) is captioned by one of the prompts; set "
+                "model.init_args.retrieval_bank to human shards of another split (e.g. the human training set) or "
+                "model.init_args.human_source to an OMG ControlNet checkpoint")
+
     def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
-        """The human validation clips whose captions are nearest the prompts (one of the top k distinct
-        clips, drawn with ``seed`` by ``retrieval_draw``), each cut or held at its last frame to the prompt's length."""
+        """The human clips whose captions are nearest the prompts (one of the top k distinct clips, drawn with
+        ``seed`` by ``retrieval_draw``; never one captioned by an excluded caption), each cut or held at its last
+        frame to the prompt's length. The drawn clips' captions are kept in ``retrieved``."""
         if self._bank is None:
-            bank = self.hparams.get("human_bank")
-            if not bank or getattr(self, "human_bank_motion", None) is None:
-                raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
-                                 "captioned clips in human_data.val, or before checkpoints kept them): give the human "
-                                 "motion with --from_motion or --human_ckpt")
-            motion = self.human_bank_motion.cpu().split(list(bank["lengths"]))
-            samples = [{"motion": m, "offsets": o, "texts": t}
-                       for m, o, t in zip(motion, self.human_bank_offsets.cpu(), bank["captions"])]
+            samples = [c for c in self.retrieval_clips()
+                       if not self.retrieval_excluded & {caption_key(t) for t in c["texts"]}]
+            if not samples:
+                raise UsageError(self._nothing_left())
             captions = [(i, t) for i, s in enumerate(samples) for t in s["texts"]]
             self._bank = {"samples": samples, "owner": torch.tensor([i for i, _ in captions]),
                           "text": F.normalize(self.sentence([t for _, t in captions]).cpu(), dim=-1)}
@@ -443,7 +508,7 @@ class OmniMotionModule(OmgModule):
         gen = torch.Generator().manual_seed(seed)
         T = int(lengths.max())
         motion = torch.zeros(len(prompts), T, self.human_spec.feature_dim)
-        offsets = []
+        offsets, self.retrieved = [], []
         for b, row in enumerate(similarity):
             order = row.argsort(descending=True)
             seen: list[int] = []
@@ -458,12 +523,12 @@ class OmniMotionModule(OmgModule):
             else:
                 pick = int(torch.randint(len(seen), (1,), generator=gen))
             sample = bank["samples"][seen[pick]]
-            clip = sample["motion"][:T]
+            clip = torch.as_tensor(sample["motion"])[:T]
             motion[b, : len(clip)] = clip
             motion[b, len(clip):] = clip[-1]
-            offsets.append(sample["offsets"])
+            offsets.append(torch.as_tensor(sample["offsets"], dtype=torch.float32))
+            self.retrieved.append(list(sample["texts"]))
         return motion.to(self.device), torch.stack(offsets).to(self.device)
-
 
     # -- the generation interface (omg.lit.generative) ------------------------------------
     def generation_card(self) -> GenerationCard:
@@ -535,7 +600,7 @@ class OmniMotionModule(OmgModule):
 
 def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``."""
-    from omg.files import file_problem
+    from omg.files import MOTION_MAX_BYTES, file_problem, read_file
 
     if problem := file_problem(path):
         raise UsageError(f"--from_motion {path}: {problem}")
@@ -544,11 +609,12 @@ def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> t
         from omg.io.read import read_motion
         from omg.retarget import retarget
 
-        clip = retarget(read_motion(path), HUMAN_SKELETON, joint_map=joint_map, fps=fps)
+        clip = retarget(read_motion(path, what="--from_motion"), HUMAN_SKELETON, joint_map=joint_map, fps=fps)
         features, meta = get_representation("maa", skeleton).encode(clip)
         return features, np.asarray(meta["offsets"], dtype=np.float32)
     try:
-        array = np.load(path, allow_pickle=False).astype(np.float32)
+        array = np.load(io.BytesIO(read_file(path, "--from_motion", MOTION_MAX_BYTES)),
+                        allow_pickle=False).astype(np.float32)
     except (ValueError, OSError) as e:
         raise UsageError(f"--from_motion {path}: not a readable .npy file ({e})") from None
     maa_dim = (skeleton.num_joints + 1) * 6
@@ -609,3 +675,21 @@ def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int
     return motion, torch.stack(offsets)
 
 
+def read_retrieval_bank(location: str | list, human_spec: DataSpec, max_frames: int) -> list[dict]:
+    """The captioned clips of human shards (``retrieval_bank``): ``{"motion" (T, 138) un-normalised, "offsets",
+    "texts"}``, cut to ``max_frames``; smpl22 maa at the checkpoint's human rate."""
+    from omg.data.datamodule import MotionDataModule
+
+    key = "model.init_args.retrieval_bank"
+    try:
+        data = MotionDataModule(val=location, max_len=max_frames, min_len=2, clips="whole", num_workers=0)
+        human_spec.check_compatible(data.spec, "the checkpoint's human data", "its shards")
+        samples = [s for s in data.val_clips().samples if s["texts"]]
+    except UsageError as e:
+        message = str(e)
+        raise UsageError(message if message.startswith(key) else f"{key}: {message}") from None
+    if not samples:
+        raise UsageError(f"{key}: {location} holds no captioned clips to retrieve from")
+    return [{"motion": torch.from_numpy(np.asarray(s["motion"], dtype=np.float32)[:max_frames]),
+             "offsets": torch.tensor(s["meta"]["offsets"], dtype=torch.float32), "texts": list(s["texts"])}
+            for s in samples]

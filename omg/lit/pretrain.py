@@ -359,6 +359,8 @@ class PretrainModule(MotionDiffusionModule):
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
     """
 
+    architecture_hparams = ("flavor", "dit", "spec")  # the rest may differ from the checkpoint's under --ckpt_path
+
     def __init__(
         self,
         flavor: str = "base",

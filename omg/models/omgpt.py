@@ -45,13 +45,15 @@ class OmniMotionConfig:
     latent_dim: int = 256  # latent decoder D_t: causal transformer decoder, width 256 ...
     latent_layers: int = 4  # ... 4 layers
     latent_heads: int = 4  # not given in the paper
-    # D_t as a GPT: latent frame t is predicted from C and the frames before t (input shifted right by one,
-    # C's projection as the start token). Unshifted, a causal decoder can copy each frame and ignore C.
-    latent_shift: bool = True
-    # The autoencoders see the root's horizontal translation (x, z) as per-frame displacement, summed back
-    # on decoding (the paper feeds maa's absolute translation). Clips wander metres, so a decoder's small
-    # error on absolute positions is centimetres of jitter every frame; on displacements it is smooth drift.
-    root_velocity: bool = True
+    # Off: D_t as the paper describes it (§3.1), a causal decoder reading Z and C. On (omg's variant,
+    # configs/omgpt_variant.yaml): a GPT, latent frame t predicted from C and the frames before t (input
+    # shifted right by one, C's projection as the start token); unshifted, it can copy each frame and ignore C.
+    latent_shift: bool = False
+    # Off: the root's translation as maa holds it, absolute positions (the paper, §3.1). On (omg's variant):
+    # the autoencoders see the horizontal translation (x, z) as per-frame displacement, summed back on
+    # decoding. Clips wander metres, so a decoder's small error on absolute positions is centimetres of jitter
+    # every frame; on displacements it is smooth drift.
+    root_velocity: bool = False
     dropout: float = 0.1
 
     @property
@@ -275,10 +277,10 @@ class LatentTextEncoder(nn.Module):
 class LatentTextDecoder(nn.Module):
     """D_t: a causal transformer decoder over latent frames, attending to the sentence feature C.
 
-    With ``latent_shift`` (the default) it is a GPT over latent frames: output frame t reads C (the
-    start token and the cross-attention memory) and the input frames before t, never frame t
-    itself, so the text has to carry what the past does not. Unshifted, it can learn the identity
-    and ignore C (what the first mini runs did)."""
+    With ``latent_shift`` (omg's variant; off in the paper and by default) it is a GPT over latent
+    frames: output frame t reads C (the start token and the cross-attention memory) and the input
+    frames before t, never frame t itself, so the text has to carry what the past does not.
+    Unshifted, it can learn the identity and ignore C (what the first mini runs did)."""
 
     def __init__(self, config: OmniMotionConfig, text_dim: int):
         super().__init__()

@@ -212,3 +212,9 @@ def one_sided_limb(caption: str) -> tuple[str, str] | None:
     if len(sides) != 1 or len(limbs) != 1 or "both" in words:
         return None
     return limbs.pop(), sides.pop()
+
+
+def caption_key(caption: str) -> str:
+    """A caption compared without case, spacing or a final full stop ("A person walks." is "a person walks"):
+    how an evaluation recognises a retrieval clip captioned by one of its prompts."""
+    return " ".join(caption.lower().split()).rstrip(".")

@@ -17,7 +17,12 @@ from omg.data.datamodule import MotionDataModule
 
 # an overlay -> the config it completes
 OVERLAYS = {"mini/omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
-            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml", "omgpt_eval.yaml": REPO / "configs/omgpt.yaml"}
+            "mini/omgpt_eval_retrieval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
+            "omgpt_eval_retrieval.yaml": REPO / "configs/omgpt.yaml",
+            "omgpt_variant.yaml": REPO / "configs/omgpt.yaml", "omgpt_eval.yaml": REPO / "configs/omgpt.yaml",
+            "habit_eval.yaml": REPO / "configs/habit_vqvae.yaml",
+            "habit_animalml3d.yaml": REPO / "configs/habit_vqvae.yaml",
+            "mini/habit_eval.yaml": REPO / "configs/mini/habit_vqvae.yaml"}
 
 
 def parse(path: Path):

@@ -30,6 +30,14 @@ def tiny_module(spec, **kw):
                             **kw)
 
 
+def fit_config() -> dict:
+    """The networks of ``fit_mini``: configs/mini/omgpt.yaml's ``config`` (omg's variant switches) at TINY's sizes."""
+    import yaml
+
+    mini = yaml.safe_load((REPO / "configs/mini/omgpt.yaml").read_text())["model"]["init_args"].get("config") or {}
+    return {**mini, **TINY}
+
+
 def fit_mini(root: Path) -> Path:
     """`omg fit --config configs/mini/omgpt.yaml`, 4 steps of the tiny model with hash text; its last checkpoint."""
     from omg.cli import main
@@ -37,6 +45,6 @@ def fit_mini(root: Path) -> Path:
     main(["fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=4",
           f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false", "--trainer.val_check_interval=4",
           "--trainer.enable_model_summary=false", "--model.init_args.text_encoder=hash",
-          f"--model.init_args.config={json.dumps(TINY)}", "--data.batch_size=4",
+          f"--model.init_args.config={json.dumps(fit_config())}", "--data.batch_size=4",
           "--model.init_args.human_data.batch_size=4"])
     return root / "checkpoints/last.ckpt"
