@@ -70,13 +70,34 @@ def _size(n: int) -> str:
 def read_file(path: str | Path, what: str, max_bytes: int) -> bytes:
     """The bytes of the regular file at ``path`` (symbolic links followed), at most ``max_bytes`` of
     them; a one-line UsageError naming ``what`` (the option, e.g. "--to_rig") otherwise: a folder,
-    a FIFO, a device, nothing there, or a larger file. The one way omg reads a file a user names.
-
-    The file is opened non-blocking (a FIFO swapped in after the check cannot block the open) and
-    checked again on the open descriptor, which is what is read; the read stops one byte past the
-    bound, as files such as /proc's report no size."""
+    a FIFO, a device, nothing there, or a larger file. The one way omg reads a file a user names
+    (``_open_regular``); the read stops one byte past the bound, as files such as /proc's report no size."""
     path = Path(path)
     where = f"{what} {path}" if what else str(path)
+    too_large = f"{where}: larger than the {_size(max_bytes)} omg reads from such a file"
+    with _open_regular(path, where) as f:
+        if (size := os.fstat(f.fileno()).st_size) > max_bytes:
+            raise UsageError(f"{too_large} ({size} bytes)")
+        data = _read(f, max_bytes + 1, where)
+    if len(data) > max_bytes:  # grew while read, or reports no size
+        raise UsageError(too_large)
+    return data
+
+
+def read_head(path: str | Path, n: int, what: str = "") -> bytes:
+    """The first ``n`` bytes (fewer in a shorter file) of the regular file at ``path``, checked as
+    ``read_file`` checks it: a look at what a file holds reads no more than that."""
+    path = Path(path)
+    where = f"{what} {path}" if what else str(path)
+    with _open_regular(path, where) as f:
+        return _read(f, n, where)
+
+
+@contextmanager
+def _open_regular(path: Path, where: str) -> Iterator[io.BufferedReader]:
+    """``path`` opened for reading if it is a regular file (symbolic links followed); a one-line
+    UsageError led by ``where`` otherwise. Opened non-blocking (a FIFO swapped in after the check
+    cannot block the open) and checked again on the open descriptor, which is what is read."""
     if problem := file_problem(path):
         raise UsageError(f"{where}: {problem}")
     try:
@@ -84,19 +105,16 @@ def read_file(path: str | Path, what: str, max_bytes: int) -> bytes:
     except OSError as e:
         raise UsageError(f"{where}: cannot be read ({e.strerror or e})") from None
     with os.fdopen(fd, "rb") as f:
-        info = os.fstat(f.fileno())
-        if not stat.S_ISREG(info.st_mode):  # replaced between the check and the open
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # replaced between the check and the open
             raise UsageError(f"{where}: not a regular file (a FIFO, socket or device); a file is expected")
-        too_large = f"{where}: larger than the {_size(max_bytes)} omg reads from such a file"
-        if info.st_size > max_bytes:
-            raise UsageError(f"{too_large} ({info.st_size} bytes)")
-        try:
-            data = f.read(max_bytes + 1)
-        except OSError as e:
-            raise UsageError(f"{where}: cannot be read ({e.strerror or e})") from None
-    if len(data) > max_bytes:  # grew while read, or reports no size
-        raise UsageError(too_large)
-    return data
+        yield f
+
+
+def _read(f: io.BufferedReader, n: int, where: str) -> bytes:
+    try:
+        return f.read(n)
+    except OSError as e:
+        raise UsageError(f"{where}: cannot be read ({e.strerror or e})") from None
 
 
 def check_output_dir(path: str | Path, what: str = "--out", files: tuple[str, ...] = ()) -> Path:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import MOTION_MAX_BYTES, read_file
+from omg.files import MOTION_MAX_BYTES, read_file, read_head
 from omg.io.rig import RigMotion, sample_frames
 from omg.rotations import quat_normalize
 
@@ -51,7 +51,7 @@ def is_deepmimic_motion(path: str | Path) -> bool:
     Only the start of the file is read; a truncated motion still counts (and fails to read).
     """
     try:
-        head = read_file(path, "", MOTION_MAX_BYTES)[:4096].decode("utf-8", errors="replace")
+        head = read_head(path, 4096).decode("utf-8", errors="replace")
     except UsageError:  # no file to read (a FIFO would block an open)
         return False
     return head.lstrip().startswith("{") and '"Frames"' in head
