@@ -182,6 +182,14 @@ def read_text(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES) -> s
                          "save it as UTF-8") from None
 
 
+def read_array(path: str | Path, what: str, max_bytes: int = MOTION_MAX_BYTES) -> np.ndarray | np.lib.npyio.NpzFile:
+    """``np.load`` of the bytes ``read_file`` gives (a FIFO cannot block it, a huge file is refused
+    unread): an .npy array, or an .npz as numpy's ``NpzFile`` over those bytes (``with`` closes it).
+    Never unpickled; bytes that hold no array raise numpy's own errors (ValueError, OSError,
+    EOFError, zipfile.BadZipFile), for the caller to word."""
+    return np.load(io.BytesIO(read_file(path, what, max_bytes)), allow_pickle=False)
+
+
 def read_yaml(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES):
     """A YAML file (``read_text``) read by the safe loader: a tag that would build a Python object
     (``!!python/object/apply:os.system``) or any other unknown tag, and bad syntax, are one UsageError

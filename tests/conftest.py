@@ -3,6 +3,7 @@ Plain helpers (paths, clips, rigs, the tiny DiT) live in the ``helpers`` package
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -39,6 +40,17 @@ torch.set_num_threads(1)
 @pytest.fixture(autouse=True)
 def _quiet_threads():
     torch.set_num_threads(1)
+
+
+@pytest.fixture(autouse=True)
+def _ctrl_c_as_python_sets_it():
+    """Each test starts with Python's own Ctrl-C handler. A test that leaves SIGINT ignored in this process
+    (Lightning's trainer ignores it for good once it has caught a KeyboardInterrupt) would pass the ignore on
+    to every process the later tests of this xdist worker start, and a Python started with SIGINT ignored
+    keeps it so: a test that sends Ctrl-C to an `omg` process (tests/test_run_faults.py) then waited for
+    nothing, as a user's terminal never would."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")

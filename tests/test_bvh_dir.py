@@ -4,15 +4,18 @@ manifest, and bad files skipped with counted reasons."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
 
-from helpers import TINY_BVH
+from helpers import BANDAI_RIG, TINY_BVH, rig_bvh
+from helpers.unreadable import FIFO, TOO_LARGE, no_hang
 from omg.cli import main
 from omg.data.shards import resolved
 from omg.data.sources.bvh_dir import SkippedClip, bvh_dir_source
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES
 from omg.motion import Clip
 from omg.skeleton import SMAL35, SMPL22
 from omg.tools.shards import build
@@ -126,3 +129,32 @@ def test_manifest_duplicates_missing_and_options(shared_motion, tmp_path):
         bvh_dir_source(str(d / "a.bvh"), SMPL22, 20.0)
     tall, _ = _run(d, height=1.9)
     assert tall["bow"].positions[..., 1].max() > got["bow"].positions[..., 1].max()
+
+
+def test_fifo_and_huge_files_are_counted_skips(tmp_path):
+    """A FIFO as a captions sidecar (read while the folder is scanned) or named like a motion, and a
+    motion over the bound: each one counted skip, the other clips still imported."""
+    d = tmp_path / "motions"
+    d.mkdir()
+    for name in ("bow", "walk"):
+        (d / f"{name}.bvh").write_text(rig_bvh(BANDAI_RIG, frames=30))  # a human rig every map finds
+    (d / "bow.captions.txt").write_text("a person bows.\n")
+    os.mkfifo(d / "walk.captions.txt")  # reading it would wait for a writer forever
+    os.mkfifo(d / "fifo.bvh")
+    with open(d / "huge.bvh", "wb") as f:  # sparse: one byte over the bound, no disk used
+        f.truncate(MOTION_MAX_BYTES + 1)
+    with no_hang():
+        clips, errors = _run(d)
+        [summary] = build("bvh-dir", tmp_path / "out", "humanml3d263", "smpl22", 20.0, input=str(d))
+    assert list(clips) == ["bow"] and clips["bow"].texts == ["a person bows."]
+    assert summary.clips == 1 and summary.skipped == {"bad captions file": 1, "bad motion file": 2}
+    for name, why in [("walk.captions.txt", FIFO), ("fifo.bvh", FIFO), ("huge.bvh", TOO_LARGE)]:
+        assert any(name in e and why in e for e in errors), (name, errors)
+
+
+def test_fifo_manifest_is_one_line(tmp_path):
+    (tmp_path / "a.bvh").write_text(rig_bvh(BANDAI_RIG, frames=30))
+    os.mkfifo(tmp_path / "manifest.json")
+    with no_hang(), pytest.raises(UsageError) as error:
+        bvh_dir_source(str(tmp_path), SMPL22, 20.0)
+    assert str(error.value) == f"{tmp_path / 'manifest.json'}: {FIFO}; a file is expected"

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import pickle
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +15,11 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from helpers import JointPositions, smpl_reference_joints, walking_clip
+from helpers.unreadable import FIFO, TOO_LARGE, huge_npy, no_hang, one_line_error
 from omg.cli import main
 from omg.data.shards import Manifest, ShardWriter, decode_sample, encode_sample, iter_tar, resolved
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.rotations import quat_between, quat_conjugate, quat_mul, quat_normalize, quat_to_6d
@@ -442,3 +447,111 @@ def test_humanml3d_object_array_stats_are_one_line(hml_root, tmp_path, capsys):
     assert exit.value.code == 2 and "\n" not in err and "Traceback" not in err, err
     assert err.startswith(f"omg: error: humanml3d: {root / 'Mean.npy'} is not a plain numeric .npy array"), err
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- files that are no regular file, or too large
+
+def test_humanml3d_fifo_and_huge_clip_files_are_counted_skips(hml_root, tmp_path, capsys):
+    """A FIFO named like a motion or a caption file, and a motion over the bound, are each one counted
+    skip ("humanml3d unreadable file", as a garbled .npy), and the build finishes."""
+    root = tmp_path / "HumanML3D"
+    shutil.copytree(hml_root, root)
+    os.mkfifo(root / "new_joint_vecs" / "000007.npy")  # np.load(path) would wait for a writer forever
+    huge_npy(root / "new_joint_vecs" / "000008.npy", (263,))
+    shutil.copy(root / "new_joint_vecs" / "000002.npy", root / "new_joint_vecs" / "000009.npy")
+    for name in ("000007", "000008"):
+        (root / "texts" / f"{name}.txt").write_text("a person walks#a/DET person/NOUN walk/VERB#0.0#0.0\n")
+    os.mkfifo(root / "texts" / "000009.txt")
+    out = tmp_path / "shards"
+    with no_hang():
+        main(["shards", "build", "--source", "humanml3d", "--input", str(root), "--out", str(out), "--fps", "20"])
+    log = capsys.readouterr().out
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["skipped"]["humanml3d unreadable file"] == 4  # 000005 (garbled), 000007, 000008, 000009
+    assert {"000001", "000002", "000006"} <= set(_samples(out))
+    skips = [line for line in log.splitlines() if "humanml3d unreadable file" in line]
+    for name, why in [("new_joint_vecs/000007.npy", FIFO), ("new_joint_vecs/000008.npy", TOO_LARGE),
+                      ("texts/000009.txt", FIFO)]:
+        assert any(name in line and why in line for line in skips), (name, skips)
+
+
+@pytest.mark.parametrize("name", ["train.txt", "Mean.npy"])
+def test_humanml3d_fifo_split_or_stats_file_is_one_line(hml_root, tmp_path, capsys, name):
+    root = tmp_path / "HumanML3D"
+    shutil.copytree(hml_root, root)
+    (root / name).unlink()
+    os.mkfifo(root / name)
+    err = one_line_error(capsys, ["shards", "build", "--source", "humanml3d", "--input", str(root),
+                                   "--out", str(tmp_path / "out"), "--fps", "20", "--option.split", "train"])
+    assert f"{root / name}: {FIFO}" in err, err
+
+
+def test_amass_fifo_and_huge_clip_files_are_counted_skips(amass_root, tmp_path, capsys):
+    data = tmp_path / "data" / "CMU"
+    data.mkdir(parents=True)
+    shutil.copy(amass_root / "data" / "CMU" / "01" / "01_01_poses.npz", data)
+    os.mkfifo(data / "02_01_poses.npz")
+    with open(data / "02_02_poses.npz", "wb") as f:  # sparse: one byte over the bound, no disk used
+        f.truncate(MOTION_MAX_BYTES + 1)
+    out = tmp_path / "amass"
+    with no_hang():
+        main(["shards", "build", "--source", "amass", "--input", str(tmp_path / "data"), "--out", str(out),
+              "--fps", "20", "--option.body_model", str(amass_root / "models" / "smplh")])
+    log = capsys.readouterr().out
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["num_clips"] == 1 and manifest["skipped"] == {"amass unreadable file": 2}
+    assert any("02_01_poses.npz" in line and FIFO in line for line in log.splitlines()), log
+    assert any("02_02_poses.npz" in line and TOO_LARGE in line for line in log.splitlines()), log
+
+
+def test_amass_fifo_body_model_is_one_line(amass_root, tmp_path, capsys):
+    """A FIFO given as the body model, or found in the body-model folder, is refused unread in one line."""
+    os.mkfifo(tmp_path / "model.npz")
+    (tmp_path / "models" / "neutral").mkdir(parents=True)
+    os.mkfifo(tmp_path / "models" / "neutral" / "model.npz")
+    for body_model, fifo in [(tmp_path / "model.npz", tmp_path / "model.npz"),
+                             (tmp_path / "models", tmp_path / "models" / "neutral" / "model.npz")]:
+        err = one_line_error(capsys, ["shards", "build", "--source", "amass", "--input", str(amass_root / "data"),
+                                       "--out", str(tmp_path / "out"), "--fps", "20",
+                                       "--option.body_model", str(body_model)])
+        assert f"body model {fifo}: {FIFO}" in err, err
+
+
+def test_animalml3d_fifo_and_huge_files_are_counted_skips(tmp_path):
+    offsets = SMAL35.rest_offsets.astype(np.float64)
+    for animal in ("foxXAT", "bearPDD"):
+        _write_offsets(tmp_path, animal, offsets)
+    _write_animal(tmp_path, "foxXAT", "Walk", 30, offsets)
+    motions = tmp_path / "animals_maa_motions"
+    os.mkfifo(motions / "foxXAT_Trot.npy")
+    huge_npy(motions / "foxXAT_Run.npy", (36, 6))
+    for name in ("foxXAT_Trot", "foxXAT_Run"):
+        (tmp_path / "motion_captions" / name).mkdir(parents=True)
+        (tmp_path / "motion_captions" / name / "screenshots.txt").write_text("a fox moves\n")
+    _write_animal(tmp_path, "bearPDD", "Walk", 30, offsets, caption="")
+    (tmp_path / "motion_captions" / "bearPDD_Walk").mkdir(parents=True)
+    os.mkfifo(tmp_path / "motion_captions" / "bearPDD_Walk" / "screenshots.txt")
+    _write_animal(tmp_path, "deerA4K", "Walk", 30, offsets)
+    (tmp_path / "animals_maa_offsets" / "deerA4K").mkdir(parents=True)
+    os.mkfifo(tmp_path / "animals_maa_offsets" / "deerA4K" / "offset.pkl")
+    logs: list[str] = []
+    with no_hang():
+        summary = ShardWriter(tmp_path / "out", get_representation("maa", SMAL35), 20.0,
+                              log=logs.append).write(_animals(tmp_path))
+    assert summary.clips == 1
+    assert summary.skipped == {"animalml3d unreadable motion": 2, "animalml3d unreadable captions": 1,
+                               "animalml3d unreadable offsets": 1}
+    for name, why in [("foxXAT_Trot.npy", FIFO), ("foxXAT_Run.npy", TOO_LARGE), ("bearPDD_Walk/screenshots.txt", FIFO),
+                      ("deerA4K/offset.pkl", FIFO)]:
+        assert any(name in line and why in line for line in logs), (name, logs)
+
+
+def test_importers_read_only_through_omg_files():
+    """No importer opens a dataset file itself (np.load(path), Path.read_text/read_bytes, open): each read
+    goes through omg.files (read_file, read_array, read_text), which refuses a FIFO or a huge file unread."""
+    import omg.data.sources
+
+    direct = re.compile(r"np\.load\(|\.read_text\(|\.read_bytes\(|\.open\(|(?<![\w.])open\(")
+    found = [f"{path.name}:{i}: {line.strip()}" for path in sorted(Path(omg.data.sources.__file__).parent.glob("*.py"))
+             for i, line in enumerate(path.read_text().splitlines(), 1) if direct.search(line.split("#")[0])]
+    assert not found, found

@@ -6,7 +6,9 @@ must be the walk an independent forward kinematics gives, with constant bones an
 from __future__ import annotations
 
 import json
+import os
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +16,11 @@ import pytest
 import torch
 
 from helpers import smpl_reference_joints
+from helpers.unreadable import FIFO, TOO_LARGE, huge_npy, no_hang, one_line_error
 from omg.cli import main
 from omg.data.shards import resolved
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES
 from omg.kinematics import ground_contacts
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -223,3 +227,58 @@ def test_motionx_shards_build(motionx_root, tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["num_clips"] == 1 and manifest["num_frames"] == 40  # 41 frames at 20 fps, one feature row per pair
     assert sum(manifest["skipped"].values()) == 3
+
+
+# ---------------------------------------------------------------- files that are no regular file, or too large
+
+
+def test_aistpp_fifo_and_huge_pickles_are_counted_skips(aist_root, tmp_path, capsys):
+    motions = tmp_path / "motions"
+    motions.mkdir()
+    shutil.copy(aist_root / "motions" / f"{AIST_NAME}.pkl", motions)
+    os.mkfifo(motions / "gJB_sBM_cAll_d07_mJB0_ch01.pkl")  # reading it whole would wait for a writer forever
+    with open(motions / "gJS_sBM_cAll_d01_mJS0_ch01.pkl", "wb") as f:  # sparse: one byte over the bound
+        f.truncate(MOTION_MAX_BYTES + 1)
+    out = tmp_path / "aist"
+    with no_hang():
+        main(["shards", "build", "--source", "aistpp", "--input", str(motions), "--out", str(out), "--fps", "30",
+              "--option.body_model", str(aist_root / "smpl")])
+    log = capsys.readouterr().out.splitlines()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["num_clips"] == 1 and manifest["skipped"] == {"aistpp unreadable file": 2}
+    assert any("gJB_sBM_cAll_d07_mJB0_ch01.pkl" in line and FIFO in line for line in log), log
+    assert any("gJS_sBM_cAll_d01_mJS0_ch01.pkl" in line and TOO_LARGE in line for line in log), log
+
+
+def test_aistpp_fifo_ignore_list_is_one_line(aist_root, tmp_path, capsys):
+    shutil.copytree(aist_root / "motions", tmp_path / "motions")
+    os.mkfifo(tmp_path / "ignore_list.txt")
+    err = one_line_error(capsys, ["shards", "build", "--source", "aistpp", "--input", str(tmp_path / "motions"),
+                                  "--out", str(tmp_path / "out"), "--fps", "30",
+                                  "--option.body_model", str(aist_root / "smpl")])
+    assert f"aistpp: {tmp_path / 'ignore_list.txt'}: {FIFO}" in err, err
+
+
+def test_motionx_fifo_and_huge_files_are_counted_skips(motionx_root, tmp_path, capsys):
+    """A FIFO named like a motion (listed, not passed over) or like a caption file, and a motion over
+    the bound: each one counted skip, and the build finishes."""
+    subset = tmp_path / "motion_data" / "smplx_322" / "idea400"
+    captions = tmp_path / "texts" / "semantic_labels" / "idea400"
+    subset.mkdir(parents=True)
+    captions.mkdir(parents=True)
+    for name in ("walk_clip1", "walk_clip2"):
+        shutil.copy(motionx_root / "data" / "motion_data" / "smplx_322" / "idea400" / "walk_clip1.npy",
+                    subset / f"{name}.npy")
+    (captions / "walk_clip1.txt").write_text("a person walks forward.\n")
+    os.mkfifo(captions / "walk_clip2.txt")
+    os.mkfifo(subset / "fifo.npy")
+    huge_npy(subset / "huge.npy", (10,))
+    out = tmp_path / "mx"
+    with no_hang():
+        main(["shards", "build", "--source", "motionx", "--input", str(tmp_path), "--out", str(out), "--fps", "20",
+              "--option.body_model", str(motionx_root / "smplx" / "neutral" / "model.npz")])
+    log = capsys.readouterr().out.splitlines()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["num_clips"] == 1 and manifest["skipped"] == {"motionx unreadable file": 3}
+    for name, why in [("walk_clip2.txt", FIFO), ("fifo.npy", FIFO), ("huge.npy", TOO_LARGE)]:
+        assert any(name in line and why in line for line in log), (name, log)

@@ -5,6 +5,7 @@ source) and a habit-transfer pair (VQ-VAE + flow prior), each fitted one step.""
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import os
 import re
@@ -92,12 +93,14 @@ def free_port() -> int:
 class ThreadServer:
     """uvicorn serving the app in a thread of this process (the tests reach its models and batcher)."""
 
-    def __init__(self, app):
+    def __init__(self, app, read_timeout: float = 60.0):
         import uvicorn
+
+        from omg.tools.serve import server_config
 
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning"))
+        self.server = uvicorn.Server(server_config(app, "127.0.0.1", self.port, read_timeout, log_level="warning"))
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
         deadline = time.monotonic() + 30
@@ -461,7 +464,7 @@ def _server(serve_ckpts, out: Path, names: tuple[str, ...], **limits):
     from omg.tools.serve.app import Limits, create_app
 
     models = load_models([serve_ckpts[n] for n in names], None, torch.device("cpu"))
-    running = ThreadServer(create_app(models, out, Limits(**limits)))
+    running = ThreadServer(create_app(models, out, Limits(**limits)), limits.get("read_timeout", 60.0))
     running.out, running.models = out, {m.name: m for m in models}
     return running
 
@@ -556,6 +559,34 @@ def test_a_body_that_comes_too_slowly_is_408_and_closed(strict):
     head, _, body = answer.partition(b"\r\n\r\n")
     assert head.startswith(b"HTTP/1.1 408"), answer
     assert json.loads(body)["detail"] == "the request's body did not arrive within 1.5 s"
+    assert 1.4 < took < 6, took
+
+
+@pytest.mark.parametrize("answered_first", [False, True], ids=["first-request", "kept-alive"])
+def test_headers_that_come_too_slowly_close_the_connection(strict, answered_first):
+    """A client trickling its request's headers (a byte every 0.1 s) held its connection for good: uvicorn bounds
+    neither the first request's headers nor, on a connection kept alive, the next one's."""
+    with socket.create_connection(("127.0.0.1", strict.port), timeout=10) as sock:
+        if answered_first:
+            sock.sendall(b"GET /v1/models HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert sock.recv(65536).startswith(b"HTTP/1.1 200")
+        started, closed = time.monotonic(), False
+        sock.settimeout(0.1)
+        for byte in itertools.cycle(b"GET /v1/models HTTP/1.1\r\nX-Slow: " + b"a" * 1000):
+            if time.monotonic() - started > 10:
+                break
+            try:
+                sock.sendall(bytes([byte]))
+                if sock.recv(4096) == b"":
+                    closed = True
+                    break
+            except TimeoutError:
+                continue
+            except OSError:  # the server closed the connection as we wrote
+                closed = True
+                break
+        took = time.monotonic() - started
+    assert closed, "the connection was still open 10 s later"
     assert 1.4 < took < 6, took
 
 

@@ -43,6 +43,7 @@ from omg.data.sources.smpl import (
     smpl_clip,
 )
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES, TEXT_MAX_BYTES, read_file
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.skeleton import Skeleton
@@ -67,7 +68,8 @@ class _ArraysOnly(pickle.Unpickler):
 
 
 def read_pickle(path: Path) -> dict:
-    data = _ArraysOnly(io.BytesIO(path.read_bytes()), encoding="latin1").load()
+    # read_file: a FIFO cannot block, a huge file is refused (AIST++'s pickles are ~1 MB)
+    data = _ArraysOnly(io.BytesIO(read_file(path, "", MOTION_MAX_BYTES)), encoding="latin1").load()
     if not isinstance(data, dict):
         raise ValueError(f"a {type(data).__name__}, not a dict")
     return data
@@ -116,8 +118,9 @@ def _load(root: Path, path: Path, body_model: Path, gender: str, skeleton: Skele
 def ignored(root: Path) -> set[str]:
     """Sequence names AIST++'s ``ignore_list.txt`` (in the folder or its parent) lists."""
     for folder in (root, root.parent):
-        if (folder / "ignore_list.txt").is_file():
-            lines = (folder / "ignore_list.txt").read_text(encoding="utf-8", errors="replace").splitlines()
+        if (folder / "ignore_list.txt").exists():  # a FIFO or a huge one: one line, not a hang
+            data = read_file(folder / "ignore_list.txt", "aistpp:", TEXT_MAX_BYTES)
+            lines = data.decode("utf-8", errors="replace").splitlines()
             return {line.strip() for line in lines if line.strip()}
     return set()
 

@@ -40,6 +40,7 @@ not copied, and the per-animal mean/std of the chain-convention files do not app
 from __future__ import annotations
 
 import hashlib
+import io
 import pickle
 from pathlib import Path
 from typing import Iterator
@@ -48,6 +49,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.files import MOTION_MAX_BYTES, read_array, read_file, read_text
 from omg.kinematics import kabsch
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
@@ -76,12 +78,12 @@ class _ArrayUnpickler(pickle.Unpickler):
 
 def load_offsets(path: Path) -> np.ndarray:
     """(35, 3) offsets from ``offset.pkl``; ValueError names the file and reason."""
+    if not path.exists():
+        raise ValueError(f"animalml3d missing offsets: {path}")
     try:
-        with open(path, "rb") as f:
-            offsets = np.asarray(_ArrayUnpickler(f).load(), dtype=np.float64)
-    except FileNotFoundError:
-        raise ValueError(f"animalml3d missing offsets: {path}") from None
-    except Exception as e:  # noqa: BLE001 - any unreadable file is one counted skip
+        data = read_file(path, "", MOTION_MAX_BYTES)
+        offsets = np.asarray(_ArrayUnpickler(io.BytesIO(data)).load(), dtype=np.float64)
+    except Exception as e:  # noqa: BLE001 - any unreadable file (a FIFO, a huge file too) is one counted skip
         raise ValueError(f"animalml3d unreadable offsets: {path} ({type(e).__name__}: {e})") from None
     if offsets.shape != (35, 3) or not np.isfinite(offsets).all():
         raise ValueError(f"animalml3d bad offsets: {path} is {offsets.shape}, expected finite (35, 3)")
@@ -145,7 +147,10 @@ def _captions(root: Path, name: str) -> list[str]:
     for folder in ("motion_captions", "animals"):
         path = root / folder / name / "screenshots.txt"
         if path.exists():
-            lines = path.read_text(encoding="utf-8").splitlines()
+            try:
+                lines = read_text(path, "").splitlines()
+            except UsageError as e:  # a FIFO, a huge or non-UTF-8 file: a counted skip, not the build's end
+                raise ValueError(f"animalml3d unreadable captions: {path} ({type(e).__name__}: {e})") from None
             captions = [line.split("#")[0].strip() for line in lines if line.split("#")[0].strip()]
             if not captions:
                 raise ValueError(f"animalml3d empty captions: {path}")
@@ -161,8 +166,8 @@ def _read_clip(root: Path, path: Path, skeleton: Skeleton, min_frames: int, max_
         raise ValueError(f"animalml3d unknown identity: {path} ({animal!r} has no species word; give "
                          f"--option.species '{{{animal}: WORD}}')")
     try:
-        motion = np.load(path, allow_pickle=False).astype(np.float64)
-    except Exception as e:  # noqa: BLE001
+        motion = read_array(path, "").astype(np.float64)
+    except Exception as e:  # noqa: BLE001 - a FIFO or a huge file too: one counted skip
         raise ValueError(f"animalml3d unreadable motion: {path} ({type(e).__name__}: {e})") from None
     J = skeleton.num_joints
     if motion.ndim == 2 and motion.shape[1] == (J + 1) * 6:

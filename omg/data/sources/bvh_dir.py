@@ -23,8 +23,9 @@ Options: ``joint_map`` (a built-in map name or a YAML file, see ``omg.retarget``
 detected per clip), ``height`` (metres, rescales every clip, see ``omg.retarget.retarget``),
 ``domain``. A clip that fails becomes a yielded error, counted in the build summary by
 category (``bad motion file``: truncated or garbled files, unknown BVH channels, zero
-frames, NaN values; ``unmappable rig``; ``duplicate clip id``; ``missing file``), with the
-file and the reason in its message.
+frames, NaN values, a FIFO or device named like a motion; ``unmappable rig``; ``duplicate clip id``;
+``missing file``; ``bad captions file``: a sidecar that is no regular file or is too large), with
+the file and the reason in its message.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from pathlib import Path
 
 from omg.data.shards import LazyItem
 from omg.errors import UsageError
+from omg.files import MANIFEST_MAX_BYTES, TEXT_MAX_BYTES, read_file
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.skeleton import Skeleton
@@ -49,21 +51,29 @@ def _captions(path: Path) -> list[str]:
     sidecar = path.with_name(path.stem + SIDECAR)
     if not sidecar.exists():
         return []
-    return [line.strip() for line in sidecar.read_text(encoding="utf-8", errors="replace").splitlines() if line.strip()]
+    try:
+        text = read_file(sidecar, "", TEXT_MAX_BYTES).decode("utf-8", errors="replace")
+    except UsageError as e:  # a FIFO (which would block the scan) or a huge file
+        raise SkippedClip(f"bad captions file: {e}") from None
+    return [line.strip() for line in text.splitlines() if line.strip()]
 
 
-def _scan(folder: Path) -> list[dict]:
-    """Manifest-like entries for the motion files below ``folder``."""
+def _scan(folder: Path) -> list[dict | SkippedClip]:
+    """Manifest-like entries for the motion files below ``folder``; a clip whose captions sidecar
+    cannot be read is its ``SkippedClip`` (counted, the others still imported)."""
     from omg.io.deepmimic import is_deepmimic_motion
 
-    entries = []
-    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+    entries: list[dict | SkippedClip] = []
+    for path in sorted(p for p in folder.rglob("*") if not p.is_dir()):  # a FIFO .bvh too: a counted skip
         suffix = path.suffix.lower()
         if path.name.endswith(SIDECAR):
             continue
         if suffix in (".bvh", ".amc") or (suffix in (".txt", ".json") and is_deepmimic_motion(path)):
             rel = path.relative_to(folder)
-            entries.append({"id": rel.with_suffix("").as_posix(), "path": rel.as_posix(), "texts": _captions(path)})
+            try:
+                entries.append({"id": rel.with_suffix("").as_posix(), "path": rel.as_posix(), "texts": _captions(path)})
+            except SkippedClip as e:
+                entries.append(e)
     return entries
 
 
@@ -94,7 +104,7 @@ def _import(entry: dict, folder: Path, skeleton: Skeleton, fps: float, joint_map
     from omg.retarget import detect_joint_map, get_joint_map, retarget
 
     path = folder / entry["path"]
-    if not path.is_file():
+    if not path.exists():  # a FIFO or folder is no missing file: read_motion refuses it, a bad motion file
         raise SkippedClip(f"missing file: {path}: listed in the manifest but not found")
     try:
         motion = read_motion(path, **_reader_options(entry, folder))
@@ -138,10 +148,11 @@ def bvh_dir_source(
             raise UsageError(f"joint map {jmap.name!r} maps onto {jmap.target!r}, "
                              f"but the build targets {skeleton.name!r}")
     manifest = folder / "manifest.json"
-    if manifest.exists():
+    if manifest.exists() or manifest.is_symlink():
+        data = read_file(manifest, "", MANIFEST_MAX_BYTES)  # a FIFO or a huge file: one line
         try:
-            entries = json.loads(manifest.read_text())["clips"]
-        except (OSError, ValueError, KeyError, TypeError) as e:
+            entries = json.loads(data)["clips"]
+        except (ValueError, KeyError, TypeError) as e:
             raise UsageError(f"{manifest}: not a clip manifest ({{\"clips\": [...]}}): {e}") from None
         bad = [i for i, e in enumerate(entries) if not isinstance(e, dict) or "id" not in e or "path" not in e]
         if bad:
@@ -164,6 +175,9 @@ def _items(entries, folder, skeleton, fps, joint_map, height, only) -> list[Lazy
     seen: set[str] = set()
     items: list[LazyItem | Exception] = []
     for entry in entries:
+        if isinstance(entry, Exception):
+            items.append(entry)
+            continue
         clip_id = str(entry["id"])
         if clip_id in seen:
             items.append(SkippedClip(f"duplicate clip id: {folder / entry['path']}: id {clip_id!r} is already taken"))

@@ -38,6 +38,7 @@ import torch
 
 from omg.data.shards import SourceItems
 from omg.errors import UsageError
+from omg.files import read_array, read_text
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import Skeleton
@@ -64,15 +65,15 @@ def _split_ids(root: Path, split: str) -> list[str]:
         ids = {p.stem for d in ("new_joint_vecs", "new_joints") for p in (root / d).glob("*.npy")}
         return sorted(ids)
     path = root / f"{split}.txt"
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         raise UsageError(f"humanml3d: split file {path} not found; use --option.split all to read every clip")
-    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    return [line.strip() for line in read_text(path, "humanml3d: split file").splitlines() if line.strip()]
 
 
 def _load(path: Path, shape: tuple) -> np.ndarray:
     """Load an .npy whose trailing dims must equal ``shape``; ValueError names the reason and file."""
     try:
-        array = np.load(path, allow_pickle=False)
+        array = read_array(path, "")  # a FIFO or a huge file too: a UsageError, caught here
     except Exception as e:  # noqa: BLE001 - any unreadable file is one counted skip
         raise ValueError(f"humanml3d unreadable file: {path} ({type(e).__name__}: {e})") from None
     if array.ndim != len(shape) + 1 or array.shape[1:] != shape:
@@ -86,7 +87,9 @@ def _load(path: Path, shape: tuple) -> np.ndarray:
 def _published_stat(path: Path) -> np.ndarray:
     """Mean.npy or Std.npy: 263 numbers (never unpickled: an object array could run code as it is read)."""
     try:
-        array = np.load(path, allow_pickle=False)
+        array = read_array(path, "humanml3d:")
+    except UsageError:  # no regular file, or too large: read_file's one line
+        raise
     except (OSError, ValueError, EOFError) as e:
         raise UsageError(f"humanml3d: {path} is not a plain numeric .npy array ({' '.join(str(e).split())[:120]}); "
                          "remove it or use the published file") from None
@@ -108,7 +111,11 @@ def _read_clips(root: Path, name: str, skeleton: Skeleton, min_frames: int,
         if not text_path.exists():
             raise ValueError(f"humanml3d missing captions: {text_path}")
         spans: dict[tuple[float, float], list[tuple[str, list[str]]]] = defaultdict(list)
-        for i, line in enumerate(text_path.read_text(encoding="utf-8").splitlines()):
+        try:
+            text = read_text(text_path, "")
+        except UsageError as e:  # a FIFO, a huge or non-UTF-8 file: one counted skip, as an unreadable motion
+            raise ValueError(f"humanml3d unreadable file: {text_path} ({type(e).__name__}: {e})") from None
+        for i, line in enumerate(text.splitlines()):
             if line.strip():
                 try:
                     caption, tokens, start, end = parse_caption_line(line)

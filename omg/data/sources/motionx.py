@@ -41,6 +41,7 @@ from omg.data.sources.smpl import (
     smpl_clip,
 )
 from omg.errors import UsageError
+from omg.files import TEXT_MAX_BYTES, read_array, read_file
 from omg.motion import Clip
 from omg.registry import DATA_SOURCES
 from omg.skeleton import Skeleton
@@ -55,12 +56,12 @@ def _read(path: Path, source_fps: float) -> tuple[np.ndarray, np.ndarray, np.nda
     """(T, 66) body poses, (T, 3) trans, betas, gender, fps of one file; ValueError when unusable."""
     try:
         if path.suffix == ".npy":
-            frames = np.load(path, allow_pickle=False)
+            frames = read_array(path, "")
             data = None
         else:
-            with np.load(path, allow_pickle=False) as f:
+            with read_array(path, "") as f:
                 data = {k: f[k] for k in f.files}
-    except Exception as e:  # noqa: BLE001 - any unreadable file is one counted skip
+    except Exception as e:  # noqa: BLE001 - any unreadable file (a FIFO, a huge file too) is one counted skip
         raise ValueError(f"motionx unreadable file: {path} ({type(e).__name__}: {e})") from None
     if data is None:
         if frames.ndim != 2 or frames.shape[1] != MOTIONX_DIM:
@@ -89,9 +90,12 @@ def _read(path: Path, source_fps: float) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def _captions(texts: Path | None, rel: Path) -> list[str]:
-    if texts is None or not (path := texts / rel.with_suffix(".txt")).is_file():
+    if texts is None or not (path := texts / rel.with_suffix(".txt")).exists():
         return []
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    try:
+        lines = read_file(path, "", TEXT_MAX_BYTES).decode("utf-8", errors="replace").splitlines()
+    except UsageError as e:  # a FIFO or a huge file: the clip is a counted skip, not the build's end
+        raise ValueError(f"motionx unreadable file: {path} ({type(e).__name__}: {e})") from None
     return [line.strip() for line in lines if line.strip()]
 
 
@@ -123,5 +127,6 @@ def motionx_source(input: str | None, skeleton: Skeleton, fps: float, body_model
     root, texts = Path(input), None
     if (root / "motion_data" / "smplx_322").is_dir():  # Motion-X's release layout
         root, texts = root / "motion_data" / "smplx_322", root / "texts" / "semantic_labels"
-    paths = sorted(p for p in root.rglob("*") if p.suffix in (".npy", ".npz") and p.is_file())
+    # not is_file(): a FIFO or device named like a motion is listed, then a counted skip when read
+    paths = sorted(p for p in root.rglob("*") if p.suffix in (".npy", ".npz") and not p.is_dir())
     return [LazyItem(_load, (root, p, texts, model_path, skeleton, fps, float(source_fps), up)) for p in paths]

@@ -16,6 +16,7 @@ bone lengths constant, local rotations and offsets kept in the clip.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.files import read_array
 from omg.io.rig import RigMotion
 from omg.motion import Clip
 from omg.retarget import JointMap, retarget
@@ -54,14 +56,18 @@ class BodyModel:
                 "--option.body_model PATH.npz"
             )
         try:
-            with np.load(path, allow_pickle=False) as f:
+            # float64 models: SMPL-H's ~80 MiB, SMPL-X 2020's (400 shape, 486 pose blend shapes) ~221 MiB,
+            # within MOTION_MAX_BYTES (256 MiB)
+            with read_array(path, "body model") as f:
                 parts = {k: np.asarray(f[k], dtype=np.float64) for k in ("v_template", "shapedirs", "J_regressor")}
                 kintree = np.asarray(f["kintree_table"])
         except KeyError as e:
             raise UsageError(
                 f"body model {path} lacks {e}; it needs v_template, shapedirs, J_regressor, kintree_table"
             ) from None
-        except (OSError, ValueError) as e:
+        except UsageError:  # no regular file (a FIFO), or larger than the bound: read_file's one line
+            raise
+        except (OSError, ValueError, EOFError, TypeError, zipfile.BadZipFile) as e:  # TypeError: an .npy, no .npz
             raise UsageError(f"body model {path} is not a readable .npz of plain arrays ({e})") from None
         parents = tuple(int(p) if i else -1 for i, p in enumerate(kintree[0]))
         if parents[:NUM_JOINTS] != tuple(SMPL22_PARENTS):
@@ -96,9 +102,9 @@ def check_body_model(source: str, body_model: str | None, skeleton: Skeleton) ->
     path = Path(body_model)
     if not path.exists():
         raise UsageError(f"{source}: --option.body_model {body_model}: no such file or folder")
-    if path.is_file():
-        BodyModel.load(path)  # fail now, not on the first clip
-    elif not any((path / g / "model.npz").is_file() for g in GENDERS):
+    if not path.is_dir():
+        BodyModel.load(path)  # fail now, not on the first clip; a FIFO or device is refused unread
+    elif not any((path / g / "model.npz").exists() for g in GENDERS):
         raise UsageError(f"{source}: --option.body_model {body_model}: a folder needs male/, female/ or "
                          "neutral/model.npz")
     if list(skeleton.parents) != SMPL22_PARENTS:
@@ -116,10 +122,10 @@ def check_sequence_options(source: str, up: str, source_fps: float) -> None:
 
 def body_model_for(path: Path, gender: str) -> BodyModel:
     """The model file itself, or from a folder the gender's model (the neutral one where absent)."""
-    if path.is_file():
+    if not path.is_dir():
         return BodyModel.load(path)
     for name in (gender if gender in GENDERS else "neutral", "neutral"):
-        if (path / name / "model.npz").is_file():
+        if (path / name / "model.npz").exists():  # a FIFO there is refused (a UsageError), not passed over
             return BodyModel.load(path / name / "model.npz")
     raise ValueError(f"no body model for gender {gender!r}: {path}/{{{gender},neutral}}/model.npz")
 

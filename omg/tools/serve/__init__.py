@@ -4,7 +4,7 @@ The checkpoints are loaded once; each model's generation card (``omg.lit.generat
 page and ``GET /v1/models`` what it takes. ``POST /v1/generate`` and ``POST /v1/transfer`` answer
 with the motions' joints and links to the files ``omg generate`` writes (``write_generation``);
 the page plays them in a three.js skeleton viewer shipped in ``static/vendor`` (nothing is fetched
-from elsewhere). See the README's "Serving" section for the routes and ``curl`` examples.
+from elsewhere). docs/guide/serving.md gives the routes and ``curl`` examples.
 """
 
 from __future__ import annotations
@@ -94,7 +94,8 @@ def serve(
         max_samples: most motions one request may ask for
         max_upload_mb: largest upload in MiB (counted as the body arrives, chunked or not: 413 beyond it)
         max_json_kb: largest JSON request body in KiB
-        read_timeout: seconds a request's body may take to arrive (408 and the connection closed after)
+        read_timeout: seconds a request's headers may take to arrive (the connection is closed after) and,
+            from them on, its body (408 and the connection closed after)
         result_ttl: seconds a result's files are kept (then 410)
         max_results_mb: MiB of all results' files together; the oldest results are dropped first
         allowed_hosts: names a request's Host header may give besides the address bound (and this machine's
@@ -127,7 +128,42 @@ def serve(
     print(f"omg serve: {', '.join(m.name for m in models)} on http://{host}:{port}/ (results in {results})",
           flush=True)
     # uvicorn finishes the requests in flight on Ctrl-C / SIGTERM, runs the app's shutdown, then re-raises the signal
-    uvicorn.run(app, host=host, port=port, log_level="info", timeout_graceful_shutdown=600)
+    uvicorn.Server(server_config(app, host, port, read_timeout, log_level="info", timeout_graceful_shutdown=600)).run()
+
+
+def server_config(app, host: str, port: int, read_timeout: float, **options):
+    """uvicorn's config for ``app``, whose connections must send a request's headers within ``read_timeout``
+    seconds of opening (or of the previous answer, kept alive): uvicorn bounds neither, so a client
+    trickling its headers held a connection for good. The body has its own bound (``app.Limits``)."""
+    import uvicorn
+
+    return uvicorn.Config(app, host=host, port=port, http=headers_within(read_timeout), **options)
+
+
+def headers_within(seconds: float) -> type:
+    """uvicorn's HTTP protocol class, closing a connection whose next request's headers have not all arrived
+    ``seconds`` after it opened or after its previous answer (the time a request is served is not counted)."""
+    from uvicorn.protocols.http.auto import AutoHTTPProtocol
+
+    class HeadersWithin(AutoHTTPProtocol):
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._expect_headers()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            self._expect_headers()
+
+        def _expect_headers(self) -> None:
+            answered = self.cycle  # uvicorn starts a new cycle when a request's headers are complete
+
+            def expire() -> None:
+                if self.cycle is answered and not self.transport.is_closing():
+                    self.transport.close()
+
+            self.loop.call_later(seconds, expire)
+
+    return HeadersWithin
 
 
 def host_names(host: str, allowed: list[str] | None) -> tuple[str, ...]:
