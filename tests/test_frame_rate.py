@@ -60,9 +60,10 @@ def test_generated_bvh_is_at_the_training_rate(prior_30fps, tmp_path):
 
 
 def test_omg_fit_refuses_a_prior_of_another_rate_in_one_line_naming_the_fix(prior_30fps, tmp_path, capsys):
-    """The README's rate statement: the paper's pretraining data is at 30 fps, a prior generates at its rate, and
-    `omg fit` of the ControlNet on 20-fps data (HumanML3D's) stops in one line naming what to set: pretraining shards
-    built with --fps 20 and data.max_len 200 (OMG's L = 300 frames at 30 fps, the same 10 s)."""
+    """The rate statement of docs/guide/pretraining_data.md: the paper's pretraining data is at 30 fps, a prior
+    generates at its rate, and `omg fit` of the ControlNet on 20-fps data (HumanML3D's) stops in one line naming
+    what to set: pretraining shards built with --fps 20 and data.max_len 200 (OMG's L = 300 frames at 30 fps, the
+    same 10 s)."""
     from helpers import REPO
     from omg.cli import main
 

@@ -72,7 +72,7 @@ def console_script() -> Path:
 @pytest.mark.slow  # two training processes start up: about 40 s each way on 2 cores
 @pytest.mark.parametrize("how", ["console script", "python -m omg"])
 def test_devices_2_on_one_machine_starts_both_ranks_from_any_folder(h263_shards, tmp_path, how):
-    """The README's "one node, all its GPUs" command on the CPU: rank 0 runs the command again for rank 1.
+    """docs/guide/scale.md's "one node, all its GPUs" command on the CPU: rank 0 runs the command again for rank 1.
     From a folder that is not the checkout, with a config and an output folder given relative to it: rank
     1 must run the same program (not ``python $PWD/omg``) with the same arguments in the same folder."""
     write_config(tmp_path / "fit.yaml", h263_shards / "train", Path("run"), max_steps=2)

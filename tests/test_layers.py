@@ -1,5 +1,5 @@
 """The package's dependencies point one way: every import, lazy ones included, goes to the
-importing module's own layer or a lower one (the layer order of the README's layout section).
+importing module's own layer or a lower one (the layer order of docs/architecture.md's layout section).
 
 What counts as an import: every import statement at any depth (``from omg import X`` and relative
 imports read as the submodule X where X is one), ``importlib.import_module`` with a literal name,
@@ -14,8 +14,9 @@ not of omg.registry, which only holds the names. omg.registry is foundation so t
 register into it (the plugin API); a lookup is a dependency of its caller on the registry's
 built-ins, and that is where this test checks it.
 
-The packages (``omg.lit``, ``omg.callbacks``, ...) form no cycle; every ``class_path`` of a config
-under configs/ imports and its registry names exist; and the README's layout lists every module and
+The packages (``omg.lit``, ``omg.callbacks``, ...) form no cycle, nor do the modules inside one
+(an import of ``omg.a.b.c`` runs ``omg/a/b/__init__.py`` first: ``module_edges``); every ``class_path`` of a config
+under configs/ imports and its registry names exist; and docs/architecture.md's layout lists every module and
 package of omg/ under its layer."""
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import omg
 
 PACKAGE = Path(omg.__file__).parent
 ROOT = PACKAGE.parent
+ARCHITECTURE = ROOT / "docs" / "architecture.md"  # its Layout section lists every module under its layer
 
 # lowest first; a module belongs to the layer of its longest matching prefix
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
@@ -73,7 +75,7 @@ def layer_of(module: str) -> int:
             inside = module == prefix or (prefix != "omg" and module.startswith(prefix + "."))
             if inside and len(prefix) > len(best):
                 best, level = prefix, index
-    assert level is not None, f"{module} is in no layer: add it to LAYERS and to the README's layout section"
+    assert level is not None, f"{module} is in no layer: add it to LAYERS and to docs/architecture.md's layout section"
     return level
 
 
@@ -146,12 +148,13 @@ DATA_TABLES = {"omg.cli": _command_table, "omg.lit.checkpoint": _safe_globals}
 
 
 def imports(source: str, name: str, is_package: bool = False,
-            dynamic: list[tuple[str, int]] | None = None) -> list[tuple[str, int]]:
+            dynamic: list[tuple[str, int]] | None = None, lookups: bool = True) -> list[tuple[str, int]]:
     """(imported omg module, line) of every import statement in module ``name``'s source, at any
     depth, of every ``importlib.import_module("omg...")`` with a literal name and of the names
     ``DATA_TABLES`` reads. ``from P import X`` imports the module P.X where that is a module, else P;
-    ``from omg.registry import R`` imports the built-in modules of registry R as well (``REGISTRIES``).
-    Each ``import_module`` with a computed name is appended to ``dynamic`` as (scope, line)."""
+    ``from omg.registry import R`` imports the built-in modules of registry R as well (``REGISTRIES``),
+    unless ``lookups`` is false. Each ``import_module`` with a computed name is appended to ``dynamic``
+    as (scope, line)."""
     package = name if is_package else name.rpartition(".")[0]
     tree = ast.parse(source)
     scopes = _scopes(tree)
@@ -167,7 +170,7 @@ def imports(source: str, name: str, is_package: bool = False,
             for alias in node.names:
                 sub = f"{base}.{alias.name}"
                 found.append((sub if is_module(sub) else base, node.lineno))
-                if base == "omg.registry":
+                if lookups and base == "omg.registry":
                     found += [(module, node.lineno) for module in REGISTRIES.get(alias.name, [])]
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "import_module" and node.args:
             if isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
@@ -290,6 +293,91 @@ def test_packages_form_no_cycle():
     assert not found, "\n".join(report)
 
 
+def module_edges(modules: list[tuple[str, str, str, bool]]) -> dict[tuple[str, str], list[str]]:
+    """(module, module) -> the imports that make that edge, between two modules of one package
+    (``package_of``: ``omg.tools.bench.gpu`` and ``omg.tools.generate`` are both ``omg.tools``), over
+    ``modules``: (name, where it is, source, whether it is a package's ``__init__.py``).
+
+    Every import statement at any depth counts (``imports``). Importing ``omg.a.b.c`` runs
+    ``omg/a/b/__init__.py`` first, so it is an edge to each package above the imported module as
+    well, except the packages above the importer (Python has loaded them, or is loading them, before
+    the importer runs). A registry's built-in list is not read here: the registry imports it on a
+    lookup, at call time, and each built-in module imports its registry to register into it
+    (``test_no_import_points_upward`` checks those lookups against the layers)."""
+    edges: dict[tuple[str, str], list[str]] = {}
+    for name, location, source, is_package in modules:
+        parts = name.split(".")
+        loaded_first = {".".join(parts[:i]) for i in range(1, len(parts) + 1)}
+        for imported, line in imports(source, name, is_package, lookups=False):
+            pieces = imported.split(".")
+            for target in [imported, *(".".join(pieces[:i]) for i in range(len(pieces) - 1, 0, -1))]:
+                if target in loaded_first or package_of(target) != package_of(name):
+                    continue
+                via = "" if target == imported else f" (which runs {target}'s __init__.py first)"
+                edges.setdefault((name, target), []).append(f"{location}:{line} {name} imports {imported}{via}")
+    return edges
+
+
+def shortest_cycle(edges: dict[tuple[str, str], list[str]], component: list[str]) -> list[str]:
+    """A shortest import chain from the component's first module back to it, inside the component."""
+    start, paths = component[0], {component[0]: [component[0]]}
+    frontier = [start]
+    while frontier:
+        nxt = []
+        for node in frontier:
+            for a, b in sorted(edges):
+                if a == node and b in component:
+                    if b == start:
+                        return [*paths[node], start]
+                    if b not in paths:
+                        paths[b] = [*paths[node], b]
+                        nxt.append(b)
+        frontier = nxt
+    raise AssertionError(f"{component} is not a cycle")
+
+
+def cycle_report(edges: dict[tuple[str, str], list[str]]) -> list[str]:
+    """One block per cycle: the chain of modules, and the import lines that make each link."""
+    report = []
+    for component in cycles(edges):
+        chain = shortest_cycle(edges, component)
+        report.append(f"import cycle {' -> '.join(chain)} (among {', '.join(component)}):")
+        report += [f"  {line}" for a, b in zip(chain, chain[1:]) for line in edges[a, b]]
+    return report
+
+
+def test_modules_of_a_package_form_no_cycle():
+    modules = [(module_name(path), str(path.relative_to(ROOT)), path.read_text(), path.name == "__init__.py")
+               for path in sorted(PACKAGE.rglob("*.py"))]
+    report = cycle_report(module_edges(modules))
+    assert not report, ("modules that import each other (move what both need into a module that neither "
+                        "imports, or one of them into the other's package):\n" + "\n".join(report))
+
+
+def test_the_cycle_check_sees_function_level_imports_and_packages_run_first():
+    # omg bench as one module: bench.py imports gpu.py for its subcommand, gpu.py the device peaks from bench.py
+    old = [("omg.tools.bench", "bench.py", "from omg.tools.gpu import bench_gpu\n", False),
+           ("omg.tools.gpu", "gpu.py", "def bench_gpu():\n    from omg.tools.bench import PEAK_TFLOPS\n", False)]
+    assert cycle_report(module_edges(old)) == [
+        "import cycle omg.tools.bench -> omg.tools.gpu -> omg.tools.bench (among omg.tools.bench, omg.tools.gpu):",
+        "  bench.py:1 omg.tools.bench imports omg.tools.gpu", "  gpu.py:2 omg.tools.gpu imports omg.tools.bench"]
+    # gpu.py left outside the bench package, reading its device module: that import runs bench/__init__.py
+    outside = [("omg.tools.bench", "bench/__init__.py", "from omg.tools.gpu import bench_gpu\n", True),
+               ("omg.tools.bench.device", "bench/device.py", "import torch\n", False),
+               ("omg.tools.gpu", "gpu.py", "from omg.tools.bench.device import device_peak_tflops\n", False)]
+    assert cycles(module_edges(outside)) == [["omg.tools.bench", "omg.tools.gpu"]]
+    # gpu.py inside the package: its own package is loaded before it runs, and __init__.py imports it
+    inside = [("omg.tools.bench", "bench/__init__.py", "from omg.tools.bench import gpu\n", True),
+              ("omg.tools.bench.gpu", "bench/gpu.py", "from omg.tools.bench.device import peak_memory\n", False),
+              ("omg.tools.bench.device", "bench/device.py", "", False)]
+    assert module_edges(inside).keys() == {("omg.tools.bench", "omg.tools.bench.gpu"),
+                                           ("omg.tools.bench.gpu", "omg.tools.bench.device")}
+    # a registry's built-in list is imported by the registry on a lookup, not by each module registering into it
+    registering = [("omg.text", "text/__init__.py", "from omg.text import clip\n", True),
+                   ("omg.text.clip", "text/clip.py", "from omg.registry import TEXT_ENCODERS\n", False)]
+    assert cycles(module_edges(registering)) == []
+
+
 def test_the_checker_sees_lazy_relative_and_dynamic_imports():
     source = ("from . import windows\n"
               "def f():\n    from ..lit import base\n    import importlib\n    importlib.import_module('omg.cli')\n"
@@ -398,13 +486,13 @@ def test_every_config_class_path_imports(config):
     assert not problems, f"{config.relative_to(ROOT)}:\n" + "\n".join(problems)
 
 
-# -- the README ----------------------------------------------------------------------------
+# -- docs/architecture.md ------------------------------------------------------------------
 
-def readme_layout() -> dict[str, list[str]]:
+def architecture_layout() -> dict[str, list[str]]:
     """Layer name -> the top-level entries (``errors.py``, ``motion/``) its layout line lists,
     outside parentheses."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme.split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    doc = ARCHITECTURE.read_text()
+    section = doc.split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
     items = re.findall(r"^\d+\. \*\*(\w+)\*\*:(.*?)(?=^\d+\. |^\s*$)", section, re.S | re.M)
     layout = {}
     for name, text in items:
@@ -414,20 +502,21 @@ def readme_layout() -> dict[str, list[str]]:
     return layout
 
 
-def test_readme_states_the_same_layer_order():
-    readme = (PACKAGE.parent / "README.md").read_text()
-    positions = [readme.find(f"**{name}**") for name, _ in LAYERS]
-    assert all(p >= 0 for p in positions), "the README's layout section names every layer in bold"
-    assert positions == sorted(positions), "the README lists the layers in this order"
-    assert list(readme_layout()) == [name for name, _ in LAYERS], "one numbered layout line per layer, in order"
+def test_architecture_states_the_same_layer_order():
+    doc = ARCHITECTURE.read_text()
+    positions = [doc.find(f"**{name}**") for name, _ in LAYERS]
+    assert all(p >= 0 for p in positions), "docs/architecture.md's layout section names every layer in bold"
+    assert positions == sorted(positions), "docs/architecture.md lists the layers in this order"
+    assert list(architecture_layout()) == [name for name, _ in LAYERS], "one numbered layout line per layer, in order"
 
 
-def test_readme_lists_every_module_under_its_layer():
-    layout = readme_layout()
+def test_architecture_lists_every_module_under_its_layer():
+    layout = architecture_layout()
     tree = {f"{p.stem}.py" for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}
     tree |= {f"{p.name}/" for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
     listed = {entry: layer for layer, entries in layout.items() for entry in entries}
-    problems = [f"{entry} is in omg/ but not in the README's layout list" for entry in sorted(tree - set(listed))]
+    problems = [f"{entry} is in omg/ but not in docs/architecture.md's layout list"
+                for entry in sorted(tree - set(listed))]
     problems += [f"{entry} is listed under {listed[entry]} but is not in omg/" for entry in sorted(set(listed) - tree)]
     for entry in sorted(tree & set(listed)):
         layer = LAYERS[layer_of(f"omg.{entry.removesuffix('.py').removesuffix('/')}")][0]

@@ -379,7 +379,7 @@ def small_eval(tmp_path_factory):
 
 def test_evaluation_starts_from_generated_human_motion_by_default():
     """The paper's tables start from human motion sampled from a generative model (Fig. 2c): both evaluation
-    configs name an OMG ControlNet checkpoint, the one the README trains (mini: the quick start's), as
+    configs name an OMG ControlNet checkpoint, the one docs/families/ trains (mini: the quick start's), as
     model.init_args.human_source; retrieval is the named overlay, whose bank is never the prompts' split."""
     from helpers.configs import parse
 

@@ -1,8 +1,16 @@
-"""omg uses jsonargparse and Lightning through their public APIs only (issue #26, 5b): no private
-attribute (a name starting with ``_``) of theirs is read, called or overridden in omg/, and no
-private module or name of theirs is imported. What omg computes itself in place of a private hook
-(Lightning's choice of the SLURM requeue checkpoint and of the ``last`` checkpoints, the progress
-bar's epoch) is checked against Lightning's own."""
+"""omg uses jsonargparse, Lightning and torch through their public APIs only (issue #26, 5b; issue
+#37, 5): no private attribute (a name starting with ``_``) of theirs is read, called or overridden in
+omg/, and no private module or name of theirs is imported (``torch._dynamo``, ``torch.utils._pytree``,
+``from torch._C import ...``), except the uses ``ALLOWED`` lists with the reason no public route
+exists. What omg computes itself in place of a private hook (Lightning's choice of the SLURM requeue
+checkpoint and of the ``last`` checkpoints, the progress bar's epoch) is checked against Lightning's
+own.
+
+torch's private names are read from three places: a name bound by an import from torch
+(``torch._C``, ``F._canonical_mask``, ``signal_handling._remove_worker_pids``); a method or
+attribute on ``self`` that a torch base class defines (``nn.Module._apply``, ``self._modules``);
+and an attribute of any other object (``loader_iter._workers``, ``getattr(x, "_workers")``) whose
+name torch's sources use and omg itself never defines."""
 
 from __future__ import annotations
 
@@ -23,9 +31,10 @@ from helpers import REPO
 
 PACKAGE = REPO / "omg"
 LIBRARIES = ("jsonargparse", "lightning", "lightning_fabric", "pytorch_lightning")
+TORCH = "torch"  # scanned as well, its private names read from its sources' text (an AST of 50 MB is slow)
 
 # (omg file, private name) -> why no public route exists. Keep it short: each entry is a hook that
-# a new jsonargparse or Lightning may remove without notice.
+# a new jsonargparse, Lightning or torch may remove without notice.
 ALLOWED: dict[tuple[str, str], str] = {
     ("omg/callbacks/run.py", "_signal_connector"):
         "Ctrl-C sets the flag Lightning's own SIGTERM handler sets (trainer.received_sigterm is read-only), so "
@@ -38,7 +47,28 @@ ALLOWED: dict[tuple[str, str], str] = {
         "a module rebuilt from a checkpoint while LightningCLI builds another (HabitPriorModule's VQ-VAE) must record "
         "its own hyper-parameters: LightningCLI hands its config to save_hyperparameters() through this context "
         "variable, and Lightning has no public way to step out of it",
+    # torch
+    ("omg/lit/base.py", "_composable"):
+        "activation checkpointing by forward hooks (torch.distributed._composable.checkpoint, torch 2.14 has it "
+        "nowhere public), so that parameter names and checkpoints stay as they are; the public "
+        "torch.utils.checkpoint.checkpoint wraps a forward call, which would need a wrapper module (renamed "
+        "parameters) or a forward override in every block",
+    ("omg/data/datamodule.py", "_utils"):
+        "stop_workers ends a DataLoader iterator's worker processes with SIGCONT and SIGKILL as well (a stopped "
+        "worker never exits on torch's SIGTERM, and Python's exit waits for it forever): torch's SIGCHLD handler "
+        "must first forget their pids (torch.utils.data._utils.signal_handling), as torch's own shutdown does",
+    ("omg/data/datamodule.py", "_remove_worker_pids"):
+        "the call that makes torch's SIGCHLD handler forget the workers stop_workers ends (see _utils)",
+    ("omg/data/datamodule.py", "_worker_pids_set"):
+        "whether the iterator's worker pids are registered with torch's SIGCHLD handler, read and cleared as "
+        "torch's own shutdown does (see _utils)",
+    ("omg/data/datamodule.py", "_workers"):
+        "a DataLoader iterator's worker processes: torch offers no public handle on them, and stop_workers must "
+        "signal each (see _utils)",
 }
+
+
+ATTRIBUTE_CALLS = ("getattr", "hasattr", "setattr", "delattr")  # an attribute named by a string
 
 
 def _is_private(name: str) -> bool:
@@ -82,8 +112,54 @@ def class_private_names(cls: type) -> frozenset[str]:
     return frozenset(names)
 
 
+@functools.cache
+def torch_private_names() -> frozenset[str]:
+    """Every private name torch's sources define or read (``def _name``, ``x._name``), from their text."""
+    spec = importlib.util.find_spec(TORCH)
+    names: set[str] = set()
+    for path in Path(spec.origin).parent.rglob("*.py"):
+        for attribute, function in re.findall(r"\.(_[A-Za-z0-9]\w*)|\bdef (_[A-Za-z0-9]\w*)",
+                                              path.read_text(encoding="utf-8", errors="replace")):
+            names.add(attribute or function)
+    return frozenset(names)
+
+
+@functools.cache
+def omg_private_names(root: Path = PACKAGE) -> frozenset[str]:
+    """The private names omg defines itself: its functions, classes, variables and ``self`` attributes."""
+    names: set[str] = set()
+    for path in root.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                names.add(node.name)
+            elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+                names.add(node.id)
+            elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) and _on_self(node.value):
+                names.add(node.attr)
+    return frozenset(name for name in names if _is_private(name))
+
+
 def _from_library(module: str | None) -> bool:
-    return bool(module) and module.split(".")[0] in LIBRARIES
+    return bool(module) and module.split(".")[0] in (*LIBRARIES, TORCH)
+
+
+def _bound_modules(tree: ast.AST) -> dict[str, str]:
+    """Each name an import binds in the file (at any depth) -> the module it comes from."""
+    bound = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            bound.update({(a.asname or a.name.split(".")[0]): (a.name if a.asname else a.name.split(".")[0])
+                          for a in node.names})
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            bound.update({(a.asname or a.name): node.module for a in node.names})
+    return bound
+
+
+def _root(node: ast.expr) -> str | None:
+    """The name an attribute chain starts from (``torch`` of ``torch.utils._pytree``), if a name."""
+    while isinstance(node, ast.Attribute):
+        node = node.value
+    return node.id if isinstance(node, ast.Name) else None
 
 
 def _on_self(node: ast.expr) -> bool:
@@ -104,6 +180,7 @@ def private_uses(path: Path, root: Path = REPO) -> list[tuple[int, str, str]]:
     tree = ast.parse(path.read_text(encoding="utf-8"))
     module = None
     found: list[tuple[int, str, str]] = []
+    bound = _bound_modules(tree)
 
     def library_bases(class_name: str) -> list[type]:
         nonlocal module
@@ -128,16 +205,68 @@ def private_uses(path: Path, root: Path = REPO) -> list[tuple[int, str, str]]:
                 found.extend((child.lineno, p, f"imports {a.name}") for a in child.names if _from_library(a.name)
                              for p in a.name.split(".") if _is_private(p))
             elif isinstance(child, ast.Attribute) and _is_private(child.attr):
-                if _on_self(child.value):
-                    own = set().union(*(class_private_names(k) for k in bases)) if bases else set()
-                    if child.attr in own:
-                        found.append((child.lineno, child.attr, f"{ast.unparse(child)} (of a library base class)"))
-                elif child.attr in library_private_names():
-                    found.append((child.lineno, child.attr, ast.unparse(child)))
+                attribute(child.value, child.attr, child.lineno, ast.unparse(child), bases)
+            elif (isinstance(child, ast.Call) and getattr(child.func, "id", None) in ATTRIBUTE_CALLS
+                  and len(child.args) > 1 and isinstance(child.args[1], ast.Constant)
+                  and isinstance(child.args[1].value, str) and _is_private(child.args[1].value)):
+                attribute(child.args[0], child.args[1].value, child.lineno, ast.unparse(child), bases)
             visit(child, inner)
+
+    def attribute(owner: ast.expr, name: str, line: int, text: str, bases: list[type]) -> None:
+        """``owner.name`` (or ``getattr(owner, "name")``), ``name`` private."""
+        root = _root(owner)
+        if _on_self(owner):
+            own = set().union(*(class_private_names(k) for k in bases)) if bases else set()
+            if name in own:
+                found.append((line, name, f"{text} (of a library base class)"))
+        elif name in library_private_names():
+            found.append((line, name, text))
+        elif root in bound:  # read from an imported module or a name imported from one
+            if bound[root].split(".")[0] == TORCH:
+                found.append((line, name, f"{text} (read from {bound[root]})"))
+        elif name in torch_private_names() and name not in omg_private_names():
+            found.append((line, name, f"{text} (a private attribute of torch's)"))
 
     visit(tree, [])
     return found
+
+
+def test_the_scan_finds_torchs_private_names(tmp_path, monkeypatch):
+    """The scan covers torch: private modules imported, private names read from torch's modules and
+    objects, nn.Module's private methods overridden; omg's own private names and another library's
+    (``os._exit``) are not torch's."""
+    (tmp_path / "torch_probe.py").write_text(textwrap.dedent("""
+        import os
+        import torch
+        import torch._C
+        import torch.nn.functional as F
+        from torch import nn
+        from torch.utils import _pytree
+        from torch.utils.data._utils import signal_handling
+
+        class Net(nn.Module):
+            def _apply(self, fn, recurse=True):
+                return super()._apply(fn, recurse)
+
+            def own(self):
+                self._helper = 1
+                return self._modules, self._helper
+
+        def probe(loader_iter, tensor):
+            torch._dynamo.reset()
+            F._canonical_mask
+            signal_handling._remove_worker_pids(1)
+            getattr(loader_iter, "_workers", [])
+            loader_iter._worker_pids_set = False
+            tensor._own_probe_value
+            os._exit(0)
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    found = private_uses(tmp_path / "torch_probe.py", tmp_path)
+    assert {name for _, name, _ in found} == {"_C", "_pytree", "_utils", "_apply", "_modules", "_dynamo",
+                                             "_canonical_mask", "_remove_worker_pids", "_workers",
+                                             "_worker_pids_set"}
+    assert (11, "_apply", "overrides Net._apply") in found
 
 
 def test_the_scan_finds_the_hooks_it_is_for(tmp_path, monkeypatch):
@@ -168,12 +297,12 @@ def test_the_scan_finds_the_hooks_it_is_for(tmp_path, monkeypatch):
                      "_hpc_resume_path", "_get_train_description", "_check_type_"}
 
 
-def test_omg_uses_no_private_jsonargparse_or_lightning_attribute():
+def test_omg_uses_no_private_jsonargparse_lightning_or_torch_attribute():
     uses = []
     for path in sorted(PACKAGE.rglob("*.py")):
         where = str(path.relative_to(REPO))
         uses += [f"{where}:{line}: {what}" for line, name, what in private_uses(path) if (where, name) not in ALLOWED]
-    assert not uses, ("private jsonargparse/Lightning attributes (use a public API, or add an entry to ALLOWED "
+    assert not uses, ("private jsonargparse/Lightning/torch attributes (use a public API, or add an entry to ALLOWED "
                       "with the reason none exists):\n" + "\n".join(uses))
 
 

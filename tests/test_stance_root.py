@@ -166,8 +166,8 @@ def test_generate_records_it(tmp_path):
 
 
 def test_the_small_recipe_samples_with_it_and_the_paper_configs_do_not():
-    """Contact-aware sampling is omg's: the small real-data recipe turns it on (measured in the README),
-    OMG's own configs leave the module's default, off."""
+    """Contact-aware sampling is omg's: the small real-data recipe turns it on (measured in
+    docs/results/small_recipe.md), OMG's own configs leave the module's default, off."""
     small = yaml.safe_load((REPO / "configs/small/controlnet.yaml").read_text())
     assert small["model"]["init_args"]["stance_root"] == 1.0
     papers = sorted(REPO.glob("configs/controlnet*.yaml")) + sorted(REPO.glob("configs/pretrain*.yaml"))

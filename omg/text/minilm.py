@@ -11,7 +11,7 @@ summarise anything.
 
 ``side_gain`` (default 0: off) emphasises the side words. all-MiniLM-L6-v2 hardly tells "left"
 from "right": swapping them moves a caption's sentence embedding by a cosine distance of 0.04
-where another action moves it by 0.5 (README, "Levers on the small recipe"). With a gain g, every
+where another action moves it by 0.5 (docs/results/levers.md). With a gain g, every
 token of a side word (``omg.text.sides.side_spans``: left, right, leftward, clockwise, ...) gets
 ± g·|x|·u added, u the unit direction from the encoder's own feature of "right" to that of "left",
 + for a left word and − for a right one, before the sentence embedding is pooled: a left and a

@@ -1,4 +1,4 @@
-"""``omg bench gpu``: on a machine with one GPU, every GPU figure the README marks pending, in one
+"""``omg bench gpu``: on a machine with one GPU, every GPU figure docs/ marks pending, in one
 command and one Markdown file (well under 30 minutes on an H100):
 
 1. Base and Giant pretraining through the real ``omg fit`` with the shipped configs
@@ -25,6 +25,7 @@ from pathlib import Path
 
 from omg.errors import UsageError
 from omg.tools.args import PositiveFiniteFloat, PositiveInt
+from omg.tools.bench.device import device_peak_tflops
 
 TRAIN_CONFIGS = {"base": "configs/pretrain_base.yaml", "giant": "configs/pretrain_giant.yaml"}
 MINI_SHARDS = "shards/mini/human263"
@@ -108,7 +109,7 @@ def bench_gpu(
     dry_run: bool = False,
     command: str = "omg bench gpu",
 ) -> Path | None:
-    """Every pending GPU figure of the README on one GPU, written to OUT/gpu_check.md.
+    """Every pending GPU figure of docs/ on one GPU, written to OUT/gpu_check.md.
 
     Args:
         out: folder for the runs, the converted checkpoint and gpu_check.md
@@ -124,7 +125,6 @@ def bench_gpu(
     import torch
 
     from omg.models.dit import DiTConfig
-    from omg.tools.bench import PEAK_TFLOPS
 
     if train_steps <= 5:
         raise UsageError(f"--train_steps must be above the 5 untimed warm-up steps, got {train_steps}")
@@ -138,8 +138,8 @@ def bench_gpu(
         return None
     if not torch.cuda.is_available():
         raise UsageError("no CUDA GPU here: run on a GPU machine, or check the commands with --dry_run")
-    device = torch.cuda.get_device_name()
-    peak = peak_tflops or next((v for k, v in PEAK_TFLOPS.items() if k in device), None)
+    device, known = device_peak_tflops()
+    peak = peak_tflops or known
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"# GPU check on {device}", "", f"`{command}`", ""]
     train_rows, sample_rows, other = [], [], []

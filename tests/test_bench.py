@@ -1,0 +1,32 @@
+"""``omg bench data`` starts each loader in its own process by a module path
+(``python -m omg.tools.bench KIND ...``, the package's ``__main__``): the worker runs by that path,
+its figures come back as the table, and its bad input comes back as one line."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from helpers import MINI
+from omg.cli import main
+from omg.errors import UsageError
+from omg.tools.bench.measure import run_measured
+
+TRAIN = str(MINI / "human263" / "train")  # the committed mini shards: 90 clips
+
+
+@pytest.mark.slow  # three worker processes, each importing torch
+def test_the_data_benchmark_runs_its_workers_by_module_path(capsys):
+    main(["bench", "data", "--shards", TRAIN, "--batch-size", "4", "--batches", "2", "--workers", "0",
+          "--max-len", "60"])
+    out = capsys.readouterr().out
+    for kind in ("streaming", "in-memory"):
+        line = next(line for line in out.splitlines() if line.startswith(f"| {kind} |"))
+        rate, total, loader = (float(cell.replace(",", "")) for cell in line.split("|")[2:5])
+        assert rate > 0 and total >= loader and total > 0, line  # the tree's peak holds the loader
+    assert "streaming / in-memory:" in out
+    # bad input the parent cannot see (a batch no pass fills) ends in the worker, and comes back as one line
+    worker = [sys.executable, "-m", "omg.tools.bench", "in-memory", TRAIN, "100000", "0", "2", "60"]
+    with pytest.raises(UsageError, match=r"^the in-memory loader: a whole pass yields no batch of 100000"):
+        run_measured(worker, "the in-memory loader")
