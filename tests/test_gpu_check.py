@@ -43,3 +43,15 @@ def test_step_timer_checkpoint_convert_and_generate_on_cpu(tmp_path, capsys, mon
     main(["generate", "--unconditional", "--ckpt", str(converted), "--num_samples", "2", "--steps", "5",
           "--sampler", "dpmpp", "--no_preview", "--length", "2", "--out", str(tmp_path / "gen"), "--device", "cpu"])
     assert sorted(p.name for p in (tmp_path / "gen").glob("sample_*.bvh")) == ["sample_000.bvh", "sample_001.bvh"]
+
+
+def test_a_device_name_finds_its_most_specific_gpu_kind():
+    """One table of accelerators (omg.tools.devices.GPUS) for the planner and the MFU of `omg bench train|gpu`:
+    the PCIe H100 peaks at 756 TFLOP/s, not at the SXM part's 989, which a first-substring match gave it."""
+    from omg.tools.devices import GPUS, gpu_kind
+
+    names = {"NVIDIA H100 80GB HBM3": "H100", "NVIDIA H100 PCIe": "H100-PCIe", "NVIDIA H200": "H200",
+             "NVIDIA A100-SXM4-80GB": "A100", "NVIDIA A100-SXM4-40GB": "A100-40GB", "NVIDIA L40S": "L40S",
+             "NVIDIA A10G": "A10G", "Tesla T4": None, "NVIDIA GeForce RTX 4090": None}
+    assert {name: gpu_kind(name) for name in names} == names
+    assert GPUS[gpu_kind("NVIDIA H100 PCIe")][1] == 756.0

@@ -33,20 +33,10 @@ from typing import Any, Callable, Literal
 from omg.errors import UsageError
 from omg.files import read_yaml
 from omg.tools.args import PositiveInt, number_type
+from omg.tools.devices import GPUS
 
 Mfu = number_type("Mfu", float, [(">", 0.0), ("<=", 1.0)], "a number in (0, 1]")
 
-# GPU kinds: usable memory (GiB) and dense bf16 peak (TFLOP/s, without 2:4 sparsity), from the
-# NVIDIA datasheets (H100 Tensor Core GPU datasheet, SXM and PCIe columns; H200 datasheet;
-# A100 datasheet; L40S datasheet)
-GPUS: dict[str, tuple[float, float]] = {
-    "H100": (80.0, 989.0),  # H100 SXM 80 GB
-    "H100-PCIe": (80.0, 756.0),
-    "H200": (141.0, 989.0),
-    "A100": (80.0, 312.0),  # A100 SXM 80 GB
-    "A100-40GB": (40.0, 312.0),
-    "L40S": (48.0, 362.0),
-}
 GpuKind = Literal[tuple(GPUS)]  # type: ignore[valid-type]
 Strategy = Literal["ddp", "zero1", "zero2", "zero3"]
 GiB = 2**30

@@ -4,7 +4,7 @@ Every benchmark makes its own inputs (no dataset download) and prints one Markdo
 per measurement, with the command that reproduces it. One module per subcommand (``data``,
 ``train``, ``sample``, ``quality``, ``following``, ``sides``, ``rig``, ``gpu``; ``plan`` is
 ``omg.tools.plan``); ``measure`` holds what they share (a worker process run with its memory
-sampled), ``device`` the device's peaks (bf16 TFLOP/s, peak memory). ``python -m
+sampled); the device's peaks are in ``omg.tools.devices``. ``python -m
 omg.tools.bench`` is the data benchmark's worker: one loader measured in its own process
 (``data.loader_worker``).
 """

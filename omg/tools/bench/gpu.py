@@ -25,7 +25,7 @@ from pathlib import Path
 
 from omg.errors import UsageError
 from omg.tools.args import PositiveFiniteFloat, PositiveInt
-from omg.tools.bench.device import device_peak_tflops
+from omg.tools.devices import device_peak_tflops
 
 TRAIN_CONFIGS = {"base": "configs/pretrain_base.yaml", "giant": "configs/pretrain_giant.yaml"}
 MINI_SHARDS = "shards/mini/human263"

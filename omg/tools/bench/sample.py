@@ -8,8 +8,8 @@ from typing import Literal
 
 from omg.errors import UsageError
 from omg.tools.args import ClosedUnitInterval, NonNegativeInt, PositiveInt
-from omg.tools.bench.device import peak_memory
 from omg.tools.bench.measure import Flavor, unnormalised_spec
+from omg.tools.devices import peak_memory
 
 
 def bench_sample(

@@ -7,9 +7,9 @@ from typing import Literal
 
 from omg.errors import UsageError
 from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt
-from omg.tools.bench.device import device_peak_tflops, peak_memory
 from omg.tools.bench.measure import Flavor, unnormalised_spec
 from omg.tools.common import last_line
+from omg.tools.devices import device_peak_tflops, peak_memory
 
 PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "transformer-engine",
               "transformer-engine-float16", "32", "16", "bf16", "64")  # Lightning's Trainer(precision=...)
