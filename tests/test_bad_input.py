@@ -307,6 +307,8 @@ ROWS = [
     # omg fit: values refused before the run folder is made (they failed at fit start, or at the first batch)
     ("fit-ema-decay-over-1", [*FIT_DATA, "--model.init_args.ema_decay", "1.5"]),
     ("fit-vel-weight-neg", [*FIT_DATA, "--model.init_args.vel_weight", "-1"]),
+    ("fit-dit-unknown-key", [*FIT_DATA, "--model.init_args.dit.dpeth", "3"]),
+    ("fit-dit-key-not-a-number", [*FIT_DATA, "--model.init-args.dit.n-layers", "three"]),
     ("fit-root-dir-is-file", [*FIT_DATA, "--trainer.default_root_dir", "{in}/afile"]),
     ("fit-root-dir-in-proc", [*FIT_DATA, "--trainer.default_root_dir", "/proc/omg-runs"]),
     ("fit-max-bad-fraction-over-1", [*FIT_DATA, "--data.max_bad_fraction", "2"]),
@@ -543,6 +545,8 @@ SAYS = {
     "fit-ckpt-hpc-none": "--ckpt_path hpc: {in}/empty holds no hpc_ckpt_N.ckpt",
     "fit-ema-decay-over-1": "model.ema_decay must be in [0, 1) (0: no EMA), got 1.5",
     "fit-vel-weight-neg": "model.vel_weight must be a finite number >= 0, got -1.0",
+    "fit-dit-unknown-key": "model.init_args.dit.dpeth: unknown key 'dpeth'; accepted keys: n_layers, d_model, ",
+    "fit-dit-key-not-a-number": "model.init_args.dit.n_layers: expected an integer, got 'three'",
     "fit-root-dir-is-file": "trainer.default_root_dir {in}/afile: not a folder",
     "fit-root-dir-in-proc": "trainer.default_root_dir /proc/omg-runs: cannot write in /proc",
     "fit-max-bad-fraction-over-1": "data.max_bad_fraction must be in [0, 1], got 2.0",

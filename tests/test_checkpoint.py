@@ -268,3 +268,42 @@ def test_convert_evaluator_and_its_ema(tmp_path, capsys):
     ckpt = _fit_steps(module, _evaluator_batches(), tmp_path / "ema")
     assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "evaluator.")
 
+
+
+def test_settings_groups_load_from_the_plain_mappings_of_earlier_checkpoints(trained, tmp_path):
+    """Checkpoints written before the nested settings were typed (omg.settings: ``DiTOverrides``,
+    ``MoCOverrides``, ``TextEncoderArgs``, ...) hold them as plain mappings, and new ones still do
+    (weights-only loadable): such a checkpoint builds the model it was trained as, and a mapping
+    with an unknown key is one line naming it and the accepted ones."""
+    from omg.lit.controlnet import ControlNetModule
+    from omg.models.controlnet import MoCOverrides
+    from omg.text import TextEncoderArgs
+
+    module, path = trained
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    assert saved["hyper_parameters"]["dit"] == TINY_DIT  # the set keys only, as the mapping was given
+    torch.manual_seed(0)
+    cn = ControlNetModule(pretrained=str(path), text_encoder="hash", text_encoder_args=TextEncoderArgs(max_tokens=20),
+                          moc=MoCOverrides(d_c=16, num_experts=2), spec=SPEC, ema_decay=0)
+    assert cn.hparams["moc"] == {"d_c": 16, "num_experts": 2} and cn.hparams["text_encoder_args"] == {"max_tokens": 20}
+    with torch.no_grad():
+        for p in cn.controlnet.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    # hyper-parameters as a checkpoint of the untyped settings holds them: plain mappings throughout
+    hparams = {"pretrained": None, "text_encoder": "hash", "text_encoder_args": {"max_tokens": 20},
+               "moc": {"d_c": 16, "num_experts": 2}, "ema_decay": 0.0,
+               "base": {"flavor": "mini", "dit": dict(TINY_DIT), "spec": SPEC}, "spec": SPEC}
+    old = tmp_path / "old.ckpt"
+    torch.save({"state_dict": cn.state_dict(), "hyper_parameters": hparams, "pytorch-lightning_version": L.__version__,
+                "module_class": class_path(ControlNetModule)}, old)
+    loaded = load_module(old, expect=ControlNetModule)
+    assert loaded.config == module.config and loaded.config.n_layers == TINY_DIT["n_layers"]
+    assert (loaded.controlnet.config.d_c, loaded.controlnet.config.num_experts) == (16, 2)
+    assert loaded.text_encoder.max_tokens == 20
+    assert_same(loaded.state_dict(), cn.state_dict())
+    # an unknown key of a mapping: one line, the key and the accepted ones
+    torch.save({"state_dict": cn.state_dict(), "hyper_parameters": {**hparams, "moc": {"d_cc": 16}},
+                "pytorch-lightning_version": L.__version__, "module_class": class_path(ControlNetModule)}, old)
+    with pytest.raises(UsageError) as e:
+        load_module(old, expect=ControlNetModule)
+    assert "\n" not in str(e.value) and "model.init_args.moc: unknown key 'd_cc'; accepted keys: d_c, " in str(e.value)

@@ -84,6 +84,48 @@ def test_config_parses_and_builds_on_meta(path):
 PAPER_PARAMS = {"base": 88e6, "large": 201e6, "giant": 1.0e9}
 
 
+def _groups() -> dict[str, tuple[dict[str, type], dict[str, object]]]:
+    """configs/mini/X.yaml -> (its model's typed settings groups, values the config sets in them)."""
+    from omg.data.omgpt import CompanionData
+    from omg.models.controlnet import MoCOverrides
+    from omg.models.dit import DiTOverrides
+    from omg.models.evaluator import EvaluatorOverrides
+    from omg.models.habit import HabitOverrides
+    from omg.models.omgpt import OmniMotionOverrides
+    from omg.text import TextEncoderArgs
+
+    return {"pretrain": ({"dit": DiTOverrides}, {}),
+            "controlnet": ({"moc": MoCOverrides, "text_encoder_args": TextEncoderArgs}, {"moc.d_c": 64}),
+            "evaluator": ({"evaluator": EvaluatorOverrides, "text_encoder_args": TextEncoderArgs}, {}),
+            "omgpt": ({"config": OmniMotionOverrides, "human_data": CompanionData,
+                       "text_encoder_args": TextEncoderArgs},
+                      {"config.latent_shift": True, "human_data.batch_size": 8}),
+            "habit_vqvae": ({"habit": HabitOverrides, "text_encoder_args": TextEncoderArgs}, {})}
+
+
+@pytest.mark.parametrize("name", ["pretrain", "controlnet", "evaluator", "omgpt", "habit_vqvae"])
+def test_print_config_lists_every_key_of_the_nested_settings(name, capsys, monkeypatch):
+    """The nested settings are typed groups (omg.settings): ``--print_config`` lists each key, unset ones null."""
+    import dataclasses
+    import sys
+
+    from omg.cli import main
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", str(REPO / f"configs/mini/{name}.yaml"), "--print_config"])
+    assert e.value.code in (0, None)
+    init = yaml.safe_load(capsys.readouterr().out)["model"]["init_args"]
+    groups, values = _groups()[name]
+    for key, group in groups.items():
+        assert list(init[key]) == [f.name for f in dataclasses.fields(group)], key
+    for dotted, value in values.items():
+        key, _, field = dotted.partition(".")
+        assert init[key][field] == value, dotted
+    unset = [k for key in groups for k, v in init[key].items() if v is None]
+    assert unset, "the unset keys are listed too"
+
+
 @pytest.mark.parametrize("flavor", ["base", "large", "huge", "giant"])
 def test_size_configs_differ_only_where_they_must(flavor):
     def flat(d, prefix=""):

@@ -38,7 +38,7 @@ ARCHITECTURE = ROOT / "docs" / "architecture.md"  # its Layout section lists eve
 # lowest first; a module belongs to the layer of its longest matching prefix
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("omg", "omg.errors", "omg.files", "omg.rotations", "omg.skeleton", "omg.kinematics",
-                    "omg.registry")),
+                    "omg.registry", "omg.settings")),
     ("formats", ("omg.motion", "omg.text", "omg.io", "omg.retarget", "omg.export", "omg.joint_maps")),
     ("data", ("omg.data",)),
     ("models", ("omg.models", "omg.diffusion", "omg.samplers", "omg.losses", "omg.metrics")),

@@ -21,6 +21,11 @@ import numpy as np
 from omg.data.datamodule import ClipDataset, MotionDataModule, StreamLoader
 from omg.data.windows import WindowSampler
 from omg.errors import UsageError
+from omg.settings import arguments
+
+# model.init_args.human_data of OmniMotionModule: MotionDataModule's arguments, each None (unset) its default
+CompanionData = arguments(MotionDataModule, "CompanionData", __name__,
+                          doc="The second shard set's MotionDataModule arguments (unset: data's default).")
 
 
 class CompanionStream:

@@ -17,6 +17,7 @@ from torch.distributed._composable import checkpoint as checkpoint_activations
 
 from omg.lit.ema import EMA
 from omg.motion import DataSpec
+from omg.settings import settings, settings_dict
 
 
 def warmup_cosine(warmup_steps: int, total_steps: int):
@@ -90,6 +91,8 @@ class OmgModule(L.LightningModule):
 
     frozen_prefixes: tuple[str, ...] = ()
     location_hparams: tuple[str, ...] = ()
+    # hyper-parameter -> its typed settings group (omg.settings), e.g. {"dit": DiTOverrides}
+    settings_groups: dict[str, type] = {}
     architecture_hparams: tuple[str, ...] = ()  # the weights' own: from the checkpoint under --ckpt_path
     ema_decay: float = 0.0  # the weight EMA's decay (0: none), over ``trainable_module()``
     ema: EMA | None = None
@@ -107,10 +110,19 @@ class OmgModule(L.LightningModule):
 
     def save_hyperparameters(self, *args, frame=None, **kwargs) -> None:
         super().save_hyperparameters(*args, frame=frame or inspect.currentframe().f_back, **kwargs)
+        # plain types (checkpoints load weights-only, loggers write YAML); a second call updates
+        # both the hyper-parameters and the initial copy that loggers record
+        plain = {}
         if isinstance(spec := self.hparams.get("spec"), DataSpec):
-            # plain types (checkpoints load weights-only, loggers write YAML); a second call updates
-            # both the hyper-parameters and the initial copy that loggers record
-            super().save_hyperparameters({"spec": spec.to_dict()})
+            plain["spec"] = spec.to_dict()
+        for key, group in self.settings_groups.items():
+            # a typed group (or the mapping LightningCLI dumps of it, every field listed) kept as the
+            # mapping of the keys it sets, None where it sets none (the default): what checkpoints
+            # written before the groups were typed hold
+            if (value := self.hparams.get(key)) is not None:
+                plain[key] = settings_dict(settings(group, value, f"model.init_args.{key}")) or None
+        if plain:
+            super().save_hyperparameters(plain)
 
     def state_dict(self, *args, **kwargs):
         state = super().state_dict(*args, **kwargs)

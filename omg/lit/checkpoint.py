@@ -385,6 +385,8 @@ def _contradiction(trained: Any, given: Any, key: str) -> tuple[str, str, str] |
         trained = {}
     if isinstance(trained, dict) and isinstance(given, dict):
         for field, value in given.items():
+            if value is None:  # a typed group's unset field (a run's config.yaml lists them all): the checkpoint's
+                continue
             if field not in trained:
                 return f"{key}.{field}", "its default (the field unset)", _shown(value)
             if found := _contradiction(trained[field], value, f"{key}.{field}"):

@@ -17,9 +17,10 @@ from torch import Tensor
 from omg.diffusion import Denoiser
 from omg.errors import UsageError
 from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
-from omg.models.controlnet import MoCConfig, MotionControlNet
+from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
 from omg.motion import DataSpec
-from omg.text import TextFeatures, build_text_encoder
+from omg.settings import settings, settings_dict
+from omg.text import TextEncoderArgs, TextFeatures, build_text_encoder, text_encoder_kwargs
 
 
 class ControlNetModule(MotionDiffusionModule):
@@ -29,9 +30,9 @@ class ControlNetModule(MotionDiffusionModule):
         pretrained: the stage-1 checkpoint: a Lightning .ckpt, a DeepSpeed directory or a
             safetensors file from ``omg convert-ckpt`` (its EMA weights are used when present).
         text_encoder: registered name (``clip-vit-l-14``, ``minilm``, ``hash``).
-        text_encoder_args: keyword arguments of the encoder (e.g. ``pretrained: /path/ViT-L-14.pt``).
-        moc: MoCConfig fields (d_c, num_experts, gamma, beta, layers, ...; the ablation switches
-            token_masks, zero_init, experts and wiring, see ``omg.models.controlnet.MoCConfig``).
+        text_encoder_args: the encoder's arguments (``TextEncoderArgs``, e.g. ``pretrained: /path/ViT-L-14.pt``).
+        moc: MoCConfig fields to override (``MoCOverrides``; d_c, num_experts, gamma, beta, layers, ...; the
+            ablation switches token_masks, zero_init, experts and wiring, see ``omg.models.controlnet.MoCConfig``).
         eot_drop: probability of replacing the end-of-text token with the empty text's (OMG: 0.5).
         guidance_scale: s in (1 − s)·D_u + s·D_c when sampling (OMG: 4.5).
         lr, weight_decay, warmup_steps: AdamW and schedule (OMG: 3e-5, 1e-5, 1K warm-up, cosine).
@@ -49,14 +50,15 @@ class ControlNetModule(MotionDiffusionModule):
     frozen_prefixes = ("text_encoder.",)  # rebuilt from its own weights, never saved with ours
     # the weights' own (the frozen model's flavor, DiT and spec are in `base`); text_encoder_args may move its files
     architecture_hparams = ("text_encoder", "moc", "base", "spec")
+    settings_groups = {"moc": MoCOverrides, "text_encoder_args": TextEncoderArgs}
     clip_sampling = "whole"  # a caption describes its whole clip (HumanML3D: up to 196 frames)
 
     def __init__(
         self,
         pretrained: str | None = None,
         text_encoder: str = "minilm",
-        text_encoder_args: dict[str, Any] | None = None,
-        moc: dict[str, Any] | None = None,
+        text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
+        moc: MoCOverrides | None = MoCOverrides(),
         eot_drop: float = 0.5,
         guidance_scale: float = 4.5,
         lr: float = 3e-5,
@@ -87,8 +89,10 @@ class ControlNetModule(MotionDiffusionModule):
         if pretrained_weights is not None:
             self.model.load_state_dict(pretrained_weights)
         self.model.requires_grad_(False)
-        self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
-        self.controlnet = MotionControlNet(self.model, MoCConfig(text_dim=self.text_encoder.dim, **(moc or {})))
+        self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
+        moc = settings_dict(settings(MoCOverrides, moc, "model.init_args.moc"))
+        moc_config = MoCConfig(text_dim=self.text_encoder.dim, **moc)
+        self.controlnet = MotionControlNet(self.model, moc_config)
         self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:
             # a motion prior learns velocities per frame: fine-tuning it at another rate, or

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -23,8 +22,10 @@ from omg.lit.base import OmgModule
 from omg.lit.checkpoint import load_module
 from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
-from omg.models.evaluator import EvaluatorConfig, TextMotionEvaluator, same_pairs
+from omg.models.evaluator import EvaluatorConfig, EvaluatorOverrides, TextMotionEvaluator, same_pairs
 from omg.motion import DataSpec
+from omg.settings import settings, settings_dict
+from omg.text import TextEncoderArgs, text_encoder_kwargs
 
 
 class EvaluatorModule(OmgModule):
@@ -32,9 +33,10 @@ class EvaluatorModule(OmgModule):
 
     Args:
         text_encoder: the frozen text backbone, a registered name (``minilm``, ``clip-vit-l-14``, ``hash``).
-        text_encoder_args: its keyword arguments (e.g. ``pretrained: /path/ViT-L-14.pt``).
+        text_encoder_args: its keyword arguments (e.g. ``pretrained: /path/ViT-L-14.pt``; ``TextEncoderArgs``).
         flavor: evaluator size preset: mini, base or large.
-        evaluator: EvaluatorConfig fields to override, e.g. ``{n_layers: 6, embed_dim: 512}``.
+        evaluator: EvaluatorConfig fields to override in the flavor's (``EvaluatorOverrides``), e.g.
+            ``{n_layers: 6, embed_dim: 512}``.
         lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
         r_precision_pool: pool size of the validation R-precision (HumanML3D: 32); a validation
             set with fewer samples logs loss and MM-Dist only.
@@ -44,13 +46,14 @@ class EvaluatorModule(OmgModule):
     clip_sampling = "whole"  # a caption describes its whole clip (omg.data.windows)
     frozen_prefixes = ("evaluator.text_encoder.",)  # the backbone is rebuilt from its own weights
     architecture_hparams = ("text_encoder", "flavor", "evaluator", "spec")  # r_precision_pool etc.: the run's
+    settings_groups = {"evaluator": EvaluatorOverrides, "text_encoder_args": TextEncoderArgs}
 
     def __init__(
         self,
         text_encoder: str = "minilm",
-        text_encoder_args: dict[str, Any] | None = None,
+        text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         flavor: str = "base",
-        evaluator: dict[str, Any] | None = None,
+        evaluator: EvaluatorOverrides | None = EvaluatorOverrides(),
         lr: float = 1e-4,
         weight_decay: float = 1e-2,
         betas: tuple[float, float] = (0.9, 0.999),
@@ -65,8 +68,10 @@ class EvaluatorModule(OmgModule):
                              f"got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
         self.save_hyperparameters()
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
-        config = EvaluatorConfig.from_name(flavor, **(evaluator or {}))
-        self.evaluator = TextMotionEvaluator(DataSpec.coerce(spec), text_encoder, text_encoder_args, config)
+        config = EvaluatorConfig.from_name(flavor, **settings_dict(settings(EvaluatorOverrides, evaluator,
+                                                                             "model.init_args.evaluator")))
+        self.evaluator = TextMotionEvaluator(DataSpec.coerce(spec), text_encoder,
+                                             text_encoder_kwargs(text_encoder_args), config)
         self.spec = self.evaluator.spec
         self.val_r_precision = RPrecision(pool_size=r_precision_pool, top_k=3)
         self.val_mm_dist = MMDist()

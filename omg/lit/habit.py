@@ -43,6 +43,7 @@ from omg.models.habit import (
     CategoryFlows,
     CategoryHabitEncoders,
     HabitConfig,
+    HabitOverrides,
     HabitStatsDecoder,
     MotionVQVAE,
     Quantizer,
@@ -52,7 +53,9 @@ from omg.models.habit import (
     posterior_sample,
 )
 from omg.motion import DataSpec, get_representation
+from omg.settings import settings, settings_dict
 from omg.skeleton import get_skeleton
+from omg.text.base import TextEncoderArgs, text_encoder_kwargs
 
 HABIT_ORDERS = ("flow_prior", "kl_then_flows")
 
@@ -83,7 +86,7 @@ class HabitVQModule(OmgModule):
         habit_fraction: the share of the run's steps that pretrains the encoders and flows (``flow_prior``).
         flow_weight: weight of KL(q(z | m) || p_flow(z)) per latent dimension in that pretraining.
         flavor: model size preset (``base``: the paper's T2M-GPT sizes; ``mini``, ``tiny`` for CPU runs).
-        habit: HabitConfig fields to override.
+        habit: HabitConfig fields to override in the flavor's (``HabitOverrides``).
         quantizer: ``soft`` (softmax sampling at ``temperature``, the paper's) or ``nearest``.
         temperature: softmax temperature of soft sampling, on squared distances of the latents.
         code_reset: restart dead codes at encoder outputs ("EMA-reset"); False: "EMA".
@@ -113,6 +116,7 @@ class HabitVQModule(OmgModule):
     # temperature (how codes are drawn), the loss weights and the optimizer are the run's
     architecture_hparams = ("categories", "habit_order", "flavor", "habit", "code_reset", "condition_decoder",
                             "text_encoder", "descriptions", "category_embeddings", "spec")
+    settings_groups = {"habit": HabitOverrides, "text_encoder_args": TextEncoderArgs}
 
     def __init__(
         self,
@@ -121,7 +125,7 @@ class HabitVQModule(OmgModule):
         habit_fraction: float = 0.2,
         flow_weight: float = 0.01,
         flavor: str = "base",
-        habit: dict[str, Any] | None = None,
+        habit: HabitOverrides | None = HabitOverrides(),
         quantizer: str = "soft",
         temperature: float = 1.0,
         code_reset: bool = True,
@@ -131,7 +135,7 @@ class HabitVQModule(OmgModule):
         beta: float = 0.02,
         kl_weight: float = 1e-3,
         text_encoder: str = "minilm",
-        text_encoder_args: dict[str, Any] | None = None,
+        text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         species_file: str | None = None,
         descriptions: dict[str, str] | None = None,
         # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
@@ -170,14 +174,16 @@ class HabitVQModule(OmgModule):
         self.alpha, self.beta, self.kl_weight = alpha, beta, kl_weight
         self.habit_order, self.habit_fraction, self.flow_weight = habit_order, habit_fraction, flow_weight
         if category_embeddings is None:  # first build: describe and embed the categories once
-            descriptions, category_embeddings = embed_categories(self.categories, text_encoder, text_encoder_args,
+            descriptions, category_embeddings = embed_categories(self.categories, text_encoder,
+                                                                 text_encoder_kwargs(text_encoder_args),
                                                                  species_file)
             self.hparams["descriptions"], self.hparams["category_embeddings"] = descriptions, category_embeddings
         if len(category_embeddings) != len(self.categories):
             raise UsageError(f"{len(category_embeddings)} category embeddings for {len(self.categories)} categories")
         self.descriptions = dict(descriptions or {})
         self.register_buffer("category_text", torch.tensor(category_embeddings, dtype=torch.float32))  # (N, E)
-        self.config = HabitConfig.from_name(flavor, **(habit or {}))
+        self.config = HabitConfig.from_name(flavor, **settings_dict(settings(HabitOverrides, habit,
+                                                                             "model.init_args.habit")))
         D = self.spec.feature_dim
         self.representation = get_representation("quatvel", get_skeleton(self.spec.skeleton))
         self.num_joints = self.representation.skeleton.num_joints
@@ -423,7 +429,8 @@ class HabitVQModule(OmgModule):
             from omg.text.base import build_text_encoder
 
             hp = self.hparams
-            encoder = build_text_encoder(hp.get("text_encoder", "minilm"), **(hp.get("text_encoder_args") or {}))
+            encoder = build_text_encoder(hp.get("text_encoder", "minilm"),
+                                         **text_encoder_kwargs(hp.get("text_encoder_args")))
             self.__dict__["_text_encoder"] = encoder
         return encoder
 

@@ -31,17 +31,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from omg.data.omgpt import CompanionStream, category_offsets, scan_metas
+from omg.data.omgpt import CompanionData, CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, modes_restored
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import cosine_gap, masked_mse
-from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity
+from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.motion.maa import maa_from_positions, root_translation
 from omg.registry import SAMPLERS
+from omg.settings import settings, settings_dict
 from omg.skeleton import get_skeleton
-from omg.text import build_text_encoder
+from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
 from omg.text.omgpt import about_animal, caption_key, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
@@ -51,10 +52,10 @@ class OmniMotionModule(OmgModule):
     """OmniMotionGPT's two autoencoders, text heads and losses.
 
     Args:
-        human_data: the human stream, ``MotionDataModule`` arguments (``train``, ``val``,
+        human_data: the human stream, ``MotionDataModule`` arguments (``CompanionData``: ``train``, ``val``,
             ``batch_size``, ``max_len``, ``min_len``, ...); smpl22 shards in the maa representation.
         flavor, config: network sizes, a preset (``paper``, ``mini``) and field overrides
-            (``omg.models.omgpt.OmniMotionConfig``).
+            (``omg.models.omgpt.OmniMotionConfig``; ``OmniMotionOverrides``).
         text_encoder, text_encoder_args: the registered sentence encoder (paper: CLIP ViT-L/14).
         text_feature: the sentence feature C of L_CLIP, cross L_CLIP, D_t and the self-evaluation:
             ``projected`` (the paper's "CLIP feature": CLIP's ``encode_text``, the EOT token projected
@@ -115,14 +116,16 @@ class OmniMotionModule(OmgModule):
     # what the weights were trained with or on; the retrieval, loss and optimizer settings are the run's
     architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "animals",
                             "human_spec", "spec", "human_bank")
+    settings_groups = {"config": OmniMotionOverrides, "text_encoder_args": TextEncoderArgs,
+                       "human_data": CompanionData}
 
     def __init__(
         self,
-        human_data: dict[str, Any] | None = None,
+        human_data: CompanionData | None = CompanionData(),
         flavor: str = "paper",
-        config: dict[str, Any] | None = None,
+        config: OmniMotionOverrides | None = OmniMotionOverrides(),
         text_encoder: str = "clip-vit-l-14",
-        text_encoder_args: dict[str, Any] | None = None,
+        text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         text_feature: str = "projected",
         lr: float = 1e-4,
         betas: tuple[float, float] = (0.9, 0.999),
@@ -164,6 +167,7 @@ class OmniMotionModule(OmgModule):
             raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
         self.text_feature = text_feature
         self.companion = None
+        human_data = settings_dict(settings(CompanionData, human_data, "model.init_args.human_data"))
         if human_spec is None:
             if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
                 raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards (train, val, "
@@ -193,8 +197,9 @@ class OmniMotionModule(OmgModule):
         self.retrieval_bank = retrieval_bank or None
         self.retrieval_excluded: frozenset[str] = frozenset()  # captions whose clips retrieval never draws
         self.retrieved: list[list[str]] = []  # the captions of the clip each prompt of the last retrieval drew
-        self.text_encoder = build_text_encoder(text_encoder, **(text_encoder_args or {}))
-        self.config = OmniMotionConfig.from_name(flavor, **(config or {}))
+        self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
+        self.config = OmniMotionConfig.from_name(flavor, **settings_dict(settings(OmniMotionOverrides, config,
+                                                                                  "model.init_args.config")))
         # every field, resolved: a checkpoint keeps meaning what it meant when a later version changes a default
         self.hparams["config"] = {k: v for k, v in asdict(self.config).items() if k != "name"}
         self.human_rep = get_representation("maa", get_skeleton(HUMAN_SKELETON))

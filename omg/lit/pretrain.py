@@ -23,9 +23,10 @@ from omg.errors import UsageError
 from omg.lit.base import OmgModule, checkpoint_each, modes_restored
 from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import GeometricLoss
-from omg.models.dit import DiTConfig, MotionDiT
+from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.registry import SAMPLERS
+from omg.settings import settings, settings_dict
 from omg.skeleton import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ class MotionDiffusionModule(OmgModule):
     text_conditional = False  # whether ``sample`` follows texts
     clip_sampling = "windows"  # what data.clips=auto cuts from clips (omg.data.windows)
 
-    def __init__(self, flavor: str, dit: dict[str, Any] | None, spec: DataSpec | dict | None, *, lr: float,
+    def __init__(self, flavor: str, dit: DiTOverrides | dict | None, spec: DataSpec | dict | None, *, lr: float,
                  weight_decay: float, betas: tuple[float, float], warmup_steps: int, vel_weight: float,
                  foot_weight: float, ema_decay: float, loss_weighting: str, activation_checkpointing: bool,
                  stance_root: float = 0.0):
@@ -63,14 +64,11 @@ class MotionDiffusionModule(OmgModule):
             if not ok:
                 raise UsageError(f"model.{key} must be {wanted}, got {value!r}")
         self.spec = DataSpec.coerce(spec)
-        fields = set(DiTConfig.__dataclass_fields__) - {"name", "input_dim"}
-        if unknown := set(dit or {}) - fields:
-            raise UsageError(f"unknown model.dit field(s) {sorted(unknown)}; "
-                             f"DiTConfig fields: {', '.join(sorted(fields))}")
+        dit = settings(DiTOverrides, dit, "model.init_args.dit")
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         self.vel_weight, self.foot_weight, self.ema_decay = vel_weight, foot_weight, ema_decay
         self.activation_checkpointing, self._blocks_checkpointed = activation_checkpointing, False
-        self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **(dit or {}))
+        self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **settings_dict(dit))
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
         self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))
@@ -346,7 +344,7 @@ class PretrainModule(MotionDiffusionModule):
 
     Args:
         flavor: DiT size preset: mini, base, large, huge or giant.
-        dit: DiTConfig fields to override, e.g. ``{n_layers: 4}``.
+        dit: DiTConfig fields to override in the flavor's, e.g. ``{n_layers: 4}`` (``DiTOverrides``).
         lr, weight_decay, betas: AdamW settings (OMG: 1e-4, 0).
         warmup_steps: linear LR warm-up, then cosine decay over the run's optimizer steps.
         vel_weight, foot_weight: weights of L_vel and L_foot (OMG/MDM: 30 each).
@@ -360,11 +358,12 @@ class PretrainModule(MotionDiffusionModule):
     """
 
     architecture_hparams = ("flavor", "dit", "spec")  # the rest may differ from the checkpoint's under --ckpt_path
+    settings_groups = {"dit": DiTOverrides}
 
     def __init__(
         self,
         flavor: str = "base",
-        dit: dict[str, Any] | None = None,
+        dit: DiTOverrides | None = DiTOverrides(),  # every key listed by --print_config
         lr: float = 1e-4,
         weight_decay: float = 0.0,
         betas: tuple[float, float] = (0.9, 0.999),

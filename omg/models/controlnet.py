@@ -60,6 +60,7 @@ from torch import Tensor, nn
 
 from omg.errors import UsageError
 from omg.models.dit import DiTConfig, MotionDiT, Rope
+from omg.settings import overrides
 
 ADAIN_EPS = 1e-5
 WIRINGS = ("per_layer", "parallel_stream")
@@ -357,6 +358,12 @@ class MoCBlock(nn.Module):
             return self.up(self.ffn(f))  # (B, T, d)
         masks = self.token_masks(attn, text.text_mask, mask)  # (B, T, L)
         return self.up(self.experts(f, text, masks))  # (B, T, d)
+
+
+# model.init_args.moc of ControlNetModule: MoCConfig's fields but text_dim (the text encoder's), each
+# None (unset) MoCConfig's default
+MoCOverrides = overrides(MoCConfig, "MoCOverrides", __name__, exclude=("text_dim",),
+                         doc="MoCConfig fields to override (unset: MoCConfig's default).")
 
 
 class MotionControlNet(nn.Module):

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omg.errors import UsageError
+from omg.settings import overrides
 
 Rope = tuple[Tensor, Tensor]  # (cos, sin), each (T, head_dim), float32
 
@@ -99,6 +100,10 @@ FLAVORS: dict[str, DiTConfig] = {
     "huge": DiTConfig(name="huge", n_layers=16, d_model=1664, n_heads=13),
     "giant": DiTConfig(name="giant", n_layers=24, d_model=2048, n_heads=16),
 }
+
+# model.init_args.dit of PretrainModule: DiTConfig's fields, each None (unset) the flavor's value
+DiTOverrides = overrides(DiTConfig, "DiTOverrides", __name__, exclude=("name", "input_dim"),
+                         doc="DiTConfig fields to override in the flavor's (unset: the flavor's value).")
 
 
 def rotary_embedding(positions: Tensor, head_dim: int, base: float = 10000.0) -> Rope:

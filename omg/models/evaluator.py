@@ -30,6 +30,7 @@ from torch import Tensor, nn
 from omg.errors import UsageError
 from omg.models.positions import sinusoidal_positions
 from omg.motion import DataSpec
+from omg.settings import overrides
 from omg.text import TextEncoder, build_text_encoder
 
 
@@ -69,6 +70,10 @@ FLAVORS = {
     "base": EvaluatorConfig("base", d_model=256, n_layers=4, text_layers=1, n_heads=4, embed_dim=256),
     "large": EvaluatorConfig("large", d_model=512, n_layers=6, text_layers=2, n_heads=8, embed_dim=512),
 }
+
+# model.init_args.evaluator of EvaluatorModule: EvaluatorConfig's fields, each None (unset) the flavor's value
+EvaluatorOverrides = overrides(EvaluatorConfig, "EvaluatorOverrides", __name__,
+                               doc="EvaluatorConfig fields to override in the flavor's (unset: the flavor's value).")
 
 
 class Block(nn.Module):

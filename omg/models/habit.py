@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from omg.errors import UsageError
 from omg.models.positions import sinusoidal_positions
+from omg.settings import overrides
 
 QUANTIZERS = ("soft", "nearest")
 
@@ -89,6 +90,10 @@ FLAVORS = {
     "tiny": HabitConfig("tiny", width=32, depth=1, code_dim=32, num_codes=32, text_dim=16, habit_dim=8,
                         habit_layers=1, habit_width=32, habit_heads=2, flow_layers=2, flow_hidden=32, dropout=0.0),
 }
+
+# model.init_args.habit of HabitVQModule: HabitConfig's fields, each None (unset) the flavor's value
+HabitOverrides = overrides(HabitConfig, "HabitOverrides", __name__,
+                           doc="HabitConfig fields to override in the flavor's (unset: the flavor's value).")
 
 
 # ----------------------------------------------------------------------------- VQ-VAE

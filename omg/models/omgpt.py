@@ -24,6 +24,7 @@ from omg.errors import UsageError
 from omg.models.positions import sinusoidal_positions
 from omg.motion import Representation
 from omg.rotations import matrix_to_6d, sixd_to_matrix
+from omg.settings import overrides
 from omg.skeleton import Skeleton
 
 NUM_PRIMAL = 7  # root, both leg ends, head, both arm (front leg) ends, chest branch point
@@ -76,6 +77,10 @@ PRESETS: dict[str, dict] = {
     "mini": {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 64, "temporal_layers": 1, "latent_dim": 64,
              "latent_layers": 2, "dropout": 0.0},
 }
+
+# model.init_args.config of OmniMotionModule: OmniMotionConfig's fields, each None (unset) the flavor's value
+OmniMotionOverrides = overrides(OmniMotionConfig, "OmniMotionOverrides", __name__,
+                                doc="OmniMotionConfig fields to override in the flavor's (unset: the flavor's value).")
 
 
 # -- primal joints ----------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
+from omg.settings import settings, settings_dict
 
 
 def bert_hidden_states(encoder: TextEncoder, texts: list[str]) -> tuple[Tensor, list[int]]:
@@ -178,6 +179,28 @@ class TextEncoder(nn.Module):
 def building_on_meta() -> bool:
     """Inside ``with torch.device("meta")`` (config tests): build the structure, read no weights."""
     return torch.get_default_device().type == "meta"
+
+
+@dataclass(frozen=True)
+class TextEncoderArgs:
+    """The keyword arguments of omg's registered text encoders (``model.init_args.text_encoder_args``);
+    each unset (None) is the encoder's default, and the encoder is given the keys that are set."""
+
+    pretrained: str | None = None  # clip-vit-l-14: an open_clip tag or a local ViT-L-14 weights file (default openai)
+    quick_gelu: bool | None = None  # clip-vit-l-14: None: the tag's
+    model_dir: str | None = None  # bge-base-en-v1.5: its snapshot folder
+    side_gain: float | None = None  # minilm: the side words' gain (0: off)
+    dim: int | None = None  # hash: width ...
+    max_tokens: int | None = None  # ... tokens per text ...
+    vocab_size: int | None = None  # ... hashed vocabulary ...
+    seed: int | None = None  # ... and its seed
+    cache_size: int | None = None  # every encoder: texts whose features are kept
+
+
+def text_encoder_kwargs(args: TextEncoderArgs | dict | None) -> dict[str, Any]:
+    """``args`` (a ``TextEncoderArgs``, a checkpoint's mapping or None) as ``build_text_encoder``'s keyword
+    arguments."""
+    return settings_dict(settings(TextEncoderArgs, args, "model.init_args.text_encoder_args"))
 
 
 def build_text_encoder(spec: str | TextEncoder, **kwargs: Any) -> TextEncoder:

@@ -89,6 +89,11 @@ class Settings:
         """How an error names ``key`` (as the user spelled it, unless a parser spells it otherwise)."""
         return key
 
+    def unknown_key(self, key: str, given: list[tuple[str, Any, bool]]) -> str | None:
+        """The error line for a ``key`` this parser does not take where it can tell (a typed settings
+        group's unknown field); None otherwise."""
+        return None
+
 
 def _config_settings(text_or_path: str, loader: Callable[[str], Any]) -> list[tuple[str, Any, bool]]:
     """``(key, value, False)`` of every key of a ``--config`` (a file, or a mapping given inline),
@@ -172,6 +177,9 @@ def locate(argv: list[str], settings: Settings) -> tuple[str, Any, Any, BaseExce
     its own; None when each passes alone (the error is another one: an unknown key, a missing
     argument, a value that fails only with the others)."""
     given = given_settings(argv, settings)
+    for key, value, _ in given:  # first: an unknown key inside a mapping fails the mapping's type too
+        if (unknown := settings.unknown_key(key, given)) is not None:
+            return settings.name_of(key), None, value, UsageError(unknown)
     for key, value, from_command_line in given:
         hint = settings.type_of(key, given, value)
         if hint is None:

@@ -254,8 +254,37 @@ class LightningSettings(Settings):
             return f"model.init_args.{rest}"
         return key
 
+    def settings_group(self, key: str, given: list[tuple[str, Any, bool]]) -> tuple[type, str] | None:
+        """(the typed settings group, the field) a nested model key names (``model.init_args.dit.n_layers``:
+        ``DiTOverrides``, ``n_layers``); None for any other key."""
+        import dataclasses
+        import typing
+
+        root, _, rest = key.partition(".")
+        name, _, field = rest.removeprefix("init_args.").partition(".")
+        if root != "model" or not field or "." in field or (cls := self.model_class(given)) is None:
+            return None
+        hint = self.parameter_type(cls, name)
+        group = next((t for t in (*typing.get_args(hint), hint) if isinstance(t, type) and dataclasses.is_dataclass(t)),
+                     None)
+        return (group, field) if group is not None else None
+
+    def unknown_key(self, key: str, given: list[tuple[str, Any, bool]]) -> str | None:
+        import dataclasses
+
+        if (found := self.settings_group(key, given)) is None:
+            return None
+        group, field = found
+        accepted = [f.name for f in dataclasses.fields(group)]
+        if field in accepted:
+            return None
+        return f"{self.name_of(key)}: unknown key {field!r}; accepted keys: {', '.join(accepted)}"
+
     def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
         import typing
+
+        if (found := self.settings_group(key, given)) is not None:  # a typed group's field
+            return typing.get_type_hints(found[0]).get(found[1])
 
         if key in ("model", "model.class_path"):  # a class by name (a mapping would be checked without its data)
             return typing.Optional[L.LightningModule] if isinstance(value, str) else None

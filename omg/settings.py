@@ -1,0 +1,84 @@
+"""Typed settings groups: the nested mappings of a module's settings (``dit``, ``moc``, ``config``, ...)
+as frozen dataclasses, so that ``omg fit --help`` and ``--print_config`` show and check each key.
+
+A group of *overrides* (``overrides``) has every field of the config it overrides (``DiTConfig``,
+``MoCConfig``, ...) with the same type, defaulting to None: "the flavor's (or the config's) value".
+Only the fields a run sets are passed on, so a run that sets none builds what it built before the
+groups were typed, and a checkpoint keeps the mapping it always kept (``settings_dict``: the set
+fields, plain types, as checkpoints load weights-only). ``settings`` reads a group from what
+constructors are given: the dataclass (``omg fit``), a mapping (a checkpoint's hyper-parameters, a
+Python caller) or None, an unknown key being one line that names it and the accepted ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import typing
+from collections.abc import Mapping
+from typing import Any, TypeVar
+
+from omg.errors import UsageError
+
+T = TypeVar("T")
+
+
+def overrides(config: type, name: str, module: str, doc: str, exclude: tuple[str, ...] = ("name",)) -> type:
+    """A frozen dataclass ``name`` with each field of the dataclass ``config`` (but ``exclude``) typed as
+    there or None, default None. Its docstring ``doc``; ``module`` (the caller's ``__name__``) is where
+    it is importable from, for jsonargparse's ``--help`` and ``--print_config``."""
+    hints = typing.get_type_hints(config)
+    fields = [(f.name, hints[f.name] | None, dataclasses.field(default=None))
+              for f in dataclasses.fields(config) if f.name not in exclude]
+    cls = dataclasses.make_dataclass(name, fields, frozen=True)
+    cls.__module__, cls.__doc__ = module, doc
+    return cls
+
+
+def arguments(function: Any, name: str, module: str, doc: str) -> type:
+    """A frozen dataclass ``name`` with each keyword argument of ``function`` (a class: its ``__init__``) typed
+    as there or None, default None (unset: the argument's default), as ``overrides`` does for a dataclass."""
+    init = function.__init__ if isinstance(function, type) else function
+    hints = typing.get_type_hints(init)
+    fields = [(p.name, hints[p.name] | None, dataclasses.field(default=None))
+              for p in inspect.signature(init).parameters.values()
+              if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    cls = dataclasses.make_dataclass(name, fields, frozen=True)
+    cls.__module__, cls.__doc__ = module, doc
+    return cls
+
+
+def settings(cls: type[T], value: Any, key: str) -> T:
+    """``value`` (None, a ``cls`` or a mapping of its fields) as a ``cls``; UsageError naming ``key``
+    (``model.init_args.dit``) for an unknown field or a value of another kind."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    accepted = [f.name for f in dataclasses.fields(cls)]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = settings_dict(value)
+    if not isinstance(value, Mapping):
+        raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
+    if unknown := [k for k in value if k not in accepted]:
+        raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
+    return cls(**value)
+
+
+def settings_dict(group: Any) -> dict[str, Any]:
+    """The fields a group sets (not None), as plain types: what checkpoints and hparams.yaml keep."""
+    return {f.name: _plain(getattr(group, f.name)) for f in dataclasses.fields(group)
+            if getattr(group, f.name) is not None}
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+__all__ = ["arguments", "overrides", "settings", "settings_dict"]
