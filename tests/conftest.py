@@ -44,11 +44,11 @@ def _quiet_threads():
 
 @pytest.fixture(autouse=True)
 def _ctrl_c_as_python_sets_it():
-    """Each test starts with Python's own Ctrl-C handler. A test that leaves SIGINT ignored in this process
-    (Lightning's trainer ignores it for good once it has caught a KeyboardInterrupt) would pass the ignore on
-    to every process the later tests of this xdist worker start, and a Python started with SIGINT ignored
-    keeps it so: a test that sends Ctrl-C to an `omg` process (tests/test_run_faults.py) then waited for
-    nothing, as a user's terminal never would."""
+    """Each test starts with Python's own Ctrl-C handler. pytest started with SIGINT ignored (a script's
+    background job, `python -m pytest … &`, which the shell starts so; or a test that left it so: Lightning's
+    trainer ignores it for good once it has caught a KeyboardInterrupt) passes the ignore on to every process
+    the tests start, and a Python started with SIGINT ignored keeps it so: a test that sends Ctrl-C to an
+    `omg` process, as a terminal does (tests/test_run_faults.py), then waited for nothing."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 

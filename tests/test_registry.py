@@ -279,3 +279,28 @@ def test_plugin_whose_setup_fails_is_a_usage_error_naming_it(plugins):
 def test_no_plugins_installed(plugins):
     plugins()
     assert load_plugins() == []
+
+
+def test_a_plugin_text_encoder_takes_its_own_arguments_through_options(monkeypatch):
+    """text_encoder_args is typed for omg's encoders; a plugin encoder's own keyword arguments travel in its
+    ``options`` (as a checkpoint written before the typed groups kept them, at the top level, still loads),
+    and an argument the chosen encoder does not take is one line naming it."""
+    from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
+    from omg.text.hashed import HashTextEncoder
+
+    monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))  # undone after
+
+    @registry.TEXT_ENCODERS.register("test-wide-hash")
+    class WideHash(HashTextEncoder):
+        def __init__(self, width: int = 16, cache_size: int = 100):
+            super().__init__(dim=width, cache_size=cache_size)
+
+    typed = text_encoder_kwargs(TextEncoderArgs(options={"width": 8}, cache_size=5))
+    earlier = text_encoder_kwargs({"width": 8, "cache_size": 5})  # a checkpoint's mapping from before
+    assert typed == earlier == {"width": 8, "cache_size": 5}
+    assert build_text_encoder("test-wide-hash", **typed).dim == 8
+    with pytest.raises(UsageError, match=r"^text encoder 'test-wide-hash': got an unexpected keyword argument "
+                                         r"'side_gain' \(model.init_args.text_encoder_args\)$"):
+        build_text_encoder("test-wide-hash", **text_encoder_kwargs({"side_gain": 2.0}))
+    with pytest.raises(UsageError, match=r"^text encoder 'hash': got an unexpected keyword argument 'width'"):
+        build_text_encoder("hash", **typed)

@@ -355,7 +355,7 @@ def test_ctrl_c_during_a_stalled_manifest_fetch_is_one_line(tmp_path):
     """Before training starts no handler of the run's is set: Ctrl-C is Python's KeyboardInterrupt, which
     ends the fetch at once; its command is killed and the CLI says so in one line (not a traceback).
     Python's handler is there only when omg starts with SIGINT not ignored, as a terminal starts it
-    (conftest's ``_ctrl_c_as_python_sets_it``: an ignore left by an earlier test made this one hang)."""
+    (conftest's ``_ctrl_c_as_python_sets_it``: a suite started as a script's background job hung here)."""
     assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
     fifo = tmp_path / "fifo"
     fifo.mkdir()

@@ -25,7 +25,6 @@ habit latent (a sample of its prior) and text embedding, quantize, decode with t
 from __future__ import annotations
 
 import contextlib
-import io
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -522,7 +521,7 @@ def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) ->
     """A motion file as features of ``rep`` (quatvel): {features (T, D), offsets (J, 3) of the source, root_start
     (3,), category (the source's, or ""), name}. ``.npy``: quatvel features (T, D) or joint positions (T, J, 3) at
     ``fps``; other files are read and retargeted onto the representation's skeleton."""
-    from omg.files import MOTION_MAX_BYTES, file_problem, read_file
+    from omg.files import file_problem, read_array
     from omg.motion import Clip
 
     skeleton = rep.skeleton
@@ -532,7 +531,7 @@ def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) ->
              "category": "", "name": path.name}
     if path.suffix.lower() == ".npy":
         try:
-            array = np.load(io.BytesIO(read_file(path, "SOURCE", MOTION_MAX_BYTES)), allow_pickle=False)
+            array = read_array(path, "SOURCE")
         except (OSError, ValueError) as e:
             raise UsageError(f"SOURCE {path}: not a readable .npy array ({e})") from None
         if array.dtype.kind in "fc" and not np.isfinite(array).all():  # the model would sample from NaN

@@ -20,7 +20,6 @@ displacement in m/s), the latent and velocity errors as they come. Inference
 
 from __future__ import annotations
 
-import io
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -605,7 +604,7 @@ class OmniMotionModule(OmgModule):
 
 def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``."""
-    from omg.files import MOTION_MAX_BYTES, file_problem, read_file
+    from omg.files import file_problem, read_array
 
     if problem := file_problem(path):
         raise UsageError(f"--from_motion {path}: {problem}")
@@ -618,8 +617,7 @@ def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> t
         features, meta = get_representation("maa", skeleton).encode(clip)
         return features, np.asarray(meta["offsets"], dtype=np.float32)
     try:
-        array = np.load(io.BytesIO(read_file(path, "--from_motion", MOTION_MAX_BYTES)),
-                        allow_pickle=False).astype(np.float32)
+        array = read_array(path, "--from_motion").astype(np.float32)
     except (ValueError, OSError) as e:
         raise UsageError(f"--from_motion {path}: not a readable .npy file ({e})") from None
     maa_dim = (skeleton.num_joints + 1) * 6

@@ -9,9 +9,11 @@ staying frozen.
 
 from __future__ import annotations
 
+import inspect
 import warnings
 from collections import OrderedDict
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 from itertools import chain
 from typing import Any, ClassVar, Sequence
 
@@ -195,18 +197,36 @@ class TextEncoderArgs:
     vocab_size: int | None = None  # ... hashed vocabulary ...
     seed: int | None = None  # ... and its seed
     cache_size: int | None = None  # every encoder: texts whose features are kept
+    # a plugin encoder's own keyword arguments (omg.registry.TEXT_ENCODERS), given to it as they are
+    options: dict[str, Any] | None = None
 
 
-def text_encoder_kwargs(args: TextEncoderArgs | dict | None) -> dict[str, Any]:
+def text_encoder_kwargs(args: TextEncoderArgs | Mapping | None) -> dict[str, Any]:
     """``args`` (a ``TextEncoderArgs``, a checkpoint's mapping or None) as ``build_text_encoder``'s keyword
-    arguments."""
-    return settings_dict(settings(TextEncoderArgs, args, "model.init_args.text_encoder_args"))
+    arguments, ``options`` among them. A mapping's keys that name no field are a plugin encoder's, as
+    checkpoints written before the typed groups keep them: they count as ``options``."""
+    if isinstance(args, Mapping):
+        known = {f.name for f in fields(TextEncoderArgs)}
+        if extra := {k: v for k, v in args.items() if k not in known}:
+            options = {**(args.get("options") or {}), **extra}
+            args = {**{k: v for k, v in args.items() if k in known}, "options": options}
+    kwargs = settings_dict(settings(TextEncoderArgs, args, "model.init_args.text_encoder_args"))
+    options = kwargs.pop("options", None) or {}
+    return {**kwargs, **options}
 
 
 def build_text_encoder(spec: str | TextEncoder, **kwargs: Any) -> TextEncoder:
-    """A text encoder by registered name (``clip-vit-l-14``, ``minilm``, ``hash``), or the instance itself."""
+    """A text encoder by registered name (``clip-vit-l-14``, ``minilm``, ``hash``, a plugin's), or the instance
+    itself. An argument the encoder does not take is one line naming it."""
     if isinstance(spec, TextEncoder):
         if kwargs:
             raise UsageError(f"text encoder given as a built {spec.name!r} instance; cannot apply {sorted(kwargs)}")
         return spec
-    return TEXT_ENCODERS.build(spec, **kwargs)
+    factory = TEXT_ENCODERS.get(spec)
+    try:
+        inspect.signature(factory).bind(**kwargs)
+    except TypeError as e:  # an argument of another encoder, or a misspelt one
+        raise UsageError(f"text encoder {spec!r}: {e} (model.init_args.text_encoder_args)") from None
+    except ValueError:  # no signature to read (a builtin): let the call say
+        pass
+    return factory(**kwargs)
