@@ -563,12 +563,14 @@ def test_generated_features_are_canonical_maa():
 
     features, _, _ = _known_motion(SMAL35)
     torch.testing.assert_close(canonical_maa(features), features, atol=1e-5, rtol=0)  # real maa is kept
-    noisy = canonical_maa(features + 0.3 * torch.randn_like(features))
+    noise = torch.randn(features.shape, generator=torch.Generator().manual_seed(0))
+    noisy = canonical_maa(features + 0.3 * noise)
     tokens = noisy.unflatten(-1, (-1, 6))
     assert torch.equal(tokens[..., -1, 3:], torch.zeros_like(tokens[..., -1, 3:]))
     m = sixd_to_matrix(tokens[..., :-1, :])
     torch.testing.assert_close(m.mT @ m, torch.eye(3).expand_as(m), atol=1e-5, rtol=0)
-    torch.testing.assert_close(tokens[..., :-1, :], torch.cat([m[..., 0], m[..., 1]], -1), atol=1e-6, rtol=0)
+    # float32 round-off of a Gram-Schmidt pass: unseeded noise once gave 1.14e-6 on one of 2,520 numbers
+    torch.testing.assert_close(tokens[..., :-1, :], torch.cat([m[..., 0], m[..., 1]], -1), atol=1e-5, rtol=0)
 
 
 def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
