@@ -115,6 +115,9 @@ def lightning_main(argv: list[str]) -> None:
                 **(getattr(e, "omg_stop", None) or {})}  # omg.callbacks.run.InterruptCheckpoint
         where = (f"checkpoint {stop['checkpoint']} (resume with --ckpt_path last)" if stop["checkpoint"]
                  else "no checkpoint was written")
+        if "during" in stop:  # omg test: omg.callbacks.run.stop_if_signalled
+            print(f"omg: interrupted by SIGTERM during {stop['during']}; no report was written", file=sys.stderr)
+            raise SystemExit(SIGTERM_EXIT) from None
         if stop["requeued"]:
             print(f"omg: requeued by SLURM at step {stop['step']}; {where}", file=sys.stderr)
             raise SystemExit(0) from None

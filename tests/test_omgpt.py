@@ -469,6 +469,28 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tiny_controlnet, smal
         assert json.loads((run / report).read_text())["settings"]["evaluator"] == "OmniMotionSelfEvaluator"
 
 
+def test_sigterm_during_the_evaluation_ends_it_in_one_line(omgpt_ckpt, tiny_controlnet, small_eval, tmp_path, capsys):
+    """SIGTERM while `omg test` evaluates: Lightning's handler only sets a flag that no step reads, and the
+    protocol's replications ran on to their end (a 5-replication mini evaluation went on for minutes). It ends
+    at the next batch with omg's line, exit 143, and writes no report."""
+    import yaml
+
+    path, _ = small_eval
+    config = yaml.safe_load(path.read_text())
+    config["trainer"]["callbacks"].insert(0, {"class_path": "helpers.faults.SigtermAtTestEnd"})
+    (tmp_path / "eval.yaml").write_text(yaml.safe_dump(config))
+    with pytest.raises(SystemExit) as stop:
+        _cli("test", "--config", str(tmp_path / "eval.yaml"), "--ckpt_path", str(omgpt_ckpt),
+             "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={tmp_path / 'eval'}",
+             f"--model.init_args.human_source={tiny_controlnet}")
+    err = capsys.readouterr().err
+    assert stop.value.code == 143, err[-2000:]
+    assert [ln for ln in err.splitlines() if ln.startswith("omg:") and "interrupted" in ln] == [
+        "omg: interrupted by SIGTERM during the evaluation; no report was written"], err[-2000:]
+    assert "omg: evaluation replication 1/" not in err
+    assert not list((tmp_path / "eval").rglob("eval*.json"))
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--animal", "dog", "--from_motion", "{tmp}/missing.bvh"], "--from_motion {tmp}/missing.bvh: no such file"),
     (["--animal", "dog", "--from_motion", "x.bvh", "--human_ckpt", "y.ckpt"], "give --from_motion"),

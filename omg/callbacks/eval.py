@@ -11,7 +11,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor, nn
 
-from omg.callbacks.run import log_scalars, run_dir, sampling
+from omg.callbacks.run import log_scalars, run_dir, sampling, stop_if_signalled
 from omg.errors import UsageError
 from omg.evaluation import (
     EvalSettings,
@@ -208,6 +208,7 @@ class EvalCallback(Callback):
             self._fixed = prompts
 
         def generate(texts: list[str], lengths: Tensor, seed: int) -> Tensor:
+            stop_if_signalled(trainer)  # before each batch: a SIGTERM ends the protocol within one
             return self.generate(module, texts, lengths, seed)
 
         with sampling(module), trainer.precision_plugin.forward_context():

@@ -31,7 +31,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_only
 from torch import Tensor, nn
 
-from omg.callbacks.run import run_dir
+from omg.callbacks.run import run_dir, stop_if_signalled
 from omg.errors import UsageError
 from omg.evaluation import build_evaluator, build_metric, check_evaluator_spec, parse_metrics, protocol, write_report
 from omg.files import atomic_write, write_json
@@ -277,6 +277,7 @@ class HabitEvalCallback(Callback):
         label = vq.row_label + (" (transfer distribution)" if self.mode == "transfer_distribution" else "")
 
         def replication(r: int) -> dict[str, float]:
+            stop_if_signalled(trainer)
             values = evaluate_habits(pl_module, evaluator, items, self.seed + r, self.min_samples,
                                      diversity_pairs=self.diversity_pairs, mode=self.mode, metrics=self.metrics)
             rank_zero_info(f"omg: habit evaluation replication {r + 1}/{self.replications} ({label}): "

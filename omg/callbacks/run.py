@@ -52,6 +52,17 @@ def sampling(module: L.LightningModule) -> Iterator[None]:
         yield
 
 
+def stop_if_signalled(trainer: L.Trainer) -> None:
+    """End ``omg test``'s evaluation when SIGTERM has come: Lightning's handler only sets a flag, which its
+    loops read at a step's end, and an evaluation protocol (replications of generation after the test
+    epoch) has no step, so it ran on to its end. Raised as the fit loop raises it (``omg.cli`` says it in
+    one line, exit 143). Ctrl-C needs nothing: outside ``fit`` it is Python's KeyboardInterrupt."""
+    if trainer.testing and trainer.received_sigterm:
+        error = SIGTERMException()
+        error.omg_stop = {"during": "the evaluation"}  # read by omg.cli
+        raise error
+
+
 class InterruptCheckpoint(Callback):
     """On SIGTERM (preemption, ``scancel``, a scheduler's time limit) or Ctrl-C (SIGINT) save
     ``interrupted.ckpt`` beside the run's checkpoints at the end of the step in which the signal
