@@ -28,11 +28,8 @@ def overrides(config: type, name: str, module: str, doc: str, exclude: tuple[str
     there or None, default None. Its docstring ``doc``; ``module`` (the caller's ``__name__``) is where
     it is importable from, for jsonargparse's ``--help`` and ``--print_config``."""
     hints = typing.get_type_hints(config)
-    fields = [(f.name, hints[f.name] | None, dataclasses.field(default=None))
-              for f in dataclasses.fields(config) if f.name not in exclude]
-    cls = dataclasses.make_dataclass(name, fields, frozen=True)
-    cls.__module__, cls.__doc__ = module, doc
-    return cls
+    return _unset_group(name, module, doc, [(f.name, hints[f.name]) for f in dataclasses.fields(config)
+                                            if f.name not in exclude])
 
 
 def arguments(function: Any, name: str, module: str, doc: str) -> type:
@@ -40,10 +37,15 @@ def arguments(function: Any, name: str, module: str, doc: str) -> type:
     as there or None, default None (unset: the argument's default), as ``overrides`` does for a dataclass."""
     init = function.__init__ if isinstance(function, type) else function
     hints = typing.get_type_hints(init)
-    fields = [(p.name, hints[p.name] | None, dataclasses.field(default=None))
-              for p in inspect.signature(init).parameters.values()
-              if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-    cls = dataclasses.make_dataclass(name, fields, frozen=True)
+    keywords = [p.name for p in inspect.signature(init).parameters.values()
+                if p.name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+    return _unset_group(name, module, doc, [(keyword, hints[keyword]) for keyword in keywords])
+
+
+def _unset_group(name: str, module: str, doc: str, typed: list[tuple[str, Any]]) -> type:
+    """The frozen dataclass of ``typed`` (field, type) pairs, each ``type | None`` with default None."""
+    cls = dataclasses.make_dataclass(name, [(field, hint | None, dataclasses.field(default=None))
+                                            for field, hint in typed], frozen=True)
     cls.__module__, cls.__doc__ = module, doc
     return cls
 
@@ -65,6 +67,12 @@ def settings(cls: type[T], value: Any, key: str) -> T:
     return cls(**value)
 
 
+def set_fields(cls: type, value: Any, key: str) -> dict[str, Any]:
+    """The fields ``value`` (as ``settings`` reads it) sets, as plain types: the keyword arguments for the
+    config or callable the group overrides, and what checkpoints keep."""
+    return settings_dict(settings(cls, value, key))
+
+
 def settings_dict(group: Any) -> dict[str, Any]:
     """The fields a group sets (not None), as plain types: what checkpoints and hparams.yaml keep."""
     return {f.name: _plain(getattr(group, f.name)) for f in dataclasses.fields(group)
@@ -72,13 +80,11 @@ def settings_dict(group: Any) -> dict[str, Any]:
 
 
 def _plain(value: Any) -> Any:
-    if isinstance(value, tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, list):
+    if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
     if isinstance(value, Mapping):
         return {k: _plain(v) for k, v in value.items()}
     return value
 
 
-__all__ = ["arguments", "overrides", "settings", "settings_dict"]
+__all__ = ["arguments", "overrides", "set_fields", "settings", "settings_dict"]

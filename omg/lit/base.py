@@ -17,7 +17,7 @@ from torch.distributed._composable import checkpoint as checkpoint_activations
 
 from omg.lit.ema import EMA
 from omg.motion import DataSpec
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 
 
 def warmup_cosine(warmup_steps: int, total_steps: int):
@@ -120,7 +120,7 @@ class OmgModule(L.LightningModule):
             # mapping of the keys it sets, None where it sets none (the default): what checkpoints
             # written before the groups were typed hold
             if (value := self.hparams.get(key)) is not None:
-                plain[key] = settings_dict(settings(group, value, f"model.init_args.{key}")) or None
+                plain[key] = set_fields(group, value, f"model.init_args.{key}") or None
         if plain:
             super().save_hyperparameters(plain)
 

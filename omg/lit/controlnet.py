@@ -19,7 +19,7 @@ from omg.errors import UsageError
 from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
 from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
 from omg.motion import DataSpec
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 from omg.text import TextEncoderArgs, TextFeatures, build_text_encoder, text_encoder_kwargs
 
 
@@ -90,8 +90,7 @@ class ControlNetModule(MotionDiffusionModule):
             self.model.load_state_dict(pretrained_weights)
         self.model.requires_grad_(False)
         self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
-        moc = settings_dict(settings(MoCOverrides, moc, "model.init_args.moc"))
-        moc_config = MoCConfig(text_dim=self.text_encoder.dim, **moc)
+        moc_config = MoCConfig(text_dim=self.text_encoder.dim, **set_fields(MoCOverrides, moc, "model.init_args.moc"))
         self.controlnet = MotionControlNet(self.model, moc_config)
         self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:

@@ -24,7 +24,7 @@ from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
 from omg.models.evaluator import EvaluatorConfig, EvaluatorOverrides, TextMotionEvaluator, same_pairs
 from omg.motion import DataSpec
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 from omg.text import TextEncoderArgs, text_encoder_kwargs
 
 
@@ -68,8 +68,8 @@ class EvaluatorModule(OmgModule):
                              f"got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
         self.save_hyperparameters()
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
-        config = EvaluatorConfig.from_name(flavor, **settings_dict(settings(EvaluatorOverrides, evaluator,
-                                                                             "model.init_args.evaluator")))
+        overridden = set_fields(EvaluatorOverrides, evaluator, "model.init_args.evaluator")
+        config = EvaluatorConfig.from_name(flavor, **overridden)
         self.evaluator = TextMotionEvaluator(DataSpec.coerce(spec), text_encoder,
                                              text_encoder_kwargs(text_encoder_args), config)
         self.spec = self.evaluator.spec

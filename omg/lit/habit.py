@@ -52,7 +52,7 @@ from omg.models.habit import (
     posterior_sample,
 )
 from omg.motion import DataSpec, get_representation
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 from omg.skeleton import get_skeleton
 from omg.text.base import TextEncoderArgs, text_encoder_kwargs
 
@@ -181,8 +181,7 @@ class HabitVQModule(OmgModule):
             raise UsageError(f"{len(category_embeddings)} category embeddings for {len(self.categories)} categories")
         self.descriptions = dict(descriptions or {})
         self.register_buffer("category_text", torch.tensor(category_embeddings, dtype=torch.float32))  # (N, E)
-        self.config = HabitConfig.from_name(flavor, **settings_dict(settings(HabitOverrides, habit,
-                                                                             "model.init_args.habit")))
+        self.config = HabitConfig.from_name(flavor, **set_fields(HabitOverrides, habit, "model.init_args.habit"))
         D = self.spec.feature_dim
         self.representation = get_representation("quatvel", get_skeleton(self.spec.skeleton))
         self.num_joints = self.representation.skeleton.num_joints

@@ -39,7 +39,7 @@ from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverride
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.motion.maa import maa_from_positions, root_translation
 from omg.registry import SAMPLERS
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 from omg.skeleton import get_skeleton
 from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
 from omg.text.omgpt import about_animal, caption_key, choose_animal, to_animal, to_person
@@ -166,7 +166,7 @@ class OmniMotionModule(OmgModule):
             raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
         self.text_feature = text_feature
         self.companion = None
-        human_data = settings_dict(settings(CompanionData, human_data, "model.init_args.human_data"))
+        human_data = set_fields(CompanionData, human_data, "model.init_args.human_data")
         if human_spec is None:
             if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
                 raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards (train, val, "
@@ -197,8 +197,8 @@ class OmniMotionModule(OmgModule):
         self.retrieval_excluded: frozenset[str] = frozenset()  # captions whose clips retrieval never draws
         self.retrieved: list[list[str]] = []  # the captions of the clip each prompt of the last retrieval drew
         self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
-        self.config = OmniMotionConfig.from_name(flavor, **settings_dict(settings(OmniMotionOverrides, config,
-                                                                                  "model.init_args.config")))
+        self.config = OmniMotionConfig.from_name(flavor, **set_fields(OmniMotionOverrides, config,
+                                                                      "model.init_args.config"))
         # every field, resolved: a checkpoint keeps meaning what it meant when a later version changes a default
         self.hparams["config"] = {k: v for k, v in asdict(self.config).items() if k != "name"}
         self.human_rep = get_representation("maa", get_skeleton(HUMAN_SKELETON))

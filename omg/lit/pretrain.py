@@ -26,7 +26,7 @@ from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.registry import SAMPLERS
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 from omg.skeleton import get_skeleton
 
 log = logging.getLogger(__name__)
@@ -64,11 +64,11 @@ class MotionDiffusionModule(OmgModule):
             if not ok:
                 raise UsageError(f"model.{key} must be {wanted}, got {value!r}")
         self.spec = DataSpec.coerce(spec)
-        dit = settings(DiTOverrides, dit, "model.init_args.dit")
         self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         self.vel_weight, self.foot_weight, self.ema_decay = vel_weight, foot_weight, ema_decay
         self.activation_checkpointing, self._blocks_checkpointed = activation_checkpointing, False
-        self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **settings_dict(dit))
+        dit = set_fields(DiTOverrides, dit, "model.init_args.dit")
+        self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **dit)
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
         self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from omg.errors import UsageError
 from omg.registry import TEXT_ENCODERS
-from omg.settings import settings, settings_dict
+from omg.settings import set_fields
 
 
 def bert_hidden_states(encoder: TextEncoder, texts: list[str]) -> tuple[Tensor, list[int]]:
@@ -210,7 +210,7 @@ def text_encoder_kwargs(args: TextEncoderArgs | Mapping | None) -> dict[str, Any
         if extra := {k: v for k, v in args.items() if k not in known}:
             options = {**(args.get("options") or {}), **extra}
             args = {**{k: v for k, v in args.items() if k in known}, "options": options}
-    kwargs = settings_dict(settings(TextEncoderArgs, args, "model.init_args.text_encoder_args"))
+    kwargs = set_fields(TextEncoderArgs, args, "model.init_args.text_encoder_args")
     options = kwargs.pop("options", None) or {}
     return {**kwargs, **options}
 

@@ -330,10 +330,14 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
             raise UsageError(f"--configs {path}: trainer.strategy {strategy!r} is not ddp or DeepSpeed ZeRO 1-3")
         stage, flavor = None, args.get("flavor", "base")
         if kind == "ControlNetModule":  # ControlNetModule's defaults where the config gives none
-            # a run's saved config.yaml lists every key of these typed groups, null where unset (omg.settings)
-            moc, text_args = ({k: v for k, v in (args.get(key) or {}).items() if v is not None}
-                              for key in ("moc", "text_encoder_args"))
-            stage = ControlNetStage(moc, str(args.get("text_encoder", "minilm")), text_args, epochs)
+            from omg.models.controlnet import MoCOverrides
+            from omg.settings import set_fields
+            from omg.text import text_encoder_kwargs
+
+            # read as the module reads them (a run's saved config.yaml lists every key, null where unset)
+            moc = set_fields(MoCOverrides, args.get("moc"), f"--configs {path}: model.init_args.moc")
+            stage = ControlNetStage(moc, str(args.get("text_encoder", "minilm")),
+                                    text_encoder_kwargs(args.get("text_encoder_args")), epochs)
             flavor = pretrained_flavor(path, args)
         return Run(path.stem, flavor, int(data["max_len"]), int(data["batch_size"]),
                    int(trainer.get("accumulate_grad_batches", 1)), strategy,
