@@ -33,7 +33,7 @@ def toy_shards(tmp_path) -> Path:
 
 
 # Tiny models: thread hand-offs cost more than they gain on a small shared CPU, and one thread
-# keeps trained test models bit-reproducible. Set at import too, for module-scoped fixtures.
+# keeps trained test models bit-reproducible. Set at import too, for fixtures shared by a whole session.
 torch.set_num_threads(1)
 
 

@@ -28,7 +28,7 @@ from omg.files import MOTION_MAX_BYTES
 from omg.skeleton import SMPL22
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ckpts(tmp_path_factory) -> dict[str, str]:
     """Untrained tiny checkpoints: unconditional, text-conditioned, one with NaN weights, a habit VQ-VAE,
     and an animal evaluator in a copy of the human evaluation config."""

@@ -38,7 +38,7 @@ def _clips(shard_dir: Path) -> dict[str, np.ndarray]:
             for s in map(decode_sample, iter_tar(path, **manifest.expected(path)))}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def one_worker(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("scale") / "w1"
     _build(out, workers=1)

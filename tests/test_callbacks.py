@@ -40,7 +40,7 @@ def _trainer(root, steps, callbacks, logger=True):
                      limit_val_batches=0, limit_test_batches=1, default_root_dir=root)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def evaluator_ckpt(tmp_path_factory):
     """An (untrained) contrastive evaluator saved as `omg fit` would; its path."""
     from omg.lit.evaluator import EvaluatorModule

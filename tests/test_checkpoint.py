@@ -31,7 +31,7 @@ def assert_same(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> None:
         assert a[k].dtype == b[k].dtype == torch.float32 and torch.equal(a[k], b[k]), k
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def trained(tmp_path_factory) -> tuple[PretrainModule, Path]:
     """A mini PretrainModule after one real Lightning step, and the .ckpt Lightning wrote for it.
 

@@ -41,7 +41,7 @@ class Payload:
         return open, (self.path, "w")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny() -> PretrainModule:
     torch.manual_seed(0)
     return PretrainModule(flavor="mini", dit=TINY_DIT, spec=SPEC)
@@ -190,7 +190,7 @@ def _fit(*argv: str) -> None:
         sys.argv[:] = saved
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def runs(tmp_path_factory) -> dict[str, Path]:
     """Checkpoints written by `omg fit` (LightningCLI) for the three modules: 2 pretraining steps,
     1 ControlNet and 1 evaluator step (the hash text encoder)."""

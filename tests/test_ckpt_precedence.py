@@ -47,7 +47,7 @@ DATA = {  # each family's validation clips, a batch or two of them
 }
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ckpts(tmp_path_factory) -> dict[str, str]:
     """One checkpoint per family, each holding values of the settings under test that are neither the class
     defaults nor what the runs below set: PretrainModule's from two steps of ``omg fit`` (its hyper-parameters

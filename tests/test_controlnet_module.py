@@ -36,7 +36,7 @@ def _fit(module, data, steps, root):
     return trainer
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def pretrained(tmp_path_factory):
     """A tiny DiT pretrained for 300 steps on the mini humans; its checkpoint path."""
     root = tmp_path_factory.mktemp("pretrain")
@@ -92,7 +92,7 @@ def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
     assert not torch.allclose(only_u, only_c, atol=1e-3)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def finetuned(pretrained, tmp_path_factory):
     root = tmp_path_factory.mktemp("controlnet")
     torch.manual_seed(0)
@@ -178,29 +178,3 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
         main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),
               "--val", str(MINI / "val"), "--samplers", "[plms]"])
     assert "unknown sampler 'plms'" in capsys.readouterr().err
-
-
-@pytest.mark.slow
-def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
-    """A few minutes of fine-tuning on the mini data: "walks forward" travels, "jumps in place"
-    stays put and bobs up and down (a sanity check of the whole stage, not a quality claim).
-    900 steps: on whole captioned clips every clip is seen equally often (sliding windows drew
-    the long walking takes more often), so walking takes longer to learn than it did on windows."""
-    from omg.motion import get_representation
-
-    torch.manual_seed(0)
-    module = _controlnet(pretrained, text_encoder="minilm")
-    _fit(module, _data(), 900, tmp_path)
-    decode = get_representation("humanml3d263", "smpl22").decode
-    travel, bob = {}, {}
-    for prompt in ("a person walks forward", "a person jumps in place"):
-        pelvis = torch.cat([decode(module.sample([prompt] * 6, [60] * 6, steps=20, seed=seed))[:, :, 0]
-                            for seed in range(3)])  # (18, T, 3)
-        travel[prompt] = (pelvis[:, -1, [0, 2]] - pelvis[:, 0, [0, 2]]).norm(dim=-1)  # (18,) metres
-        bob[prompt] = pelvis[..., 1].std(dim=1)  # (18,) root height std, metres
-    walk, jump = "a person walks forward", "a person jumps in place"
-    for seed in range(3):  # every seed's walkers travel further than its jumpers
-        rows = slice(6 * seed, 6 * seed + 6)
-        assert travel[walk][rows].mean() > 2 * travel[jump][rows].mean(), (travel, seed)
-    assert travel[walk].mean() > 3 * travel[jump].mean() and travel[walk].mean() > 1.5, travel
-    assert bob[jump].mean() > 1.3 * bob[walk].mean(), bob

@@ -7,7 +7,7 @@ from omg.diffusion import Diffusion, cosine_alphas_cumprod
 from omg.errors import UsageError
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def diffusion() -> Diffusion:
     return Diffusion()
 

@@ -274,14 +274,14 @@ def _broken() -> list[Shown]:
 BROKEN = _broken()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def shown() -> list[Shown]:
     commands = [c for page in shown_command_files() for c in shown_commands(page)]
     assert len(commands) > 20, "the pages show their commands in ```bash blocks"
     return commands
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def checked(shown) -> dict[tuple[str, ...], dict]:
     """Each tool parser's --help and each Lightning command's --print_config, run once."""
     argvs = sorted({help_argv(c.argv) for c in shown if c.argv[0] in COMMANDS}

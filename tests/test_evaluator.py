@@ -36,7 +36,7 @@ def _data(root=MINI, **kw):
     return MotionDataModule(str(root / "train"), str(root / "val"), **{**args, **kw})
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def trained(tmp_path_factory):
     """The mini evaluator trained for STEPS steps on the mini humans' train split (validated once, at the end)."""
     root = tmp_path_factory.mktemp("evaluator")
@@ -57,7 +57,7 @@ def trained(tmp_path_factory):
             "backbone": backbone}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def held_out(tmp_path_factory):
     """96 unseen clips of the same procedural distribution (another seed): un-normalised whole
     motions, their first captions and action labels. The mini val split has only 10 clips, fewer
@@ -276,7 +276,7 @@ WORDS = ["unk", "sos", "eos", "a", "person", "walk", "forward", "turn", "left", 
          "leg", "wave", "both", "hand", "box"]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def t2m_files(tmp_path_factory):
     root = tmp_path_factory.mktemp("t2m")
     g = torch.Generator().manual_seed(0)

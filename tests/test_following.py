@@ -31,7 +31,7 @@ TAKES = ("raise-up-left-hand_normal_013", "raise-up-right-hand_exhausted_001", "
          "1/walk-left_normal_001", "1/walk-right_normal_001")  # "1/": Bandai-Namco dataset 1
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def takes(request) -> dict[str, torch.Tensor]:
     """content label -> SMPL-22 joints (T, 22, 3) at 20 fps, read through omg's BVH retarget path."""
     from helpers import SHARED_MOTION

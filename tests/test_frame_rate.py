@@ -19,7 +19,7 @@ def shards_at(root, fps: float):
     return root
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def prior_30fps(tmp_path_factory):
     """A stage-1 checkpoint trained (one step) on 30-fps shards."""
     from omg.lit.pretrain import PretrainModule

@@ -130,7 +130,7 @@ def test_flow_sample_then_invert_returns_the_input():
 # ----------------------------------------------------------------------------- retrieval
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def minilm():
     from omg.text.base import build_text_encoder
 

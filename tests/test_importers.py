@@ -58,7 +58,7 @@ def _hml_motion(index: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
     return H263.encode(clip)[0], H263.canonicalize(positions).astype(np.float32)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def hml_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("HumanML3D")
     for d in ("new_joint_vecs", "new_joints", "texts"):
@@ -248,7 +248,7 @@ def _write_offsets(root: Path, animal: str, offsets: np.ndarray) -> None:
 
 
 # real identities of the release: bearPDD's captions call it a pig, deerA4K a deer, foxXAT a fox, canieLTT a wolf
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def animal_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("AnimalML3D")
     rng = np.random.default_rng(1)
@@ -362,7 +362,7 @@ def _reference_joints(model: dict, poses, trans, betas) -> np.ndarray:
     return np.stack([-out[..., 0], out[..., 2], out[..., 1]], -1)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def amass_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("AMASS")
     _body_model(root / "models" / "smplh" / "male" / "model.npz", seed=0)

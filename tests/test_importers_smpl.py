@@ -89,7 +89,7 @@ def _check_walk(clip: Clip, expected: np.ndarray) -> None:
 # ---------------------------------------------------------------- AIST++
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def aist_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("aistpp")
     model = _body_model(root / "smpl" / "neutral" / "model.npz", joints=24, betas=10)
@@ -155,7 +155,7 @@ def test_aistpp_shards_count_skips(aist_root, tmp_path):
 # ---------------------------------------------------------------- Motion-X
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def motionx_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("motionx")
     model = _body_model(root / "smplx" / "neutral" / "model.npz", joints=55, betas=400)

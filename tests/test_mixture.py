@@ -42,7 +42,7 @@ def features(clips) -> np.ndarray:
     return np.concatenate([c.positions.reshape(len(c), -1) for c in clips]).astype(np.float64)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def two_sets(tmp_path_factory):
     root = tmp_path_factory.mktemp("mix")
     with pytest.MonkeyPatch.context() as mp:

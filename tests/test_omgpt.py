@@ -292,7 +292,7 @@ def test_generated_animals_land_on_the_users_rig(omgpt_ckpt, shared_motion, tmp_
     assert np.abs(read_bvh(tmp_path / "bvh/sample_000.bvh").positions() - expected).max() < 1e-3
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny_controlnet(tmp_path_factory):
     """A ControlNet of 2 steps on a tiny DiT of 2 steps (mini humans, hash text): the human generator of the chain
     and of the evaluation."""
@@ -354,7 +354,7 @@ SMALL_EVAL = {"num_prompts": 8, "replications": 2, "mm_prompts": 2, "mm_repeats"
                           {"multimodality": {"num_pairs": 2}}]}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def small_eval(tmp_path_factory):
     """configs/mini/omgpt_eval.yaml scaled down (SMALL_EVAL, 2 generator steps) with an untrained animal evaluator
     (hash text); its path and the evaluator's."""

@@ -54,7 +54,7 @@ def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
     torch.testing.assert_close(out["loss"] - without["loss"], 100.0 * out["cross/ee"], rtol=1e-4, atol=1e-5)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def quatvel():
     return MotionDataModule(str(QUATVEL / "train"), batch_size=8, max_len=64, min_len=64,
                             clips="windows", batches_per_epoch=8, num_workers=0, shuffle_buffer=32,

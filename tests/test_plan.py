@@ -66,7 +66,7 @@ def peak_step_bytes(batch: int, frames: int, checkpointing: bool, text_tokens: i
 
 
 @pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK), reason="needs Linux's resettable peak RSS")
-@pytest.mark.parametrize("batch, frames, checkpointing", [(4, 256, False), (8, 512, False), (8, 512, True)])
+@pytest.mark.parametrize("batch, frames, checkpointing", [(4, 256, False), (8, 512, True)])
 def test_activation_estimate_matches_the_measured_peak(batch, frames, checkpointing):
     """The planner's activations (fitted at 16-64 frames, batch 1-2, scaled to 4 layers and the
     size here) against the measured peak of a real step 8-64x larger. The estimate is what

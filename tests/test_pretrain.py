@@ -114,7 +114,7 @@ STEPS = 16
 
 
 # the tests of whole_run share it: under xdist they run on one worker, which runs it once
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def whole_run(h263_shards, tmp_path_factory):
     """An uninterrupted tiny run of `omg fit`; its root directory."""
     root = tmp_path_factory.mktemp("whole")

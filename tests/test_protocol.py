@@ -27,7 +27,7 @@ from omg.models.evaluator import TextMotionEvaluator
 MINI = REPO / "shards/mini/human263"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup():
     data = MotionDataModule(str(MINI / "train"), val=str(MINI / "val"), max_len=40, min_len=30, num_workers=0)
     samples = ClipDataset.from_shards(data.val_urls, data.feature_dim, data.windows).samples

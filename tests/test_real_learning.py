@@ -28,7 +28,7 @@ SEEDS = 3
 PRIOR_STEPS, CONTROLNET_STEPS = 200, 400
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def shards(tmp_path_factory):
     if not (BANDAI / "manifest.json").exists():
         pytest.skip(f"Bandai-Namco dataset 1 not found at {BANDAI} (the shared/ folder beside the checkout)")

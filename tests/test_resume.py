@@ -59,7 +59,7 @@ def fit_killed(shards, root, kills: tuple[int, ...], **kwargs) -> dict[int, tupl
     return steps
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def uninterrupted(h263_shards, tmp_path_factory):
     root = tmp_path_factory.mktemp("uninterrupted")
     recorder, _ = fit(h263_shards, root)
@@ -92,7 +92,7 @@ def test_killed_run_resumes_bit_for_bit(h263_shards, uninterrupted, tmp_path, ki
     assert_identical(final_state(tmp_path), expected)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def uninterrupted_validated(h263_shards, tmp_path_factory):
     root = tmp_path_factory.mktemp("uninterrupted_validated")
     recorder, _ = fit(h263_shards, root, validate=True)
@@ -193,7 +193,7 @@ def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> t
 
 # The multi-process tests: each gloo run starts its ranks' interpreters (10-20 s a run on 2 cores). They
 # share the runs never killed; under xdist their group runs on one worker, which makes each run once.
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def never_killed(h263_shards, tmp_path_factory):
     """``never_killed(devices)``: the folder of tests/ddp_resume_run.py's run on ``devices`` gloo ranks,
     never killed, each rank's steps and start state recorded as ``fresh-rank{r}.pt`` (each run once)."""

@@ -27,7 +27,7 @@ def _read(root: Path, entry: dict) -> RigMotion:
     return read_motion(root / entry["path"], **options)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def retargeted() -> list:
     """(manifest entry, source motion, clip at 20 fps) for every real clip."""
     from helpers import SHARED_MOTION

@@ -13,7 +13,7 @@ from omg.samplers import diffusers_betas
 MU, S = 0.3, 0.5  # toy data: every feature ~ N(MU, S²)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def diffusion():
     return Diffusion()
 

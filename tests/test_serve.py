@@ -113,7 +113,7 @@ class ThreadServer:
         self.thread.join(30)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def server(serve_ckpts, tmp_path_factory):
     from omg.tools.serve import load_models
     from omg.tools.serve.app import Limits, create_app
@@ -469,7 +469,7 @@ def _server(serve_ckpts, out: Path, names: tuple[str, ...], **limits):
     return running
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def strict(serve_ckpts, tmp_path_factory):
     """A server with small limits: a 1 MB upload, a 4 KiB JSON body, 1.5 s to send it, 3 s to parse an upload."""
     running = _server(serve_ckpts, tmp_path_factory.mktemp("strict_results"), ("human", "habit"), **STRICT)
@@ -775,7 +775,7 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"
                  "--disable-component-update", "--disable-sync"]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def browser():
     if not CHROMIUM.exists():
         pytest.skip("the page's test needs Debian's chromium (apt-get install -y chromium)")

@@ -22,7 +22,7 @@ from omg.data.shards import MANIFEST, Manifest, ShardError, check_shards, iter_t
 from omg.errors import UsageError
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def pristine(tmp_path_factory):
     """8 shards of 5 clips, written once; each test corrupts its own copy."""
     return write_toy_shards(tmp_path_factory.mktemp("pristine") / "toy", num_clips=40, max_clips=5)

@@ -110,9 +110,11 @@ def test_a_manifest_fetched_by_url_is_checked_like_a_local_one(toy_shards, tmp_p
 def test_inspect_checks_a_set_behind_a_pipe(toy_shards, capsys):
     from omg.tools.shards import shards_inspect
 
-    shards_inspect([f"pipe:cat {toy_shards}/manifest.json"])
+    # a buffer of the set's size: the default 1000 would read the 40 clips 25 times over, a process each shard
+    shards_inspect([f"pipe:cat {toy_shards}/manifest.json"], shuffle_buffer=40)
     out = capsys.readouterr().out
     assert out.startswith(f"pipe:cat {toy_shards}/manifest.json: 40 clips")
+    assert "a batch of 16 through a shuffle buffer of 40 holds on average: captions" in out
     assert "8 of 8 shards verified against the manifest; 40 valid samples, 0 problems" in out
 
 

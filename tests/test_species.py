@@ -24,17 +24,17 @@ OKAPI = ("A forest giraffid of 200 to 350 kg and 1.5 m at the shoulder, with a l
          "when alarmed. The tail is short and tufted.")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def book() -> SpeciesBook:
     return SpeciesBook.load()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def mini_categories(book) -> dict[str, str]:
     return book.descriptions(sorted(ANIMALS))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def minilm():
     return build_text_encoder("minilm")
 

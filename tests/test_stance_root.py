@@ -19,7 +19,7 @@ FPS = 20.0
 TAKES = ("walk_normal_001", "walk-left_normal_001", "walk-right_normal_001", "run_normal_001")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def real_features() -> dict[str, torch.Tensor]:
     """HumanML3D-263 features (T, 263) of real Bandai-Namco takes at 20 fps."""
     from helpers import SHARED_MOTION

@@ -12,7 +12,7 @@ FPS = 30.0
 NUM = {"human": 2 * len(HUMAN_ACTIONS), "animal": len(ANIMAL_ACTIONS) * len(ANIMALS)}  # every (category, action)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def clips():
     """{kind: [(clip, contacts)]}, generated once for the module."""
     return {kind: [synth_clip(kind, i, seed=0, fps=FPS) for i in range(n)] for kind, n in NUM.items()}

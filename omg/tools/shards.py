@@ -399,17 +399,18 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
     from omg.data.windows import WindowSampler
 
     data = MotionDataModule(str(shard_dir), verify_shards=False)
-    stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size,
-                          windows=WindowSampler(min_len=1, mode="whole"), feature_dim=data.feature_dim,  # every clip
-                          shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
+    windows = WindowSampler(min_len=1, mode="whole")  # every clip
     # `inspect` has reported every bad sample once already; the stream would warn at each of its visits
     data_log = logging.getLogger(MotionStream.__module__)
     level = data_log.level
     data_log.setLevel(logging.ERROR)
     try:
+        samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, windows, max_bad_fraction=1.0).samples
+        # a small set's mixing shows in two passes over it as well as in more (each pass re-reads every shard)
+        batches = max(1, min(batches, -(-2 * len(samples) // batch_size)))
+        stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size, windows=windows,
+                              feature_dim=data.feature_dim, shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
         items = list(stream)
-        samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, stream.windows,
-                                          max_bad_fraction=1.0).samples
     finally:
         data_log.setLevel(level)
     groups = {"captions": ([it["text"] for it in items], [s["texts"][0] if s["texts"] else "" for s in samples])}
