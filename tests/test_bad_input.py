@@ -332,6 +332,8 @@ ROWS = [
     ("bench-plan-offload-ddp", ["bench", "plan", "--strategy", "ddp", "--offload"]),
     ("bench-plan-not-planned", ["bench", "plan", "--configs", f"[{REPO}/configs/habit_vqvae.yaml]"]),
     ("bench-plan-python-tag", ["bench", "plan", "--configs", "[{in}/python_tag.yaml]"]),
+    ("bench-plan-global-batch-gpus", ["bench", "plan", "--configs", f"[{REPO}/configs/pretrain_base.yaml]",
+                                      "--gpus", "3"]),
     ("bench-gpu-few-steps", ["bench", "gpu", "--dry_run", "--train_steps", "5"]),
     ("bench-gpu-shards-missing", ["bench", "gpu", "--dry_run", "--shards", "{in}/nope"]),
     ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
@@ -567,6 +569,7 @@ SAYS = {
     "bench-plan-not-planned": "HabitVQModule is not PretrainModule or ControlNetModule; the planner covers",
     "bench-plan-python-tag": "--configs {in}/python_tag.yaml: the YAML tag !!python/object/apply:os.system at line 1 "
                              "is not allowed",
+    "bench-plan-global-batch-gpus": "pretrain_base: global batch 256 is not a multiple of micro-batch 32 x --gpus 3",
     "bench-gpu-few-steps": "--train_steps must be above the 5 untimed warm-up steps, got 5",
     "bench-gpu-shards-missing": "--shards {in}/nope: no train/manifest.json",
     "bench-sample-frames-neg": "frames: expected an integer >= 1, got '-1'",
