@@ -188,6 +188,26 @@ def last_checkpoints(callback: ModelCheckpoint) -> list[Path]:
                   if Path(p).suffix == callback.FILE_EXTENSION and re.match(pattern, Path(p).stem))
 
 
+def earlier_last(callback: ModelCheckpoint) -> str | None:
+    """The warning for a new run whose ModelCheckpoint finds a ``last.ckpt`` of an earlier run in its
+    folder: Lightning then writes ``last-vN.ckpt`` beside it, and a config that reads ``last.ckpt`` (a
+    ControlNet's ``model.init_args.pretrained``) would read the old run's weights, silently. Warned
+    rather than overwritten: the old file may be the only copy of a long run."""
+    if not callback.save_last or callback.dirpath is None:
+        return None
+    folder = Path(callback.dirpath)
+    name, suffix = callback.CHECKPOINT_NAME_LAST, callback.FILE_EXTENSION
+    if not (folder / f"{name}{suffix}").is_file():
+        return None
+    version = callback.STARTING_VERSION  # the first name Lightning's version counter finds free
+    while (folder / f"{name}{callback.CHECKPOINT_JOIN_CHAR}v{version}{suffix}").exists():
+        version += 1
+    return (f"{folder / (name + suffix)} is from an earlier run: this run writes "
+            f"{name}{callback.CHECKPOINT_JOIN_CHAR}v{version}{suffix} beside it, and a config that reads "
+            f"{name}{suffix} (model.init_args.pretrained) keeps reading the old one; resume it with --ckpt_path last, "
+            "or give this run its own trainer.default_root_dir")
+
+
 SEED_TYPE = bool | int  # LightningCLI's --seed_everything
 
 
@@ -591,4 +611,8 @@ class OmgLightningCLI(LightningCLI):
                 kwargs["ckpt_path"], resumed = str(resolved), True
         if resumed and self.command == "fit":
             self.trainer.callbacks.append(TopKHousekeeping())
+        if self.command == "fit" and kwargs.get("ckpt_path") is None:  # a resumed run goes on writing its last.ckpt
+            for callback in self.trainer.checkpoint_callbacks:
+                if isinstance(callback, ModelCheckpoint) and (warning := earlier_last(callback)):
+                    rank_zero_warn(warning)
         return kwargs
