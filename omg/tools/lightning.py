@@ -24,12 +24,14 @@ from typing import Any
 import lightning as L
 import torch
 from jsonargparse import Namespace
+from jsonargparse.typing import NonNegativeInt
 from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint, RichProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 import omg.callbacks  # noqa: F401  (short callback names: EvalCallback, RenderCallback)
 import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
+from omg.callbacks.progress import PlainProgress
 from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
@@ -363,6 +365,10 @@ class OmgLightningCLI(LightningCLI):
         parser.add_lr_scheduler_args(LRSchedulerTypeTuple)
         skip = set(self.subcommands()[self.command])
         self.method_arguments = list(parser.add_method_arguments(L.Trainer, self.command, skip=skip))
+        if self.command == "fit":
+            parser.add_argument("--progress_every", type=NonNegativeInt, default=50,
+                                help="when the output is not a terminal, a progress line every N optimizer steps "
+                                     "(step, losses, lr, steps/s, time left); 0: none")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
         from jsonargparse import ArgumentError
@@ -423,6 +429,9 @@ class OmgLightningCLI(LightningCLI):
             if type(callback) is RichProgressBar:
                 trainer.callbacks[i] = StepProgressBar()
         if self.command == "fit":
+            # a log file gets the bar's redrawn line only at the end: plain lines instead (a terminal keeps the bar)
+            if self.config.get("progress_every") and not sys.stdout.isatty():
+                trainer.callbacks.append(PlainProgress(self.config.progress_every))
             saver = trainer.checkpoint_callback
             trainer.callbacks.append(InterruptCheckpoint(getattr(saver, "dirpath", None) or default))
         return trainer
