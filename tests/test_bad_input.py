@@ -392,6 +392,9 @@ ROWS = [
     ("serve-out-is-file", ["serve", "--ckpt", "{cn}", "--out", "{in}/afile"]),
     ("serve-out-in-proc", ["serve", "--ckpt", "{cn}", "--out", "/proc/omg-out"]),
     ("serve-allowed-hosts-port", ["serve", "--ckpt", "{cn}", "--allowed_hosts", "[localhost:8000]"]),
+    ("joint-map-rig-missing", ["joint-map", "{in}/nope.bvh"]),
+    ("joint-map-rig-not-bvh", ["joint-map", "{in}/afile"]),
+    ("joint-map-target-banana", ["joint-map", "{in}/nope.bvh", "--target", "banana"]),
     ("plot-run-missing", ["plot", "{in}/nope"]),
     ("plot-run-without-metrics", ["plot", "{in}"]),
 ]
@@ -639,6 +642,9 @@ SAYS = {
     "serve-out-is-file": "--out {in}/afile: not a folder",
     "serve-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
     "serve-allowed-hosts-port": "--allowed_hosts 'localhost:8000': give host names or addresses without a port",
+    "joint-map-rig-missing": "RIG {in}/nope.bvh: no such file",
+    "joint-map-rig-not-bvh": "RIG {in}/afile: give the rig as a .bvh file",
+    "joint-map-target-banana": "target: expected one of smpl22, smal35",
     "plot-run-missing": "RUN {in}/nope: no such folder; give a run folder",
     "plot-run-without-metrics": "RUN {in}: no metrics.csv in it or in a version_N folder of it",
 }
@@ -680,7 +686,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve", "plot"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve", "plot", "joint-map"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

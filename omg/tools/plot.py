@@ -89,6 +89,7 @@ def plot(run_dir: Path, out: Path | None = None) -> Path:
         raise UsageError(f"RUN {run_dir}: no metrics logged yet (training logs every trainer.log_every_n_steps "
                          "steps, validation at trainer.val_check_interval)")
     check_output_dir(out.parent, "--out")
+    out.parent.mkdir(parents=True, exist_ok=True)
     import matplotlib
 
     matplotlib.use("Agg")
