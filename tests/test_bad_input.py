@@ -323,6 +323,7 @@ ROWS = [
     ("fit-habit-fraction-one", [*FIT_HABIT, "--model.init_args.habit_fraction", "1"]),
     ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
+    ("fit-progress-every-neg", [*FIT_DATA, "--progress_every=-1"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -567,6 +568,7 @@ SAYS = {
                               "encoders) and model.flow_weight >= 0, got 1.0, 0.01",
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
+    "fit-progress-every-neg": "progress_every: expected an integer >= 0, got '-1'",
     "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",
     "bench-train-peak-nan": "peak_tflops: expected a finite number > 0, got 'nan'",
     "bench-plan-mfu-zero": "mfu: expected a number in (0, 1], got '0'",

@@ -12,6 +12,8 @@ from PIL import Image
 
 from helpers import REPO, TINY_DIT_ARG
 from omg.cli import main
+from omg.errors import UsageError
+from omg.tools.plot import plot
 
 MINI = REPO / "shards/mini/human263"
 FIT = ["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), TINY_DIT_ARG, f"--data.train={MINI}/train",
@@ -59,3 +61,11 @@ def test_plot_draws_the_curves_of_a_run_folder(run_folder, tmp_path, capsys):
     _omg("plot", str(run_folder / "version_0"), "--out", str(out))  # one version: the first run's 4 steps
     # (Lightning logs an optimizer step's metrics at its index: steps 0..3)
     assert capsys.readouterr().out.strip() == f"wrote {out}: training losses, learning rate, validation to step 3"
+
+
+def test_plot_of_a_run_that_logged_nothing_yet_is_one_line(tmp_path):
+    (tmp_path / "version_0").mkdir()
+    (tmp_path / "version_0/metrics.csv").write_text("epoch,step\n")  # Lightning's file before the first log
+    with pytest.raises(UsageError, match=r"no metrics logged yet \(training logs every trainer.log_every_n_steps"):
+        plot(tmp_path)
+    assert not (tmp_path / "curves.png").exists()

@@ -314,6 +314,8 @@ class LightningSettings(Settings):
         if not rest:
             if key == "seed_everything":
                 return SEED_TYPE
+            if key == "progress_every":
+                return NonNegativeInt
             if key in self.method_arguments:
                 return typing.get_type_hints(getattr(L.Trainer, self.command)).get(key)
             return None
@@ -365,10 +367,10 @@ class OmgLightningCLI(LightningCLI):
         parser.add_lr_scheduler_args(LRSchedulerTypeTuple)
         skip = set(self.subcommands()[self.command])
         self.method_arguments = list(parser.add_method_arguments(L.Trainer, self.command, skip=skip))
-        if self.command == "fit":
-            parser.add_argument("--progress_every", type=NonNegativeInt, default=50,
-                                help="when the output is not a terminal, a progress line every N optimizer steps "
-                                     "(step, losses, lr, steps/s, time left); 0: none")
+        # every command takes it, so that a fit's saved config.yaml configures omg test and validate too
+        parser.add_argument("--progress_every", type=NonNegativeInt, default=50,
+                            help="omg fit, when its output is not a terminal: a progress line every N optimizer steps "
+                                 "(step, losses, lr, steps/s, time left); 0: none")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
         from jsonargparse import ArgumentError
