@@ -36,6 +36,9 @@ COMMANDS = {  # name -> (module:function taking argv, one-line description)
     "transfer": ("omg.tools.habit:main",
                  "move a quadruped motion onto another species with its habits (habit VQ-VAE + flow prior)"),
     "serve": ("omg.tools.serve:main", "a local page and HTTP API over checkpoints (generate, transfer, 3D viewer)"),
+    "joint-map": ("omg.tools.joint_map:main", "start a joint map (YAML) for a rig no built-in map fits, from the "
+                                             "closest one"),
+    "plot": ("omg.tools.plot:main", "draw a run folder's training curves (losses, learning rate, evaluation) to a PNG"),
 }
 
 SIGTERM_EXIT = 128 + 15  # the shell's code for a process ended by SIGTERM

@@ -45,6 +45,7 @@ import + export on a rig's own clip (``omg bench rig``).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cache
@@ -88,6 +89,9 @@ def load_joint_map(path: str | Path) -> JointMap:
         raise UsageError(
             f"joint map {path}: expected a mapping with 'target: SKELETON' and 'joints: {{target: source}}'"
         )
+    if todo := [str(k) for k, v in data["joints"].items() if v is None or str(v) == TODO]:
+        raise UsageError(f"joint map {path}: {todo[0]} is {TODO} (no joint of the rig was matched to it): write the "
+                         "rig's joint it sits on, or delete the line to have it filled in between its neighbours")
     joints = {str(k): str(v) for k, v in data["joints"].items()}
     target = str(data["target"])
     category = str(data.get("category") or ("human" if target == "smpl22" else "animal"))
@@ -153,7 +157,8 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
         closest = min(candidates, key=lambda m: len(m.missing(names)))
         raise UsageError(
             f"{where}: cannot map the rig onto {target.name} (no registered map fits); closest {closest.name!r} "
-            f"lacks joints {', '.join(closest.missing(names))}; pass joint_map=YAML"
+            f"lacks joints {', '.join(closest.missing(names))}; pass joint_map=YAML (`omg joint-map {where}` "
+            "starts one from the closest map)"
         )
     jmap = get_joint_map(joint_map)
     if jmap.target != target.name:
@@ -162,6 +167,85 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
     if missing:
         raise UsageError(f"{where}: joint map {jmap.name!r} needs joints the file lacks: {', '.join(missing)}")
     return jmap
+
+
+TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
+SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
+
+
+def _side(name: str) -> str | None:
+    """left/right from a joint name (LeftArm, Arm_L, l_arm, L_Arm, arm.l, LArm), else None."""
+    base = name.rsplit(":", 1)[-1]
+    for side, word, letter in (("left", "left", "l"), ("right", "right", "r")):
+        if (word in base.lower() or re.search(rf"(^|[_.\s-]){letter}([_.\s-]|$)", base, re.I)
+                or re.match(rf"{letter.upper()}(?=[A-Z])", base)):
+            return side
+    return None
+
+
+def _core(name: str) -> str:
+    """A joint name without namespace, side and separators, lower case: what two rigs' names share."""
+    base = name.rsplit(":", 1)[-1]
+    base = re.sub(r"(?i)left|right", "", base)
+    base = re.sub(r"(^|[_.\s-])[lLrR](?=[_.\s-]|$)", "", base)
+    base = re.sub(r"^[LR](?=[A-Z])", "", base)
+    return re.sub(r"[^a-z0-9]", "", base.lower())
+
+
+def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[str, dict[str, int]]:
+    """A joint map to finish for a rig no registered map fits: the closest registered map (onto
+    ``target``, or any: the fewest of its joints missing from the rig), each target joint written
+    out with the rig's joint of the same name, else the rig's joint whose name is closest to what
+    the registered maps call it (same side, difflib ratio of the names' cores >= ``SIMILAR``), marked
+    as a guess to check, else ``TODO``. Returns the YAML text and the counts (matched, guessed, todo)."""
+    import difflib
+    import json
+
+    names = source_names(motion)
+    maps = [m for m in registered_joint_maps() if target is None or m.target == target]
+    if not maps:
+        raise UsageError(f"no registered joint map targets {target!r}")
+    closest = min(maps, key=lambda m: (len(m.missing(names)), -len(m.joints), m.name))
+    # what every registered map of that skeleton calls each of its joints, and the joint's own name
+    called: dict[str, set[str]] = {}
+    for m in registered_joint_maps():
+        if m.target == closest.target:
+            for joint, source in m.joints.items():
+                called.setdefault(joint, {joint}).add(source)
+    chosen = {joint: source for joint, source in closest.joints.items() if source in names}
+    free = [n for n in names if n not in chosen.values()]
+    scored = []  # (score, target joint, rig joint, the registered name it resembles)
+    for joint in closest.joints:
+        if joint in chosen:
+            continue
+        for candidate in free:
+            for known in called[joint]:
+                if _side(known) == _side(candidate) and (a := _core(known)) and (b := _core(candidate)):
+                    scored.append((difflib.SequenceMatcher(None, a, b).ratio(), joint, candidate, known))
+    guessed: dict[str, str] = {}
+    for score, joint, candidate, known in sorted(scored, key=lambda s: -s[0]):  # the best pairs first, each once
+        if score >= SIMILAR and joint not in chosen and candidate not in chosen.values():
+            chosen[joint], guessed[joint] = candidate, known
+    where = motion.source or motion.name
+    counts = {"matched": len(chosen) - len(guessed), "guessed": len(guessed),
+              "todo": len(closest.joints) - len(chosen)}
+    width = max(map(len, closest.joints)) + 1
+    lines = [f"# A joint map of {where} onto {closest.target}, started from the registered map {closest.name!r}:",
+             f"# {counts['matched']} joints matched by name, {counts['guessed']} guessed (check them), "
+             f"{counts['todo']} {TODO} (write the rig's joint,",
+             "# or delete the line: a joint between two mapped ones is filled in). Then pass it as --joint_map FILE.",
+             f"target: {closest.target}", f"category: {closest.category}",
+             "joints:  # target joint: the rig's joint (<joint>_end: its end site)"]
+    for joint in closest.joints:
+        key = f"{joint}:".ljust(width)
+        if joint not in chosen:
+            lines.append(f"  {key} {TODO}  # {closest.name} maps it to {json.dumps(closest.joints[joint])}; "
+                         "the rig has no such joint")
+        elif joint in guessed:
+            lines.append(f"  {key} {json.dumps(chosen[joint])}  # guessed: like {json.dumps(guessed[joint])}; check")
+        else:
+            lines.append(f"  {key} {json.dumps(chosen[joint])}")
+    return "\n".join(lines) + "\n", counts
 
 
 @dataclass(frozen=True)

@@ -323,6 +323,7 @@ ROWS = [
     ("fit-habit-fraction-one", [*FIT_HABIT, "--model.init_args.habit_fraction", "1"]),
     ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
+    ("fit-progress-every-neg", [*FIT_DATA, "--progress_every=-1"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -332,6 +333,8 @@ ROWS = [
     ("bench-plan-offload-ddp", ["bench", "plan", "--strategy", "ddp", "--offload"]),
     ("bench-plan-not-planned", ["bench", "plan", "--configs", f"[{REPO}/configs/habit_vqvae.yaml]"]),
     ("bench-plan-python-tag", ["bench", "plan", "--configs", "[{in}/python_tag.yaml]"]),
+    ("bench-plan-global-batch-gpus", ["bench", "plan", "--configs", f"[{REPO}/configs/pretrain_base.yaml]",
+                                      "--gpus", "3"]),
     ("bench-gpu-few-steps", ["bench", "gpu", "--dry_run", "--train_steps", "5"]),
     ("bench-gpu-shards-missing", ["bench", "gpu", "--dry_run", "--shards", "{in}/nope"]),
     ("bench-sample-frames-neg", ["bench", "sample", "--frames", "-1", "--steps", "1", "--batch_sizes", "[1]"]),
@@ -390,6 +393,11 @@ ROWS = [
     ("serve-out-is-file", ["serve", "--ckpt", "{cn}", "--out", "{in}/afile"]),
     ("serve-out-in-proc", ["serve", "--ckpt", "{cn}", "--out", "/proc/omg-out"]),
     ("serve-allowed-hosts-port", ["serve", "--ckpt", "{cn}", "--allowed_hosts", "[localhost:8000]"]),
+    ("joint-map-rig-missing", ["joint-map", "{in}/nope.bvh"]),
+    ("joint-map-rig-not-bvh", ["joint-map", "{in}/afile"]),
+    ("joint-map-target-banana", ["joint-map", "{in}/nope.bvh", "--target", "banana"]),
+    ("plot-run-missing", ["plot", "{in}/nope"]),
+    ("plot-run-without-metrics", ["plot", "{in}"]),
 ]
 
 
@@ -560,6 +568,7 @@ SAYS = {
                               "encoders) and model.flow_weight >= 0, got 1.0, 0.01",
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
+    "fit-progress-every-neg": "progress_every: expected an integer >= 0, got '-1'",
     "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",
     "bench-train-peak-nan": "peak_tflops: expected a finite number > 0, got 'nan'",
     "bench-plan-mfu-zero": "mfu: expected a number in (0, 1], got '0'",
@@ -567,6 +576,7 @@ SAYS = {
     "bench-plan-not-planned": "HabitVQModule is not PretrainModule or ControlNetModule; the planner covers",
     "bench-plan-python-tag": "--configs {in}/python_tag.yaml: the YAML tag !!python/object/apply:os.system at line 1 "
                              "is not allowed",
+    "bench-plan-global-batch-gpus": "pretrain_base: global batch 256 is not a multiple of micro-batch 32 x --gpus 3",
     "bench-gpu-few-steps": "--train_steps must be above the 5 untimed warm-up steps, got 5",
     "bench-gpu-shards-missing": "--shards {in}/nope: no train/manifest.json",
     "bench-sample-frames-neg": "frames: expected an integer >= 1, got '-1'",
@@ -634,6 +644,11 @@ SAYS = {
     "serve-out-is-file": "--out {in}/afile: not a folder",
     "serve-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
     "serve-allowed-hosts-port": "--allowed_hosts 'localhost:8000': give host names or addresses without a port",
+    "joint-map-rig-missing": "RIG {in}/nope.bvh: no such file",
+    "joint-map-rig-not-bvh": "RIG {in}/afile: give the rig as a .bvh file",
+    "joint-map-target-banana": "target: expected one of smpl22, smal35",
+    "plot-run-missing": "RUN {in}/nope: no such folder; give a run folder",
+    "plot-run-without-metrics": "RUN {in}: no metrics.csv in it or in a version_N folder of it",
 }
 
 
@@ -673,7 +688,7 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve", "plot", "joint-map"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -261,6 +262,28 @@ def test_ckpt_path_of_another_class_or_unreadable_is_one_line(runs, tiny, tmp_pa
 def _dead_pid() -> int:
     done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     return int(done.stdout)
+
+
+def test_a_new_run_over_an_earlier_last_ckpt_says_so(runs, tmp_path):
+    """A run started (not resumed) where an earlier run left last.ckpt writes last-v1.ckpt, which a
+    ControlNet config reading last.ckpt would never see: one warning names both files and what to do."""
+    ck = tmp_path / "ck"
+    shutil.copytree(runs["pre"], ck)
+    old = (ck / "last.ckpt").read_bytes()
+    with pytest.warns(UserWarning) as warned:
+        _fit(*PRETRAIN, "--trainer.max_steps=1", f"--trainer.default_root_dir={tmp_path}",
+             f"--trainer.callbacks.dirpath={ck}")
+    said = [str(w.message) for w in warned if "earlier run" in str(w.message)]
+    assert said == [f"{ck / 'last.ckpt'} is from an earlier run: this run writes last-v1.ckpt beside it, and a config "
+                    "that reads last.ckpt (model.init_args.pretrained) keeps reading the old one; resume it with "
+                    "--ckpt_path last, or give this run its own trainer.default_root_dir"]
+    assert (ck / "last-v1.ckpt").is_file() and (ck / "last.ckpt").read_bytes() == old  # what it said happened
+    with warnings.catch_warnings(record=True) as resumed:  # resuming goes on writing the run's own last file
+        warnings.simplefilter("always")
+        _fit(*PRETRAIN, "--trainer.max_steps=2", f"--trainer.default_root_dir={tmp_path}",
+             f"--trainer.callbacks.dirpath={ck}", "--ckpt_path=last")
+    assert not [w for w in resumed if "earlier run" in str(w.message)]
+    assert not (ck / "last-v2.ckpt").exists()
 
 
 def test_resume_last_falls_back_to_the_newest_readable_checkpoint(runs, tmp_path, capsys):

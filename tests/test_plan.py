@@ -13,6 +13,7 @@ import pytest
 
 from helpers import REPO
 from omg.cli import main
+from omg.errors import UsageError
 from omg.tools.plan import measure_activations, measure_controlnet_activations, model_states
 
 # Peak resident memory of one training step of the mini DiT (bf16 autocast, as bf16-mixed), in a
@@ -118,9 +119,33 @@ def test_plan_of_shipped_configs(capsys):
     assert "| 1,000,000 |" in table[0]
 
 
+def test_plan_keeps_a_configs_global_batch_on_other_gpu_counts(capsys):
+    """--gpus raises a config's accumulation so that its global batch (micro x accumulate x its 8 GPUs)
+    stays; --global_batch and --micro_batch are honoured; a line says what changed."""
+    from omg.tools.plan import rebatch, run_from_config
+
+    giant = run_from_config(REPO / "configs/pretrain_giant.yaml")  # 8 x 4 x 8 = 256
+    assert rebatch(giant, 8, None, None) == (giant, None)
+    one, note = rebatch(giant, 1, None, None)
+    assert (one.micro_batch, one.accumulate) == (8, 32) and note == "pretrain_giant: global batch 256 kept on 1 GPU, " \
+        "accumulation 4 -> 32"
+    more, note = rebatch(giant, 8, 512, 16)
+    assert (more.micro_batch, more.accumulate) == (16, 4)
+    assert note == "pretrain_giant: global batch 256 -> 512 (--global_batch), micro-batch 8 -> 16 (--micro_batch), " \
+        "accumulation 4 kept"
+    with pytest.raises(UsageError, match="global batch 256 is not a multiple of micro-batch 8 x --gpus 3"):
+        rebatch(giant, 3, None, None)
+    # through the command, on the mini config (16 x 1 x 8 = 128): the table and the line
+    main(["bench", "plan", "--configs", "[configs/mini/pretrain.yaml]", "--gpus", "2"])
+    out = capsys.readouterr().out
+    assert "| 128 (16 x 4 x 2 H100) x 120 |" in out
+    assert out.rstrip().endswith("pretrain: global batch 128 kept on 2 GPUs, accumulation 1 -> 4")
+
+
 def test_plan_options_refuse_bad_input(capsys):
     for argv, says in ((["--mfu", "0"], "mfu"), (["--strategy", "ddp", "--offload"], "offload"),
                        (["--global_batch", "100", "--gpus", "8"], "global_batch"),
+                       (["--configs", "[configs/pretrain_giant.yaml]", "--gpus", "3"], "--gpus 3"),
                        (["--configs", "[configs/habit_vqvae.yaml]"], "ControlNetModule")):
         with pytest.raises(SystemExit) as e:
             main(["bench", "plan", *argv])

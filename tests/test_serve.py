@@ -273,6 +273,7 @@ def test_the_server_answers_while_it_samples(client, server):
     (dict(model="human", prompts=["a person walks"], num_samples=9), 422, "9 motions asked for; at most 8"),
     (dict(model="human", prompts=["a person walks"], steps=5000), 422, "steps must be in 1..1000"),
     (dict(model="human", prompts=["a person walks"], num_sample=2), 422, "num_sample: Extra inputs are not permitted"),
+    (dict(model="human", prompt="a person walks"), 422, "prompt: Extra inputs are not permitted"),
     (dict(model="human", prompts="a person walks"), 422, "prompts: Input should be a valid list"),
     (dict(model="human", prompts=["a person\x00walks"]), 422, "prompt 1 holds the control character '\\x00'"),
     (dict(model="human", prompts=["a person\x85walks"]), 422, "prompt 1 holds the control character '\\x85'"),
@@ -348,8 +349,10 @@ def test_each_route_refuses_with_its_status_and_one_line(client, method, path, k
     ("clip.bvh", None, {"to": "horse", "seed": "-1"}, 422, "seed: Input should be greater than or equal to 0"),
     ("clip.bvh", None, {"to": "horse", "num_samples": "many"}, 422, "num_samples: Input should be a valid integer"),
     ("clip.bvh", "rig", {"to": "horse"}, 422, "no registered map fits"),
+    ("clip.bvh", None, {"to": "horse", "prompt": "a dog walks"}, 422, "prompt: Extra inputs are not permitted (the "
+                                                                      "form's fields: file, model, to, prompts, seed,"),
 ], ids=["garbled-bvh", "not-motion", "garbled-npy", "too-large", "file-too-large", "wrong-model", "unknown-model",
-        "joint-map-path", "to-control", "seed-neg", "num-samples-text", "unfit-rig"])
+        "joint-map-path", "to-control", "seed-neg", "num-samples-text", "unfit-rig", "misspelt-field"])
 def test_bad_uploads_are_one_readable_line(client, shared_motion, name, content, fields, status, message):
     if content is None:
         content = _bvh(shared_motion)
@@ -805,6 +808,12 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     page.wait_for_function("document.querySelectorAll('#model option').length == 4")
     page.select_option("#model", "human")
     assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
+    # an empty box asks for nothing: the page says so instead of sampling unconditional motion
+    page.fill("#prompts", " \n ")
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert page.locator("#status").inner_text() == "write a prompt (one per line), or tick unconditional"
+    assert not [u for u in requests if u.endswith("/v1/generate")]
     page.fill("#prompts", "a person walks forward\na person waves")
     page.fill("#length", "1.5")
     page.fill("#steps", "3")
@@ -833,6 +842,13 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     page.click("#generate")
     page.wait_for_function("document.querySelector('#status').classList.contains('error')")
     assert "length 500 s" in page.locator("#status").inner_text()
+    # unconditional motion is asked for by its switch, which leaves the prompts out
+    page.fill("#length", "1.5")
+    page.check("#unconditional")
+    assert page.locator("#prompts").is_disabled()
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 2", timeout=60_000)
+    assert page.locator(".sample").count() == 1 and "a person waves" not in page.locator("#samples").inner_text()
     # habit transfer: the upload and the species
     page.select_option("#model", "habit")
     assert page.locator("#upload-box").is_visible() and page.locator("#text-box").is_hidden()
@@ -840,7 +856,7 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
                                            "buffer": _bvh(shared_motion)}])
     page.fill("#species", "horse")
     page.click("#generate")
-    page.wait_for_function("window.omgViewer.results == 2 && window.omgViewer.drawn > 2", timeout=60_000)
+    page.wait_for_function("window.omgViewer.results == 3 && window.omgViewer.drawn > 2", timeout=60_000)
     assert "horse" in page.locator("#samples").inner_text()
     context.close()
     assert not errors, errors

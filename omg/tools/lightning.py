@@ -24,12 +24,14 @@ from typing import Any
 import lightning as L
 import torch
 from jsonargparse import Namespace
+from jsonargparse.typing import NonNegativeInt
 from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint, RichProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
 import omg.callbacks  # noqa: F401  (short callback names: EvalCallback, RenderCallback)
 import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
+from omg.callbacks.progress import PlainProgress
 from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
@@ -188,6 +190,26 @@ def last_checkpoints(callback: ModelCheckpoint) -> list[Path]:
                   if Path(p).suffix == callback.FILE_EXTENSION and re.match(pattern, Path(p).stem))
 
 
+def earlier_last(callback: ModelCheckpoint) -> str | None:
+    """The warning for a new run whose ModelCheckpoint finds a ``last.ckpt`` of an earlier run in its
+    folder: Lightning then writes ``last-vN.ckpt`` beside it, and a config that reads ``last.ckpt`` (a
+    ControlNet's ``model.init_args.pretrained``) would read the old run's weights, silently. Warned
+    rather than overwritten: the old file may be the only copy of a long run."""
+    if not callback.save_last or callback.dirpath is None:
+        return None
+    folder = Path(callback.dirpath)
+    name, suffix = callback.CHECKPOINT_NAME_LAST, callback.FILE_EXTENSION
+    if not (folder / f"{name}{suffix}").is_file():
+        return None
+    version = callback.STARTING_VERSION  # the first name Lightning's version counter finds free
+    while (folder / f"{name}{callback.CHECKPOINT_JOIN_CHAR}v{version}{suffix}").exists():
+        version += 1
+    return (f"{folder / (name + suffix)} is from an earlier run: this run writes "
+            f"{name}{callback.CHECKPOINT_JOIN_CHAR}v{version}{suffix} beside it, and a config that reads "
+            f"{name}{suffix} (model.init_args.pretrained) keeps reading the old one; resume it with --ckpt_path last, "
+            "or give this run its own trainer.default_root_dir")
+
+
 SEED_TYPE = bool | int  # LightningCLI's --seed_everything
 
 
@@ -292,6 +314,8 @@ class LightningSettings(Settings):
         if not rest:
             if key == "seed_everything":
                 return SEED_TYPE
+            if key == "progress_every":
+                return NonNegativeInt
             if key in self.method_arguments:
                 return typing.get_type_hints(getattr(L.Trainer, self.command)).get(key)
             return None
@@ -343,6 +367,10 @@ class OmgLightningCLI(LightningCLI):
         parser.add_lr_scheduler_args(LRSchedulerTypeTuple)
         skip = set(self.subcommands()[self.command])
         self.method_arguments = list(parser.add_method_arguments(L.Trainer, self.command, skip=skip))
+        # every command takes it, so that a fit's saved config.yaml configures omg test and validate too
+        parser.add_argument("--progress_every", type=NonNegativeInt, default=50,
+                            help="omg fit, when its output is not a terminal: a progress line every N optimizer steps "
+                                 "(step, losses, lr, steps/s, time left); 0: none")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
         from jsonargparse import ArgumentError
@@ -403,6 +431,9 @@ class OmgLightningCLI(LightningCLI):
             if type(callback) is RichProgressBar:
                 trainer.callbacks[i] = StepProgressBar()
         if self.command == "fit":
+            # a log file gets the bar's redrawn line only at the end: plain lines instead (a terminal keeps the bar)
+            if self.config.get("progress_every") and not sys.stdout.isatty():
+                trainer.callbacks.append(PlainProgress(self.config.progress_every))
             saver = trainer.checkpoint_callback
             trainer.callbacks.append(InterruptCheckpoint(getattr(saver, "dirpath", None) or default))
         return trainer
@@ -591,4 +622,8 @@ class OmgLightningCLI(LightningCLI):
                 kwargs["ckpt_path"], resumed = str(resolved), True
         if resumed and self.command == "fit":
             self.trainer.callbacks.append(TopKHousekeeping())
+        if self.command == "fit" and kwargs.get("ckpt_path") is None:  # a resumed run goes on writing its last.ckpt
+            for callback in self.trainer.checkpoint_callbacks:
+                if isinstance(callback, ModelCheckpoint) and (warning := earlier_last(callback)):
+                    rank_zero_warn(warning)
         return kwargs

@@ -26,7 +26,7 @@ Memory per GPU = model states + communication buffers + activations:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -346,6 +346,32 @@ def run_from_config(path: Path, epochs: int = 500) -> Run:
         raise UsageError(f"--configs {path}: no {e} where a {kind} config has it") from None
 
 
+# The shipped configs' global batch is data.batch_size x accumulate_grad_batches x one 8-GPU node
+# (their headers); launch/*.sh keep it on N nodes x G GPUs by recomputing the accumulation
+CONFIG_GPUS = 8
+
+
+def rebatch(run: Run, gpus: int, global_batch: int | None, micro_batch: int | None) -> tuple[Run, str | None]:
+    """``run`` on ``gpus`` GPUs at ``global_batch`` (default: the config's own, on its 8 GPUs) with
+    ``micro_batch`` windows per GPU (default: the config's): the accumulation is what makes up the
+    global batch, as launch/*.sh set it. Returns the run and a line saying what changed (None: nothing)."""
+    own = run.micro_batch * run.accumulate * CONFIG_GPUS
+    target, micro = global_batch or own, micro_batch or run.micro_batch
+    if target % (micro * gpus):
+        raise UsageError(f"{run.name}: global batch {target} is not a multiple of micro-batch {micro} x --gpus {gpus}; "
+                         "set --micro_batch (or --global_batch)")
+    accumulate = target // (micro * gpus)
+    if (target, micro, accumulate) == (own, run.micro_batch, run.accumulate) and gpus == CONFIG_GPUS:
+        return run, None
+    changed = [f"global batch {own} -> {target} (--global_batch)" if target != own
+               else f"global batch {own} kept on {gpus} GPU{'s' if gpus > 1 else ''}"]
+    if micro != run.micro_batch:
+        changed.append(f"micro-batch {run.micro_batch} -> {micro} (--micro_batch)")
+    changed.append(f"accumulation {run.accumulate} -> {accumulate}" if accumulate != run.accumulate
+                   else f"accumulation {accumulate} kept")
+    return replace(run, micro_batch=micro, accumulate=accumulate), f"{run.name}: {', '.join(changed)}"
+
+
 @dataclass(frozen=True)
 class ControlNetParts:
     """Parameter counts of a ControlNet run, from the modules built on the meta device."""
@@ -445,7 +471,7 @@ def bench_plan(
     configs: tuple[Path, ...] = (),
     flavor: Literal["mini", "base", "large", "huge", "giant"] = "base",
     frames: PositiveInt = 300,
-    global_batch: PositiveInt = 256,
+    global_batch: PositiveInt | None = None,
     micro_batch: PositiveInt | None = None,
     strategy: Strategy = "ddp",
     activation_checkpointing: bool = False,
@@ -467,8 +493,11 @@ def bench_plan(
             to plan as shipped, one row each; without them, one pretraining row from the options below
         flavor: the DiT size
         frames: frames per window
-        global_batch: windows per optimizer step, all GPUs together
-        micro_batch: windows per GPU per forward (default: global_batch / gpus, no accumulation)
+        global_batch: windows per optimizer step, all GPUs together (default: a config's own, its
+            data.batch_size x accumulate_grad_batches x the 8 GPUs it is written for; else 256); a config's
+            accumulation is raised or lowered to keep it on --gpus, as launch/*.sh do
+        micro_batch: windows per GPU per forward (default: a config's data.batch_size; else global_batch /
+            gpus, no accumulation)
         strategy: ddp, or DeepSpeed ZeRO stage zero1, zero2 or zero3 (bf16)
         activation_checkpointing: recompute block activations in backward
         offload: ZeRO's optimizer states (and with zero3 its parameters) in CPU memory
@@ -492,9 +521,15 @@ def bench_plan(
     gpus_per_node = min(gpus, gpus_per_node)
     if offload and strategy == "ddp":
         raise UsageError("--offload needs a ZeRO --strategy (zero1, zero2, zero3); DDP keeps everything on the GPU")
+    notes: list[str] = []
     if configs:
-        runs = [run_from_config(Path(c), epochs) for c in configs]
+        runs = []
+        for c in configs:
+            run, note = rebatch(run_from_config(Path(c), epochs), gpus, global_batch, micro_batch)
+            runs.append(run)
+            notes += [note] if note else []
     else:
+        global_batch = global_batch or 256
         micro = micro_batch or global_batch // gpus
         if micro < 1 or global_batch % (micro * gpus):
             raise UsageError(f"--global_batch {global_batch} is not a multiple of --micro_batch {micro} x "
@@ -520,4 +555,6 @@ def bench_plan(
               f"| {row['buffers_gib']:.1f} | {row['activations_gib']:.1f} | {row['total_gib']:.1f} GiB "
               f"| {'yes' if row['fits'] else '**no**'} | {row['step_s'] * 1000:,.0f} ms "
               f"| {steps_cell} | {wall} | {row['gpu_hours']:,.0f} | `{command}` |")
+    for note in notes:
+        print(f"\n{note}")
     return rows

@@ -18,6 +18,7 @@ expire after ``result_ttl`` seconds and are capped at ``max_results_bytes`` in a
 from __future__ import annotations
 
 import asyncio
+import inspect
 import json
 import logging
 import os
@@ -344,7 +345,11 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                        model: str | None = Form(None), to: str | None = Form(None, description="the target species "
                                                                                 "or a description of the animal"),
                        prompts: list[str] = Form([]), seed: int = Form(0, ge=0, lt=2**62),
-                       num_samples: int = Form(1, ge=1), joint_map: str | None = Form(None)):
+                       num_samples: int = Form(1, ge=1), joint_map: str | None = Form(None), *, http: Request):
+        # a misspelt field ("prompt") is an error, not a default, as in /v1/generate's body
+        fields = [name for name in inspect.signature(transfer).parameters if name != "http"]
+        if unknown := sorted(set((await http.form()).keys()) - set(fields)):
+            raise UsageError(f"{unknown[0]}: Extra inputs are not permitted (the form's fields: {', '.join(fields)})")
         chosen = _model(by_name, [m for m in models if "motion" in m.card.inputs], model, "a source motion")
         card = chosen.card
         name = _upload_name(file.filename)

@@ -27,6 +27,9 @@ function onModel() {
   const c = current.card;
   const takes = (what) => c.inputs.includes(what);
   show('text-box', takes('text'));
+  show('unconditional-box', takes('text') && takes('unconditional'));
+  $('unconditional').checked = false;
+  $('prompts').disabled = false;
   show('upload-box', takes('motion'));
   show('species-box', takes('species'));
   show('length-box', !c.source_fixes_length);
@@ -41,6 +44,7 @@ function onModel() {
   }
   $('species-list').innerHTML = '';
   for (const s of c.species) $('species-list').append(new Option(s));
+  $('unconditional').onchange = () => { $('prompts').disabled = $('unconditional').checked; };
   $('sampler').innerHTML = '';
   for (const s of c.samplers) $('sampler').add(new Option(s, s));
   $('steps').placeholder = c.default_steps || '';
@@ -56,9 +60,17 @@ function number(id) { const v = $(id).value.trim(); return v === '' ? null : Num
 
 async function generate() {
   const c = current.card;
-  const prompts = c.inputs.includes('text') ? $('prompts').value.split('\n').map((p) => p.trim()).filter(Boolean) : [];
+  const unconditional = c.inputs.includes('unconditional') && (!c.inputs.includes('text') || $('unconditional').checked);
+  const lines = unconditional || !c.inputs.includes('text') ? [] : $('prompts').value.split('\n');
+  const prompts = lines.map((p) => p.trim()).filter(Boolean);  // blank lines only separate prompts
   const species = c.inputs.includes('species') ? $('species').value.trim() || null : null;
   const file = c.inputs.includes('motion') ? $('upload').files[0] : undefined;
+  // an empty box is not a request for unconditional motion: that is the switch's (the API refuses an empty prompt)
+  if (c.inputs.includes('text') && !unconditional && !file && !prompts.length) {
+    setStatus(`write a prompt (one per line)${c.inputs.includes('unconditional') ? ', or tick unconditional' : ''}`,
+              true);
+    return;
+  }
   let request;
   if (file) {
     const form = new FormData();

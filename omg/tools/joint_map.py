@@ -1,0 +1,45 @@
+"""``omg joint-map RIG``: a joint map to finish for a rig no registered map fits
+(``omg.retarget.scaffold_joint_map``), printed or written as YAML."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from omg.errors import UsageError
+from omg.tools.args import run
+
+
+def joint_map(rig: Path, target: Literal["smpl22", "smal35"] | None = None, out: Path | None = None) -> dict[str, int]:
+    """Print (or write) the YAML of the closest joint map for a BVH rig, each joint matched, guessed or TODO.
+
+    Args:
+        rig: the rig's BVH file (its HIERARCHY's joint names are what the map names)
+        target: the model skeleton to map onto: smpl22 (humans) or smal35 (quadrupeds); default: that of
+            the registered map closest to the rig
+        out: the YAML file to write (default: print it)
+
+    Returns:
+        How many target joints were matched by name, guessed and left TODO.
+    """
+    from omg.files import atomic_write, check_output_dir
+    from omg.io.bvh import read_bvh
+    from omg.retarget import scaffold_joint_map
+
+    if rig.suffix.lower() != ".bvh":
+        raise UsageError(f"RIG {rig}: give the rig as a .bvh file (its HIERARCHY names the joints)")
+    motion = read_bvh(rig, what="RIG")
+    text, counts = scaffold_joint_map(motion, target)
+    if out is None:
+        print(text, end="")
+        return counts
+    check_output_dir(out.parent, "--out")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out, text.encode())
+    print(f"wrote {out}: {counts['matched']} joints matched, {counts['guessed']} guessed (check them), "
+          f"{counts['todo']} TODO; then pass it as --joint_map {out}")
+    return counts
+
+
+def main(argv: list[str]) -> None:
+    run(joint_map, argv, "omg joint-map", as_positional=True)
