@@ -510,7 +510,7 @@ def test_animal_and_prompt_follow_one_rule_in_generate_and_sample(omgpt_ckpt, tm
     """`omg generate --animal cat "a dog ..."` and ``sample(animal="cat")`` both make the cat, from the prompt
     made about the cat, and the human prompt about a person; the prompt's own animal without --animal."""
     from omg.lit.checkpoint import load_module
-    from omg.lit.omgpt import read_human_motion
+    from omg.generation.read import read_human_motion
 
     rng = np.random.default_rng(0)
     joints = SMPL22.rest_positions()[None] + 0.02 * rng.standard_normal((30, 22, 3))

@@ -161,7 +161,9 @@ def test_generate_records_it(tmp_path):
     settings = generate(unconditional=True, ckpt=ckpt, num_samples=1, length=1.0, steps=2, preview=False,
                         stance_root=1.0, out=tmp_path / "out")
     assert settings["stance_root"] == 1.0
-    card = module.generation_card()
+    from omg.generation.registry import generator_for
+
+    card = generator_for(module).generation_card()
     assert "stance_root" in card.options
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -33,12 +32,10 @@ from torch import Tensor
 from omg.data.omgpt import CompanionData, CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, modes_restored
-from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.motion.maa import maa_from_positions, root_translation
-from omg.registry import SAMPLERS
 from omg.settings import set_fields
 from omg.skeleton import get_skeleton
 from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
@@ -533,103 +530,6 @@ class OmniMotionModule(OmgModule):
             offsets.append(torch.as_tensor(sample["offsets"], dtype=torch.float32))
             self.retrieved.append(list(sample["texts"]))
         return motion.to(self.device), torch.stack(offsets).to(self.device)
-
-    # -- the generation interface (omg.lit.generative) ------------------------------------
-    def generation_card(self) -> GenerationCard:
-        return GenerationCard(
-            family="omgpt", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("text", "motion", "species"), needs=("text",), max_frames=round(MAX_SECONDS * self.spec.fps),
-            samplers=tuple(SAMPLERS.names()), species=tuple(self.animal_names), source_generator=True,
-            deterministic_source=True)
-
-    def read_source(self, path: Path, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at the human data's rate:
-        BVH / ASF-AMC / DeepMimic retargeted to smpl22, joints (T, 22, 3), or features (T, 138) maa or
-        (T, 263) humanml3d263 in a ``.npy``."""
-        return read_human_motion(Path(path), self.human_spec.fps, joint_map)
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        """One animal motion per prompt and repeat, each from its own human motion: the source motion given
-        (once per prompt: its translation is deterministic), one the ``source_module`` (an OMG ControlNet)
-        makes from the prompt made about "a person", or one from ``human_source``; seeds ``seed`` + index."""
-        names = self.animal_names
-        if not names:
-            raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [choose_animal(p, names, request.species) for p in request.prompts]  # the rule of ``sample``
-        frames, repeats = self._frames_and_repeats(request)
-        if frames < 2:
-            raise UsageError(f"the motion has {frames} frame(s) at {self.spec.fps:g} fps; need 2 or more")
-        skeleton, maa = self.representation.skeleton, get_representation("maa", self.representation.skeleton)
-        jobs = [(p, a, k) for p, a in zip(request.prompts, chosen) for k in range(repeats)]
-        motions = []
-        for index, (prompt, name, k) in enumerate(jobs):
-            lengths = torch.tensor([frames])
-            person = to_person(prompt, names)
-            if request.source is not None:
-                human = torch.from_numpy(request.source[0][:frames])[None]
-                human_offsets = torch.from_numpy(request.source[1])[None]
-            elif request.source_module is not None:
-                human, human_offsets = generate_human(request.source_module, [person], lengths, request.seed + index,
-                                                      self.spec.fps, steps=request.steps, guidance=request.guidance,
-                                                      sampler=request.sampler)
-            else:
-                human, human_offsets = self.human_motion([person], lengths.to(self.device), request.seed + index)
-            # use_ema=False: the weights as loaded (load_module puts the EMA in)
-            features = self.translate([prompt], human.to(self.device), human_offsets.to(self.device), lengths, [name],
-                                      use_ema=False)[0].cpu().float()
-            offsets = self.animal_offsets(name).cpu()
-            rotations, root = maa.rotations_and_root(features)
-            joints = skeleton.forward_kinematics(rotations, root, offsets).numpy().astype(np.float32)
-            human_joints = self.human_rep.decode(human[0].float().cpu(), human_offsets[0].cpu()).numpy()
-            motions.append(GeneratedMotion(
-                features=features.numpy(), joints=joints, title=f"{prompt} ({name})",
-                rotations=(rotations.numpy(), root.numpy(), offsets.numpy()),
-                companions=[("{stem}.human", human_joints.astype(np.float32), HUMAN_SKELETON, None)],
-                record={"prompt": prompt, "animal": name, "human_prompt": person, "repeat": k,
-                        "animal_prompt": about_animal(prompt, name, names)}))
-        return motions
-
-    def _frames_and_repeats(self, request: GenerationRequest) -> tuple[int, int]:
-        if request.source is None:
-            return request.frames, request.num_samples
-        return min(request.frames, len(request.source[0])), 1  # a given motion's translation is deterministic
-
-    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
-        frames, repeats = self._frames_and_repeats(request)
-        return {"animal": request.species, "human_source": "from_motion" if request.source is not None else
-                "human_ckpt" if request.source_module is not None else self.human_source,
-                "num_samples": repeats, "frames": frames, "steps": request.steps, "sampler": request.sampler,
-                "guidance_scale": request.guidance}
-
-
-def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``."""
-    from omg.files import file_problem, read_array
-
-    if problem := file_problem(path):
-        raise UsageError(f"--from_motion {path}: {problem}")
-    skeleton = get_skeleton(HUMAN_SKELETON)
-    if path.suffix.lower() != ".npy":
-        from omg.io.read import read_motion
-        from omg.retarget import retarget
-
-        clip = retarget(read_motion(path, what="--from_motion"), HUMAN_SKELETON, joint_map=joint_map, fps=fps)
-        features, meta = get_representation("maa", skeleton).encode(clip)
-        return features, np.asarray(meta["offsets"], dtype=np.float32)
-    try:
-        array = read_array(path, "--from_motion").astype(np.float32)
-    except (ValueError, OSError) as e:
-        raise UsageError(f"--from_motion {path}: not a readable .npy file ({e})") from None
-    maa_dim = (skeleton.num_joints + 1) * 6
-    if array.ndim == 3 and array.shape[1:] == (skeleton.num_joints, 3):
-        return maa_from_positions(array, fps)
-    if array.ndim == 2 and array.shape[1] == maa_dim:
-        return array, skeleton.rest_offsets.astype(np.float32)
-    if array.ndim == 2 and array.shape[1] == 263:
-        joints = get_representation("humanml3d263", skeleton).decode(torch.from_numpy(array)).numpy()
-        return maa_from_positions(joints, fps)
-    raise UsageError(f"--from_motion {path}: an array of shape {array.shape}; expected joints (T, 22, 3) or features "
-                     f"(T, {maa_dim}) smpl22 maa or (T, 263) humanml3d263")
 
 
 def check_same_stats(found: DataSpec, stored: DataSpec) -> None:

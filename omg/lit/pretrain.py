@@ -12,7 +12,6 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
@@ -21,7 +20,6 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, checkpoint_each, modes_restored
-from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -270,53 +268,6 @@ class MotionDiffusionModule(OmgModule):
             moved = self.normalize(self.representation.root_from_stance(self.denormalize(x0), strength))
             return torch.where(mask[..., None], moved, x0)  # frames past a motion's length as they were
         return stepped
-
-    # -- the generation interface (omg.lit.generative) ------------------------------------
-    def generation_card(self) -> GenerationCard:
-        return GenerationCard(
-            family="omg", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("text", "unconditional") if self.text_conditional else ("unconditional",),  # D_u: the prior
-            max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
-            max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
-            guidance=getattr(self, "guidance_scale", None), row_seeds=True,
-            options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
-            if self.representation.stance_root else {})
-
-    def read_source(self, path, joint_map: str | None = None):
-        raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        """``num_samples`` motions per prompt (in total when unconditional), sampled ``batch_size`` at a time,
-        each batch with seed ``seed`` + its first motion's index; the weights as loaded (``load_module`` puts
-        the EMA in)."""
-        prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
-        jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
-        if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
-            raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
-        motions = []
-        for start in range(0, len(jobs), request.batch_size):
-            batch = jobs[start : start + request.batch_size]
-            batch_seed = request.seed + start
-            seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
-            texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
-            features = self.sample(texts, [request.frames] * len(batch), steps=steps,
-                                   sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
-                                   use_ema=False, autocast=request.autocast, compile=request.compile,
-                                   seeds=seeds, stance_root=request.options.get("stance_root"))  # (n, T, D)
-            joints = self.representation.decode(features.float())  # (n, T, J, 3)
-            for i, (prompt, k) in enumerate(batch):
-                seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
-                motions.append(GeneratedMotion(
-                    features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
-                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, **seed}))
-        return motions
-
-    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
-        return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
-                "sampler": request.sampler or "ddim",
-                "guidance_scale": (request.guidance if request.guidance is not None else self.guidance_scale)
-                if request.prompts else None, "batch_size": request.batch_size,
-                "stance_root": request.options.get("stance_root", self.stance_root)}
 
 
 def row_noise(seeds: Sequence[int], mask: Tensor, dim: int, dtype: torch.dtype) -> Tensor:
