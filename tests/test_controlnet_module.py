@@ -15,6 +15,7 @@ from omg.data.datamodule import MotionDataModule
 from omg.io.bvh import read_bvh
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import SamplingSettings
 
 MINI = REPO / "shards/mini/human263"
 TINY = {"n_layers": 3, "d_model": 64, "n_heads": 2}
@@ -85,8 +86,8 @@ def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
 
     only_u = ddim(lambda x, t: module.controlnet.forward_uncond(x, t))
     only_c = ddim(lambda x, t: module.controlnet(x, t, text.tokens, text.mask, text.eot))
-    s0 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=0.0, use_ema=False)
-    s1 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=1.0, use_ema=False)
+    s0 = module.sample(texts, [frames] * 2, SamplingSettings(steps=8, seed=7, guidance=0.0, use_ema=False))
+    s1 = module.sample(texts, [frames] * 2, SamplingSettings(steps=8, seed=7, guidance=1.0, use_ema=False))
     torch.testing.assert_close(s0, module.denormalize(only_u), rtol=0, atol=1e-5)
     torch.testing.assert_close(s1, module.denormalize(only_c), rtol=0, atol=1e-5)
     assert not torch.allclose(only_u, only_c, atol=1e-3)
@@ -194,8 +195,8 @@ def test_fine_tuned_controlnet_follows_the_prompt(pretrained, tmp_path):
     decode = get_representation("humanml3d263", "smpl22").decode
     travel, bob = {}, {}
     for prompt in ("a person walks forward", "a person jumps in place"):
-        pelvis = torch.cat([decode(module.sample([prompt] * 6, [60] * 6, steps=20, seed=seed))[:, :, 0]
-                            for seed in range(3)])  # (18, T, 3)
+        pelvis = torch.cat([decode(module.sample([prompt] * 6, [60] * 6, SamplingSettings(steps=20, seed=s)))[:, :, 0]
+                            for s in range(3)])  # (18, T, 3)
         travel[prompt] = (pelvis[:, -1, [0, 2]] - pelvis[:, 0, [0, 2]]).norm(dim=-1)  # (18,) metres
         bob[prompt] = pelvis[..., 1].std(dim=1)  # (18,) root height std, metres
     walk, jump = "a person walks forward", "a person jumps in place"

@@ -3,6 +3,7 @@ diffusion module's ``sample``."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ from omg.generation.protocol import (
 )
 from omg.generation.registry import register_generator
 from omg.lit.pretrain import MotionDiffusionModule
+from omg.lit.sampling import SamplingSettings
 from omg.registry import SAMPLERS
 
 
@@ -51,6 +53,10 @@ class OmgGenerator(ModuleGenerator):
         m = self.module
         prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
         jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
+        # use_ema=False: the weights as loaded (load_module puts the EMA in)
+        sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
+                                    use_ema=False, autocast=request.autocast, compile=request.compile,
+                                    stance_root=request.options.get("stance_root"))
         if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
             raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
         motions = []
@@ -59,10 +65,8 @@ class OmgGenerator(ModuleGenerator):
             batch_seed = request.seed + start
             seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
             texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
-            features = m.sample(texts, [request.frames] * len(batch), steps=steps,
-                                sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
-                                use_ema=False, autocast=request.autocast, compile=request.compile,
-                                seeds=seeds, stance_root=request.options.get("stance_root"))  # (n, T, D)
+            features = m.sample(texts, [request.frames] * len(batch),
+                                replace(sampling, seed=batch_seed, seeds=seeds))  # (n, T, D)
             joints = m.representation.decode(features.float())  # (n, T, J, 3)
             for i, (prompt, k) in enumerate(batch):
                 seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}

@@ -3,6 +3,7 @@ a second checkpoint makes from the prompt made about "a person", or the module's
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ from omg.generation.protocol import MAX_SECONDS, GeneratedMotion, GenerationCard
 from omg.generation.read import read_human_motion
 from omg.generation.registry import register_generator
 from omg.lit.omgpt import HUMAN_SKELETON, OmniMotionModule, generate_human
+from omg.lit.sampling import SamplingSettings
 from omg.motion import get_representation
 from omg.registry import SAMPLERS
 from omg.text.omgpt import about_animal, choose_animal, to_person
@@ -54,6 +56,8 @@ class OmniMotionGenerator(ModuleGenerator):
             raise UsageError(f"the motion has {frames} frame(s) at {m.spec.fps:g} fps; need 2 or more")
         skeleton, maa = m.representation.skeleton, get_representation("maa", m.representation.skeleton)
         jobs = [(p, a, k) for p, a in zip(request.prompts, chosen) for k in range(repeats)]
+        given = {"steps": request.steps, "sampler": request.sampler, "guidance": request.guidance}
+        human_sampling = SamplingSettings(**{k: v for k, v in given.items() if v is not None})  # the second model's
         motions = []
         for index, (prompt, name, k) in enumerate(jobs):
             lengths = torch.tensor([frames])
@@ -62,11 +66,11 @@ class OmniMotionGenerator(ModuleGenerator):
                 human = torch.from_numpy(request.source[0][:frames])[None]
                 human_offsets = torch.from_numpy(request.source[1])[None]
             elif request.source_module is not None:
-                human, human_offsets = generate_human(request.source_module.module, [person], lengths,
-                                                      request.seed + index, m.spec.fps, steps=request.steps,
-                                                      guidance=request.guidance, sampler=request.sampler)
+                human, human_offsets = generate_human(request.source_module.module, [person], lengths, m.spec.fps,
+                                                      replace(human_sampling, seed=request.seed + index))
             else:
-                human, human_offsets = m.human_motion([person], lengths.to(m.device), request.seed + index)
+                human, human_offsets = m.human_motion([person], lengths.to(m.device),
+                                                      SamplingSettings(seed=request.seed + index))
             # use_ema=False: the weights as loaded (load_module puts the EMA in)
             features = m.translate([prompt], human.to(m.device), human_offsets.to(m.device), lengths, [name],
                                    use_ema=False)[0].cpu().float()

@@ -32,6 +32,7 @@ from torch import Tensor
 from omg.data.omgpt import CompanionData, CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, modes_restored
+from omg.lit.sampling import Sampler, SamplingSettings
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
@@ -407,16 +408,18 @@ class OmniMotionModule(OmgModule):
                                         mask, self.sentence(prompts), offsets)
 
     @torch.no_grad()
-    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, seed: int = 0,
-               use_ema: bool = True, animal: str | None = None, human: Tensor | None = None,
-               human_offsets: Tensor | None = None, **sampling) -> Tensor:
-        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa.
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
+               settings: SamplingSettings | None = None, *, animal: str | None = None, human: Tensor | None = None,
+               human_offsets: Tensor | None = None) -> Tensor:
+        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa; the ``Sampler`` protocol
+        (``omg.lit.sampling``).
 
         The animal is ``animal`` when given, else the one each prompt names (``choose_animal``, the rule of
         ``omg generate``); the human motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from
-        ``human_source``.
-        ``sampling`` (steps, guidance, sampler, ...) goes to a human generator, where one is used.
+        ``human_source`` (drawn with ``settings.seed``; a human generator samples with the settings' steps,
+        sampler and guidance). ``settings.use_ema``: the EMA weights where kept.
         """
+        settings = settings or SamplingSettings()
         if not texts:
             raise UsageError("OmniMotionGPT generates from prompts: give at least one")
         lengths = torch.as_tensor(lengths, device=self.device)
@@ -425,13 +428,21 @@ class OmniMotionModule(OmgModule):
             raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
         chosen = [choose_animal(t, names, animal) for t in texts]
         if human is None:
-            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, seed, **sampling)
-        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=use_ema)
+            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, settings)
+        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=settings.use_ema)
 
-    def human_motion(self, prompts: Sequence[str], lengths: Tensor, seed: int, **sampling) -> tuple[Tensor, Tensor]:
-        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``."""
+    def check_sampling(self, settings: SamplingSettings, key: str) -> None:
+        """OmniMotionGPT translates a human motion: no stance foot steps its root."""
+        if settings.stance_root is not None:
+            raise UsageError(f"{key}: {type(self).__name__} is not a diffusion model that can step its root by the "
+                             "stance foot")
+
+    def human_motion(self, prompts: Sequence[str], lengths: Tensor,
+                     settings: SamplingSettings) -> tuple[Tensor, Tensor]:
+        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``
+        (drawn with ``settings.seed``)."""
         if self.human_source == "retrieval":
-            return self.retrieve_human(prompts, lengths, seed)
+            return self.retrieve_human(prompts, lengths, settings.seed)
         if self.human_generator is None:
             from omg.lit.checkpoint import load_module
             from omg.lit.controlnet import ControlNetModule
@@ -441,7 +452,7 @@ class OmniMotionModule(OmgModule):
                 self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
             except UsageError as e:
                 raise UsageError(f"model.init_args.human_source: {e}") from None
-        return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
+        return generate_human(self.human_generator, prompts, lengths, self.spec.fps, settings)
 
     def check_human_source(self) -> None:
         """One line unless ``human_source`` is ``retrieval`` or names a file (an evaluation checks it before it
@@ -541,12 +552,13 @@ def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
                          "(human_spec); go on from this checkpoint with the same human shards")
 
 
-def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int, fps: float,
-                   **sampling) -> tuple[Tensor, Tensor]:
+def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, fps: float,
+                   settings: SamplingSettings) -> tuple[Tensor, Tensor]:
     """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
-    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames).
+    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames), sampled with the settings'
+    steps, sampler, guidance and seed on the weights as loaded.
 
-    ``generator``: an OMG ControlNet module; its features (humanml3d263) are decoded to joint
+    ``generator``: an OMG ControlNet module (its ``Sampler``); its features (humanml3d263) are decoded to joint
     positions and turned into rotations by IK. A generator at another rate makes the same durations
     at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
     animal moves at the speed the human did."""
@@ -560,8 +572,8 @@ def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int
     source_fps = generator.spec.fps
     lengths = torch.as_tensor(lengths).cpu()
     source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
-    allowed = {k: v for k, v in sampling.items() if k in ("steps", "guidance", "sampler") and v is not None}
-    features = generator.sample(list(prompts), source_lengths, seed=seed, use_ema=False, **allowed)
+    features = generator.sample(list(prompts), source_lengths, SamplingSettings(
+        steps=settings.steps, sampler=settings.sampler, guidance=settings.guidance, seed=settings.seed, use_ema=False))
     joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
     T = int(lengths.max())
     motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)

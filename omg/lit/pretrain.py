@@ -20,6 +20,7 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, checkpoint_each, modes_restored
+from omg.lit.sampling import SamplingSettings, check_stance_root
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -204,17 +205,16 @@ class MotionDiffusionModule(OmgModule):
 
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
-    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
-               guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
-               autocast: torch.dtype | None = None, compile: bool = False,
-               seeds: Sequence[int] | None = None, stance_root: float | None = None) -> Tensor:
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
+               settings: SamplingSettings | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
-        generated at its own length (frames beyond it are padding, to be ignored).
+        generated at its own length (frames beyond it are padding, to be ignored); the ``Sampler``
+        protocol (``omg.lit.sampling``).
 
         ``texts`` (B captions) condition a text-conditional module, guided with scale
-        ``guidance`` (default: the module's); None samples the unconditional motion prior.
-        ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
-        ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
+        ``settings.guidance`` (default: the module's); None samples the unconditional motion prior.
+        ``settings.sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
+        ``settings.steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
         initial noise, or ``seeds`` (one per motion) each motion's own: drawn at its own length from its own
         generator, so a motion does not depend on what it is sampled with. ``autocast`` (e.g.
         ``torch.bfloat16``) runs the network under autocast
@@ -223,29 +223,36 @@ class MotionDiffusionModule(OmgModule):
         ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
         foot (``stance_denoiser``).
         """
+        settings = settings or SamplingSettings()
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
         mask = length_mask(lengths, device=self.device)  # (B, T) real frames
         if texts is not None and len(texts) != len(mask):
             raise ValueError(f"{len(texts)} texts for {len(mask)} lengths")
-        solver = SAMPLERS.get(sampler)
-        gen = torch.Generator(device=self.device).manual_seed(seed)
-        with modes_restored(self), self.ema_weights(use_ema):
+        self.check_sampling(settings, "stance_root")
+        solver = SAMPLERS.get(settings.sampler)
+        gen = torch.Generator(device=self.device).manual_seed(settings.seed)
+        with modes_restored(self), self.ema_weights(settings.use_ema):
             self.eval()
             dtype = next(self.model.parameters()).dtype
-            denoise = self.denoiser(texts, mask, guidance)
-            if autocast is not None:
-                denoise = autocasting(denoise, self.device.type, autocast)
-            if compile:
+            denoise = self.denoiser(texts, mask, settings.guidance)
+            if settings.autocast is not None:
+                denoise = autocasting(denoise, self.device.type, settings.autocast)
+            if settings.compile:
                 denoise = torch.compile(denoise)
-            strength = self.stance_root if stance_root is None else self.checked_stance_root(stance_root, "stance_root")
+            strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
             shape = (*mask.shape, self.config.input_dim)
-            given = {} if seeds is None else {"noise": row_noise(seeds, mask, shape[-1], dtype)}
-            x = solver(self.diffusion, denoise, shape, steps=steps, generator=gen, device=self.device, dtype=dtype,
-                       mask=mask, **given)
+            given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
+            x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
+                       dtype=dtype, mask=mask, **given)
         return self.denormalize(x)
+
+    def check_sampling(self, settings: SamplingSettings, key: str) -> None:
+        """One line when ``settings`` step the root by the stance foot of a representation that cannot."""
+        if settings.stance_root:
+            self.checked_stance_root(settings.stance_root, key)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
@@ -253,8 +260,7 @@ class MotionDiffusionModule(OmgModule):
 
     def checked_stance_root(self, strength: float, key: str) -> float:
         """``strength`` if it is in [0, 1] and the representation can step its root by the stance foot."""
-        if not 0 <= strength <= 1:
-            raise UsageError(f"{key} must be in [0, 1] (0: off), got {strength!r}")
+        strength = check_stance_root(strength, key)
         if strength and not self.representation.stance_root:
             self.representation.root_from_stance(torch.zeros(0))  # its one-line refusal
         return float(strength)

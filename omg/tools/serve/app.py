@@ -402,7 +402,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                                  if request.guidance is not None else "")
             result = secrets.token_hex(6)
             settings = {"model": model.name, "ckpt": Path(model.ckpt).name,
-                        "module": type(model.generator.module).__name__, "family": model.card.family, "prompts": request.prompts, "num_samples": request.num_samples,
+                        "module": type(model.generator.module).__name__, "family": model.card.family,
+                        "prompts": request.prompts, "num_samples": request.num_samples,
                         "frames": request.frames, "fps": model.card.fps, "seed": request.seed, **extra,
                         **model.generator.generation_settings(request), "row_seeds": model.card.row_seeds,
                         "representation": model.card.representation, "skeleton": model.card.skeleton}
