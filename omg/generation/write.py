@@ -39,9 +39,7 @@ def write_generation(out: Path, motions: list[GeneratedMotion], card: Generation
     first ``preview_count`` motions (companions with a title beside theirs); ``settings_file`` with each
     motion's record under ``samples``. A failure leaves no new file: a folder it created is removed, one
     that existed keeps exactly the files it had."""
-    from omg.export import export_motion, model_motion
-    from omg.io.bvh import write_bvh
-    from omg.io.gltf import write_glb
+    from omg.export import export_motion
     from omg.skeleton import get_skeleton
 
     skeleton, fps = get_skeleton(card.skeleton), card.fps
@@ -59,15 +57,8 @@ def write_generation(out: Path, motions: list[GeneratedMotion], card: Generation
                     atomic_write(out / f"{stem.format(stem=name)}.joints.npy", npy_bytes(companion))
                     if title is not None and i < preview_count:
                         shown.append((joints, title))
-                if motion.rotations is not None and rig is None and not clean_contacts:  # as the model made them
-                    rotations, root, offsets = motion.rotations
-                    if format == "bvh":
-                        write_bvh(out / f"{name}.bvh", skeleton, rotations, root, fps, offsets)
-                    else:
-                        write_glb(out / f"{name}.glb", model_motion(skeleton, rotations, root, offsets, fps, name))
-                else:
-                    export_motion(out / name, motion.joints, skeleton, fps, preview=False,
-                                  clean_contacts=clean_contacts, rig=rig, joint_map=joint_map, format=format)
+                export_motion(out / name, motion.joints, skeleton, fps, preview=False, clean_contacts=clean_contacts,
+                              rig=rig, joint_map=joint_map, format=format, rotations=motion.rotations)
                 records.append({"file": name, **motion.record})
                 if i < preview_count:
                     shown.append((motion.joints, motion.title))
