@@ -161,3 +161,13 @@ def test_option_is_checked_against_the_card(pretrain_ckpt, tmp_path, capsys):
     plain = np.load(tmp_path / "f/sample_000.features.npy")
     main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--out", str(tmp_path / "p")])
     assert not np.array_equal(np.load(tmp_path / "p/sample_000.features.npy"), plain)  # the option did something
+
+
+def test_a_prior_checkpoint_is_refused_by_a_family_without_one(pretrain_ckpt, tmp_path, capsys):
+    from omg.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--prior_ckpt", str(pretrain_ckpt), "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err == f"omg: error: --prior_ckpt: {pretrain_ckpt} (PretrainModule) takes no prior " \
+                                         "checkpoint\n"

@@ -38,6 +38,8 @@ class HabitGenerator(ModuleGenerator):
     """Transfers of a habit checkpoint: a ``HabitVQModule`` (with ``prior``, a ``HabitPriorModule`` fitted on it,
     drawing the habit latents) or a ``HabitPriorModule`` (its VQ-VAE's transfer, latents from its flows)."""
 
+    takes_prior = True
+
     def __init__(self, module: HabitVQModule | HabitPriorModule, prior: HabitPriorModule | None = None):
         super().__init__(module)
         if isinstance(module, HabitPriorModule):

@@ -113,6 +113,7 @@ class Generator(Protocol):
     trained ``module`` (a LightningModule, which holds training only) seen through its family's adapter."""
 
     module: Any
+    takes_prior: bool  # ``with_prior`` takes a second checkpoint's prior (``--prior_ckpt``)
 
     def generation_card(self) -> GenerationCard: ...
 
@@ -129,7 +130,9 @@ class Generator(Protocol):
 
 class ModuleGenerator:
     """What the families' adapters share: the module they generate with, moved with ``to``, and no source
-    motion or family option unless the adapter reads one."""
+    motion, family option or prior unless the adapter takes one."""
+
+    takes_prior = False
 
     def __init__(self, module: Any):
         self.module = module
@@ -147,7 +150,7 @@ class ModuleGenerator:
         return value
 
     def with_prior(self, prior: Any) -> None:
-        """Draw from ``prior``, a second checkpoint's module (``--prior_ckpt``), where the family takes one."""
+        """Draw from ``prior``, a second checkpoint's module (``--prior_ckpt``), where ``takes_prior``."""
         raise UsageError(f"--prior_ckpt: a {self.generation_card().family} checkpoint takes no prior checkpoint")
 
 

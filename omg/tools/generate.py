@@ -167,10 +167,12 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     out = check_output_dir(out, files=(*output_files(stems, format, settings_file, preview), *extra_files))
     module = load_module(ckpt, default_class=PretrainModule, use_ema=ema, expect=expect)
     generator = generator_for(module, ckpt)
+    what = f"{ckpt} ({type(module).__name__})"
     if prior_ckpt is not None:
+        if not generator.takes_prior:  # one line before the prior is read
+            raise UsageError(f"--prior_ckpt: {what} takes no prior checkpoint")
         generator.with_prior(load_prior(prior_ckpt, ckpt, module))
     card = generator.generation_card()
-    what = f"{ckpt} ({type(module).__name__})"
     typed = dict(options) if isinstance(options, dict) else parse_options(generator, list(options), what)
     if length is None and not card.source_fixes_length:
         raise UsageError(f"{what} needs --length: its motions' length is not its source motion's")
@@ -207,14 +209,15 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
 
 
 def load_prior(prior_ckpt: Path, ckpt: Path, module) -> Any:
-    """The ``--prior_ckpt`` habit prior, fitted for the categories ``module`` (``--ckpt``) knows."""
+    """The ``--prior_ckpt`` habit prior, fitted for the categories ``module`` (``--ckpt``, a habit checkpoint: its
+    generator ``takes_prior``) knows."""
     from omg.lit.checkpoint import load_module
     from omg.lit.habit import HabitPriorModule
 
     prior = load_module(prior_ckpt, default_class=HabitPriorModule, expect=HabitPriorModule)
-    if prior.categories != getattr(module, "categories", None):
+    if prior.categories != module.categories:
         raise UsageError(f"--prior_ckpt {prior_ckpt} was fitted for categories {prior.categories}, --ckpt {ckpt} "
-                         f"knows {getattr(module, 'categories', 'none')}: fit the prior on this VQ-VAE")
+                         f"knows {module.categories}: fit the prior on this VQ-VAE")
     return prior
 
 
