@@ -72,9 +72,14 @@ def export_motion(
     rig: RigMotion | None = None,
     joint_map=None,
     format: str = "bvh",
+    rotations: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> dict:
     """Write ``<stem>.bvh`` (or ``<stem>.glb`` with ``format="glb"``) and, with ``preview``, ``<stem>.gif``;
     returns what was written. ``clean_contacts`` pins planted feet first (``omg.io.contacts``).
+
+    ``rotations`` = (local quaternions (T, J, 4), root (T, 3), offsets (J, 3)) a model made: written as they
+    are on the model skeleton (an IK round trip would change each bone's twist); without them, or with
+    ``clean_contacts`` or a ``rig`` (both work from the positions), rotations are solved by IK.
 
     With ``rig`` (a BVH read by ``read_bvh``) the motion is written onto that rig
     (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
@@ -97,14 +102,16 @@ def export_motion(
                   "frames": len(positions), "rig": rig.source or rig.name}  # fmt: skip
         drawn, drawn_skel = [motion.positions()], motion.skeleton()
     else:
-        rotations, root, offsets = positions_to_rotations(skel, positions)
+        given = rotations is not None and not clean_contacts
+        rotations, root, offsets = rotations if given else positions_to_rotations(skel, positions)
         fk = skel.forward_kinematics(torch.from_numpy(rotations), torch.from_numpy(root), torch.from_numpy(offsets))
         if format == "bvh":
             written = write_bvh(target, skel, rotations, root, fps, offsets, order, scale)
         else:
             written = write_glb(target, model_motion(skel, rotations, root, offsets, fps, stem.name))
-        report = {format: str(written), "frames": len(positions),
-                  "ik_error_m": float(np.abs(fk.numpy() - positions).max())}  # fmt: skip
+        report = {format: str(written), "frames": len(positions)}
+        if not given:  # a model's rotations are the motion itself: there is no solve to measure
+            report["ik_error_m"] = float(np.abs(fk.numpy() - positions).max())
         drawn, drawn_skel = [fk.numpy()], skel
     if preview:
         title = " / ".join(texts) if texts else stem.name

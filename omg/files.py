@@ -12,6 +12,7 @@ import io
 import json
 import os
 import re
+import shutil
 import stat
 import tempfile
 from contextlib import contextmanager
@@ -209,3 +210,21 @@ def read_yaml(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES):
             raise UsageError(f"{what} {path}: the YAML tag {name}{at} is not allowed; tags that make Python objects "
                              "are never read, give plain values") from None
         raise UsageError(f"{what} {path}: not valid YAML{at} ({problem})") from None
+
+
+@contextmanager
+def removing_created(*dirs: str | Path) -> Iterator[None]:
+    """Folders (and their missing parents) this block may create are removed if it fails, with
+    everything in them; folders that existed before it, the user's, are never touched."""
+    created = []
+    for d in map(Path, dirs):
+        missing = [p for p in [d, *d.parents] if not p.exists()]
+        if missing and missing[-1] not in created:
+            created.append(missing[-1])  # the topmost folder the block would create
+    try:
+        yield
+    except Exception:
+        for d in created:
+            if d.is_dir() and not d.is_symlink():
+                shutil.rmtree(d, ignore_errors=True)
+        raise

@@ -110,6 +110,9 @@ DATA_SOURCES = Registry("data source", ("omg.data.sources",))
 METRICS = Registry("metric", ("omg.metrics",))
 SAMPLERS = Registry("sampler", ("omg.samplers",))
 JOINT_MAPS = Registry("joint map", ("omg.joint_maps",))  # YAML paths or omg.retarget.JointMap objects
+# a LightningModule's class path -> the adapter that generates with it (omg.generation.registry); keyed by
+# class path as Lightning objects are named, so not among ALL's domain components
+GENERATORS = Registry("generator", ("omg.generation.omg", "omg.generation.omgpt", "omg.generation.habit"))
 
 ALL: dict[str, Registry] = {
     "skeletons": SKELETONS,

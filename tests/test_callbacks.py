@@ -16,6 +16,7 @@ from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import SamplingSettings
 from omg.metrics.following import CATEGORIES, load_prompts
 
 MINI = REPO / "shards/mini/human263"
@@ -107,30 +108,32 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     for p in module.controlnet.parameters():  # as if trained: neither the prior's output nor the residuals are zero
         p.data.normal_(0, 0.05)
     texts = ["a person walks forward", "a person jumps"]
-    out = module.sample(texts, torch.tensor([12, 20]), seed=3, steps=4)
+    out = module.sample(texts, torch.tensor([12, 20]), SamplingSettings(seed=3, steps=4))
     assert out.shape == (2, 20, 263) and torch.isfinite(out).all()
-    torch.testing.assert_close(module.sample(texts, torch.tensor([12, 20]), seed=3, steps=4), out)
+    torch.testing.assert_close(module.sample(texts, torch.tensor([12, 20]), SamplingSettings(seed=3, steps=4)), out)
     full = [16, 16]
-    prior = module.sample(None, full, seed=1, steps=4)  # no texts: the frozen prior alone
-    torch.testing.assert_close(module.sample(texts, full, seed=1, steps=4, guidance=0.0), prior, rtol=0, atol=1e-5)
-    assert not torch.allclose(module.sample(texts, full, seed=1, steps=4, guidance=2.0), prior, atol=1e-3)
+    prior = module.sample(None, full, SamplingSettings(seed=1, steps=4))  # no texts: the frozen prior alone
+    guided = {s: module.sample(texts, full, SamplingSettings(seed=1, steps=4, guidance=s)) for s in (0.0, 2.0)}
+    torch.testing.assert_close(guided[0.0], prior, rtol=0, atol=1e-5)
+    assert not torch.allclose(guided[2.0], prior, atol=1e-3)
     assert module.text_conditional and not PretrainModule.text_conditional
 
     # bf16 autocast: the network's matmuls in bf16, the sample in float32 and close to the float32 one
     dtypes = []
     module.controlnet.base.input_proj.register_forward_hook(lambda m, args, out: dtypes.append(out.dtype))
-    mixed = module.sample(texts, full, seed=1, steps=4, autocast=torch.bfloat16)
-    reference = module.sample(texts, full, seed=1, steps=4)
+    mixed = module.sample(texts, full, SamplingSettings(seed=1, steps=4, autocast=torch.bfloat16))
+    reference = module.sample(texts, full, SamplingSettings(seed=1, steps=4))
     assert dtypes[0] == torch.bfloat16 and dtypes[-1] == torch.float32
     assert mixed.dtype == torch.float32 and torch.isfinite(mixed).all()
     assert (mixed - reference).abs().max() < 0.05 * reference.abs().max()
     # torch.compile: the same sample, compiled once for these shapes
-    torch.testing.assert_close(module.sample(texts, full, seed=1, steps=4, compile=True), reference, rtol=0, atol=1e-4)
+    compiled = module.sample(texts, full, SamplingSettings(seed=1, steps=4, compile=True))
+    torch.testing.assert_close(compiled, reference, rtol=0, atol=1e-4)
 
     # sample() switches to eval mode and gives every submodule its own mode back (the frozen prior stays in eval)
     module.train()
     modes = {name: m.training for name, m in module.named_modules()}
-    module.sample(texts, full, seed=1, steps=2)
+    module.sample(texts, full, SamplingSettings(seed=1, steps=2))
     assert {name: m.training for name, m in module.named_modules()} == modes and not module.controlnet.base.training
     module.eval()
 
@@ -139,7 +142,7 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     for moc in module.controlnet.mocs.values():
         for name in calls:
             getattr(moc, name).register_forward_hook(lambda *_, name=name: calls.__setitem__(name, calls[name] + 1))
-    module.sample(texts, full, seed=1, steps=4)
+    module.sample(texts, full, SamplingSettings(seed=1, steps=4))
     layers = len(module.controlnet.mocs)
     assert calls == {"k": layers, "gate": layers, "eot_affine": layers, "q": 4 * layers}
 
@@ -231,9 +234,9 @@ def test_callbacks_pass_stance_root_to_the_sampler_and_refuse_it_for_other_model
     module = _module(data)
     seen, sample = [], module.sample
 
-    def spy(*args, **kwargs):
-        seen.append(kwargs.get("stance_root"))
-        return sample(*args, **kwargs)
+    def spy(texts, lengths, settings):
+        seen.append(settings.stance_root)
+        return sample(texts, lengths, settings)
 
     module.sample = spy
     render = RenderCallback(num_prompts=1, num_samples=1, seconds=0.5, every_n_steps=1, steps=2, max_frames=3, dpi=30,
@@ -241,9 +244,11 @@ def test_callbacks_pass_stance_root_to_the_sampler_and_refuse_it_for_other_model
     _trainer(tmp_path, 1, [render]).fit(module, data)
     assert seen and set(seen) == {1.0}
 
-    class OtherFamily:  # a generative model without a stance foot to step by (OmniMotionGPT, habit transfer)
-        def sample(self, *args, **kwargs): ...
+    from omg.lit.omgpt import OmniMotionModule
+
+    class OtherFamily(OmniMotionModule):  # a sampler without a stance foot to step by
+        def __init__(self): ...
 
     with pytest.raises(UsageError, match="EvalCallback.stance_root: OtherFamily is not a diffusion model"):
-        check_generative(OtherFamily(), "EvalCallback", {"stance_root": 1.0})
-    check_generative(OtherFamily(), "EvalCallback", {"steps": 2})  # not asked for: no check
+        check_generative(OtherFamily(), "EvalCallback", SamplingSettings(stance_root=1.0))
+    check_generative(OtherFamily(), "EvalCallback", SamplingSettings(steps=2))  # not asked for: no check

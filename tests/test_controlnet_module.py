@@ -15,6 +15,7 @@ from omg.data.datamodule import MotionDataModule
 from omg.io.bvh import read_bvh
 from omg.lit.controlnet import ControlNetModule
 from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import SamplingSettings
 
 MINI = REPO / "shards/mini/human263"
 TINY = {"n_layers": 3, "d_model": 64, "n_heads": 2}
@@ -85,8 +86,8 @@ def test_guidance_scale_0_is_the_frozen_model_and_1_the_controlnet(pretrained):
 
     only_u = ddim(lambda x, t: module.controlnet.forward_uncond(x, t))
     only_c = ddim(lambda x, t: module.controlnet(x, t, text.tokens, text.mask, text.eot))
-    s0 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=0.0, use_ema=False)
-    s1 = module.sample(texts, [frames] * 2, steps=8, seed=7, guidance=1.0, use_ema=False)
+    s0 = module.sample(texts, [frames] * 2, SamplingSettings(steps=8, seed=7, guidance=0.0, use_ema=False))
+    s1 = module.sample(texts, [frames] * 2, SamplingSettings(steps=8, seed=7, guidance=1.0, use_ema=False))
     torch.testing.assert_close(s0, module.denormalize(only_u), rtol=0, atol=1e-5)
     torch.testing.assert_close(s1, module.denormalize(only_c), rtol=0, atol=1e-5)
     assert not torch.allclose(only_u, only_c, atol=1e-3)

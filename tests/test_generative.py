@@ -9,7 +9,7 @@ import pytest
 
 from helpers import REPO
 from omg.errors import UsageError
-from omg.lit.generative import GenerationCard, GenerationRequest, check_request
+from omg.generation.protocol import GenerationCard, GenerationRequest, check_request
 
 FAMILY_CLASSES = {"PretrainModule", "ControlNetModule", "MotionDiffusionModule", "OmniMotionModule", "HabitVQModule",
                   "HabitPriorModule"}

@@ -607,19 +607,30 @@ def test_the_default_order_pretrains_then_freezes_the_encoders_and_flows(habit_f
 
 def test_omg_transfer_and_generate_work_from_a_checkpoint_of_the_default_order(habit_flow_run, shared_motion,
                                                                                 tmp_path):
-    """No stage 2: the checkpoint's own flows give the habit latent, through `omg transfer` and `omg generate`."""
+    """No stage 2: the checkpoint's own flows give the habit latent, through `omg transfer` and `omg generate`;
+    `omg transfer` is an alias of `omg generate`: its flags (--temperature, --quantizer, --joint_map) are
+    generate's --option and --from_motion_joint_map, and the files they write are the same bytes."""
     from omg.cli import main
 
     clip = shared_motion / "quadruped" / "mann_dog" / "D1_007_KAN01_001.bvh"
     ckpt = str(habit_flow_run["vq_path"])
-    main(["transfer", str(clip), "--to", "horse", "--ckpt", ckpt, "--no_preview", "--out", str(tmp_path / "t")])
+    main(["transfer", str(clip), "--to", "horse", "--ckpt", ckpt, "--no_preview", "--out", str(tmp_path / "t"),
+          "--temperature", "0.5", "--quantizer", "nearest", "--joint_map", "mann_dog"])
     settings = json.loads((tmp_path / "t/transfer.json").read_text())
     assert settings["habit"] == "prior sample" and settings["habit_order"] == "flow_prior"
+    assert (settings["temperature"], settings["quantizer"]) == (0.5, "nearest")
     features = np.load(tmp_path / "t/transfer.features.npy")
     assert np.isfinite(features).all() and np.isfinite(np.load(tmp_path / "t/transfer.joints.npy")).all()
     main(["generate", "--ckpt", ckpt, "--from_motion", str(clip), "--animal", "horse", "--num_samples", "1",
-          "--no_preview", "--out", str(tmp_path / "g")])
-    np.testing.assert_array_equal(np.load(tmp_path / "g/sample_000.features.npy"), features)
+          "--no_preview", "--out", str(tmp_path / "g"), "--option", "temperature=0.5", "--option=quantizer=nearest",
+          "--from_motion_joint_map", "mann_dog"])
+    for transferred, generated in (("transfer.features.npy", "sample_000.features.npy"),
+                                   ("transfer.joints.npy", "sample_000.joints.npy"),
+                                   ("transfer.bvh", "sample_000.bvh"), ("source.joints.npy", "source.joints.npy")):
+        assert (tmp_path / "t" / transferred).read_bytes() == (tmp_path / "g" / generated).read_bytes(), generated
+    main(["generate", "--ckpt", ckpt, "--from_motion", str(clip), "--animal", "horse", "--num_samples", "1",
+          "--no_preview", "--out", str(tmp_path / "d")])
+    assert not np.array_equal(np.load(tmp_path / "d/sample_000.features.npy"), features)  # the options count
     generated = json.loads((tmp_path / "g/generation.json").read_text())
     assert generated["category"] == "horse" and generated["habit"] == "prior sample"
     # the latent is a sample of horse's pretrained flow, drawn with the seed

@@ -32,7 +32,9 @@ def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_lat
     assert not np.allclose(motion["camel"], motion["horse"], atol=1e-4)  # a camel is not a horse
 
     # ... and differs only by the condition: horse's habit latent with the camel description's embedding
-    camel = vq.species_condition("camel", None)
+    from omg.generation.registry import generator_for
+
+    camel = generator_for(vq).species_condition("camel", None)
     k = vq.categories.index("horse")
     features = torch.from_numpy(np.asarray(dog["motion"][:64], dtype=np.float32))[None]
     z = vq.habit_latents(k, 1, seed=0)  # a sample of horse's flow (the default order's checkpoint holds them)

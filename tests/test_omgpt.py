@@ -15,6 +15,7 @@ from helpers import REPO, TINY_DIT
 from helpers.omgpt import MINI, TINY, fit_config, tiny_module
 from helpers.omgpt import data as _data
 from omg.errors import UsageError
+from omg.lit.sampling import SamplingSettings
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
 from omg.motion import get_representation
 from omg.rotations import quat_normalize, quat_to_6d
@@ -342,8 +343,9 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tiny_controlnet, tmp_
     generator = load_module(tiny_controlnet, expect=ControlNetModule)
     generator.spec = replace(generator.spec, fps=40.0)  # as if trained on 40 fps shards
     prompts, lengths = ["a person jumps forward"], torch.tensor([30])
-    human, _ = generate_human(generator, prompts, lengths, 7, 20.0, steps=3)
-    own = generator.representation.decode(generator.sample(prompts, [59], seed=7, use_ema=False, steps=3).float())
+    human, _ = generate_human(generator, prompts, lengths, 20.0, SamplingSettings(seed=7, steps=3))
+    own = generator.sample(prompts, [59], SamplingSettings(seed=7, use_ema=False, steps=3))
+    own = generator.representation.decode(own.float())
     expected, _ = maa_from_positions(own[0, ::2].numpy(), 20.0)  # 40 -> 20 fps: every other frame, 1.5 s
     assert human.shape == (1, 30, 23 * 6)
     torch.testing.assert_close(human[0], torch.from_numpy(expected), atol=1e-5, rtol=1e-4)
@@ -509,8 +511,8 @@ def test_bad_animal_generation_input_is_one_line(omgpt_ckpt, tmp_path, capsys, e
 def test_animal_and_prompt_follow_one_rule_in_generate_and_sample(omgpt_ckpt, tmp_path):
     """`omg generate --animal cat "a dog ..."` and ``sample(animal="cat")`` both make the cat, from the prompt
     made about the cat, and the human prompt about a person; the prompt's own animal without --animal."""
+    from omg.generation.read import read_human_motion
     from omg.lit.checkpoint import load_module
-    from omg.lit.omgpt import read_human_motion
 
     rng = np.random.default_rng(0)
     joints = SMPL22.rest_positions()[None] + 0.02 * rng.standard_normal((30, 22, 3))
@@ -523,14 +525,14 @@ def test_animal_and_prompt_follow_one_rule_in_generate_and_sample(omgpt_ckpt, tm
         "cat", "a cat jumps over a log", "a person jumps over a log")
     module = load_module(omgpt_ckpt)
     human, offsets = (torch.from_numpy(a)[None] for a in read_human_motion(tmp_path / "human.joints.npy", 20.0))
-    sampled = module.sample(["a dog jumps over a log"], [30], animal="cat", human=human, human_offsets=offsets,
-                            use_ema=False)
+    weights = SamplingSettings(use_ema=False)
+    sampled = module.sample(["a dog jumps over a log"], [30], weights, animal="cat", human=human, human_offsets=offsets)
     np.testing.assert_allclose(sampled[0].numpy(), np.load(out / "sample_000.features.npy"), atol=1e-5)
     cat = module.translate(["a cat jumps over a log"], human, offsets, [30], ["cat"], use_ema=False)
     dog = module.translate(["a dog jumps over a log"], human, offsets, [30], ["dog"], use_ema=False)
     torch.testing.assert_close(sampled, cat)
-    torch.testing.assert_close(module.sample(["a dog jumps over a log"], [30], human=human, human_offsets=offsets,
-                                             use_ema=False), dog)
+    torch.testing.assert_close(module.sample(["a dog jumps over a log"], [30], weights, human=human,
+                                             human_offsets=offsets), dog)
     with pytest.raises(UsageError, match="names no animal this checkpoint knows"):
         module.sample(["a unicorn jumps"], [30], human=human, human_offsets=offsets)
 

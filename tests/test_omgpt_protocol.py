@@ -10,6 +10,7 @@ from helpers import REPO
 from helpers.configs import parse
 from helpers.omgpt import MINI, TINY
 from helpers.omgpt import data as _data
+from omg.lit.sampling import SamplingSettings
 
 pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt.py
 
@@ -67,7 +68,7 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
             nearest, _ = module.retrieve_human(["a person waves with the left hand."], lengths[:1], seed=0)
             module.retrieval_top_k = k
             assert torch.equal(clips[counts.argmax()], nearest.flatten(1)[0])  # the likeliest is the nearest
-            animals = module.sample([prompt] * repeats, lengths, seed=0)
+            animals = module.sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
             assert len(torch.unique(animals.flatten(1), dim=0)) > 3  # and so do the animals made from them
     assert distinct["uniform"] <= 3 < distinct["similarity"], distinct
     with pytest.raises(Exception, match="retrieval_draw uniform or similarity"):

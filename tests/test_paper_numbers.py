@@ -208,24 +208,26 @@ def test_omg_samples_with_200_ddim_steps_by_default():
     """OMG reports DDIM sampling with 200 steps (Sec. 4.1): what `omg generate`, `omg serve` and the evaluation
     use when no --steps / --sampler is given (the card's default, and the steps the sampler is run with)."""
     from omg.callbacks.eval import EvalCallback
-    from omg.lit.generative import GenerationRequest
+    from omg.generation.protocol import GenerationRequest
+    from omg.generation.registry import generator_for
     from omg.lit.pretrain import PretrainModule
 
     torch.manual_seed(0)
     module = PretrainModule(flavor="mini", dit={"n_layers": 1, "d_model": 16, "n_heads": 2}, spec=OMG_SPEC,
                             ema_decay=0).eval()
-    assert module.generation_card().default_steps == 200, "OMG Sec. 4.1: 200 DDIM steps"
+    generator = generator_for(module)
+    assert generator.generation_card().default_steps == 200, "OMG Sec. 4.1: 200 DDIM steps"
     runs, sample = [], module.sample
 
-    def recorded(*args, **kw):  # the real sampler, its steps and sampler noted
-        runs.append((kw["steps"], kw["sampler"]))
-        return sample(*args, **kw)
+    def recorded(texts, lengths, settings):  # the real sampler, its steps and sampler noted
+        runs.append((settings.steps, settings.sampler))
+        return sample(texts, lengths, settings)
 
     module.sample = recorded
     request = GenerationRequest(prompts=None, frames=2)
-    module.generate(request)
+    generator.generate(request)
     assert runs == [(200, "ddim")], f"OMG Sec. 4.1: DDIM, 200 steps; sampled with {runs}"
-    settings = module.generation_settings(request)
+    settings = generator.generation_settings(request)
     assert (settings["steps"], settings["sampler"]) == (200, "ddim")
     evaluation = _defaults(EvalCallback)  # `omg test`'s text-to-motion evaluation
     assert (evaluation["steps"], evaluation["sampler"]) == (200, "ddim"), "OMG Sec. 4.1: DDIM, 200 steps"

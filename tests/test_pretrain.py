@@ -18,6 +18,7 @@ from omg.cli import main
 from omg.data.datamodule import MotionDataModule
 from omg.lit.base import warmup_cosine
 from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import SamplingSettings
 
 
 def test_activation_checkpointing_is_applied_once_by_configure_model(h263_shards):
@@ -64,7 +65,7 @@ def test_loss_falls_on_a_fixed_batch_and_samples_are_finite(h263_shards):
     assert after["loss"] < 0.3 * before["loss"], (before, after)
     assert after["simple"] < before["simple"]
 
-    motion = module.sample(None, [37, 37], steps=10)
+    motion = module.sample(None, [37, 37], SamplingSettings(steps=10))
     assert motion.shape == (2, 37, 263) and torch.isfinite(motion).all()
     positions = module.representation.decode(motion)
     assert positions.shape == (2, 37, 22, 3) and torch.isfinite(positions).all()
@@ -198,7 +199,7 @@ def test_trains_with_weights_cast_to_bf16(h263_shards):
     assert all(torch.isfinite(v) for v in losses.values())
     losses["loss"].backward()
     assert module.model.input_proj.weight.grad.dtype == torch.bfloat16
-    assert module.sample(None, [12], steps=3).dtype == torch.bfloat16
+    assert module.sample(None, [12], SamplingSettings(steps=3)).dtype == torch.bfloat16
 
 
 def test_a_single_frame_window_trains(h263_shards, tmp_path):

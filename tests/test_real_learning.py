@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from helpers import REPO
+from omg.lit.sampling import SamplingSettings
 
 BANDAI = REPO.parent / "shared" / "data" / "bandai1"
 CONTENTS = ("walk-back", "bow")
@@ -80,8 +81,8 @@ def test_held_out_prompts_give_walking_backward_and_bowing(shards, tmp_path):
     assert set(prompts.values()) == {t for s in held_out for t in s["texts"]}
     back, height = {}, {}
     for name, prompt in prompts.items():
-        root = torch.stack([decode(module.sample([prompt] * 4, [60] * 4, steps=20, seed=seed))[:, :, 0]
-                            for seed in range(SEEDS)])  # (seeds, 4, T, 3); frame 0 faces +Z
+        root = torch.stack([decode(module.sample([prompt] * 4, [60] * 4, SamplingSettings(steps=20, seed=s)))[:, :, 0]
+                            for s in range(SEEDS)])  # (seeds, 4, T, 3); frame 0 faces +Z
         back[name] = -(root[:, :, -1, 2] - root[:, :, 0, 2])  # (seeds, 4) metres moved backward
         height[name] = root[..., 1].amin(dim=-1)  # (seeds, 4) lowest root height
     for seed in range(SEEDS):  # every seed's backward walkers go further back than its bowers

@@ -225,12 +225,13 @@ def test_requests_that_arrive_together_are_one_call_and_each_result_is_its_own(c
 def test_row_seeds_leave_omg_generate_bitwise_as_it_was(server):
     """Without row seeds a request is sampled as before (one generator seeded with the batch seed); with
     them, each motion is its own whatever it is batched with."""
-    from omg.lit.generative import GenerationRequest
+    from omg.generation.protocol import GenerationRequest
 
-    module = server.models["human"].module
+    generator = server.models["human"].generator
+    module = generator.module
     request = GenerationRequest(prompts=["a person walks", "a person jumps"], frames=24, num_samples=2, seed=9,
                                 steps=4)
-    motions = module.generate(request)
+    motions = generator.generate(request)
     texts = ["a person walks", "a person walks", "a person jumps", "a person jumps"]
     mask = torch.ones(4, 24, dtype=torch.bool)
     with torch.no_grad():  # the path before row seeds, spelled out: x_T from one generator seeded 9
@@ -238,8 +239,8 @@ def test_row_seeds_leave_omg_generate_bitwise_as_it_was(server):
                                          generator=torch.Generator().manual_seed(9))
     for motion, row in zip(motions, module.denormalize(x)):
         assert np.array_equal(motion.features, row.float().numpy())
-    alone = module.generate(GenerationRequest(prompts=["a person jumps"], frames=24, steps=4, row_seeds=[11]))
-    batched = module.generate(GenerationRequest(prompts=texts[:2] + ["a person jumps"], frames=24, steps=4,
+    alone = generator.generate(GenerationRequest(prompts=["a person jumps"], frames=24, steps=4, row_seeds=[11]))
+    batched = generator.generate(GenerationRequest(prompts=texts[:2] + ["a person jumps"], frames=24, steps=4,
                                                 row_seeds=[1, 2, 11]))
     np.testing.assert_allclose(alone[0].features, batched[2].features, rtol=0, atol=1e-5)
     assert not np.allclose(batched[0].features, batched[1].features)
@@ -379,7 +380,7 @@ def test_downloads_serve_only_the_servers_own_files(client, server, path):
 
 
 def test_a_failing_generation_is_500_and_the_next_request_works(client, server):
-    module = server.models["human"].module
+    module = server.models["human"].generator
     original = module.generate
 
     def broken(request):
@@ -428,7 +429,7 @@ def test_a_batched_call_that_fails_is_answered_request_by_request(client, server
     fails: 500 for the server's fault, 422 for a UsageError (the request's)."""
     from omg.errors import UsageError
 
-    module = server.models["human"].module
+    module = server.models["human"].generator
     real, calls = module.generate, []
 
     def generate(request):
@@ -597,7 +598,7 @@ def test_a_slow_upload_parse_holds_no_generation(strict, shared_motion):
     """Uploads were parsed on the one sampling thread (a 20 MiB BVH held another client's generation 110 s). They
     are parsed on their own bounded threads: a generation is answered while a parse runs, and a parse that takes
     longer than ``parse_timeout`` is answered 422 (its thread ends on its own)."""
-    habit = strict.models["habit"].module
+    habit = strict.models["habit"].generator
     real, parsed = habit.read_source, threading.Event()
 
     def slow_read(path, joint_map=None):  # a parse of 6 s: a large clip on a slow machine
@@ -708,7 +709,7 @@ def test_no_absolute_server_path_reaches_a_client(client, server, serve_ckpts, s
                                files={"file": ("clip.bvh", _bvh(shared_motion))}).json()):
         texts += [json.dumps(result), client.get(result["settings"]).text]
         assert client.get(result["settings"]).json()["ckpt"] in ("human.ckpt", "animal.ckpt", "habit.ckpt")
-    module = server.models["human"].module
+    module = server.models["human"].generator
 
     def broken(request):
         raise RuntimeError(f"cannot map {serve_ckpts['human']} into {server.out}/x")

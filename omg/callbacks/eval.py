@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +27,9 @@ from omg.evaluation import (
     protocol,
     write_report,
 )
+from omg.lit.sampling import Sampler, SamplingSettings, sampler_of
 from omg.metrics.following import load_prompts
-from omg.registry import METRICS, SAMPLERS
+from omg.registry import METRICS
 
 
 def check_eval_data(data: L.LightningDataModule | None, key: str) -> None:
@@ -41,31 +43,26 @@ def eval_samples(trainer: L.Trainer, key: str) -> tuple[list[dict], Any]:
     return trainer.datamodule.val_clips().samples, trainer.datamodule
 
 
-def check_generative(module: L.LightningModule, key: str, sampling: dict[str, Any] | None = None) -> None:
-    if not callable(getattr(module, "sample", None)):
-        raise UsageError(f"{key} needs a generative model with sample(texts, lengths, *, steps, guidance, seed, "
-                         f"use_ema); {type(module).__name__} has none")
-    if (sampling or {}).get("stance_root") is not None:
-        if not callable(check := getattr(module, "checked_stance_root", None)):
-            raise UsageError(f"{key}.stance_root: {type(module).__name__} is not a diffusion model that can step its "
-                             "root by the stance foot")
-        check(sampling["stance_root"], f"{key}.stance_root")
+def check_generative(module: L.LightningModule, key: str, sampling: SamplingSettings) -> Sampler:
+    """``module`` as the ``Sampler`` the callback ``key`` calls, able to sample with ``sampling``; one line
+    otherwise."""
+    sampler = sampler_of(module, key)
+    if sampling.stance_root is not None:
+        sampler.check_sampling(sampling, f"{key}.stance_root")
+    return sampler
 
 
 def sampling_settings(key: str, steps: int, guidance: float | None, use_ema: bool, sampler: str,
-                      stance_root: float | None) -> dict[str, Any]:
-    """The keyword arguments a callback passes to the model's ``sample``; ``stance_root`` only when set
-    (the families without it take none)."""
-    SAMPLERS.get(sampler)  # an unknown name fails here, not after training
-    if stance_root is not None and not 0 <= stance_root <= 1:
-        raise UsageError(f"{key}.stance_root must be in [0, 1] (0: off), got {stance_root!r}")
-    settings = {"steps": steps, "guidance": guidance, "use_ema": use_ema, "sampler": sampler}
-    return settings if stance_root is None else {**settings, "stance_root": stance_root}
+                      stance_root: float | None) -> SamplingSettings:
+    """How a callback samples, checked when the callback is made (an unknown sampler fails here, not after
+    training)."""
+    return SamplingSettings(steps=steps, guidance=guidance, use_ema=use_ema, sampler=sampler, stance_root=stance_root,
+                            key=key)
 
 
-def conditioning(module: L.LightningModule, texts: list[str]) -> list[str] | None:
+def conditioning(module: Sampler, texts: list[str]) -> list[str] | None:
     """What ``sample`` gets as texts: the captions for a text-conditional model, None otherwise."""
-    return list(texts) if getattr(module, "text_conditional", False) else None
+    return list(texts) if module.text_conditional else None
 
 
 class EvalCallback(Callback):
@@ -218,7 +215,7 @@ class EvalCallback(Callback):
 
     def generate(self, module: L.LightningModule, texts: list[str], lengths: Tensor, seed: int) -> Tensor:
         """The model's motions for a batch of prompts (``OODEvalCallback`` also counts what they started from)."""
-        return module.sample(conditioning(module, texts), lengths, seed=seed, **self.sampling)
+        return module.sample(conditioning(module, texts), lengths, replace(self.sampling, seed=seed))
 
     # -- fit -------------------------------------------------------------------------------
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
@@ -238,7 +235,7 @@ class EvalCallback(Callback):
             return values
 
         rank_zero_info(f"omg: evaluating {self.replications} replications of {self.num_prompts} prompts "
-                       f"({self.sampling.get('steps')} sampling steps)")
+                       f"({self.sampling.steps} sampling steps)")
         summary = protocol(replication, self.replications)
         for key, s in summary.items():
             pl_module.log(f"{self.log_prefix}/{key}", s["mean"])
@@ -250,7 +247,7 @@ class EvalCallback(Callback):
                     "mm_prompts": self.settings.mm_prompts, "mm_repeats": self.settings.mm_repeats,
                     **({"prompts": len(self.prompt_file), "samples_per_prompt": self.samples_per_prompt}
                        if self.prompt_file is not None else {}),
-                    **{f"sampling_{k}": v for k, v in self.sampling.items()}, "metrics": self.metrics}
+                    **{f"sampling_{k}": v for k, v in self.sampling.report().items()}, "metrics": self.metrics}
         self._report(directory, summary, settings)
 
     @rank_zero_only

@@ -3,6 +3,7 @@ directory and to whichever logger is configured."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -65,9 +66,9 @@ class RenderCallback(Callback):
         self._last_step = -1
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        check_generative(pl_module, "RenderCallback", self.sampling)
+        sampler = check_generative(pl_module, "RenderCallback", self.sampling)
         self.spec = trainer.datamodule.spec if trainer.datamodule is not None else pl_module.spec
-        if not getattr(pl_module, "text_conditional", False):
+        if not sampler.text_conditional:
             self._texts = [""] * self.num_prompts
         elif self.prompts is not None:
             self._texts = list(self.prompts)
@@ -97,7 +98,7 @@ class RenderCallback(Callback):
         texts = [t for t in self._texts for _ in range(self.num_samples)]
         with sampling(pl_module):
             features = pl_module.sample(conditioning(pl_module, texts), torch.full((len(texts),), frames),
-                                        seed=self.seed, **self.sampling)
+                                        replace(self.sampling, seed=self.seed))
             joints = pl_module.representation.decode(features.float()).cpu().numpy()  # (P·S, T, J, 3)
         directory.mkdir(parents=True, exist_ok=True)
         paths = []

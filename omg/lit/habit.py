@@ -29,14 +29,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 from torch.nn import functional as F
 
 from omg.errors import UsageError
 from omg.lit.base import OmgModule
-from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
 from omg.losses import masked_smooth_l1
 from omg.models.habit import (
     CategoryFlows,
@@ -406,156 +404,6 @@ class HabitVQModule(OmgModule):
         return self.denormalize(self.vqvae.decode(codes, z.to(self.device), text)[:, :T])
 
 
-    # -- the generation interface (omg.lit.generative) ------------------------------------
-    def generation_card(self) -> GenerationCard:
-        return GenerationCard(
-            family="habit", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("motion", "species"), needs=("motion", "species"), max_frames=round(MAX_SECONDS * self.spec.fps),
-            species=tuple(self.categories), open_species=True, source_fixes_length=True,
-            options={"temperature": "scale of the prior's base Gaussian (with a prior)",
-                     "quantizer": "soft or nearest (default: the checkpoint's)",
-                     "species_file": "a YAML of extra species descriptions (name: description)"})
-
-    def read_source(self, path: Path, joint_map: str | None = None) -> dict[str, Any]:
-        """A quadruped motion file as this model's features: BVH or DeepMimic retargeted onto its skeleton, or a
-        ``.npy`` of quatvel features (T, D) or joint positions (T, J, 3) at its frame rate."""
-        return read_quadruped(Path(path), self.representation, self.spec.fps, joint_map)
-
-    def text_encoder(self):
-        """The sentence encoder the categories were described with (built once, kept outside the state dict)."""
-        if (encoder := self.__dict__.get("_text_encoder")) is None:
-            from omg.text.base import build_text_encoder
-
-            hp = self.hparams
-            encoder = build_text_encoder(hp.get("text_encoder", "minilm"),
-                                         **text_encoder_kwargs(hp.get("text_encoder_args")))
-            self.__dict__["_text_encoder"] = encoder
-        return encoder
-
-    def species_condition(self, to: str, species_file: str | Path | None = None) -> dict[str, Any]:
-        """The category whose habits are used for species ``to``: ``to`` itself when known, else the known
-        category whose description is nearest ``to``'s (a species of the book, or a description of 3 words or
-        more); an unseen species keeps its own description's embedding as the condition (``embedding``: the
-        paper swaps only the habit latent)."""
-        from omg.text.habit import SpeciesBook, nearest_category, sentence_embeddings, species_key
-
-        if not to or not to.strip():
-            raise UsageError("--to is empty: give a species name (e.g. horse) or a description of the animal")
-        # a known category in the book's spelling too: "milk cow", "Milk_Cow" and "milk_cow" are AnimalML3D's "milk cow"
-        known = {species_key(name): name for name in self.categories}
-        key = species_key(to) if len(to.split()) < 3 else to
-        if key in known:
-            return {"target": to, "category": known[key], "retrieved": False, "distance": 0.0}
-        book = SpeciesBook.load(species_file)
-        description = book.describe(to)
-        encoder = self.text_encoder()
-        known = {name: self.descriptions.get(name) or book.description(name) for name in self.categories}
-        name, distance = nearest_category(encoder, description, known)
-        with torch.no_grad():
-            embedding = sentence_embeddings(encoder, [description])[0].cpu()  # as the categories' were embedded
-        return {"target": to, "description": description, "category": name, "retrieved": True, "distance": distance,
-                "embedding": embedding}
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        return self.transfer_motions(request)
-
-    def habit_prior(self, prior: HabitPriorModule | None = None) -> HabitPriorModule | HabitVQModule | None:
-        """What draws the habit latents of a transfer: ``prior`` when given, else this checkpoint's own flows
-        (``flow_prior``), else None (the category's posterior mean)."""
-        return prior if prior is not None else (self if self.flows is not None else None)
-
-    def transfer_motions(self, request: GenerationRequest, prior: HabitPriorModule | None = None
-                         ) -> list[GeneratedMotion]:
-        """The source motion moved onto ``request.species`` with its habits, ``num_samples`` times with seeds
-        ``seed`` + k: the habit latent is a sample of the category's flow, ``prior``'s or without it this
-        checkpoint's own (``flow_prior``), else the mean of the category's posterior; the model's rotations and
-        root come out as they are."""
-        prior = self.habit_prior(prior)
-        source, options = request.source, request.options
-        condition = self.species_condition(request.species, options.get("species_file"))
-        k = self.categories.index(condition["category"])
-        features = torch.from_numpy(source["features"])[None]
-        start = torch.from_numpy(source["root_start"])
-        rep, offsets = self.representation, self.category_offsets(k)
-        source_joints = rep.decode(features[0], torch.from_numpy(source["offsets"]), start).numpy()
-        how = (f"{condition['category']}'s habits (nearest known, distance {condition['distance']:.3f})"
-               if condition["retrieved"] else f"{condition['category']}'s habits")
-        motions = []
-        for repeat in range(request.num_samples):
-            seed = request.seed + repeat
-            torch.manual_seed(seed)
-            if prior is not None:
-                z = prior.habit_latents(k, 1, seed=seed, temperature=options.get("temperature", 1.0))
-            else:
-                z = self.mean_habit(k)[None]
-            result = self.transfer(features, k, z, seed=seed, quantizer=options.get("quantizer"),
-                                   text=condition.get("embedding"))[0].float().cpu()
-            joints = rep.decode(result, offsets.cpu(), start).numpy().astype(np.float32)
-            rotations, root = rep.rotations_and_root(result, start)
-            motions.append(GeneratedMotion(
-                features=result.numpy(), joints=joints, title=f"{request.species}: {how}",
-                rotations=(rotations.numpy(), root.numpy(), offsets.cpu().numpy()),
-                companions=[("source", source_joints.astype(np.float32), self.spec.skeleton,
-                             f"source: {source['name']}")],
-                record={"repeat": repeat, "seed": seed}))
-        return motions
-
-    def generation_settings(self, request: GenerationRequest, prior: HabitPriorModule | None = None
-                            ) -> dict[str, Any]:
-        prior = self.habit_prior(prior)
-        condition = self.species_condition(request.species, request.options.get("species_file"))
-        k = self.categories.index(condition["category"])
-        return {
-            "source_category": request.source["category"], "to": request.species, "category": condition["category"],
-            "retrieved": condition["retrieved"], "distance": condition["distance"],
-            "description": condition.get("description"),
-            "condition": "its own description" if condition["retrieved"] else f"{condition['category']}'s description",
-            "habit": "prior sample" if prior is not None else "posterior mean", "habit_order": self.habit_order,
-            "temperature": request.options.get("temperature", 1.0),
-            "quantizer": request.options.get("quantizer") or self.vqvae.quantizer.mode,
-            "frames": len(request.source["features"]), "target_offsets": self.category_offsets(k).tolist()}
-
-
-def read_quadruped(path: Path, rep, fps: float, joint_map: str | None = None) -> dict[str, Any]:
-    """A motion file as features of ``rep`` (quatvel): {features (T, D), offsets (J, 3) of the source, root_start
-    (3,), category (the source's, or ""), name}. ``.npy``: quatvel features (T, D) or joint positions (T, J, 3) at
-    ``fps``; other files are read and retargeted onto the representation's skeleton."""
-    from omg.files import file_problem, read_array
-    from omg.motion import Clip
-
-    skeleton = rep.skeleton
-    if problem := file_problem(path):
-        raise UsageError(f"SOURCE {path}: {problem}")
-    found = {"offsets": np.asarray(skeleton.rest_offsets, np.float32), "root_start": np.zeros(3, np.float32),
-             "category": "", "name": path.name}
-    if path.suffix.lower() == ".npy":
-        try:
-            array = read_array(path, "SOURCE")
-        except (OSError, ValueError) as e:
-            raise UsageError(f"SOURCE {path}: not a readable .npy array ({e})") from None
-        if array.dtype.kind in "fc" and not np.isfinite(array).all():  # the model would sample from NaN
-            raise UsageError(f"SOURCE {path}: holds NaN or inf values ({int((~np.isfinite(array)).sum())} of "
-                             f"{array.size}); give finite motion")
-        J, D = skeleton.num_joints, rep.dim
-        if array.ndim == 2 and array.shape[1] == D:
-            return {**found, "features": array.astype(np.float32)}
-        if array.ndim == 3 and array.shape[1:] == (J, 3):  # the representation solves the rotations (IK)
-            clip = Clip(id=path.stem, skeleton=skeleton, fps=fps, positions=array.astype(np.float32))
-        else:
-            raise UsageError(f"SOURCE {path}: a .npy source holds quatvel features (T, {D}) or {skeleton.name} joint "
-                             f"positions (T, {J}, 3), got shape {array.shape}")
-    else:
-        from omg.io.read import read_motion
-        from omg.retarget import retarget
-
-        clip = retarget(read_motion(path, what="SOURCE"), skeleton, joint_map=joint_map, fps=fps)
-    if len(clip.positions) < 2:
-        raise UsageError(f"SOURCE {path}: {len(clip.positions)} frame(s), need 2 or more")
-    features, meta = rep.encode(clip)
-    return {**found, "features": features, "offsets": np.asarray(meta["offsets"], np.float32),
-            "root_start": np.asarray(meta["root_start"], np.float32), "category": clip.category or ""}
-
-
 def embed_categories(categories: list[str], text_encoder: str, text_encoder_args: dict | None,
                      species_file: str | None) -> tuple[dict[str, str], list[list[float]]]:
     """({category: description}, their sentence embeddings as lists) by the registered text encoder."""
@@ -667,19 +515,6 @@ class HabitPriorModule(OmgModule):
         """(count, Z) samples of the category's prior."""
         gen = torch.Generator(device="cpu").manual_seed(seed)
         return self.flows.sample(category, count, gen, temperature)
-
-    # -- the generation interface: its VQ-VAE's transfer with habit latents drawn from the flows ---
-    def generation_card(self) -> GenerationCard:
-        return self.vq.generation_card()
-
-    def read_source(self, path: Path, joint_map: str | None = None) -> dict[str, Any]:
-        return self.vq.read_source(path, joint_map)
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        return self.vq.transfer_motions(request, prior=self)
-
-    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
-        return self.vq.generation_settings(request, prior=self)
 
 
 __all__ = ["HabitPriorModule", "HabitVQModule", "embed_categories"]

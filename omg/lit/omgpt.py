@@ -23,7 +23,6 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -33,12 +32,11 @@ from torch import Tensor
 from omg.data.omgpt import CompanionData, CompanionStream, category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, modes_restored
-from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
+from omg.lit.sampling import Sampler, SamplingSettings
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.motion.maa import maa_from_positions, root_translation
-from omg.registry import SAMPLERS
 from omg.settings import set_fields
 from omg.skeleton import get_skeleton
 from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
@@ -410,16 +408,18 @@ class OmniMotionModule(OmgModule):
                                         mask, self.sentence(prompts), offsets)
 
     @torch.no_grad()
-    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, seed: int = 0,
-               use_ema: bool = True, animal: str | None = None, human: Tensor | None = None,
-               human_offsets: Tensor | None = None, **sampling) -> Tensor:
-        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa.
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
+               settings: SamplingSettings | None = None, *, animal: str | None = None, human: Tensor | None = None,
+               human_offsets: Tensor | None = None) -> Tensor:
+        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa; the ``Sampler`` protocol
+        (``omg.lit.sampling``).
 
         The animal is ``animal`` when given, else the one each prompt names (``choose_animal``, the rule of
         ``omg generate``); the human motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from
-        ``human_source``.
-        ``sampling`` (steps, guidance, sampler, ...) goes to a human generator, where one is used.
+        ``human_source`` (drawn with ``settings.seed``; a human generator samples with the settings' steps,
+        sampler and guidance). ``settings.use_ema``: the EMA weights where kept.
         """
+        settings = settings or SamplingSettings()
         if not texts:
             raise UsageError("OmniMotionGPT generates from prompts: give at least one")
         lengths = torch.as_tensor(lengths, device=self.device)
@@ -428,13 +428,21 @@ class OmniMotionModule(OmgModule):
             raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
         chosen = [choose_animal(t, names, animal) for t in texts]
         if human is None:
-            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, seed, **sampling)
-        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=use_ema)
+            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, settings)
+        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=settings.use_ema)
 
-    def human_motion(self, prompts: Sequence[str], lengths: Tensor, seed: int, **sampling) -> tuple[Tensor, Tensor]:
-        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``."""
+    def check_sampling(self, settings: SamplingSettings, key: str) -> None:
+        """OmniMotionGPT translates a human motion: no stance foot steps its root."""
+        if settings.stance_root is not None:
+            raise UsageError(f"{key}: {type(self).__name__} is not a diffusion model that can step its root by the "
+                             "stance foot")
+
+    def human_motion(self, prompts: Sequence[str], lengths: Tensor,
+                     settings: SamplingSettings) -> tuple[Tensor, Tensor]:
+        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``
+        (drawn with ``settings.seed``)."""
         if self.human_source == "retrieval":
-            return self.retrieve_human(prompts, lengths, seed)
+            return self.retrieve_human(prompts, lengths, settings.seed)
         if self.human_generator is None:
             from omg.lit.checkpoint import load_module
             from omg.lit.controlnet import ControlNetModule
@@ -444,7 +452,7 @@ class OmniMotionModule(OmgModule):
                 self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
             except UsageError as e:
                 raise UsageError(f"model.init_args.human_source: {e}") from None
-        return generate_human(self.human_generator, prompts, lengths, seed, self.spec.fps, **sampling)
+        return generate_human(self.human_generator, prompts, lengths, self.spec.fps, settings)
 
     def check_human_source(self) -> None:
         """One line unless ``human_source`` is ``retrieval`` or names a file (an evaluation checks it before it
@@ -534,103 +542,6 @@ class OmniMotionModule(OmgModule):
             self.retrieved.append(list(sample["texts"]))
         return motion.to(self.device), torch.stack(offsets).to(self.device)
 
-    # -- the generation interface (omg.lit.generative) ------------------------------------
-    def generation_card(self) -> GenerationCard:
-        return GenerationCard(
-            family="omgpt", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("text", "motion", "species"), needs=("text",), max_frames=round(MAX_SECONDS * self.spec.fps),
-            samplers=tuple(SAMPLERS.names()), species=tuple(self.animal_names), source_generator=True,
-            deterministic_source=True)
-
-    def read_source(self, path: Path, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at the human data's rate:
-        BVH / ASF-AMC / DeepMimic retargeted to smpl22, joints (T, 22, 3), or features (T, 138) maa or
-        (T, 263) humanml3d263 in a ``.npy``."""
-        return read_human_motion(Path(path), self.human_spec.fps, joint_map)
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        """One animal motion per prompt and repeat, each from its own human motion: the source motion given
-        (once per prompt: its translation is deterministic), one the ``source_module`` (an OMG ControlNet)
-        makes from the prompt made about "a person", or one from ``human_source``; seeds ``seed`` + index."""
-        names = self.animal_names
-        if not names:
-            raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [choose_animal(p, names, request.species) for p in request.prompts]  # the rule of ``sample``
-        frames, repeats = self._frames_and_repeats(request)
-        if frames < 2:
-            raise UsageError(f"the motion has {frames} frame(s) at {self.spec.fps:g} fps; need 2 or more")
-        skeleton, maa = self.representation.skeleton, get_representation("maa", self.representation.skeleton)
-        jobs = [(p, a, k) for p, a in zip(request.prompts, chosen) for k in range(repeats)]
-        motions = []
-        for index, (prompt, name, k) in enumerate(jobs):
-            lengths = torch.tensor([frames])
-            person = to_person(prompt, names)
-            if request.source is not None:
-                human = torch.from_numpy(request.source[0][:frames])[None]
-                human_offsets = torch.from_numpy(request.source[1])[None]
-            elif request.source_module is not None:
-                human, human_offsets = generate_human(request.source_module, [person], lengths, request.seed + index,
-                                                      self.spec.fps, steps=request.steps, guidance=request.guidance,
-                                                      sampler=request.sampler)
-            else:
-                human, human_offsets = self.human_motion([person], lengths.to(self.device), request.seed + index)
-            # use_ema=False: the weights as loaded (load_module puts the EMA in)
-            features = self.translate([prompt], human.to(self.device), human_offsets.to(self.device), lengths, [name],
-                                      use_ema=False)[0].cpu().float()
-            offsets = self.animal_offsets(name).cpu()
-            rotations, root = maa.rotations_and_root(features)
-            joints = skeleton.forward_kinematics(rotations, root, offsets).numpy().astype(np.float32)
-            human_joints = self.human_rep.decode(human[0].float().cpu(), human_offsets[0].cpu()).numpy()
-            motions.append(GeneratedMotion(
-                features=features.numpy(), joints=joints, title=f"{prompt} ({name})",
-                rotations=(rotations.numpy(), root.numpy(), offsets.numpy()),
-                companions=[("{stem}.human", human_joints.astype(np.float32), HUMAN_SKELETON, None)],
-                record={"prompt": prompt, "animal": name, "human_prompt": person, "repeat": k,
-                        "animal_prompt": about_animal(prompt, name, names)}))
-        return motions
-
-    def _frames_and_repeats(self, request: GenerationRequest) -> tuple[int, int]:
-        if request.source is None:
-            return request.frames, request.num_samples
-        return min(request.frames, len(request.source[0])), 1  # a given motion's translation is deterministic
-
-    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
-        frames, repeats = self._frames_and_repeats(request)
-        return {"animal": request.species, "human_source": "from_motion" if request.source is not None else
-                "human_ckpt" if request.source_module is not None else self.human_source,
-                "num_samples": repeats, "frames": frames, "steps": request.steps, "sampler": request.sampler,
-                "guidance_scale": request.guidance}
-
-
-def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``."""
-    from omg.files import file_problem, read_array
-
-    if problem := file_problem(path):
-        raise UsageError(f"--from_motion {path}: {problem}")
-    skeleton = get_skeleton(HUMAN_SKELETON)
-    if path.suffix.lower() != ".npy":
-        from omg.io.read import read_motion
-        from omg.retarget import retarget
-
-        clip = retarget(read_motion(path, what="--from_motion"), HUMAN_SKELETON, joint_map=joint_map, fps=fps)
-        features, meta = get_representation("maa", skeleton).encode(clip)
-        return features, np.asarray(meta["offsets"], dtype=np.float32)
-    try:
-        array = read_array(path, "--from_motion").astype(np.float32)
-    except (ValueError, OSError) as e:
-        raise UsageError(f"--from_motion {path}: not a readable .npy file ({e})") from None
-    maa_dim = (skeleton.num_joints + 1) * 6
-    if array.ndim == 3 and array.shape[1:] == (skeleton.num_joints, 3):
-        return maa_from_positions(array, fps)
-    if array.ndim == 2 and array.shape[1] == maa_dim:
-        return array, skeleton.rest_offsets.astype(np.float32)
-    if array.ndim == 2 and array.shape[1] == 263:
-        joints = get_representation("humanml3d263", skeleton).decode(torch.from_numpy(array)).numpy()
-        return maa_from_positions(joints, fps)
-    raise UsageError(f"--from_motion {path}: an array of shape {array.shape}; expected joints (T, 22, 3) or features "
-                     f"(T, {maa_dim}) smpl22 maa or (T, 263) humanml3d263")
-
 
 def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
     """The human stream's batches are normalised with its shards' statistics and un-normalised with the
@@ -641,12 +552,13 @@ def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
                          "(human_spec); go on from this checkpoint with the same human shards")
 
 
-def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int, fps: float,
-                   **sampling) -> tuple[Tensor, Tensor]:
+def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, fps: float,
+                   settings: SamplingSettings) -> tuple[Tensor, Tensor]:
     """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
-    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames).
+    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames), sampled with the settings'
+    steps, sampler, guidance and seed on the weights as loaded.
 
-    ``generator``: an OMG ControlNet module; its features (humanml3d263) are decoded to joint
+    ``generator``: an OMG ControlNet module (its ``Sampler``); its features (humanml3d263) are decoded to joint
     positions and turned into rotations by IK. A generator at another rate makes the same durations
     at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
     animal moves at the speed the human did."""
@@ -660,8 +572,8 @@ def generate_human(generator, prompts: Sequence[str], lengths: Tensor, seed: int
     source_fps = generator.spec.fps
     lengths = torch.as_tensor(lengths).cpu()
     source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
-    allowed = {k: v for k, v in sampling.items() if k in ("steps", "guidance", "sampler") and v is not None}
-    features = generator.sample(list(prompts), source_lengths, seed=seed, use_ema=False, **allowed)
+    features = generator.sample(list(prompts), source_lengths, SamplingSettings(
+        steps=settings.steps, sampler=settings.sampler, guidance=settings.guidance, seed=settings.seed, use_ema=False))
     joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
     T = int(lengths.max())
     motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)

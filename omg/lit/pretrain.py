@@ -12,7 +12,6 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import torch
@@ -21,7 +20,7 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, checkpoint_each, modes_restored
-from omg.lit.generative import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest
+from omg.lit.sampling import SamplingSettings, check_stance_root
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -206,17 +205,16 @@ class MotionDiffusionModule(OmgModule):
 
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
-    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int], *, steps: int = 200,
-               guidance: float | None = None, seed: int = 0, use_ema: bool = True, sampler: str = "ddim",
-               autocast: torch.dtype | None = None, compile: bool = False,
-               seeds: Sequence[int] | None = None, stance_root: float | None = None) -> Tensor:
+    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
+               settings: SamplingSettings | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
-        generated at its own length (frames beyond it are padding, to be ignored).
+        generated at its own length (frames beyond it are padding, to be ignored); the ``Sampler``
+        protocol (``omg.lit.sampling``).
 
         ``texts`` (B captions) condition a text-conditional module, guided with scale
-        ``guidance`` (default: the module's); None samples the unconditional motion prior.
-        ``sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
-        ``steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
+        ``settings.guidance`` (default: the module's); None samples the unconditional motion prior.
+        ``settings.sampler`` is a registered name (``omg.samplers``: ddim, dpmpp, euler) run for
+        ``settings.steps`` steps. The EMA weights are used where kept (``use_ema``); ``seed`` fixes the
         initial noise, or ``seeds`` (one per motion) each motion's own: drawn at its own length from its own
         generator, so a motion does not depend on what it is sampled with. ``autocast`` (e.g.
         ``torch.bfloat16``) runs the network under autocast
@@ -225,29 +223,36 @@ class MotionDiffusionModule(OmgModule):
         ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
         foot (``stance_denoiser``).
         """
+        settings = settings or SamplingSettings()
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
         mask = length_mask(lengths, device=self.device)  # (B, T) real frames
         if texts is not None and len(texts) != len(mask):
             raise ValueError(f"{len(texts)} texts for {len(mask)} lengths")
-        solver = SAMPLERS.get(sampler)
-        gen = torch.Generator(device=self.device).manual_seed(seed)
-        with modes_restored(self), self.ema_weights(use_ema):
+        self.check_sampling(settings, "stance_root")
+        solver = SAMPLERS.get(settings.sampler)
+        gen = torch.Generator(device=self.device).manual_seed(settings.seed)
+        with modes_restored(self), self.ema_weights(settings.use_ema):
             self.eval()
             dtype = next(self.model.parameters()).dtype
-            denoise = self.denoiser(texts, mask, guidance)
-            if autocast is not None:
-                denoise = autocasting(denoise, self.device.type, autocast)
-            if compile:
+            denoise = self.denoiser(texts, mask, settings.guidance)
+            if settings.autocast is not None:
+                denoise = autocasting(denoise, self.device.type, settings.autocast)
+            if settings.compile:
                 denoise = torch.compile(denoise)
-            strength = self.stance_root if stance_root is None else self.checked_stance_root(stance_root, "stance_root")
+            strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
             shape = (*mask.shape, self.config.input_dim)
-            given = {} if seeds is None else {"noise": row_noise(seeds, mask, shape[-1], dtype)}
-            x = solver(self.diffusion, denoise, shape, steps=steps, generator=gen, device=self.device, dtype=dtype,
-                       mask=mask, **given)
+            given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
+            x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
+                       dtype=dtype, mask=mask, **given)
         return self.denormalize(x)
+
+    def check_sampling(self, settings: SamplingSettings, key: str) -> None:
+        """One line when ``settings`` step the root by the stance foot of a representation that cannot."""
+        if settings.stance_root:
+            self.checked_stance_root(settings.stance_root, key)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
@@ -255,8 +260,7 @@ class MotionDiffusionModule(OmgModule):
 
     def checked_stance_root(self, strength: float, key: str) -> float:
         """``strength`` if it is in [0, 1] and the representation can step its root by the stance foot."""
-        if not 0 <= strength <= 1:
-            raise UsageError(f"{key} must be in [0, 1] (0: off), got {strength!r}")
+        strength = check_stance_root(strength, key)
         if strength and not self.representation.stance_root:
             self.representation.root_from_stance(torch.zeros(0))  # its one-line refusal
         return float(strength)
@@ -270,53 +274,6 @@ class MotionDiffusionModule(OmgModule):
             moved = self.normalize(self.representation.root_from_stance(self.denormalize(x0), strength))
             return torch.where(mask[..., None], moved, x0)  # frames past a motion's length as they were
         return stepped
-
-    # -- the generation interface (omg.lit.generative) ------------------------------------
-    def generation_card(self) -> GenerationCard:
-        return GenerationCard(
-            family="omg", skeleton=self.spec.skeleton, representation=self.spec.representation, fps=self.spec.fps,
-            inputs=("text", "unconditional") if self.text_conditional else ("unconditional",),  # D_u: the prior
-            max_frames=round(MAX_SECONDS * self.spec.fps), samplers=tuple(SAMPLERS.names()),
-            max_steps=self.diffusion.num_timesteps, default_steps=min(200, self.diffusion.num_timesteps),
-            guidance=getattr(self, "guidance_scale", None), row_seeds=True,
-            options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
-            if self.representation.stance_root else {})
-
-    def read_source(self, path, joint_map: str | None = None):
-        raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
-
-    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
-        """``num_samples`` motions per prompt (in total when unconditional), sampled ``batch_size`` at a time,
-        each batch with seed ``seed`` + its first motion's index; the weights as loaded (``load_module`` puts
-        the EMA in)."""
-        prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
-        jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
-        if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
-            raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
-        motions = []
-        for start in range(0, len(jobs), request.batch_size):
-            batch = jobs[start : start + request.batch_size]
-            batch_seed = request.seed + start
-            seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
-            texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
-            features = self.sample(texts, [request.frames] * len(batch), steps=steps,
-                                   sampler=request.sampler or "ddim", guidance=request.guidance, seed=batch_seed,
-                                   use_ema=False, autocast=request.autocast, compile=request.compile,
-                                   seeds=seeds, stance_root=request.options.get("stance_root"))  # (n, T, D)
-            joints = self.representation.decode(features.float())  # (n, T, J, 3)
-            for i, (prompt, k) in enumerate(batch):
-                seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
-                motions.append(GeneratedMotion(
-                    features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
-                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, **seed}))
-        return motions
-
-    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
-        return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
-                "sampler": request.sampler or "ddim",
-                "guidance_scale": (request.guidance if request.guidance is not None else self.guidance_scale)
-                if request.prompts else None, "batch_size": request.batch_size,
-                "stance_root": request.options.get("stance_root", self.stance_root)}
 
 
 def row_noise(seeds: Sequence[int], mask: Tensor, dim: int, dtype: torch.dtype) -> Tensor:

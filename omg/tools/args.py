@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import inspect
+import json
 import math
 import shlex
 import types
@@ -56,7 +57,7 @@ WANTED[ClosedUnitInterval] = "a number in [0, 1]"  # jsonargparse's
 
 __all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt",
            "Seed", "number_type", "function_parser", "run", "run_subcommands", "explain", "Settings", "locate",
-           "check_config_files", "underscore_options"]
+           "check_config_files", "underscore_options", "repeated"]
 
 
 # -- errors -----------------------------------------------------------------------------------
@@ -412,6 +413,26 @@ def call(function: Callable, config: Namespace, command: str):
     if RECORDED in params:
         kwargs[RECORDED] = command
     return function(**kwargs)
+
+
+def repeated(argv: list[str], flag: str) -> list[str]:
+    """``argv`` with a repeated list option (``--ckpt A --ckpt B``) as jsonargparse's list ``--ckpt [A, B]`` (it
+    would keep only the last)."""
+    values, rest, i = [], [], 0
+    while i < len(argv):
+        if argv[i] == flag and i + 1 < len(argv):
+            values.append(argv[i + 1])
+            i += 2
+        elif argv[i].startswith(flag + "="):
+            values.append(argv[i].split("=", 1)[1])
+            i += 1
+        else:
+            rest.append(argv[i])
+            i += 1
+    if not values:
+        return rest
+    joined = values[0] if len(values) == 1 and values[0].lstrip().startswith("[") else json.dumps(values)
+    return [flag, joined, *rest]
 
 
 def run(function: Callable, argv: list[str], prog: str, **kwargs):

@@ -11,29 +11,20 @@ from __future__ import annotations
 
 import unicodedata
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.files import atomic_write, check_output_dir, npy_bytes, read_text, write_json
-from omg.lit.generative import (
-    MAX_SECONDS,
-    GeneratedMotion,
-    GenerationCard,
-    GenerationRequest,
-    GenerativeModule,
-    check_request,
-)
+from omg.files import check_output_dir, read_text
+from omg.generation.protocol import MAX_SECONDS, GenerationRequest, check_request, parse_options
+from omg.generation.write import MAX_PREVIEW, check_finite_motions, output_files, write_generation
 from omg.registry import SAMPLERS
 from omg.retarget import read_rig
-from omg.tools.args import ClosedUnitInterval, FiniteFloat, PositiveInt, Seed, number_type, run
-from omg.tools.common import removing_created
+from omg.tools.args import ClosedUnitInterval, FiniteFloat, PositiveInt, Seed, number_type, repeated, run
 from omg.tools.export import OutputFormat
 
 AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
-MAX_PREVIEW = 6
 Seconds = number_type("Seconds", float, [(">", 0.0), ("<=", MAX_SECONDS)],
                       f"a number of seconds in (0, {MAX_SECONDS:g}]")
 
@@ -56,6 +47,7 @@ def generate(
     preview_count: PositiveInt = MAX_PREVIEW,
     clean_contacts: bool = False,
     stance_root: ClosedUnitInterval | None = None,
+    option: list[str] | None = None,
     to_rig: Path | None = None,
     joint_map: str | None = None,
     format: OutputFormat = "bvh",
@@ -64,7 +56,9 @@ def generate(
     compile: bool = False,
     animal: str | None = None,
     from_motion: Path | None = None,
+    from_motion_joint_map: str | None = None,
     human_ckpt: Path | None = None,
+    prior_ckpt: Path | None = None,
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
@@ -73,7 +67,7 @@ def generate(
     Writes per motion its features, joint positions and a BVH file, a preview.gif of the first
     motions and generation.json with every setting (the command reproduces the result). What a
     checkpoint generates from (prompts, nothing, a source motion, a species) is its generation
-    card's (``omg.lit.generative``); an option it does not take is one line before sampling.
+    card's (``omg.generation``); an option it does not take is one line before sampling.
 
     Args:
         prompts: text prompts (needs a text-conditioned checkpoint)
@@ -93,6 +87,8 @@ def generate(
         clean_contacts: pin planted feet in the BVH files (removes foot skating)
         stance_root: OMG checkpoints of humanml3d263 motion: step the root by the stance foot at every
             sampling step, this much in [0, 1] (default: the checkpoint's; removes foot sliding while sampling)
+        option: a family option of the checkpoint's generation card as KEY=VALUE, repeatable (e.g. habit
+            transfer's temperature=0.8, quantizer=nearest, species_file=FILE; OMG's stance_root=0.5)
         to_rig: write each motion onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
         format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
@@ -104,20 +100,54 @@ def generate(
             animal the prompt names, and the prompt is made about it (default: the one the prompt names)
         from_motion: checkpoints that take a source motion: the motion file (OmniMotionGPT: the human motion to
             turn into the animal's, a BVH, ASF/AMC or DeepMimic file retargeted to smpl22, a .joints.npy
-            (T, 22, 3), or a features .npy in smpl22 maa or humanml3d263; one motion per prompt)
+            (T, 22, 3), or a features .npy in smpl22 maa or humanml3d263; one motion per prompt; habit transfer:
+            the quadruped motion to move onto --animal, a BVH, DeepMimic or .npy file)
+        from_motion_joint_map: the --from_motion rig's joint map (a registered name or a YAML file; default:
+            detected)
         human_ckpt: checkpoints whose source motion a second model may make (OmniMotionGPT): a text-to-motion
             checkpoint (OMG ControlNet) that generates the human motion from the prompt made about "a person"
             (without either, the checkpoint's own human source)
+        prior_ckpt: habit checkpoints of the kl_then_flows order: the HabitPriorModule checkpoint whose flows
+            draw the habit latent (without it, the checkpoint's own flows or the mean of the target's posterior)
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
     Returns:
         The settings written to generation.json.
     """
+    settings = run_generation(
+        ckpt, prompts=read_prompts(prompts or [], prompts_file), unconditional=unconditional,
+        num_samples=num_samples, length=length, steps=steps, sampler=sampler, guidance=guidance, seed=seed,
+        batch_size=batch_size, ema=ema, preview=preview, preview_count=preview_count, clean_contacts=clean_contacts,
+        options=([f"stance_root={stance_root}"] if stance_root is not None else []) + list(option or []),
+        to_rig=to_rig, joint_map=joint_map, format=format, device=device, autocast=autocast, compile=compile,
+        animal=animal, from_motion=from_motion, from_motion_joint_map=from_motion_joint_map, human_ckpt=human_ckpt,
+        prior_ckpt=prior_ckpt, out=out, command=command)
+    frames, fps = settings["frames"], settings["fps"]
+    print(f"wrote {len(settings['samples'])} motions of {frames} frames ({frames / fps:g} s at {fps:g} fps) to {out}")
+    return settings
+
+
+def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, unconditional: bool = False,
+                   num_samples: int = 1, length: float | None = None, steps: int | None = None,
+                   sampler: str | None = None, guidance: float | None = None, seed: int = 0, batch_size: int = 32,
+                   ema: bool = True, preview: bool = True, preview_count: int = MAX_PREVIEW,
+                   clean_contacts: bool = False, options: list[str] | dict[str, Any] = (), to_rig: Path | None = None,
+                   joint_map: str | None = None, format: str = "bvh", device: str | None = None,
+                   autocast: str | None = None, compile: bool = False, animal: str | None = None,
+                   from_motion: Path | None = None, from_motion_joint_map: str | None = None,
+                   human_ckpt: Path | None = None, prior_ckpt: Path | None = None, expect: type | None = None,
+                   names: list[str] | None = None, settings_file: str = "generation.json",
+                   extra_files: tuple[str, ...] = (), extra_settings: dict[str, Any] | None = None) -> dict:
+    """``omg generate`` and its aliases (``omg transfer``): every input checked before anything is loaded or
+    written, the checkpoint's generator (``omg.generation.registry``) asked for the motions, the one writer
+    (``omg.generation.write``) writing them. ``options``: ``--option KEY=VALUE`` pairs, or the family options
+    already typed (an alias's own flags); ``length`` None: the source motion's (a transfer); ``names``,
+    ``settings_file``, ``extra_files`` and ``extra_settings``: an alias's file names and what its settings add."""
+    from omg.generation.registry import generator_for
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import PretrainModule
 
-    prompts = read_prompts(prompts or [], prompts_file)
     if animal is not None:  # a description of an animal goes to the text encoder as a prompt does
         check_plain_text(animal, "--animal")
     if unconditional == bool(prompts) and from_motion is None:
@@ -129,125 +159,66 @@ def generate(
         raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
+    if from_motion_joint_map is not None and from_motion is None:
+        raise UsageError("--from_motion_joint_map names the map of the --from_motion file; give --from_motion with it")
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     # every input is checked before anything is written; a folder where a motion file goes would fail the write
-    out = check_output_dir(out, files=output_files("sample_*", format, "generation.json", preview))
-    module = generative_module(ckpt, load_module(ckpt, default_class=PretrainModule, use_ema=ema))
-    card = module.generation_card()
-    request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps), num_samples=num_samples,
+    stems = names[0] if names and len(names) == 1 else "sample_*"
+    out = check_output_dir(out, files=(*output_files(stems, format, settings_file, preview), *extra_files))
+    module = load_module(ckpt, default_class=PretrainModule, use_ema=ema, expect=expect)
+    generator = generator_for(module, ckpt)
+    what = f"{ckpt} ({type(module).__name__})"
+    if prior_ckpt is not None:
+        if not generator.takes_prior:  # one line before the prior is read
+            raise UsageError(f"--prior_ckpt: {what} takes no prior checkpoint")
+        generator.with_prior(load_prior(prior_ckpt, ckpt, module))
+    card = generator.generation_card()
+    typed = dict(options) if isinstance(options, dict) else parse_options(generator, list(options), what)
+    if length is None and not card.source_fixes_length:
+        raise UsageError(f"{what} needs --length: its motions' length is not its source motion's")
+    # a transfer's frames are its source motion's (``source_fixes_length``): the card's least stands in until read
+    frames = round(length * card.fps) if length is not None else card.min_frames
+    request = GenerationRequest(prompts=prompts or None, frames=frames, num_samples=num_samples,
                                 seed=seed, steps=steps, sampler=sampler, guidance=guidance, species=animal,
                                 batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile,
-                                options={} if stance_root is None else {"stance_root": stance_root})
+                                options=typed)
     if human_ckpt is not None:
-        request.source_module = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
+        request.source_module = generator_for(load_module(human_ckpt), human_ckpt).to(device)
     request.source = from_motion  # read once the card says the model takes it
-    check_request(card, request, f"{ckpt} ({type(module).__name__})")
+    check_request(card, request, what)
     if from_motion is not None:
-        request.source = module.read_source(from_motion)
+        request.source = generator.read_source(from_motion, from_motion_joint_map)
     rig = read_rig(to_rig, card.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
-    module = module.to(device).eval()
-    motions = module.generate(request)
+    generator = generator.to(device)
+    motions = generator.generate(request)
     check_finite_motions(motions, ckpt, f" or --guidance {guidance:g} too large" if prompts and guidance is not None
                          else "")
     settings = {"command": command, "ckpt": str(ckpt), "module": type(module).__name__, "family": card.family,
                 "prompts": prompts, "num_samples": num_samples, "length_s": length, "frames": request.frames,
                 "fps": card.fps, "seed": seed, "ema": ema, "autocast": autocast, "compile": compile,
                 "from_motion": None if from_motion is None else str(from_motion),
-                "human_ckpt": None if human_ckpt is None else str(human_ckpt), "clean_contacts": clean_contacts,
+                "human_ckpt": None if human_ckpt is None else str(human_ckpt),
+                "prior_ckpt": None if prior_ckpt is None else str(prior_ckpt), "clean_contacts": clean_contacts,
                 "to_rig": None if to_rig is None else str(to_rig), "joint_map": joint_map, "format": format,
-                **module.generation_settings(request),
-                "representation": card.representation, "skeleton": card.skeleton}
-    write_generation(out, motions, card, settings, rig=rig, joint_map=joint_map, format=format,
-                     clean_contacts=clean_contacts, preview=preview, preview_count=preview_count)
-    frames = settings["frames"]
-    print(f"wrote {len(motions)} motions of {frames} frames ({frames / card.fps:g} s at {card.fps:g} fps) to {out}")
+                **generator.generation_settings(request),
+                "representation": card.representation, "skeleton": card.skeleton, **(extra_settings or {})}
+    write_generation(out, motions, card, settings, names=names, settings_file=settings_file, rig=rig,
+                     joint_map=joint_map, format=format, clean_contacts=clean_contacts, preview=preview,
+                     preview_count=preview_count)
     return settings
 
 
-def output_files(names: str, format: str, settings_file: str, preview: bool) -> tuple[str, ...]:
-    """Glob patterns of the files ``write_generation`` writes for motions named like ``names``."""
-    return (f"{names}.*.npy", f"{names}.{format}", settings_file, *(("preview.gif",) if preview else ()))
+def load_prior(prior_ckpt: Path, ckpt: Path, module) -> Any:
+    """The ``--prior_ckpt`` habit prior, fitted for the categories ``module`` (``--ckpt``, a habit checkpoint: its
+    generator ``takes_prior``) knows."""
+    from omg.lit.checkpoint import load_module
+    from omg.lit.habit import HabitPriorModule
 
-
-def generative_module(ckpt: Path, module) -> GenerativeModule:
-    """``module`` when it implements the generation interface, else one line naming what ``ckpt`` holds."""
-    if not isinstance(module, GenerativeModule):
-        from omg.lit.checkpoint import class_path
-
-        raise UsageError(f"{ckpt} holds a {class_path(type(module))} checkpoint, which generates no motion")
-    return module
-
-
-def check_finite_motions(motions: list[GeneratedMotion], ckpt: Path, hint: str = "") -> None:
-    """One line when a model produced NaN or inf motions (a diverged checkpoint), before anything is written."""
-    if not all(np.isfinite(m.features).all() and np.isfinite(m.joints).all() for m in motions):
-        raise UsageError(f"the model produced NaN or inf motions: a diverged checkpoint ({ckpt}){hint}")
-
-
-def write_generation(out: Path, motions: list[GeneratedMotion], card: GenerationCard, settings: dict, *,
-                     names: list[str] | None = None, settings_file: str = "generation.json", rig=None,
-                     joint_map: str | None = None, format: str = "bvh", clean_contacts: bool = False,
-                     preview: bool = True, preview_count: int = MAX_PREVIEW) -> dict:
-    """Write the motions of one generation and its settings: the one writer of every family and command.
-
-    Per motion (``names``, default ``sample_NNN``): ``.features.npy`` (T, D), ``.joints.npy`` (T, J, 3), and
-    ``.bvh`` (or ``.glb``): the model's rotations as they are when it makes them, else rotations solved by
-    IK; on ``rig`` when given, with planted feet pinned under ``clean_contacts`` (both from the joints).
-    Companion motions (a human source, a transfer's source) as ``.joints.npy``; ``preview.gif`` with the
-    first ``preview_count`` motions (companions with a title beside theirs); ``settings_file`` with each
-    motion's record under ``samples``. A failure leaves no new file: a folder it created is removed, one
-    that existed keeps exactly the files it had."""
-    from omg.export import export_motion, model_motion
-    from omg.io.bvh import write_bvh
-    from omg.io.gltf import write_glb
-    from omg.skeleton import get_skeleton
-
-    skeleton, fps = get_skeleton(card.skeleton), card.fps
-    existing = set(out.iterdir()) if out.is_dir() else set()
-    try:
-        with removing_created(out):
-            out.mkdir(parents=True, exist_ok=True)
-            records, shown = [], []
-            for i, motion in enumerate(motions):
-                name = names[i] if names else f"sample_{i:03d}"
-                atomic_write(out / f"{name}.features.npy", npy_bytes(np.asarray(motion.features, np.float32)))
-                atomic_write(out / f"{name}.joints.npy", npy_bytes(np.asarray(motion.joints, np.float32)))
-                for stem, joints, _, title in motion.companions:
-                    companion = np.asarray(joints, np.float32)
-                    atomic_write(out / f"{stem.format(stem=name)}.joints.npy", npy_bytes(companion))
-                    if title is not None and i < preview_count:
-                        shown.append((joints, title))
-                if motion.rotations is not None and rig is None and not clean_contacts:  # as the model made them
-                    rotations, root, offsets = motion.rotations
-                    if format == "bvh":
-                        write_bvh(out / f"{name}.bvh", skeleton, rotations, root, fps, offsets)
-                    else:
-                        write_glb(out / f"{name}.glb", model_motion(skeleton, rotations, root, offsets, fps, name))
-                else:
-                    export_motion(out / name, motion.joints, skeleton, fps, preview=False,
-                                  clean_contacts=clean_contacts, rig=rig, joint_map=joint_map, format=format)
-                records.append({"file": name, **motion.record})
-                if i < preview_count:
-                    shown.append((motion.joints, motion.title))
-            settings["samples"] = records
-            write_json(out / settings_file, settings)
-            if preview:  # the first motions side by side with their captions
-                from omg.io.render import render_gif
-
-                drawn, drawn_skeleton = [m for m, _ in shown], skeleton
-                if rig is not None:  # the motions as written: on the rig's bones
-                    from omg.retarget import onto_rig
-
-                    drawn = [onto_rig(m, skeleton, rig, fps, joint_map).positions() for m in drawn]
-                    drawn_skeleton = rig.skeleton()
-                render_gif(out / "preview.gif", drawn, drawn_skeleton, fps, titles=[t for _, t in shown])
-    except Exception:  # a failed run leaves no new files in a folder that existed before it
-        if out.is_dir():
-            for path in set(out.iterdir()) - existing:
-                if path.is_file():
-                    path.unlink(missing_ok=True)
-        raise
-    return settings
+    prior = load_module(prior_ckpt, default_class=HabitPriorModule, expect=HabitPriorModule)
+    if prior.categories != module.categories:
+        raise UsageError(f"--prior_ckpt {prior_ckpt} was fitted for categories {prior.categories}, --ckpt {ckpt} "
+                         f"knows {module.categories}: fit the prior on this VQ-VAE")
+    return prior
 
 
 def _control_character(text: str) -> str | None:
@@ -303,4 +274,4 @@ def resolve_device(name: str) -> torch.device:
 
 
 def main(argv: list[str]) -> None:
-    run(generate, argv, "omg generate", positional="prompts")
+    run(generate, repeated(argv, "--option"), "omg generate", positional="prompts")

@@ -1,18 +1,19 @@
 """``omg transfer``: move a quadruped motion onto another species, with that species' habits.
 
-The source (BVH, DeepMimic or ``.npy``) is retargeted onto SMAL-35 and encoded as ``quatvel``
-features; the habit VQ-VAE re-encodes it with the target category's habit latent (a sample of
-its flow prior: the checkpoint's own in the default training order, ``--prior_ckpt``'s in
-``kl_then_flows``, where without it the mean of its posterior) and text embedding and
-decodes it. A target the model does not know is described by the species book (or by the text
-given); its habit latent is that of the known category whose description is nearest (Euclidean, the
-paper's retrieval), while its own description's embedding stays the condition (the paper swaps only
-the habit latent); the output says which category and at what distance. Written to ``--out``:
-``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3) with the target category's
-mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions and the model's rotations as they
-are, no IK; with ``--to_rig`` on that rig;
-``transfer.glb`` with ``--format glb``), ``source.joints.npy``,
-``preview.gif`` (source and result side by side) and ``transfer.json`` (every setting).
+A thin alias of ``omg generate`` on a habit checkpoint (``omg generate --ckpt VQ --from_motion SOURCE
+--animal TO``), with transfer's flag names and files. The source (BVH, DeepMimic or ``.npy``) is
+retargeted onto SMAL-35 and encoded as ``quatvel`` features; the habit VQ-VAE re-encodes it with the
+target category's habit latent (a sample of its flow prior: the checkpoint's own in the default training
+order, ``--prior_ckpt``'s in ``kl_then_flows``, where without it the mean of its posterior) and text
+embedding and decodes it (``omg.generation.habit``). A target the model does not know is described by
+the species book (or by the text given); its habit latent is that of the known category whose
+description is nearest (Euclidean, the paper's retrieval), while its own description's embedding stays
+the condition (the paper swaps only the habit latent); the output says which category and at what
+distance. Written to ``--out``: ``transfer.features.npy`` (T, D), ``transfer.joints.npy`` (T, J, 3)
+with the target category's mean bone offsets, ``transfer.bvh`` (SMAL-35 with those proportions and the
+model's rotations as they are, no IK; with ``--to_rig`` on that rig; ``transfer.glb`` with ``--format
+glb``), ``source.joints.npy``, ``preview.gif`` (source and result side by side) and ``transfer.json``
+(every setting).
 """
 
 from __future__ import annotations
@@ -20,13 +21,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from omg.errors import UsageError
-from omg.files import check_output_dir
-from omg.lit.generative import GenerationRequest
-from omg.retarget import read_rig
 from omg.tools.args import PositiveFiniteFloat, Seed, run
 from omg.tools.export import OutputFormat
-from omg.tools.generate import check_finite_motions, output_files, write_generation
+from omg.tools.generate import run_generation
 
 
 def transfer(
@@ -72,36 +69,20 @@ def transfer(
     Returns:
         The settings written to transfer.json.
     """
-    from omg.lit.checkpoint import load_module
-    from omg.lit.habit import HabitPriorModule, HabitVQModule
+    from omg.lit.habit import HabitVQModule
 
-    out = check_output_dir(out, files=(*output_files("transfer", format, "transfer.json", preview), "source.*.npy"))
-    if to_rig_joint_map is not None and to_rig is None:
-        raise UsageError("--to_rig_joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
-    module = load_module(ckpt, default_class=HabitVQModule, expect=HabitVQModule)
-    card = module.generation_card()
-    rig = read_rig(to_rig, card.skeleton, to_rig_joint_map) if to_rig is not None else None
-    prior = None
-    if prior_ckpt is not None:
-        prior = load_module(prior_ckpt, default_class=HabitPriorModule, expect=HabitPriorModule)
-        if prior.categories != module.categories:
-            raise UsageError(f"--prior_ckpt {prior_ckpt} was fitted for categories {prior.categories}, --ckpt {ckpt} "
-                             f"knows {module.categories}: fit the prior on this VQ-VAE")
-    source_motion = module.read_source(Path(source), joint_map)
-    request = GenerationRequest(prompts=None, frames=len(source_motion["features"]), seed=seed, species=to,
-                                source=source_motion, options={"species_file": species_file,
-                                                               "temperature": temperature, "quantizer": quantizer})
-    settings = {"command": command, "source": str(source), **module.generation_settings(request, prior),
-                "ckpt": str(ckpt), "prior_ckpt": str(prior_ckpt) if prior_ckpt else None, "seed": seed,
-                "fps": card.fps, "skeleton": card.skeleton, "representation": card.representation,
-                "to_rig": str(to_rig) if to_rig is not None else None, format: str(out / f"transfer.{format}")}
-    motions = module.transfer_motions(request, prior)
-    check_finite_motions(motions, ckpt)
-    write_generation(out, motions, card, settings, names=["transfer"], settings_file="transfer.json", rig=rig,
-                     joint_map=to_rig_joint_map, format=format, preview=preview)
+    settings = run_generation(
+        ckpt, prompts=[], animal=to, from_motion=Path(source), from_motion_joint_map=joint_map,
+        prior_ckpt=prior_ckpt, seed=seed, options={"species_file": species_file, "temperature": temperature,
+                                                   "quantizer": quantizer},
+        preview=preview, to_rig=to_rig, joint_map=to_rig_joint_map, format=format, device="cpu", out=out,
+        command=command, expect=HabitVQModule, names=["transfer"], settings_file="transfer.json",
+        extra_files=("source.*.npy",),
+        extra_settings={"source": str(source), format: str(Path(out) / f"transfer.{format}")})
     via = (f" via the nearest known category {settings['category']} (text distance {settings['distance']:.3f})"
            if settings["retrieved"] else "")
-    print(f"transferred {Path(source).name} ({settings['frames']} frames at {card.fps:g} fps) to {to}{via}: {out}")
+    print(f"transferred {Path(source).name} ({settings['frames']} frames at {settings['fps']:g} fps) to {to}{via}: "
+          f"{out}")
     return settings
 
 

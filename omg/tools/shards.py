@@ -20,7 +20,7 @@ import numpy as np
 
 from omg.data.shards import BuildProgress, EncodedClip, ShardWriter, check_shards, merge_shard_sets, write_shards
 from omg.errors import UsageError
-from omg.files import check_output_dir, read_text
+from omg.files import check_output_dir, read_text, removing_created
 from omg.motion import Clip, get_representation
 from omg.registry import DATA_SOURCES
 from omg.skeleton import get_skeleton
@@ -33,7 +33,6 @@ from omg.tools.args import (
     number_type,
     run_subcommands,
 )
-from omg.tools.common import removing_created
 
 MAX_FPS = 1000.0
 Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of frames per second in (0, {MAX_FPS:g}]")

@@ -66,6 +66,7 @@ def bench_quality(
     from omg.files import check_output_dir
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
+    from omg.lit.sampling import SamplingSettings
     from omg.metrics.following import CATEGORIES, load_prompts
     from omg.registry import SAMPLERS
 
@@ -92,7 +93,8 @@ def bench_quality(
             def generate(texts, lengths, batch_seed, name=name, n=n):
                 nonlocal seconds, motions
                 start = time.perf_counter()
-                motion = module.sample(list(texts), lengths, steps=n, sampler=name, seed=batch_seed, use_ema=False)
+                motion = module.sample(list(texts), lengths, SamplingSettings(steps=n, sampler=name, seed=batch_seed,
+                                                                                 use_ema=False))
                 seconds, motions = seconds + time.perf_counter() - start, motions + len(texts)
                 return motion
 

@@ -4,6 +4,7 @@ with the captions' tokens padded or trimmed and the text-only work redone or hoi
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Literal
 
 from omg.errors import UsageError
@@ -47,6 +48,7 @@ def bench_sample(
 
     from omg.diffusion import Diffusion
     from omg.lit.controlnet import ControlNetModule
+    from omg.lit.sampling import SamplingSettings
     from omg.registry import SAMPLERS, TEXT_ENCODERS
 
     if steps > Diffusion.num_timesteps:
@@ -67,20 +69,20 @@ def bench_sample(
         bench_guided_step(module, flavor, precision, frames, batch_sizes[0], token_steps, device, command, autocast)
         if steps == 0:
             return
+    sampling = SamplingSettings(steps=steps, sampler=sampler, autocast=autocast, compile=compile,
+                                stance_root=stance_root)
     print("| flavor | device | precision | sampler | steps | batch | s per batch | s per motion "
           "| peak memory | command |\n"
           "|---|---|---|---|---|---|---|---|---|---|")
     for batch in batch_sizes:
         prompts = ["a person walks forward and waves"] * batch
         # warm-up (and compilation): the same shapes as the timed run
-        module.sample(prompts, [frames] * batch, steps=2, sampler=sampler, autocast=autocast, compile=compile,
-                      stance_root=stance_root)
+        module.sample(prompts, [frames] * batch, replace(sampling, steps=2))
         if device == "cuda":
             torch.cuda.synchronize()
             torch.cuda.reset_peak_memory_stats()
         start = time.perf_counter()
-        module.sample(prompts, [frames] * batch, steps=steps, sampler=sampler, autocast=autocast, compile=compile,
-                      stance_root=stance_root)
+        module.sample(prompts, [frames] * batch, sampling)
         if device == "cuda":
             torch.cuda.synchronize()
         seconds = time.perf_counter() - start

@@ -1,8 +1,8 @@
 """``omg serve``: a local server with a page and an HTTP API over trained checkpoints of any family.
 
-The checkpoints are loaded once; each model's generation card (``omg.lit.generative``) tells the
+The checkpoints are loaded once; each model's generation card (``omg.generation``) tells the
 page and ``GET /v1/models`` what it takes. ``POST /v1/generate`` and ``POST /v1/transfer`` answer
-with the motions' joints and links to the files ``omg generate`` writes (``write_generation``);
+with the motions' joints and links to the files ``omg generate`` writes (``omg.generation.write``);
 the page plays them in a three.js skeleton viewer shipped in ``static/vendor`` (nothing is fetched
 from elsewhere). docs/guide/serving.md gives the routes and ``curl`` examples.
 """
@@ -20,30 +20,30 @@ import torch
 
 from omg.errors import UsageError
 from omg.files import check_output_dir
-from omg.tools.args import PositiveFiniteFloat, PositiveInt, run
-from omg.tools.generate import generative_module, resolve_device
+from omg.tools.args import PositiveFiniteFloat, PositiveInt, repeated, run
+from omg.tools.generate import resolve_device
 
 
 def load_models(ckpts: list[Path], human_ckpt: Path | None, device: torch.device, ema: bool = True) -> list:
     """Each checkpoint as a ``Model`` named by its file (``last`` by its run folder), with the
     ``--human_ckpt`` module for the cards that take a source generator."""
+    from omg.generation.registry import generator_for
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import PretrainModule
     from omg.tools.serve.app import Model
 
     human = None
     if human_ckpt is not None:
-        human = generative_module(human_ckpt, load_module(human_ckpt)).to(device).eval()
+        human = generator_for(load_module(human_ckpt), human_ckpt).to(device)
         if "text" not in human.generation_card().inputs:
             raise UsageError(f"--human_ckpt {human_ckpt} does not generate from prompts")
     models, names = [], set()
     for ckpt in ckpts:
-        module = generative_module(ckpt, load_module(ckpt, default_class=PretrainModule, use_ema=ema))
-        module = module.to(device).eval()
-        card = module.generation_card()
+        generator = generator_for(load_module(ckpt, default_class=PretrainModule, use_ema=ema), ckpt).to(device)
+        card = generator.generation_card()
         name = _name(ckpt, names)
         names.add(name)
-        models.append(Model(name=name, ckpt=str(ckpt), module=module, card=card,
+        models.append(Model(name=name, ckpt=str(ckpt), generator=generator, card=card,
                             source_module=human if card.source_generator else None))
     if human is not None and not any(m.source_module is not None for m in models):
         raise UsageError("--human_ckpt: no --ckpt takes a second checkpoint for its source motion (OmniMotionGPT)")
@@ -190,25 +190,4 @@ def host_names(host: str, allowed: list[str] | None) -> tuple[str, ...]:
 
 
 def main(argv: list[str]) -> None:
-    run(serve, _repeated(argv, "--ckpt"), "omg serve")
-
-
-def _repeated(argv: list[str], flag: str) -> list[str]:
-    """``--ckpt A --ckpt B`` as jsonargparse's list ``--ckpt [A, B]`` (it would keep only the last)."""
-    values, rest, i = [], [], 0
-    while i < len(argv):
-        if argv[i] == flag and i + 1 < len(argv):
-            values.append(argv[i + 1])
-            i += 2
-        elif argv[i].startswith(flag + "="):
-            values.append(argv[i].split("=", 1)[1])
-            i += 1
-        else:
-            rest.append(argv[i])
-            i += 1
-    if not values:
-        return rest
-    import json
-
-    joined = values[0] if len(values) == 1 and values[0].lstrip().startswith("[") else json.dumps(values)
-    return [flag, joined, *rest]
+    run(serve, repeated(argv, "--ckpt"), "omg serve")

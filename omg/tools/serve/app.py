@@ -1,6 +1,6 @@
 """The server's application: routes, the dynamic batcher and the result store.
 
-Everything a route knows about a model comes from its generation card (``omg.lit.generative``):
+Everything a route knows about a model comes from its generation card (``omg.generation``):
 which inputs it takes, its frame limits, samplers and species. Sampling runs on one worker thread
 (one model call at a time, off the event loop); requests that arrive within ``max_wait`` seconds
 of each other for the same model and settings are answered by one ``generate`` call of at most
@@ -45,17 +45,18 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException
 
 from omg.errors import UsageError
-from omg.lit.generative import (
+from omg.generation.protocol import (
     GeneratedMotion,
     GenerationCard,
     GenerationRequest,
-    GenerativeModule,
+    Generator,
     card_inputs,
     check_request,
 )
+from omg.generation.write import check_finite_motions, write_generation
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
-from omg.tools.generate import check_finite_motions, check_plain_text, read_prompts, write_generation
+from omg.tools.generate import check_plain_text, read_prompts
 
 log = logging.getLogger("omg.serve")
 STATIC = Path(__file__).parent / "static"
@@ -69,18 +70,18 @@ WRITES = ("POST", "PUT", "PATCH", "DELETE")
 
 @dataclass
 class Model:
-    """One loaded checkpoint: its name in the API, its module and card, and the second module that makes
-    its source motion from prompts (``--human_ckpt``) where the card takes one."""
+    """One loaded checkpoint: its name in the API, its generator and card, and the second checkpoint's
+    generator that makes its source motion from prompts (``--human_ckpt``) where the card takes one."""
 
     name: str
     ckpt: str
-    module: GenerativeModule
+    generator: Generator
     card: GenerationCard
-    source_module: GenerativeModule | None = None
+    source_module: Generator | None = None
 
     def info(self) -> dict[str, Any]:
         skeleton = get_skeleton(self.card.skeleton)  # the checkpoint's file name: no path of the server leaves it
-        return {"name": self.name, "ckpt": Path(self.ckpt).name, "module": type(self.module).__name__,
+        return {"name": self.name, "ckpt": Path(self.ckpt).name, "module": type(self.generator.module).__name__,
                 "card": self.card.to_dict(), "parents": list(skeleton.parents), "joints": list(skeleton.names),
                 "source_generator": self.source_module is not None,
                 "examples": EXAMPLES["species" if "species" in self.card.inputs else "text"]
@@ -202,7 +203,7 @@ def _sample(group: list[Job], max_batch: int) -> list[list[GeneratedMotion]]:
     """One ``generate`` call for a group of compatible jobs (their motions concatenated, each with its own
     seed), or the lone job's own call."""
     if len(group) == 1 and _key(group[0]) is None:
-        return [group[0].model.module.generate(group[0].request)]
+        return [group[0].model.generator.generate(group[0].request)]
     first = group[0].request
     prompts, seeds, repeats = [], [], []
     for job in group:
@@ -214,7 +215,7 @@ def _sample(group: list[Job], max_batch: int) -> list[list[GeneratedMotion]]:
     merged = replace(first, prompts=prompts if first.prompts else None,
                      num_samples=1 if first.prompts else len(prompts), seed=seeds[0], row_seeds=seeds,
                      batch_size=max_batch)
-    motions = group[0].model.module.generate(merged)
+    motions = group[0].model.generator.generate(merged)
     for motion, k in zip(motions, repeats):
         motion.record["repeat"] = k
     out, start = [], 0
@@ -374,7 +375,7 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         # parsed on the upload threads, never the sampling thread: a slow parse holds no one's generation;
         # after parse_timeout the request is answered, and the parse ends on its own thread
         parsing.add(1)
-        job = asyncio.wrap_future(parser.submit(_read_upload, chosen.module, data, suffix, joint_map, name, parsing))
+        job = asyncio.wrap_future(parser.submit(_read_upload, chosen.generator, data, suffix, joint_map, name, parsing))
         try:
             source = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
         except asyncio.TimeoutError:
@@ -405,10 +406,11 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             check_finite_motions(motions, Path(Path(model.ckpt).name), f" or guidance {request.guidance:g} too large"
                                  if request.guidance is not None else "")
             result = secrets.token_hex(6)
-            settings = {"model": model.name, "ckpt": Path(model.ckpt).name, "module": type(model.module).__name__,
-                        "family": model.card.family, "prompts": request.prompts, "num_samples": request.num_samples,
+            settings = {"model": model.name, "ckpt": Path(model.ckpt).name,
+                        "module": type(model.generator.module).__name__, "family": model.card.family,
+                        "prompts": request.prompts, "num_samples": request.num_samples,
                         "frames": request.frames, "fps": model.card.fps, "seed": request.seed, **extra,
-                        **model.module.generation_settings(request), "row_seeds": model.card.row_seeds,
+                        **model.generator.generation_settings(request), "row_seeds": model.card.row_seeds,
                         "representation": model.card.representation, "skeleton": model.card.skeleton}
             settings = _public(settings)  # a module's settings may name a checkpoint by its absolute path
             folder = out / result
@@ -541,15 +543,15 @@ def _upload_name(filename: str | None) -> str:
     return name if len(name) <= 100 else name[:97] + "..."
 
 
-def _read_upload(module: GenerativeModule, data: bytes, suffix: str, joint_map: str | None, name: str,
+def _read_upload(generator: Generator, data: bytes, suffix: str, joint_map: str | None, name: str,
                  parsing: _Count) -> Any:
-    """The upload as the module's source motion, read from a temporary file (on an upload thread)."""
+    """The upload as the model's source motion, read from a temporary file (on an upload thread)."""
     try:
         with tempfile.TemporaryDirectory(prefix="omg-upload-") as folder:
             path = Path(folder) / f"upload{suffix}"
             path.write_bytes(data)
             try:
-                return module.read_source(path, joint_map)
+                return generator.read_source(path, joint_map)
             except UsageError as e:
                 raise UsageError(str(e).replace(str(path), name).replace(folder, "")) from None
             except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault

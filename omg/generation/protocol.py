@@ -1,15 +1,17 @@
 """The one generation interface of every model family.
 
-A module that can make motion implements ``GenerativeModule``: its ``generation_card`` says
-what it generates from (text, no condition, a source motion, a species), on which skeleton, at
-what frame rate and within which frame limits, with which sampler options; ``generate`` turns a
-``GenerationRequest`` into ``GeneratedMotion``s. ``omg generate``, ``omg transfer`` and the
-server ask a module only these, never its class, and write what it returns with one writer
-(``omg.tools.generate.write_generation``).
+A family's generator (``Generator``, found for a trained module by ``omg.generation.registry``)
+says in its ``generation_card`` what the model generates from (text, no condition, a source
+motion, a species), on which skeleton, at what frame rate and within which frame limits, with
+which sampler options and family options; ``generate`` turns a ``GenerationRequest`` into
+``GeneratedMotion``s. ``omg generate``, ``omg transfer`` and the server ask a generator only
+these, never the module's class, and write what it returns with one writer
+(``omg.generation.write``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
@@ -106,8 +108,12 @@ class GeneratedMotion:
 
 
 @runtime_checkable
-class GenerativeModule(Protocol):
-    """What ``omg generate``, ``omg transfer`` and ``omg serve`` call on a model of any family."""
+class Generator(Protocol):
+    """What ``omg generate``, ``omg transfer`` and ``omg serve`` call on a model of any family: its
+    trained ``module`` (a LightningModule, which holds training only) seen through its family's adapter."""
+
+    module: Any
+    takes_prior: bool  # ``with_prior`` takes a second checkpoint's prior (``--prior_ckpt``)
 
     def generation_card(self) -> GenerationCard: ...
 
@@ -116,6 +122,36 @@ class GenerativeModule(Protocol):
     def generate(self, request: GenerationRequest) -> list[GeneratedMotion]: ...
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]: ...
+
+    def option(self, key: str, value: str) -> Any: ...
+
+    def with_prior(self, prior: Any) -> None: ...
+
+
+class ModuleGenerator:
+    """What the families' adapters share: the module they generate with, moved with ``to``, and no source
+    motion, family option or prior unless the adapter takes one."""
+
+    takes_prior = False
+
+    def __init__(self, module: Any):
+        self.module = module
+
+    def to(self, device: Any) -> ModuleGenerator:
+        """The module on ``device`` in eval mode."""
+        self.module = self.module.to(device).eval()
+        return self
+
+    def read_source(self, path: Path, joint_map: str | None = None) -> Any:
+        raise UsageError(f"a {self.generation_card().family} checkpoint takes no source motion")
+
+    def option(self, key: str, value: str) -> Any:
+        """The value of family option ``key`` given as text (``--option KEY=VALUE``), checked."""
+        return value
+
+    def with_prior(self, prior: Any) -> None:
+        """Draw from ``prior``, a second checkpoint's module (``--prior_ckpt``), where ``takes_prior``."""
+        raise UsageError(f"--prior_ckpt: a {self.generation_card().family} checkpoint takes no prior checkpoint")
 
 
 def check_request(card: GenerationCard, request: GenerationRequest, what: str = "this checkpoint") -> None:
@@ -163,3 +199,30 @@ def card_inputs(card: GenerationCard) -> str:
 
 _WHAT = {"text": "prompts", "unconditional": "nothing (--unconditional)", "motion": "a source motion (--from_motion)",
          "species": "a species (--animal)"}
+
+
+def parse_options(generator: Generator, pairs: list[str], what: str = "this checkpoint") -> dict[str, Any]:
+    """``--option KEY=VALUE`` pairs as the family options of ``generator``'s card, each value read by its
+    ``option``; a key the card does not list is one line naming the card's options."""
+    card, options = generator.generation_card(), {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            example = next(iter(card.options), "KEY")
+            raise UsageError(f"--option {pair!r}: give KEY=VALUE, e.g. --option {example}=VALUE")
+        if key not in card.options:
+            raise UsageError(f"{what} takes no option {key}; its options: {', '.join(card.options) or 'none'}")
+        options[key] = generator.option(key, value)
+    return options
+
+
+def number_option(key: str, value: str, low: float, high: float, low_open: bool = False) -> float:
+    """``value`` as a number in [low, high] (``low_open``: (low, high]), else one line naming ``key``."""
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not math.isfinite(number) or not (low < number if low_open else low <= number) or not number <= high:
+        bounds = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise UsageError(f"--option {key}={value}: give a number in {bounds}")
+    return number

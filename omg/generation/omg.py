@@ -1,0 +1,84 @@
+"""OMG's generator: text-to-motion (ControlNet) or the unconditional prior (pretraining), sampled by the
+diffusion module's ``sample``."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from omg.errors import UsageError
+from omg.generation.protocol import (
+    MAX_SECONDS,
+    GeneratedMotion,
+    GenerationCard,
+    GenerationRequest,
+    ModuleGenerator,
+    number_option,
+)
+from omg.generation.registry import register_generator
+from omg.lit.pretrain import MotionDiffusionModule
+from omg.lit.sampling import SamplingSettings
+from omg.registry import SAMPLERS
+
+
+@register_generator(MotionDiffusionModule)
+class OmgGenerator(ModuleGenerator):
+    """Motions of an OMG diffusion checkpoint (a ControlNet, or the pretrained prior)."""
+
+    module: MotionDiffusionModule
+
+    def generation_card(self) -> GenerationCard:
+        m = self.module
+        return GenerationCard(
+            family="omg", skeleton=m.spec.skeleton, representation=m.spec.representation, fps=m.spec.fps,
+            inputs=("text", "unconditional") if m.text_conditional else ("unconditional",),  # D_u: the prior
+            max_frames=round(MAX_SECONDS * m.spec.fps), samplers=tuple(SAMPLERS.names()),
+            max_steps=m.diffusion.num_timesteps, default_steps=min(200, m.diffusion.num_timesteps),
+            guidance=getattr(m, "guidance_scale", None), row_seeds=True,
+            options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
+            if m.representation.stance_root else {})
+
+    def read_source(self, path, joint_map: str | None = None):
+        raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
+
+    def option(self, key: str, value: str) -> Any:
+        return number_option(key, value, 0.0, 1.0)  # stance_root, the card's one option
+
+    def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
+        """``num_samples`` motions per prompt (in total when unconditional), sampled ``batch_size`` at a time,
+        each batch with seed ``seed`` + its first motion's index; the weights as loaded (``load_module`` puts
+        the EMA in)."""
+        m = self.module
+        prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
+        jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
+        # use_ema=False: the weights as loaded (load_module puts the EMA in)
+        sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
+                                    use_ema=False, autocast=request.autocast, compile=request.compile,
+                                    stance_root=request.options.get("stance_root"))
+        if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
+            raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
+        motions = []
+        for start in range(0, len(jobs), request.batch_size):
+            batch = jobs[start : start + request.batch_size]
+            batch_seed = request.seed + start
+            seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
+            texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
+            features = m.sample(texts, [request.frames] * len(batch),
+                                replace(sampling, seed=batch_seed, seeds=seeds))  # (n, T, D)
+            joints = m.representation.decode(features.float())  # (n, T, J, 3)
+            for i, (prompt, k) in enumerate(batch):
+                seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
+                motions.append(GeneratedMotion(
+                    features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
+                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, **seed}))
+        return motions
+
+    def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
+        m = self.module
+        return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
+                "sampler": request.sampler or "ddim",
+                "guidance_scale": (request.guidance if request.guidance is not None else m.guidance_scale)
+                if request.prompts else None, "batch_size": request.batch_size,
+                "stance_root": request.options.get("stance_root", m.stance_root)}

@@ -1,0 +1,173 @@
+"""Generation as its own floor: each family's adapter found by module class (a plugin family's too), the
+declared tensor-level sampler the callbacks call, and ``omg generate --option KEY=VALUE`` checked against the
+generation card."""
+
+from __future__ import annotations
+
+import json
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from helpers import TINY_DIT
+from helpers.checkpoints import SPEC
+from omg.errors import UsageError
+from omg.generation.habit import HabitGenerator
+from omg.generation.omg import OmgGenerator
+from omg.generation.omgpt import OmniMotionGenerator
+from omg.generation.protocol import GenerationCard, Generator, ModuleGenerator
+from omg.generation.registry import generator_for, module_key, register_generator
+from omg.lit.controlnet import ControlNetModule
+from omg.lit.habit import HabitPriorModule, HabitVQModule
+from omg.lit.omgpt import OmniMotionModule
+from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import Sampler, SamplingSettings, sampler_of
+from omg.registry import GENERATORS
+
+
+def bare(cls: type):
+    """An instance of ``cls`` without its constructor: the registry looks at the class only."""
+    return cls.__new__(cls)
+
+
+@pytest.mark.parametrize("cls, adapter", [(PretrainModule, OmgGenerator), (ControlNetModule, OmgGenerator),
+                                          (OmniMotionModule, OmniMotionGenerator), (HabitVQModule, HabitGenerator),
+                                          (HabitPriorModule, HabitGenerator)])
+def test_the_registry_finds_each_familys_adapter(cls, adapter):
+    generator = generator_for(bare(cls))
+    assert type(generator) is adapter and isinstance(generator, Generator)
+    # the family modules hold training only: no generation method is left on them
+    assert not any(hasattr(cls, name) for name in ("generation_card", "read_source", "generation_settings",
+                                                   "transfer_motions", "species_condition"))
+
+
+def test_a_module_without_an_adapter_is_one_line():
+    class Trainer(L.LightningModule):
+        pass
+
+    with pytest.raises(UsageError) as e:
+        generator_for(Trainer(), "run.ckpt")
+    assert str(e.value) == f"run.ckpt holds a {module_key(Trainer)} checkpoint, which generates no motion"
+
+
+def test_a_plugin_family_registers_its_adapter_and_a_subclass_its_own():
+    class MyModule(L.LightningModule):
+        pass
+
+    class MyDiffusion(PretrainModule):  # an OMG subclass generates like OMG until it registers its own
+        pass
+
+    assert type(generator_for(bare(MyDiffusion))) is OmgGenerator
+
+    class MyGenerator(ModuleGenerator):
+        def generation_card(self) -> GenerationCard:
+            return GenerationCard(family="mine", skeleton="smpl22", representation="humanml3d263", fps=20.0,
+                                  inputs=("text",))
+
+    try:
+        register_generator(MyModule)(MyGenerator)
+        register_generator(MyDiffusion)(MyGenerator)
+        assert type(generator_for(MyModule())) is MyGenerator
+        assert type(generator_for(bare(MyDiffusion))) is MyGenerator
+        with pytest.raises(UsageError, match="a mine checkpoint takes no source motion"):
+            generator_for(MyModule()).read_source("clip.bvh")
+    finally:
+        for cls in (MyModule, MyDiffusion):
+            GENERATORS._entries.pop(module_key(cls), None)
+
+
+def test_the_callbacks_call_the_declared_sampler_and_refuse_a_module_without_one():
+    from omg.callbacks import EvalCallback, RenderCallback
+    from omg.callbacks.eval import check_generative
+
+    callback = EvalCallback(metrics=["foot_skating"], steps=3, sampler="dpmpp", use_ema=False)
+    seen = []
+
+    class Spy(L.LightningModule):  # a module that declares the protocol
+        text_conditional = True
+
+        def sample(self, texts, lengths, settings=None):
+            seen.append((texts, settings))
+            return torch.zeros(len(lengths), 4, 2)
+
+        def check_sampling(self, settings, key):
+            pass
+
+    assert isinstance(Spy(), Sampler)
+    callback.generate(Spy(), ["a person walks"], torch.tensor([4]), seed=5)
+    assert seen == [(["a person walks"], SamplingSettings(steps=3, sampler="dpmpp", seed=5, use_ema=False,
+                                                          key="EvalCallback"))]
+    for key, what in (("EvalCallback", callback.sampling), ("RenderCallback", RenderCallback().sampling)):
+        with pytest.raises(UsageError) as e:
+            check_generative(torch.nn.Linear(1, 1), key, what)
+        assert str(e.value).startswith(f"{key} needs a model that samples motion") and "\n" not in str(e.value)
+        assert "Linear has none" in str(e.value)
+    with pytest.raises(UsageError, match="--ckpt needs a model that samples motion"):
+        sampler_of(object(), "--ckpt")
+
+
+def test_sampling_settings_are_checked_once_where_they_are_made():
+    with pytest.raises(UsageError, match=r"^EvalCallback.stance_root must be in \[0, 1\]"):
+        SamplingSettings(stance_root=1.5, key="EvalCallback")
+    with pytest.raises(UsageError, match=r"^steps must be an integer >= 1, got 0"):
+        SamplingSettings(steps=0)
+    with pytest.raises(UsageError, match="unknown sampler 'nope'"):
+        SamplingSettings(sampler="nope")
+    assert SamplingSettings(seeds=[1, 2]).seeds == (1, 2)  # frozen: a tuple
+    assert SamplingSettings().report() == {"steps": 200, "guidance": None, "use_ema": True, "sampler": "ddim"}
+
+
+@pytest.fixture(scope="module")
+def pretrain_ckpt(tmp_path_factory):
+    from omg.lit.checkpoint import class_path
+
+    mean = list(SPEC["mean"])
+    mean[2], mean[259:263] = 0.05, [1.0] * 4  # estimates that walk on planted feet: stance_root has work to do
+    torch.manual_seed(0)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec={**SPEC, "mean": mean}, ema_decay=0)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(torch.randn_like(p) * 0.05)  # the zero-initialised output layer too
+    ckpt = tmp_path_factory.mktemp("gen") / "pre.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "module_class": class_path(type(module))}, ckpt)
+    return ckpt
+
+
+GENERATE = ["generate", "--unconditional", "--num_samples", "1", "--length", "0.5", "--steps", "2", "--no_preview"]
+
+
+def test_option_is_checked_against_the_card(pretrain_ckpt, tmp_path, capsys):
+    from omg.cli import main
+
+    for option, message in (("bogus=1", f"{pretrain_ckpt} (PretrainModule) takes no option bogus; its options: "
+                                        "stance_root"),
+                            ("stance_root=2", "--option stance_root=2: give a number in [0, 1]"),
+                            ("stance_root", "--option 'stance_root': give KEY=VALUE, e.g. --option stance_root=VALUE")):
+        with pytest.raises(SystemExit) as e:
+            main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--option", option, "--out", str(tmp_path / "bad")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and err == f"omg: error: {message}\n", err
+        assert not (tmp_path / "bad").exists()
+    # --option stance_root=V is --stance_root V: the same motion, the same settings
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--option", "stance_root=1", "--out", str(tmp_path / "o")])
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--stance_root", "1", "--out", str(tmp_path / "f")])
+    for name in ("sample_000.features.npy", "sample_000.joints.npy", "sample_000.bvh"):
+        assert (tmp_path / "o" / name).read_bytes() == (tmp_path / "f" / name).read_bytes(), name
+    settings = json.loads((tmp_path / "o/generation.json").read_text())
+    assert settings["stance_root"] == 1.0 and settings["module"] == "PretrainModule"
+    plain = np.load(tmp_path / "f/sample_000.features.npy")
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--out", str(tmp_path / "p")])
+    assert not np.array_equal(np.load(tmp_path / "p/sample_000.features.npy"), plain)  # the option did something
+
+
+def test_a_prior_checkpoint_is_refused_by_a_family_without_one(pretrain_ckpt, tmp_path, capsys):
+    from omg.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--prior_ckpt", str(pretrain_ckpt), "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err == f"omg: error: --prior_ckpt: {pretrain_ckpt} (PretrainModule) takes no prior " \
+                                         "checkpoint\n"
