@@ -8,13 +8,15 @@ loader that stream's next epoch, so its epochs turn over at their own steps and 
 the trainer's epochs where it was. Each set keeps its own skeleton, offsets, captions, shards split
 across the ranks and seeded stream (``MotionStream``); both positions are stateful loaders, which
 Lightning saves in checkpoints (``loops.fit_loop.state_dict.combined_loader``, animal then human)
-and restores on resume. Validation and testing read the animal set only.
+and restores on resume. Validation and testing read the animal set only (the human set's manifests
+are not even opened).
 """
 
 from __future__ import annotations
 
 import inspect
 from collections.abc import Iterator
+
 from lightning.pytorch.utilities.combined_loader import CombinedLoader
 
 from omg.data.datamodule import ClipDataset, MotionDataModule, StreamLoader
@@ -59,31 +61,33 @@ class PairedDataModule(MotionDataModule):
     Args:
         human: the second shard set's ``MotionDataModule`` arguments (``CompanionData``: ``train``,
             ``val``, ``batch_size``, ``max_len``, ``min_len``, ...), each unset its default but
-            ``clip_sampling``, the first set's (the model's). OmniMotionGPT's human motion (smpl22 maa shards, captioned); the
-            older key ``model.init_args.human_data`` is read as this one (``omg fit``).
+            ``clip_sampling``, the first set's (the model's). OmniMotionGPT's human motion (smpl22 maa
+            shards, captioned); the older key ``model.init_args.human_data`` is read as this one (``omg fit``).
     """
 
     def __init__(self, *args, human: CompanionData | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         fields = set_fields(CompanionData, human, "data.human")
         self.hparams["human"] = fields or None
-        self.human: MotionDataModule | None = None
         if fields:
-            own = {"clip_sampling": self.hparams.clip_sampling}
             try:
                 inspect.signature(MotionDataModule).bind(**fields)
             except TypeError as e:
                 raise UsageError(f"data.human: {e}; it takes the arguments of data (train, val, batch_size, ...)") \
                     from None
-            self.human = MotionDataModule(**{**own, **fields})
+        self._human: MotionDataModule | None = None
 
     @property
-    def human_spec(self):
-        return self.human.spec if self.human is not None else None
+    def human(self) -> MotionDataModule | None:
+        """The second set's data module, opened when first asked for (a run that only validates or tests
+        never reads its manifests), or None."""
+        if self._human is None and self.hparams.human:
+            self._human = MotionDataModule(**{"clip_sampling": self.hparams.clip_sampling, **self.hparams.human})
+        return self._human
 
     def train_dataloader(self) -> StreamLoader | CombinedLoader:
         animal = super().train_dataloader()
-        if self.human is None:
+        if not self.hparams.human:
             return animal
         if not self.human.train_urls:
             raise UsageError("data.human.train: a shard directory or URL pattern is needed to train")

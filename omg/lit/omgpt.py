@@ -177,6 +177,7 @@ class OmniMotionModule(OmgModule):
                         "cross_clip": cross_clip_weight, "ee": ee_weight, "translation": translation_weight}
         # fit-time state (fit_state_keys): the data's when training starts, else a checkpoint's
         self.animals: dict[str, Tensor] = {}
+        self.animal_table: dict[str, list] | None = None  # the same offsets as found (kept as they were saved)
         self.human_spec: DataSpec | None = None
         self.human_bank: dict[str, list] | None = None
         self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
@@ -347,7 +348,8 @@ class OmniMotionModule(OmgModule):
         if getattr(self, "human_bank_motion", None) is None:
             self.build_bank(data.human_val_samples())
         if not self.animals:
-            self.animals = {k: torch.tensor(v) for k, v in data.category_offsets().items()}
+            self.animal_table = data.category_offsets()
+            self.animals = {k: torch.tensor(v) for k, v in self.animal_table.items()}
         super().on_fit_start()  # the weight EMA
 
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
@@ -380,7 +382,7 @@ class OmniMotionModule(OmgModule):
 
     def fit_state(self) -> dict[str, Any]:
         """The fit-time state as plain types (``checkpoint["fit_state"]``)."""
-        return {"animals": {k: v.tolist() for k, v in self.animals.items()} or None,
+        return {"animals": self.animal_table,
                 "human_spec": self.human_spec.to_dict() if self.human_spec is not None else None,
                 "human_bank": self.human_bank}
 
@@ -389,6 +391,7 @@ class OmniMotionModule(OmgModule):
         before; the retrieval clips' buffers shaped for the weights that come next."""
         state = checkpoint.get("fit_state") or checkpoint.get("hyper_parameters") or {}
         if animals := state.get("animals"):
+            self.animal_table = animals
             self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in animals.items()}
         if (spec := state.get("human_spec")) is not None:
             self.use_human_spec(spec)
