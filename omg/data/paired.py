@@ -82,7 +82,10 @@ class PairedDataModule(MotionDataModule):
         """The second set's data module, opened when first asked for (a run that only validates or tests
         never reads its manifests), or None."""
         if self._human is None and self.hparams.human:
-            self._human = MotionDataModule(**{"clip_sampling": self.hparams.clip_sampling, **self.hparams.human})
+            try:
+                self._human = MotionDataModule(**{"clip_sampling": self.hparams.clip_sampling, **self.hparams.human})
+            except UsageError as e:  # its checks name data's keys: say which set
+                raise UsageError(f"data.human: {e}") from None
         return self._human
 
     def train_dataloader(self) -> StreamLoader | CombinedLoader:

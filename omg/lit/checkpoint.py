@@ -191,20 +191,22 @@ def recorded_class(ckpt: dict[str, Any]) -> str | None:
 
 def inspect_checkpoint(path: PathLike) -> dict[str, Any]:
     """Check a checkpoint without materialising its weights: ``{"kind": "lightning" | "deepspeed" |
-    "safetensors", "module_class", "hyper_parameters"}``. Every pickle is read (weights-only, tensors
+    "safetensors", "module_class", "hyper_parameters", "fit_state"}`` (``fit_state``: what the module filled
+    in from its data, None where it keeps none). Every pickle is read (weights-only, tensors
     memory-mapped) and every byte CRC-checked, so that a checkpoint that passes loads; raises
     CorruptCheckpoint, UnsafeCheckpoint or UsageError otherwise."""
     path = Path(path)
     if path.is_dir():
         _, _, states = _deepspeed_states(path)
         return {"kind": "deepspeed", "module_class": recorded_class(states),
-                "hyper_parameters": states.get("hyper_parameters")}
+                "hyper_parameters": states.get("hyper_parameters"), "fit_state": states.get("fit_state")}
     if path.suffix == ".safetensors" and path.is_file():
         metadata = _safetensors_metadata(path)
         return {"kind": "safetensors", "module_class": metadata["module_class"],
-                "hyper_parameters": metadata["hyper_parameters"]}
+                "hyper_parameters": metadata["hyper_parameters"], "fit_state": metadata.get("fit_state")}
     ckpt = _read_lightning(path, mmap=True)
-    return {"kind": "lightning", "module_class": recorded_class(ckpt), "hyper_parameters": ckpt.get("hyper_parameters")}
+    return {"kind": "lightning", "module_class": recorded_class(ckpt), "hyper_parameters": ckpt.get("hyper_parameters"),
+            "fit_state": ckpt.get("fit_state")}
 
 
 def load_checkpoint(path: PathLike, default_class: type[L.LightningModule] | None = None) -> dict[str, Any]:

@@ -334,6 +334,7 @@ class OmgLightningCLI(LightningCLI):
         import docstring_parser
 
         self.command = command  # LightningCLI's own ``subcommand`` stays None (run=False)
+        self.ckpt_fit_state: dict[str, Any] | None = None  # --ckpt_path's, for the module once built
         self.method_arguments: list[str] = []
         doc = docstring_parser.parse(getattr(L.Trainer, command).__doc__ or "").short_description or ""
         super().__init__(
@@ -419,6 +420,8 @@ class OmgLightningCLI(LightningCLI):
             raise
         except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
             raise UsageError(explain(e)) from None
+        if self.ckpt_fit_state is not None and callable(restore := getattr(self.model, "restore_fit_state", None)):
+            restore(self.ckpt_fit_state)
 
     def instantiate_trainer(self, **kwargs) -> L.Trainer:
         """The configured Trainer, its checkpoints in the run directory, plus a checkpoint on
@@ -524,6 +527,9 @@ class OmgLightningCLI(LightningCLI):
         configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
         cls = self.check_ckpt_class(ckpt_path, header["module_class"], configured)
         hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
+        # what the module filled in from its data (OmniMotionGPT's human spec, animals, retrieval clips): the
+        # module takes it once built, so that the checks before the run (preflight) see the checkpoint's
+        self.ckpt_fit_state = {"fit_state": header.get("fit_state"), "hyper_parameters": dict(hparams)}
         hparams.pop("_instantiator", None)
         # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
         # run's config, never from the file: a checkpoint that named a `pipe:` command would run it
