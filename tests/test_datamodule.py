@@ -332,9 +332,10 @@ def test_pretraining_configs_draw_window_lengths_uniformly_from_1_to_300(toy_sha
 
     from helpers import REPO
     from helpers.configs import parse
+    from omg.data.paired import PairedDataModule
 
     data = parse(REPO / f"configs/pretrain_{size}.yaml").data.as_dict()
-    dm = MotionDataModule(**{**data, "train": str(toy_shards), "val": None, "num_workers": 0})
+    dm = PairedDataModule(**{**data, "train": str(toy_shards), "val": None, "num_workers": 0})  # omg fit's data
     w, rng = dm.windows, np.random.default_rng(0)
     assert (w.mode, w.min_len, w.max_len) == ("windows", 1, 300), f"{size}: OMG Sec. 3.1 draws l ~ U[1, L = 300]"
     lengths = np.array([w.random(1000, rng)[1] for _ in range(30_000)])
