@@ -500,7 +500,9 @@ class MotionDataModule(L.LightningDataModule):
     ):
         # this call's arguments, explicitly: Lightning's frame inspection would also collect those of
         # an enclosing __init__ (a LightningModule that builds a second data module, as OmniMotionGPT does)
-        arguments = {name: value for name, value in locals().items() if name not in ("self", "__class__")}
+        # (clip_sampling is the model's, linked, not a setting of the data: the data's record is as it was)
+        arguments = {name: value for name, value in locals().items()
+                     if name not in ("self", "__class__", "clip_sampling")}
         super().__init__()
         if batch_size < 1 or batches_per_epoch < 1 or num_workers < 0 or shuffle_buffer < 1:
             raise UsageError(
@@ -522,6 +524,7 @@ class MotionDataModule(L.LightningDataModule):
         if not 0.0 <= mirror_prob <= 1.0:  # also NaN
             raise UsageError(f"data.mirror_prob is a probability in [0, 1], got {mirror_prob}")
         self.save_hyperparameters(arguments)
+        self.clip_sampling = clip_sampling
         if not train and not val:
             raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
                              "is enough for `omg validate` and `omg test`)")
@@ -579,7 +582,7 @@ class MotionDataModule(L.LightningDataModule):
         """How samples are cut: ``data.clips``, or under ``auto`` ``data.clip_sampling`` (the model's)."""
         mode = self.hparams.clips
         return WindowSampler(self.hparams.max_len, self.hparams.min_len,
-                             self.hparams.clip_sampling if mode == "auto" else mode)
+                             self.clip_sampling if mode == "auto" else mode)
 
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer

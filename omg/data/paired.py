@@ -68,8 +68,9 @@ class PairedDataModule(MotionDataModule):
     def __init__(self, *args, human: CompanionData | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         fields = set_fields(CompanionData, human, "data.human")
-        self.hparams["human"] = fields or None
+        self.human_args = fields or None  # recorded among the data's hyper-parameters only when set
         if fields:
+            self.hparams["human"] = fields
             try:
                 inspect.signature(MotionDataModule).bind(**fields)
             except TypeError as e:
@@ -81,16 +82,16 @@ class PairedDataModule(MotionDataModule):
     def human(self) -> MotionDataModule | None:
         """The second set's data module, opened when first asked for (a run that only validates or tests
         never reads its manifests), or None."""
-        if self._human is None and self.hparams.human:
+        if self._human is None and self.human_args:
             try:
-                self._human = MotionDataModule(**{"clip_sampling": self.hparams.clip_sampling, **self.hparams.human})
+                self._human = MotionDataModule(**{"clip_sampling": self.clip_sampling, **self.human_args})
             except UsageError as e:  # its checks name data's keys: say which set
                 raise UsageError(f"data.human: {e}") from None
         return self._human
 
     def train_dataloader(self) -> StreamLoader | CombinedLoader:
         animal = super().train_dataloader()
-        if not self.hparams.human:
+        if not self.human_args:
             return animal
         if not self.human.train_urls:
             raise UsageError("data.human.train: a shard directory or URL pattern is needed to train")
