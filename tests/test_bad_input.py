@@ -154,6 +154,12 @@ FIT_HABIT = ["fit", "--config", str(REPO / "configs/mini/habit_vqvae.yaml"), "--
              "--data.val", str(REPO / "shards/mini/animal_quatvel/val"), "--trainer.max_steps", "1"]
 FIT_DATA = [*FIT, "--data.train", MINI_SHARDS, "--data.val", MINI_VAL,  # the config names them from the repo
             "--trainer.max_steps", "1"]  # were a check missing, the run would end soon
+FIT_OMGPT = ["fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.default_root_dir", "{out}",
+             "--model.init_args.text_encoder", "hash", "--trainer.max_steps", "1",  # the config's sets, from the repo:
+             "--data.train", str(REPO / "shards/mini/animal_maa/train"),
+             "--data.val", str(REPO / "shards/mini/animal_maa/val"),
+             "--data.human.train", str(REPO / "shards/mini/human_maa/train"),
+             "--data.human.val", str(REPO / "shards/mini/human_maa/val")]
 ROWS = [
     # omg generate
     ("gen-prompts-latin1", [*GEN, "--ckpt", "{cn}", "--out", "{out}", "--prompts_file", "{in}/latin1.txt"]),
@@ -329,6 +335,12 @@ ROWS = [
     ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
     ("fit-progress-every-neg", [*FIT_DATA, "--progress_every=-1"]),
+    # OmniMotionGPT's second set (data.human), its older key, and a run without it
+    ("fit-human-batch-zero", [*FIT_OMGPT, "--data.human.batch_size", "0"]),
+    ("fit-human-other-skeleton", [*FIT_OMGPT, "--data.human.train", str(REPO / "shards/mini/animal_maa/train"),
+                                  "--data.human.val", str(REPO / "shards/mini/animal_maa/val")]),
+    ("fit-human-none", [*FIT_OMGPT, "--data.human", "null"]),
+    ("fit-human-data-and-human", [*FIT_OMGPT, "--model.init_args.human_data.batch_size", "4"]),
     # omg bench
     ("bench-train-batch-neg", ["bench", "train", "--batch_size", "-1", "--steps", "1", "--warmup", "0",
                                "--frames", "8"]),
@@ -578,6 +590,13 @@ SAYS = {
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
     "fit-progress-every-neg": "progress_every: expected an integer >= 0, got '-1'",
+    "fit-human-batch-zero": "data.human: data.batch_size, data.batches_per_epoch and data.shuffle_buffer must be "
+                            "positive",
+    "fit-human-other-skeleton": "data.human: OmniMotionGPT reads smpl22 shards in the maa representation, got "
+                                "smal35 maa",
+    "fit-human-none": "OmniMotionGPT trains on two shard sets: set data.human to the human shards",
+    "fit-human-data-and-human": "model.init_args.human_data and data.human both name the human shards: keep data.human "
+                                "only",
     "bench-train-batch-neg": "batch_size: expected an integer >= 1, got '-1'",
     "bench-train-peak-nan": "peak_tflops: expected a finite number > 0, got 'nan'",
     "bench-plan-mfu-zero": "mfu: expected a number in (0, 1], got '0'",

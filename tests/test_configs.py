@@ -39,8 +39,7 @@ def build_model_on_meta(cfg, flavor: str = "mini"):
     if cls_name == "ControlNetModule":  # no pretrained checkpoint or CLIP weights here: describe the base, hash text
         init.update(base={"flavor": flavor, "dit": None, "spec": FAKE_SPEC}, text_encoder="hash", text_encoder_args={})
     if cls_name == "OmniMotionModule":  # maa on both skeletons; no shards or CLIP weights here: hash text
-        init.update(spec=maa_spec("smal35", 216), human_spec=maa_spec("smpl22", 138), text_encoder="hash",
-                    text_encoder_args={})
+        init.update(spec=maa_spec("smal35", 216), text_encoder="hash", text_encoder_args={})
     if cls_name == "HabitVQModule":  # habit transfer reads quatvel on SMAL-35
         init["spec"] = QUATVEL_SPEC
     if cls_name == "HabitPriorModule":  # its VQ-VAE checkpoint is not here: the flows of the matching stage-1 config
@@ -86,7 +85,7 @@ PAPER_PARAMS = {"base": 88e6, "large": 201e6, "giant": 1.0e9}
 
 def _groups() -> dict[str, tuple[dict[str, type], dict[str, object]]]:
     """configs/mini/X.yaml -> (its model's typed settings groups, values the config sets in them)."""
-    from omg.data.omgpt import CompanionData
+    from omg.data.paired import CompanionData
     from omg.models.controlnet import MoCOverrides
     from omg.models.dit import DiTOverrides
     from omg.models.evaluator import EvaluatorOverrides
@@ -97,9 +96,9 @@ def _groups() -> dict[str, tuple[dict[str, type], dict[str, object]]]:
     return {"pretrain": ({"dit": DiTOverrides}, {}),
             "controlnet": ({"moc": MoCOverrides, "text_encoder_args": TextEncoderArgs}, {"moc.d_c": 64}),
             "evaluator": ({"evaluator": EvaluatorOverrides, "text_encoder_args": TextEncoderArgs}, {}),
-            "omgpt": ({"config": OmniMotionOverrides, "human_data": CompanionData,
-                       "text_encoder_args": TextEncoderArgs},
-                      {"config.latent_shift": True, "human_data.batch_size": 8}),
+            "omgpt": ({"config": OmniMotionOverrides, "text_encoder_args": TextEncoderArgs,
+                       "data.human": CompanionData},
+                      {"config.latent_shift": True, "data.human.batch_size": 8}),
             "habit_vqvae": ({"habit": HabitOverrides, "text_encoder_args": TextEncoderArgs}, {})}
 
 
@@ -115,12 +114,13 @@ def test_print_config_lists_every_key_of_the_nested_settings(name, capsys, monke
     with pytest.raises(SystemExit) as e:
         main(["fit", "--config", str(REPO / f"configs/mini/{name}.yaml"), "--print_config"])
     assert e.value.code in (0, None)
-    init = yaml.safe_load(capsys.readouterr().out)["model"]["init_args"]
+    printed = yaml.safe_load(capsys.readouterr().out)
+    init = printed["model"]["init_args"] | {"data.human": printed["data"]["human"]}  # OmniMotionGPT's human shards
     groups, values = _groups()[name]
     for key, group in groups.items():
         assert list(init[key]) == [f.name for f in dataclasses.fields(group)], key
     for dotted, value in values.items():
-        key, _, field = dotted.partition(".")
+        key, _, field = dotted.rpartition(".")
         assert init[key][field] == value, dotted
     unset = [k for key in groups for k, v in init[key].items() if v is None]
     assert unset, "the unset keys are listed too"
@@ -170,8 +170,8 @@ def test_deepspeed_config_is_valid_for_deepspeed():
 
 
 def _data_sections(cfg: dict):
-    """Every (train, min_len, clips) a config trains on: its data and a model's nested human_data."""
-    for data in (cfg.get("data") or {}, ((cfg.get("model") or {}).get("init_args") or {}).get("human_data") or {}):
+    """Every (train, min_len, clips) a config trains on: its data and its data.human (OmniMotionGPT's)."""
+    for data in (cfg.get("data") or {}, (cfg.get("data") or {}).get("human") or {}):
         if data.get("train") and data.get("clips") != "windows":
             yield data["train"], data.get("min_len", 40), data.get("clips", "auto")
 

@@ -25,7 +25,8 @@ pytestmark = pytest.mark.xdist_group("controlnet_module")
 
 
 def _data(**kw):
-    args = dict(batch_size=16, max_len=60, min_len=40, batches_per_epoch=1000, num_workers=0, shuffle_buffer=64)
+    args = dict(batch_size=16, max_len=60, min_len=40, batches_per_epoch=1000, num_workers=0, shuffle_buffer=64,
+                clip_sampling="whole")  # ControlNetModule's, which `omg fit` links
     return MotionDataModule(str(MINI / "train"), **{**args, **kw})
 
 

@@ -260,19 +260,29 @@ def test_batch_composition_draws_every_clip_however_short(tmp_path):
 
 
 def test_clips_auto_follows_what_the_model_asks_for(toy_shards):
-    dm = _datamodule(toy_shards)  # clips: auto
-    assert dm.windows.mode == "windows"  # no model: sliding windows
-    dm.trainer = SimpleNamespace(global_rank=0, world_size=1, current_epoch=0,
-                                 lightning_module=SimpleNamespace(clip_sampling="whole"))
-    assert dm.windows.mode == "whole"
+    """``clips: auto`` cuts what ``clip_sampling`` says, which `omg fit` links from the model's class when it parses
+    the config (the data module never reads the trainer's model back: an attached one changes nothing)."""
+    from helpers import REPO
+    from helpers.configs import parse
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.evaluator import EvaluatorModule
     from omg.lit.pretrain import PretrainModule
 
+    dm = _datamodule(toy_shards)  # clips: auto
+    assert dm.windows.mode == "windows"  # no model named: sliding windows
+    dm.trainer = SimpleNamespace(global_rank=0, world_size=1, current_epoch=0,
+                                 lightning_module=SimpleNamespace(clip_sampling="whole"))
+    assert dm.windows.mode == "windows"
+    assert _datamodule(toy_shards, clip_sampling="whole").windows.mode == "whole"
+    assert _datamodule(toy_shards, clips="windows", clip_sampling="whole").windows.mode == "windows"
     assert PretrainModule.clip_sampling == "windows"
     assert ControlNetModule.clip_sampling == EvaluatorModule.clip_sampling == "whole"
+    for config, mode in (("pretrain", "windows"), ("controlnet", "whole"), ("omgpt", "whole")):
+        assert parse(REPO / f"configs/mini/{config}.yaml").data.clip_sampling == mode, config
     with pytest.raises(UsageError, match="data.clips"):
         _datamodule(toy_shards, clips="crops")
+    with pytest.raises(UsageError, match="data.clip_sampling"):
+        _datamodule(toy_shards, clip_sampling="auto")
 
 
 def test_window_starts_follow_the_sliding_window_distribution():
@@ -309,8 +319,7 @@ def test_windows_default_to_the_papers_one_frame_minimum(toy_shards):
     dm = MotionDataModule(str(toy_shards), num_workers=0)
     assert dm.windows.mode == "windows" and dm.windows.min_len == 1, "OMG Sec. 3.1: l ~ U[1, L]"
     assert WindowSampler(max_len=20, mode="whole").min_len == 20  # a cap below 40 is the floor
-    dm.trainer = SimpleNamespace(lightning_module=SimpleNamespace(clip_sampling="whole"))
-    assert dm.windows.min_len == 40
+    assert MotionDataModule(str(toy_shards), num_workers=0, clip_sampling="whole").windows.min_len == 40
     with pytest.raises(UsageError, match="min_len"):
         _datamodule(toy_shards, min_len=0)
 
@@ -323,9 +332,10 @@ def test_pretraining_configs_draw_window_lengths_uniformly_from_1_to_300(toy_sha
 
     from helpers import REPO
     from helpers.configs import parse
+    from omg.data.paired import PairedDataModule
 
     data = parse(REPO / f"configs/pretrain_{size}.yaml").data.as_dict()
-    dm = MotionDataModule(**{**data, "train": str(toy_shards), "val": None, "num_workers": 0})
+    dm = PairedDataModule(**{**data, "train": str(toy_shards), "val": None, "num_workers": 0})  # omg fit's data
     w, rng = dm.windows, np.random.default_rng(0)
     assert (w.mode, w.min_len, w.max_len) == ("windows", 1, 300), f"{size}: OMG Sec. 3.1 draws l ~ U[1, L = 300]"
     lengths = np.array([w.random(1000, rng)[1] for _ in range(30_000)])

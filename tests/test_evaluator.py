@@ -32,7 +32,8 @@ pytestmark = pytest.mark.xdist_group("evaluator")
 
 
 def _data(root=MINI, **kw):
-    args = dict(batch_size=32, max_len=196, min_len=60, batches_per_epoch=1000, num_workers=0, shuffle_buffer=90)
+    args = dict(batch_size=32, max_len=196, min_len=60, batches_per_epoch=1000, num_workers=0, shuffle_buffer=90,
+                clip_sampling="whole")  # EvaluatorModule's, which `omg fit` links
     return MotionDataModule(str(root / "train"), str(root / "val"), **{**args, **kw})
 
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from helpers import REPO, TINY_DIT
-from helpers.omgpt import MINI, TINY, fit_config, tiny_module
+from helpers.omgpt import MINI, TINY, fit_config, human_batch, paired, tiny_module
 from helpers.omgpt import data as _data
 from omg.errors import UsageError
 from omg.lit.sampling import SamplingSettings
@@ -199,8 +199,7 @@ def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
     torch.manual_seed(0)
     animal_data = _data(MINI / "animal_maa/train")
     module = tiny_module(animal_data.spec)
-    module.companion.start()
-    batches = {"animal": next(iter(animal_data.train_dataloader())), "human": module.companion.next()}
+    batches = {"animal": next(iter(animal_data.train_dataloader())), "human": human_batch()}
     optimizer = torch.optim.Adam(module.model.parameters(), lr=3e-3)
     history = []
     for _ in range(50):
@@ -605,23 +604,22 @@ def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
     from omg.lit.omgpt import OmniMotionModule
 
     class Recorded(OmniMotionModule):
-        def human_batch(self):
-            batch = super().human_batch()
-            seen[self.global_step] = tuple(batch["id"])
-            return batch
+        def training_losses(self, batch):
+            seen[self.global_step] = tuple(batch["human"]["id"])
+            return super().training_losses(batch)
 
     L.seed_everything(0, verbose=False)
-    animal = _data(MINI / "animal_maa/train", batches_per_epoch=4, shuffle_buffer=8)
-    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
-                 shuffle_buffer=8, batches_per_epoch=3)  # the human stream turns epochs at other steps
-    model = Recorded(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=animal.spec,
-                     lr=1e-3, ema_decay=0.9)
-    run_until_killed(model, animal, root, max_steps=7, kill_at=kill_at, resume=resume)
+    # the human stream turns epochs at other steps than the animal one
+    data = paired(MINI / "animal_maa/train", human=dict(shuffle_buffer=8, batches_per_epoch=3), batches_per_epoch=4,
+                  shuffle_buffer=8)
+    model = Recorded(flavor="mini", config=TINY, text_encoder="hash", spec=data.spec, lr=1e-3, ema_decay=0.9)
+    run_until_killed(model, data, root, max_steps=7, kill_at=kill_at, resume=resume)
 
 
 def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
-    """The human stream's position travels in the checkpoint beside the animal data's: a run killed
-    at step 5 and resumed trains on the same human clips, step for step, and ends bit-identical."""
+    """The human stream's position travels in the checkpoint beside the animal data's (the paired data module's
+    combined loader: both streams' positions in Lightning's loop state): a run killed at step 5 and resumed
+    trains on the same human clips, step for step, and ends bit-identical."""
     from helpers.resume import assert_identical
 
     full, killed = {}, {}
@@ -635,10 +633,11 @@ def test_a_killed_run_resumes_both_streams_exactly(tmp_path):
     for run in ("full", "killed"):
         ckpt = torch.load(tmp_path / run / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
         state[run] = {"step": ckpt["global_step"], "weights": ckpt["state_dict"], "ema": ckpt["ema"],
-                      "optimizer": ckpt["optimizer_states"], "human_stream": ckpt["human_stream"],
-                      "animal_stream": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"]}
+                      "optimizer": ckpt["optimizer_states"], "fit_state": ckpt["fit_state"],
+                      "streams": ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"]}
     assert_identical(state["killed"], state["full"])
-    assert state["full"]["human_stream"]["epoch"] >= 2
+    animal, human = state["full"]["streams"]
+    assert (animal["epoch"], animal["batches_done"]) == (1, 3) and (human["epoch"], human["batches_done"]) == (2, 1)
 
 
 @pytest.mark.parametrize("caption, expected", [
@@ -701,17 +700,33 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
         assert v["kept"] == (0 if mirror else v["clips"]), key
 
 
+def old_layout(ckpt: dict, **hparams) -> dict:
+    """A checkpoint as omg wrote it before the human stream was the data's: the fit-time state in the
+    hyper-parameters (``hparams`` over them), the human stream's position as ``human_stream``."""
+    loops = ckpt["loops"]["fit_loop"]["state_dict"]
+    animal, human = loops["combined_loader"]
+    old = {k: v for k, v in ckpt.items() if k != "fit_state"}
+    old["hyper_parameters"] = {**ckpt["hyper_parameters"], **ckpt["fit_state"], **hparams}
+    old["loops"] = {**ckpt["loops"], "fit_loop": {**ckpt["loops"]["fit_loop"],
+                                                  "state_dict": {**loops, "combined_loader": [animal]}}}
+    return {**old, "human_stream": human}
+
+
 def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys):
-    """An OmniMotionGPT checkpoint keeps its training run's human_data; one whose human_data names
-    `pipe:` commands (here: creating a marker file) runs none of them through `omg generate`,
+    """An OmniMotionGPT checkpoint of the older layout kept its training run's human_data among its
+    hyper-parameters (as it did its fit-time state and the human stream's position); one whose
+    human_data names `pipe:` commands (here: creating a marker file) runs none of them through `omg generate`,
     `omg convert-ckpt` (nor the .safetensors it writes) or `omg fit --ckpt_path` (the run's config
-    says where the human shards are), and a checkpoint moved where its human shards do not exist
-    still generates: the human spec and the retrieval clips are inside it."""
+    says where the human shards are: data.human), and a checkpoint moved where its human shards do not exist
+    still generates: the human spec and the retrieval clips are inside it. Resumed, the older layout's human
+    stream goes on from its position, in the paired data's loader state."""
     from safetensors import safe_open
 
     marker = tmp_path / "PWNED"
     ckpt = torch.load(omgpt_ckpt, map_location="cpu", weights_only=True)
-    assert ckpt["hyper_parameters"]["human_data"]["val"] == "shards/mini/human_maa/val"  # the run's own
+    assert ckpt["hyper_parameters"]["human_data"] is None  # the run's human shards are its data's
+    assert ckpt["datamodule_hyper_parameters"]["human"]["val"] == "shards/mini/human_maa/val"
+    human = dict(ckpt["datamodule_hyper_parameters"]["human"])
     moved = tmp_path / "elsewhere"
     moved.mkdir()
     variants = {
@@ -720,10 +735,9 @@ def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys
         "gone": {split: str(tmp_path / f"gone/{split}") for split in ("train", "val")},
     }
     for name, locations in variants.items():
-        human_data = {**ckpt["hyper_parameters"]["human_data"], **locations}
         human_source = str(tmp_path / "gone/controlnet.ckpt") if name == "gone" else "retrieval"
-        torch.save({**ckpt, "hyper_parameters": {**ckpt["hyper_parameters"], "human_data": human_data,
-                                                 "human_source": human_source}}, moved / f"{name}.ckpt")
+        torch.save(old_layout(ckpt, human_data={**human, **locations}, human_source=human_source),
+                   moved / f"{name}.ckpt")
         _cli("generate", "a dog jumps forward", "--ckpt", str(moved / f"{name}.ckpt"), "--length", "1",
              "--num_samples", "1", "--no_preview", "--out", str(tmp_path / f"gen_{name}"))
         assert np.load(tmp_path / f"gen_{name}/sample_000.joints.npy").shape == (20, 35, 3)
@@ -742,11 +756,74 @@ def test_a_checkpoint_never_opens_the_data_it_names(omgpt_ckpt, tmp_path, capsys
         _cli("fit", "--config", str(REPO / "configs/mini/omgpt.yaml"), "--trainer.max_steps=5",
              f"--trainer.default_root_dir={tmp_path / 'resumed'}", "--trainer.enable_progress_bar=false",
              "--trainer.val_check_interval=100", "--trainer.enable_model_summary=false",
-             "--data.batch_size=4", "--model.init_args.human_data.batch_size=4", f"--ckpt_path={crafted}",
+             "--data.batch_size=4", "--data.human.batch_size=4", f"--ckpt_path={crafted}",
              "--model.init_args.text_encoder=hash", f"--model.init_args.config={json.dumps(fit_config())}")
     finally:
         sys.argv[:] = saved
     resumed = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", map_location="cpu", weights_only=True)
-    assert resumed["global_step"] == 5 and resumed["hyper_parameters"]["human_data"]["train"] == \
+    assert resumed["global_step"] == 5 and resumed["datamodule_hyper_parameters"]["human"]["train"] == \
         "shards/mini/human_maa/train"  # the config's, not the file's
     assert not marker.exists()
+    streams = resumed["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    saved = ckpt["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    assert (streams[1]["epoch"], streams[1]["batches_done"]) == (saved[1]["epoch"], saved[1]["batches_done"] + 1)
+    assert resumed["fit_state"] == ckpt["fit_state"] and "human_stream" not in resumed
+
+
+def test_an_old_layout_checkpoint_loads_and_generates_what_the_new_one_does(omgpt_ckpt, tmp_path):
+    """The fit-time state (animals, human_spec, human_bank) is the checkpoint's ``fit_state``; a checkpoint that
+    holds it in its hyper-parameters (omg's older layout) loads to the same state and generates the same motion,
+    bit for bit (retrieval: the human spec, the kept clips and the animals' offsets all take part), as does the
+    .safetensors file converted from it (its metadata carries the state)."""
+    from omg.lit.checkpoint import load_module
+
+    ckpt = torch.load(omgpt_ckpt, map_location="cpu", weights_only=True)
+    assert set(ckpt["fit_state"]) == {"animals", "human_spec", "human_bank"}
+    assert not set(ckpt["fit_state"]) & set(ckpt["hyper_parameters"])
+    torch.save(old_layout(ckpt), tmp_path / "old.ckpt")
+    new, old = load_module(omgpt_ckpt), load_module(tmp_path / "old.ckpt")
+    assert old.fit_state() == new.fit_state() == ckpt["fit_state"]
+    assert new.animal_names == sorted(ckpt["fit_state"]["animals"]) and {"dog", "horse"} <= set(new.animal_names)
+    assert torch.equal(old.human_bank_motion, new.human_bank_motion) and torch.equal(old.human_mean, new.human_mean)
+    _cli("convert-ckpt", str(omgpt_ckpt), str(tmp_path / "new.safetensors"), "--ema")  # the state travels too
+    paths = {"new": omgpt_ckpt, "old": tmp_path / "old.ckpt", "safetensors": tmp_path / "new.safetensors"}
+    for name, path in paths.items():
+        _cli("generate", "a dog jumps forward", "a horse walks", "--ckpt", str(path), "--length", "1",
+             "--num_samples", "2", "--seed", "3", "--no_preview", "--out", str(tmp_path / name))
+    files = sorted(p.name for p in (tmp_path / "new").glob("*.npy"))
+    for other in ("old", "safetensors"):
+        assert len(files) >= 8 and files == sorted(p.name for p in (tmp_path / other).glob("*.npy"))
+        for f in files:
+            assert np.load(tmp_path / "new" / f).tobytes() == np.load(tmp_path / other / f).tobytes(), (other, f)
+
+
+def test_the_older_human_data_key_is_read_as_data_human(tmp_path, capsys, monkeypatch):
+    """configs written before the human shards were the data's name them ``model.init_args.human_data``: `omg fit`
+    reads that as ``data.human`` (one warning line), the model built without them; both set is one line."""
+    import yaml
+
+    from omg.cli import main
+    from omg.tools.lightning import OmgLightningCLI
+
+    monkeypatch.setattr(sys, "argv", list(sys.argv))  # `omg fit` sets it for LightningCLI
+    config = yaml.safe_load((REPO / "configs/mini/omgpt.yaml").read_text())
+    human = config["data"].pop("human")
+    config["model"]["init_args"]["human_data"] = human
+    config["model"]["init_args"]["text_encoder"] = "hash"
+    config["trainer"]["default_root_dir"] = str(tmp_path / "run")
+    (tmp_path / "old.yaml").write_text(yaml.safe_dump(config))
+    monkeypatch.chdir(REPO)
+    with pytest.warns(UserWarning, match="model.init_args.human_data is read as data.human"):
+        cli = OmgLightningCLI("fit", ["--config", str(tmp_path / "old.yaml"),
+                                      f"--model.init_args.config={json.dumps(fit_config())}"])
+    assert {k: v for k, v in cli.datamodule.hparams["human"].items()} == human
+    assert cli.datamodule.human.spec.skeleton == "smpl22" and cli.model.hparams["human_data"] is None
+    assert cli.config.data.clip_sampling == "whole"
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["fit", "--config", str(tmp_path / "old.yaml"), "--data.human.batch_size=4"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.strip() == (
+        "omg: error: model.init_args.human_data and data.human both name the human shards: keep data.human only "
+        "(model.init_args.human_data is its older name)")
+    assert not (tmp_path / "run").exists()

@@ -16,6 +16,7 @@ pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt
 
 
 def _module(**kw):
+    from omg.data.paired import PairedDataModule
     from omg.lit.omgpt import OmniMotionModule
 
     animal = _data(MINI / "animal_maa/train")
@@ -23,9 +24,11 @@ def _module(**kw):
                  min_len=20, num_workers=0, shuffle_buffer=8, clips="whole")
     torch.manual_seed(0)
     offsets = torch.zeros(35, 3) + 0.1
-    module = OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="minilm", spec=animal.spec,
-                              ema_decay=0, animals={"dog": offsets.tolist()}, **kw)
-    module.build_bank()  # the retrieval clips, as training keeps them in the checkpoint
+    module = OmniMotionModule(flavor="mini", config=TINY, text_encoder="minilm", spec=animal.spec, ema_decay=0, **kw)
+    data = PairedDataModule(str(MINI / "animal_maa/train"), human=human, num_workers=0)
+    # the fit-time state, as training keeps it in the checkpoint: the retrieval clips, the animals' offsets
+    module.restore_fit_state({"fit_state": {"animals": {"dog": offsets.tolist()}, "human_spec": data.human.spec}})
+    module.build_bank(data.human_val_samples())
     return module
 
 

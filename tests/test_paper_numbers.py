@@ -15,7 +15,7 @@ import yaml
 from helpers import REPO
 from helpers.configs import parse
 from helpers.habit import CATEGORIES, QUATVEL
-from helpers.omgpt import MINI, tiny_module
+from helpers.omgpt import MINI, human_batch, tiny_module
 from helpers.omgpt import data as _data
 from omg.data.datamodule import MotionDataModule
 from omg.lit.habit import HabitVQModule
@@ -38,8 +38,7 @@ def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
     module = tiny_module(animal.spec)
     assert module.weights == OMGPT_WEIGHTS
     assert {f"{k}_weight": v for k, v in OMGPT_WEIGHTS.items()}.items() <= _defaults(OmniMotionModule).items()
-    module.companion.start()
-    batch, human = next(iter(animal.train_dataloader())), module.companion.next()
+    batch, human = next(iter(animal.train_dataloader())), human_batch()
     out = module.losses(batch, human)
     parts = {k: out[f"{d}/{k}"] for d in ("human", "animal") for k in ("jrec", "clip", "trec", "translation")}
     assert all(v > 0 for v in parts.values()) and all(out[f"cross/{k}"] > 0 for k in ("cons", "cross_clip", "ee"))
@@ -113,11 +112,11 @@ def test_omgpt_config_has_the_papers_numbers():
     assert {k: args[f"{k}_weight"] for k in OMGPT_WEIGHTS} == OMGPT_WEIGHTS  # §3.1-3.2, Appendix C
     assert (args.lr, tuple(args.betas), args.weight_decay, args.ema_decay) == (1e-4, (0.9, 0.999), 0.0, 0.99)  # §5
     assert (args.text_encoder, args.text_feature, args.flavor) == ("clip-vit-l-14", "projected", "paper")
-    assert cfg.trainer.max_steps == 30000 and cfg.data.batch_size == args.human_data["batch_size"] == 256
+    assert cfg.trainer.max_steps == 30000 and cfg.data.batch_size == cfg.data.human.batch_size == 256
     # whole clips of the papers' lengths: AnimalML3D 10-196, HumanML3D 20-196 frames
     assert (cfg.data.clips, cfg.data.min_len, cfg.data.max_len) == ("whole", 10, 196)
-    human = args.human_data
-    assert (human["clips"], human["min_len"], human["max_len"]) == ("whole", 20, 196)
+    human = cfg.data.human
+    assert (human.clips, human.min_len, human.max_len) == ("whole", 20, 196)
 
 
 def test_habit_configs_have_the_papers_numbers():
@@ -243,8 +242,7 @@ def test_omnimotiongpt_cross_domain_terms_read_the_caption_about_the_animal():
     torch.manual_seed(0)
     animal = _data(MINI / "animal_maa/train")
     module = tiny_module(animal.spec)
-    module.companion.start()
-    batch, human = next(iter(animal.train_dataloader())), module.companion.next()
+    batch, human = next(iter(animal.train_dataloader())), human_batch()
     read, sentence = [], module.sentence
 
     def recorded(texts):  # the real sentence features, the captions they were taken of noted
@@ -270,7 +268,7 @@ def test_omnimotiongpt_paper_config_builds_the_papers_widths():
                 "std": [1.0] * dim}
 
     init = {**parse(REPO / "configs/omgpt.yaml").model.init_args.as_dict(), "spec": maa("smal35", 216),
-            "human_spec": maa("smpl22", 138), "text_encoder": "hash", "text_encoder_args": {}}
+            "text_encoder": "hash", "text_encoder_args": {}}
     with torch.device("meta"):
         module = OmniMotionModule(**init)
     c = module.config

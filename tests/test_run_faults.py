@@ -452,21 +452,22 @@ def test_no_pipe_command_outlives_a_killed_run(h263_shards, tmp_path, num_worker
 
 
 def test_a_stalled_read_of_the_second_streams_validation_set_ends(h263_shards, tmp_path):
-    """OmniMotionGPT's human_data.val goes through the same bound (in-process: SIGALRM in this main thread)."""
+    """OmniMotionGPT's data.human.val goes through the same bound (in-process: SIGALRM in this main thread)."""
     import threading
 
-    from omg.data.omgpt import CompanionStream
+    from omg.data.paired import PairedDataModule
     from omg.errors import UsageError
 
     fifo = str(tmp_path / "fifo")
-    stream = CompanionStream({"val": stalling_set(h263_shards / "val", tmp_path / "fifo"), "timeout": 1})
+    data = PairedDataModule(val=str(h263_shards / "val"),
+                            human={"val": stalling_set(h263_shards / "val", tmp_path / "fifo"), "timeout": 1})
     # without the bound the read never ends: kill `cat` after a while, so the test fails instead of hanging
     rescue = threading.Timer(30, lambda: [os.kill(pid, signal.SIGKILL) for pid in processes(fifo)])
     rescue.start()
     start = time.monotonic()
     try:
         with pytest.raises(UsageError, match=r"shard-000000.tar was not read in data.timeout=1 s"):
-            stream.val_samples()
+            data.human_val_samples()
     finally:
         rescue.cancel()
     assert time.monotonic() - start < 10

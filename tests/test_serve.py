@@ -53,6 +53,7 @@ def _data(path: Path, **kw):
 @pytest.fixture(scope="session")
 def serve_ckpts(tmp_path_factory) -> dict[str, Path]:
     """human.ckpt (ControlNet, hash text), animal.ckpt (OmniMotionGPT), habit.ckpt (flow prior over habit_vq.ckpt)."""
+    from omg.data.paired import PairedDataModule
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.habit import HabitPriorModule, HabitVQModule
     from omg.lit.omgpt import OmniMotionModule
@@ -71,9 +72,10 @@ def serve_ckpts(tmp_path_factory) -> dict[str, Path]:
     stream = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
                   shuffle_buffer=32, clips="whole")
     config = {"joint_layers": 1, "joint_heads": 2, "temporal_dim": 32, "temporal_layers": 1, "latent_dim": 32}
-    omgpt = OmniMotionModule(human_data=stream, flavor="mini", config=config, text_encoder="hash", spec=animal.spec,
-                             ema_decay=0)
-    _fit_save(omgpt, animal, root / "animal.ckpt")
+    omgpt = OmniMotionModule(flavor="mini", config=config, text_encoder="hash", spec=animal.spec, ema_decay=0)
+    paired = PairedDataModule(str(MINI / "animal_maa/train"), human=stream, batch_size=4, max_len=32, min_len=20,
+                              num_workers=0, shuffle_buffer=32, clips="whole")
+    _fit_save(omgpt, paired, root / "animal.ckpt")
     quatvel = dict(batch_size=8, max_len=64, min_len=64, clips="windows", verify_shards=False)
     vq = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=_data(MINI / "animal_quatvel/train",
                                                                                   **quatvel).spec)

@@ -218,7 +218,7 @@ def test_omnimotiongpt_clip_feature_is_encode_text_and_eot_is_an_option(random_c
     from omg.lit.omgpt import OmniMotionModule
 
     model, path = random_clip
-    specs = dict(spec=_data(MINI / "animal_maa/train").spec, human_spec=_data(MINI / "human_maa/train").spec)
+    specs = dict(spec=_data(MINI / "animal_maa/train").spec)
     ids = open_clip.get_tokenizer("ViT-L-14")(TEXTS)
     with torch.no_grad():
         embedding = model.encode_text(ids)  # (3, 768), unnormalised

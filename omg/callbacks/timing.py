@@ -27,7 +27,8 @@ class StepTimer(L.Callback):
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         self._sync()
-        self.shape = tuple(batch["mask"].shape)
+        stream = batch["animal"] if "animal" in batch else batch  # a paired batch (OmniMotionGPT): its first set's
+        self.shape = tuple(stream["mask"].shape)
         self.start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:

@@ -460,8 +460,9 @@ class MotionDataModule(L.LightningDataModule):
             a window may be a single keyframe), 40 for whole clips (HumanML3D's loader).
         clips: how samples are cut from clips: ``windows`` (sliding random windows, long takes
             sampled in proportion to their length: unlabeled pretraining), ``whole`` (the whole
-            clip, a random ``max_len`` crop when longer: captioned data), or ``auto``: what the
-            model asks for (its ``clip_sampling`` attribute; ``windows`` when it names none).
+            clip, a random ``max_len`` crop when longer: captioned data), or ``auto``: ``clip_sampling``.
+        clip_sampling: what ``clips: auto`` cuts: the model's ``clip_sampling`` attribute, which ``omg fit``
+            links here when it parses the config (``windows`` for a model that names none).
         batches_per_epoch: batches each rank yields per training epoch.
         shuffle_buffer: samples held by each worker to shuffle within.
         normalize: standardise features with the data's mean/std (``spec``: the manifest's, or a
@@ -486,6 +487,7 @@ class MotionDataModule(L.LightningDataModule):
         max_len: int = 300,
         min_len: int | None = None,
         clips: str = "auto",
+        clip_sampling: str = "windows",
         batches_per_epoch: int = 1000,
         num_workers: int = 2,
         shuffle_buffer: int = 1000,
@@ -498,7 +500,9 @@ class MotionDataModule(L.LightningDataModule):
     ):
         # this call's arguments, explicitly: Lightning's frame inspection would also collect those of
         # an enclosing __init__ (a LightningModule that builds a second data module, as OmniMotionGPT does)
-        arguments = {name: value for name, value in locals().items() if name not in ("self", "__class__")}
+        # (clip_sampling is the model's, linked, not a setting of the data: the data's record is as it was)
+        arguments = {name: value for name, value in locals().items()
+                     if name not in ("self", "__class__", "clip_sampling")}
         super().__init__()
         if batch_size < 1 or batches_per_epoch < 1 or num_workers < 0 or shuffle_buffer < 1:
             raise UsageError(
@@ -515,9 +519,12 @@ class MotionDataModule(L.LightningDataModule):
                              f"got min_len={min_len}, max_len={max_len}")
         if clips not in ("auto", *CLIP_MODES):
             raise UsageError(f"data.clips must be auto, {' or '.join(CLIP_MODES)}, got {clips!r}")
+        if clip_sampling not in CLIP_MODES:
+            raise UsageError(f"data.clip_sampling must be {' or '.join(CLIP_MODES)}, got {clip_sampling!r}")
         if not 0.0 <= mirror_prob <= 1.0:  # also NaN
             raise UsageError(f"data.mirror_prob is a probability in [0, 1], got {mirror_prob}")
         self.save_hyperparameters(arguments)
+        self.clip_sampling = clip_sampling
         if not train and not val:
             raise UsageError("no shards given: set data.train to a shard directory or URL pattern (data.val alone "
                              "is enough for `omg validate` and `omg test`)")
@@ -572,12 +579,10 @@ class MotionDataModule(L.LightningDataModule):
 
     @property
     def windows(self) -> WindowSampler:
-        """How samples are cut: ``data.clips``, or under ``auto`` the attached model's ``clip_sampling``."""
+        """How samples are cut: ``data.clips``, or under ``auto`` ``data.clip_sampling`` (the model's)."""
         mode = self.hparams.clips
-        if mode == "auto":
-            model = self.trainer.lightning_module if self.trainer is not None else None
-            mode = getattr(model, "clip_sampling", "windows")
-        return WindowSampler(self.hparams.max_len, self.hparams.min_len, mode)
+        return WindowSampler(self.hparams.max_len, self.hparams.min_len,
+                             self.clip_sampling if mode == "auto" else mode)
 
     def _rank_world(self) -> tuple[int, int]:
         trainer = self.trainer

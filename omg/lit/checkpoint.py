@@ -59,6 +59,7 @@ DEEPSPEED_KEYS = {
     "ds_version", "csr_tensor_module_names",
 }
 METADATA_KEYS = ("module_class", "hyper_parameters", "ema_weights")  # JSON strings in the safetensors header
+OPTIONAL_METADATA_KEYS = ("fit_state",)  # a module's fit-time state, where it keeps one
 
 # The only Python classes (beyond containers, numbers, strings, tensors, dtypes, torch.Size) that a
 # checkpoint's pickles may hold, found by saving real checkpoints and listing their globals with
@@ -190,20 +191,22 @@ def recorded_class(ckpt: dict[str, Any]) -> str | None:
 
 def inspect_checkpoint(path: PathLike) -> dict[str, Any]:
     """Check a checkpoint without materialising its weights: ``{"kind": "lightning" | "deepspeed" |
-    "safetensors", "module_class", "hyper_parameters"}``. Every pickle is read (weights-only, tensors
+    "safetensors", "module_class", "hyper_parameters", "fit_state"}`` (``fit_state``: what the module filled
+    in from its data, None where it keeps none). Every pickle is read (weights-only, tensors
     memory-mapped) and every byte CRC-checked, so that a checkpoint that passes loads; raises
     CorruptCheckpoint, UnsafeCheckpoint or UsageError otherwise."""
     path = Path(path)
     if path.is_dir():
         _, _, states = _deepspeed_states(path)
         return {"kind": "deepspeed", "module_class": recorded_class(states),
-                "hyper_parameters": states.get("hyper_parameters")}
+                "hyper_parameters": states.get("hyper_parameters"), "fit_state": states.get("fit_state")}
     if path.suffix == ".safetensors" and path.is_file():
         metadata = _safetensors_metadata(path)
         return {"kind": "safetensors", "module_class": metadata["module_class"],
-                "hyper_parameters": metadata["hyper_parameters"]}
+                "hyper_parameters": metadata["hyper_parameters"], "fit_state": metadata.get("fit_state")}
     ckpt = _read_lightning(path, mmap=True)
-    return {"kind": "lightning", "module_class": recorded_class(ckpt), "hyper_parameters": ckpt.get("hyper_parameters")}
+    return {"kind": "lightning", "module_class": recorded_class(ckpt), "hyper_parameters": ckpt.get("hyper_parameters"),
+            "fit_state": ckpt.get("fit_state")}
 
 
 def load_checkpoint(path: PathLike, default_class: type[L.LightningModule] | None = None) -> dict[str, Any]:
@@ -297,7 +300,7 @@ def _safetensors_metadata(path: Path) -> dict[str, Any]:
     if missing := [k for k in METADATA_KEYS if k not in metadata]:
         raise UsageError(f"{path} lacks omg metadata ({', '.join(missing)}); write it with `omg convert-ckpt`")
     try:
-        return {k: json.loads(metadata[k]) for k in METADATA_KEYS}
+        return {k: json.loads(metadata[k]) for k in (*METADATA_KEYS, *OPTIONAL_METADATA_KEYS) if k in metadata}
     except json.JSONDecodeError as e:
         raise UsageError(f"{path}: its omg metadata is not JSON ({e}); write it with `omg convert-ckpt`") from None
 
@@ -442,6 +445,25 @@ def build_module(cls: type[L.LightningModule], hparams: dict[str, Any], src: Pat
         _given_hyperparameters.reset(token)
 
 
+def checkpoint_hparams(cls: type, hparams: dict[str, Any], state: dict[str, torch.Tensor]) -> dict[str, Any]:
+    """A checkpoint's hyper-parameters as ``cls`` reads them: a class with a ``checkpoint_hparams(hparams,
+    state)`` static method reads its older checkpoints' through it (HabitVQModule's from before
+    ``habit_order``; OmniMotionModule's from before ``fit_state``)."""
+    if callable(upgrade := getattr(cls, "checkpoint_hparams", None)):
+        return upgrade(hparams, state)
+    return hparams
+
+
+def rebuild_module(cls: type[L.LightningModule], ckpt: dict[str, Any], src: PathLike, device: str | None = None):
+    """``build_module`` from the checkpoint's hyper-parameters (``checkpoint_hparams``), then its fit-time state
+    restored (a ``restore_fit_state(ckpt)`` method: what the module filled in from its data, which shapes
+    buffers the weights then fill), so that the weights can be checked against it."""
+    module = build_module(cls, checkpoint_hparams(cls, ckpt["hyper_parameters"], ckpt["state_dict"]), src, device)
+    if callable(restore := getattr(module, "restore_fit_state", None)):
+        restore(ckpt)
+    return module
+
+
 def _trainable_prefix(module: L.LightningModule, src: PathLike) -> str:
     """The state-dict prefix of the submodule whose parameters the module's EMA tracks
     (``module.trainable_module()``: ``model.`` for PretrainModule, ``controlnet.`` for ControlNetModule)."""
@@ -489,10 +511,7 @@ def load_module(
     cls = resolve_class(ckpt["module_class"] or (class_path(default_class) if default_class else None), path)
     if expect is not None and not issubclass(cls, expect):
         raise UsageError(f"{path} holds a {class_path(cls)} checkpoint, not a {class_path(expect)}")
-    hparams = ckpt["hyper_parameters"]
-    if callable(upgrade := getattr(cls, "checkpoint_hparams", None)):  # a class's older checkpoints
-        hparams = upgrade(hparams, ckpt["state_dict"])
-    module = build_module(cls, hparams, path)
+    module = rebuild_module(cls, ckpt, path)
     check_weights(module, ckpt["state_dict"], path)
     module.load_state_dict(ckpt["state_dict"])
     module.to(map_location)  # before the EMA is rebuilt, so that it lands on the same device
@@ -516,7 +535,7 @@ def convert(src: PathLike, dst: PathLike, ema: bool = False,
     ckpt["module_class"] = ckpt["module_class"] or (class_path(default_class) if default_class else None)
     cls = resolve_class(ckpt["module_class"], src)
     ckpt["hyper_parameters"] = inert_hparams(cls, ckpt["hyper_parameters"])  # locations are not copied either
-    module = build_module(cls, ckpt["hyper_parameters"], src, "meta")  # structure only: names and shapes
+    module = rebuild_module(cls, ckpt, src, "meta")  # structure only: names and shapes
     state = dict(ckpt["state_dict"])
     check_weights(module, state, src)
     if ema and not ckpt["ema_weights"]:
@@ -534,6 +553,8 @@ def convert(src: PathLike, dst: PathLike, ema: bool = False,
     ema_weights = ema or ckpt["ema_weights"]
     metadata = {"format": "pt", "module_class": json.dumps(ckpt["module_class"]),
                 "hyper_parameters": json.dumps(ckpt["hyper_parameters"]), "ema_weights": json.dumps(ema_weights)}
+    if ckpt.get("fit_state") is not None:  # what the module filled in from its data (OmniMotionModule's)
+        metadata["fit_state"] = json.dumps(ckpt["fit_state"])
     try:
         dst.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(dst) as tmp:

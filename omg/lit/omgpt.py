@@ -1,7 +1,8 @@
 """OmniMotionGPT: joint human + animal motion autoencoders aligned through text space.
 
 Trained end to end on two streams at once (losses §3.1-3.2, implementation details §5): the animal
-set is the run's ``data:``, the human set the model's ``human_data:`` (``omg.data.omgpt.CompanionStream``).
+set is the run's ``data:``, the human set ``data.human`` (``omg.data.paired.PairedDataModule``: each
+training batch is ``{"animal": ..., "human": ...}``).
 Per domain d (§3.1):
 
     L_ae^d = L_jrec (‖P − D(E(P, S), S)‖²) + w_clip · (1 − cos(E_t(Z), C)) + w_trec · ‖P − D(D_t(C, Z), S)‖²
@@ -29,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from omg.data.omgpt import CompanionData, CompanionStream, category_offsets, scan_metas
+from omg.data.paired import CompanionData
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, modes_restored
 from omg.lit.sampling import Sampler, SamplingSettings
@@ -49,8 +50,8 @@ class OmniMotionModule(OmgModule):
     """OmniMotionGPT's two autoencoders, text heads and losses.
 
     Args:
-        human_data: the human stream, ``MotionDataModule`` arguments (``CompanionData``: ``train``, ``val``,
-            ``batch_size``, ``max_len``, ``min_len``, ...); smpl22 shards in the maa representation.
+        human_data: the older name of ``data.human`` (the human shards, smpl22 maa): ``omg fit`` reads it as
+            that key, with a warning; the module itself reads no data.
         flavor, config: network sizes, a preset (``paper``, ``mini``) and field overrides
             (``omg.models.omgpt.OmniMotionConfig``; ``OmniMotionOverrides``).
         text_encoder, text_encoder_args: the registered sentence encoder (paper: CLIP ViT-L/14).
@@ -92,14 +93,16 @@ class OmniMotionModule(OmgModule):
             the validation clips kept in the checkpoint: an evaluation's bank must not be the split
             whose captions are its prompts (``OODEvalCallback`` also drops every clip captioned by
             a prompt, ``exclude_from_retrieval``). A location, so not taken from a checkpoint.
-        animals: each animal category's mean bone offsets; filled from the animal training set
-            when training starts and kept in checkpoints (what ``--animal`` accepts).
-        human_spec, spec: the human and the animal data's specs (filled from the shards and kept
-            in checkpoints).
-        human_bank: the captions and frame counts of the captioned human validation clips that
-            retrieval draws from; filled when training starts (whatever ``human_source``), the
-            clips' motion and offsets kept as buffers, so that a checkpoint retrieves without its
-            human shards.
+        spec: the animal data's spec (``omg fit`` links it from ``data``).
+
+    Fit-time state, filled from the data when training starts and kept in checkpoints beside the
+    weights (``checkpoint["fit_state"]``; checkpoints written before kept it in their
+    hyper-parameters, which still load): ``animals`` (each animal category's mean bone offsets,
+    scanned by ``PairedDataModule.category_offsets``: what ``--animal`` accepts), ``human_spec`` (the
+    human data's spec) and ``human_bank`` (the captions and frame counts of the captioned human
+    validation clips that retrieval draws from, whatever ``human_source``; their motion and offsets
+    are the buffers ``human_bank_motion`` and ``human_bank_offsets``, so that a checkpoint retrieves
+    without its human shards).
 
     A checkpoint is self-contained: everything inference needs (both specs, the animals' offsets,
     the retrieval clips) is inside it, and what its ``human_data`` and ``human_source`` name
@@ -111,8 +114,8 @@ class OmniMotionModule(OmgModule):
     frozen_prefixes = ("text_encoder.", "human_generator.")
     location_hparams = ("human_data", "human_source", "retrieval_bank")
     # what the weights were trained with or on; the retrieval, loss and optimizer settings are the run's
-    architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "animals",
-                            "human_spec", "spec", "human_bank")
+    architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "spec")
+    fit_state_keys = ("animals", "human_spec", "human_bank")  # checkpoint["fit_state"]; older: hyper-parameters
     settings_groups = {"config": OmniMotionOverrides, "text_encoder_args": TextEncoderArgs,
                        "human_data": CompanionData}
 
@@ -144,10 +147,7 @@ class OmniMotionModule(OmgModule):
         retrieval_draw: str = "similarity",
         retrieval_temperature: float = 0.1,
         retrieval_bank: str | list | None = None,
-        animals: dict[str, list] | None = None,
-        human_spec: DataSpec | dict | None = None,
         spec: DataSpec | dict | None = None,
-        human_bank: dict[str, list] | None = None,
     ):
         super().__init__()
         if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= ema_decay < 1:
@@ -163,33 +163,21 @@ class OmniMotionModule(OmgModule):
         if text_feature not in ("projected", "eot"):
             raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
         self.text_feature = text_feature
-        self.companion = None
-        human_data = set_fields(CompanionData, human_data, "model.init_args.human_data")
-        if human_spec is None:
-            if not human_data:  # also a checkpoint written before checkpoints kept human_spec: its data is not opened
-                raise UsageError("OmniMotionModule needs model.init_args.human_data: the human shards (train, val, "
-                                 "batch_size, ...), smpl22 in the maa representation; a checkpoint without human_spec "
-                                 "(written before omg kept it) loads only to go on training (`omg fit --ckpt_path`)")
-            self.companion = CompanionStream(dict(human_data))
-            human_spec = self.companion.spec.to_dict()
+        set_fields(CompanionData, human_data, "model.init_args.human_data")  # a bad key: one line, as data.human's
         if spec is None:
             raise UsageError("OmniMotionModule needs the animal data's spec (set data.train to smal35 maa shards)")
-        self.human_spec, self.spec = DataSpec.coerce(human_spec, "human_data"), DataSpec.coerce(spec, "the data")
-        for name, s, skeleton in (("human_data", self.human_spec, HUMAN_SKELETON),
-                                  ("data", self.spec, ANIMAL_SKELETON)):
-            if s.representation != "maa" or s.skeleton != skeleton:
-                raise UsageError(f"{name}: OmniMotionGPT reads {skeleton} shards in the maa representation, got "
-                                 f"{s.skeleton} {s.representation} (build them with `omg shards build ... --skeleton "
-                                 f"{skeleton} --representation maa`)")
-        if isinstance(human_spec, DataSpec):
-            human_spec = human_spec.to_dict()
+        self.spec = DataSpec.coerce(spec, "the data")
+        check_maa(self.spec, "data", ANIMAL_SKELETON)
         self.save_hyperparameters()
-        self.hparams["human_spec"] = human_spec  # the human data's description, kept in checkpoints
         self.lr, self.betas, self.weight_decay, self.warmup_steps = lr, betas, weight_decay, warmup_steps
         self.schedule, self.ema_decay = schedule, ema_decay
         self.weights = {"jrec": jrec_weight, "clip": clip_weight, "trec": trec_weight, "cons": cons_weight,
                         "cross_clip": cross_clip_weight, "ee": ee_weight, "translation": translation_weight}
-        self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in (animals or {}).items()}
+        # fit-time state (fit_state_keys): the data's when training starts, else a checkpoint's
+        self.animals: dict[str, Tensor] = {}
+        self.animal_table: dict[str, list] | None = None  # the same offsets as found (kept as they were saved)
+        self.human_spec: DataSpec | None = None
+        self.human_bank: dict[str, list] | None = None
         self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
         self.retrieval_bank = retrieval_bank or None
         self.retrieval_excluded: frozenset[str] = frozenset()  # captions whose clips retrieval never draws
@@ -205,23 +193,33 @@ class OmniMotionModule(OmgModule):
                                    self.text_encoder.dim)
         if std_floor <= 0:
             raise UsageError(f"model.std_floor must be > 0, got {std_floor}")
-        for prefix, s in (("human", self.human_spec), ("animal", self.spec)):
-            mean, std = torch.tensor(s.mean, dtype=torch.float32), torch.tensor(s.std, dtype=torch.float32)
-            self.register_buffer(f"{prefix}_mean", mean, persistent=False)
-            self.register_buffer(f"{prefix}_std", std, persistent=False)
-            # the autoencoders' inputs and outputs, and the reconstruction errors, are in these units;
-            # ground displacement (config.root_velocity) in metres per second
-            scale = std.clamp_min(std_floor) if standardize else torch.ones_like(std)
-            getattr(self.model, prefix)["ae"].standardize(mean if standardize else torch.zeros_like(mean), scale,
-                                                          1.0 / s.fps if standardize and s.fps > 0 else None)
+        self.standardize, self.std_floor = standardize, std_floor
+        human_dim = (self.human_rep.skeleton.num_joints + 1) * 6  # maa; its values come with human_spec
+        self.register_buffer("human_mean", torch.zeros(human_dim), persistent=False)
+        self.register_buffer("human_std", torch.ones(human_dim), persistent=False)
+        self.register_buffer("animal_mean", torch.zeros(self.spec.feature_dim), persistent=False)
+        self.register_buffer("animal_std", torch.ones(self.spec.feature_dim), persistent=False)
+        self._use_stats("animal", self.spec)
         self.human_generator = None  # an OMG ControlNet module, loaded when first needed
         self._bank: dict | None = None  # retrieval: the human clips drawn from and their caption features
         self._bank_samples: list[dict] | None = None  # the clips of retrieval_bank, read once
-        self._companion_state: dict | None = None
-        if human_bank is not None:  # shapes only: the clips come with the weights
-            frames = sum(human_bank["lengths"])
-            self._register_bank(torch.zeros(frames, self.human_spec.feature_dim),
-                                torch.zeros(len(human_bank["lengths"]), self.human_rep.skeleton.num_joints, 3))
+
+    def _use_stats(self, prefix: str, spec: DataSpec) -> None:
+        """Normalise the ``prefix`` (human, animal) domain by ``spec``'s mean and std."""
+        mean, std = torch.tensor(spec.mean, dtype=torch.float32), torch.tensor(spec.std, dtype=torch.float32)
+        getattr(self, f"{prefix}_mean").copy_(mean)
+        getattr(self, f"{prefix}_std").copy_(std)
+        # the autoencoders' inputs and outputs, and the reconstruction errors, are in these units;
+        # ground displacement (config.root_velocity) in metres per second
+        scale = std.clamp_min(self.std_floor) if self.standardize else torch.ones_like(std)
+        getattr(self.model, prefix)["ae"].standardize(mean if self.standardize else torch.zeros_like(mean), scale,
+                                                      1.0 / spec.fps if self.standardize and spec.fps > 0 else None)
+
+    def use_human_spec(self, spec: DataSpec | dict) -> None:
+        """The human data's spec (the data's when training starts, else the checkpoint's)."""
+        self.human_spec = DataSpec.coerce(spec, "data.human")
+        check_maa(self.human_spec, "data.human", HUMAN_SKELETON)
+        self._use_stats("human", self.human_spec)
 
     # -- helpers -------------------------------------------------------------------------
     def trainable_module(self) -> torch.nn.Module:
@@ -319,45 +317,47 @@ class OmniMotionModule(OmgModule):
                                 torch.zeros_like(state_dict["human_bank_offsets"]))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
-    def build_bank(self) -> None:
-        """Keep the captioned human validation clips (``human_data.val``) for retrieval."""
-        samples = [s for s in self.companion.val_samples() if s["texts"]]
+    def build_bank(self, samples: Sequence[dict]) -> None:
+        """Keep the captioned ones of the human validation clips (``data.human.val``) for retrieval."""
+        samples = [s for s in samples if s["texts"]]
         if not samples:
             return
         self._register_bank(torch.cat([torch.from_numpy(np.asarray(s["motion"])) for s in samples]).to(self.device),
                             torch.stack([torch.tensor(s["meta"]["offsets"]) for s in samples]).to(self.device))
-        self.hparams["human_bank"] = {"captions": [list(s["texts"]) for s in samples],
-                                      "lengths": [len(s["motion"]) for s in samples]}
+        self.human_bank = {"captions": [list(s["texts"]) for s in samples],
+                           "lengths": [len(s["motion"]) for s in samples]}
 
     # -- training ------------------------------------------------------------------------
+    def check_data(self, data: Any) -> None:
+        """UsageError unless ``data`` (the run's data module) holds the human set beside the animal one."""
+        if getattr(data, "human", None) is None:
+            raise UsageError("OmniMotionGPT trains on two shard sets: set data.human to the human shards (train, val, "
+                             "batch_size, ...), smpl22 in the maa representation (older configs: "
+                             "model.init_args.human_data)")
+        check_maa(DataSpec.coerce(data.human.spec, "data.human"), "data.human", HUMAN_SKELETON)
+
     def on_fit_start(self) -> None:
-        if self.companion is None:
-            if not self.hparams.get("human_data"):
-                raise UsageError("training needs model.init_args.human_data (the human shards)")
-            self.companion = CompanionStream(dict(self.hparams["human_data"]))
-            check_same_stats(self.companion.spec, self.human_spec)
+        data = self.trainer.datamodule
+        self.check_data(data)
+        if self.human_spec is None:
+            self.use_human_spec(data.human.spec)
+        else:  # a resumed run's human_spec is its checkpoint's
+            check_same_stats(data.human.spec, self.human_spec)
         if getattr(self, "human_bank_motion", None) is None:
-            self.build_bank()
-        self.companion.start(self.global_rank, self.trainer.world_size)
-        if self._companion_state is not None:
-            self.companion.load_state_dict(self._companion_state)
+            self.build_bank(data.human_val_samples())
         if not self.animals:
-            data = self.trainer.datamodule
-            found = category_offsets(scan_metas(getattr(data, "train_urls", None) or data.val_urls))
-            self.animals = {k: torch.tensor(v) for k, v in found.items()}
-            self.hparams["animals"] = found  # kept in checkpoints: what --animal accepts
+            self.animal_table = data.category_offsets()
+            self.animals = {k: torch.tensor(v) for k, v in self.animal_table.items()}
         super().on_fit_start()  # the weight EMA
 
-    def human_batch(self) -> dict:
-        batch = self.companion.next()
-        return {k: v.to(self.device) if isinstance(v, Tensor) else v for k, v in batch.items()}
-
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
-        return self.losses(batch, self.human_batch())
+        """``batch``: ``{"animal": ..., "human": ...}`` (``PairedDataModule``'s combined loader)."""
+        return self.losses(batch["animal"], batch["human"])
 
     def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
-        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=len(batch["text"]))
-        self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=len(batch["text"]))
+        size = len(batch["animal"]["text"])
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=size)
+        self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=size)
 
     def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
         """The animal autoencoder's reconstruction errors on the validation clips."""
@@ -378,19 +378,46 @@ class OmniMotionModule(OmgModule):
     def lr_factor(self, total_steps: int):
         return super().lr_factor(total_steps) if self.schedule == "cosine" else None  # the paper: Adam, constant
 
+    def fit_state(self) -> dict[str, Any]:
+        """The fit-time state as plain types (``checkpoint["fit_state"]``)."""
+        return {"animals": self.animal_table,
+                "human_spec": self.human_spec.to_dict() if self.human_spec is not None else None,
+                "human_bank": self.human_bank}
+
+    def restore_fit_state(self, checkpoint: dict) -> None:
+        """The fit-time state of ``checkpoint``: its ``fit_state``, or the hyper-parameters that held it
+        before; the retrieval clips' buffers shaped for the weights that come next."""
+        state = checkpoint.get("fit_state") or checkpoint.get("hyper_parameters") or {}
+        if animals := state.get("animals"):
+            self.animal_table = animals
+            self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in animals.items()}
+        if (spec := state.get("human_spec")) is not None:
+            self.use_human_spec(spec)
+        if bank := state.get("human_bank"):
+            self.human_bank = bank
+            if getattr(self, "human_bank_motion", None) is None:  # shapes only: the clips come with the weights
+                self._register_bank(torch.zeros(sum(bank["lengths"]), self.human_spec.feature_dim),
+                                    torch.zeros(len(bank["lengths"]), self.human_rep.skeleton.num_joints, 3))
+
+    @staticmethod
+    def checkpoint_hparams(hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them: one written before ``fit_state`` holds the
+        fit-time state there (``restore_fit_state`` reads it from the checkpoint)."""
+        return {k: v for k, v in hparams.items() if k not in OmniMotionModule.fit_state_keys}
+
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         super().on_save_checkpoint(checkpoint)
-        if self.companion is not None and self.companion.loader is not None:
-            checkpoint["human_stream"] = self.companion.state_dict()
+        checkpoint["fit_state"] = self.fit_state()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         super().on_load_checkpoint(checkpoint)
-        self._companion_state = checkpoint.get("human_stream")
-        hparams = checkpoint.get("hyper_parameters") or {}
-        if animals := hparams.get("animals"):
-            self.animals = {k: torch.tensor(v, dtype=torch.float32) for k, v in animals.items()}
-        if hparams.get("human_bank"):
-            self.hparams["human_bank"] = hparams["human_bank"]
+        self.restore_fit_state(checkpoint)
+        # a run written before the human stream was the data's kept its position beside the loops': it joins
+        # the animal loader's there, as the paired data module's combined loader restores them
+        if (human := checkpoint.pop("human_stream", None)) is not None:
+            loaders = checkpoint.get("loops", {}).get("fit_loop", {}).get("state_dict", {}).get("combined_loader")
+            if loaders is not None and len(loaders) == 1:
+                loaders.append(human)
 
     # -- inference -----------------------------------------------------------------------
     @torch.no_grad()
@@ -470,7 +497,7 @@ class OmniMotionModule(OmgModule):
             if self._bank_samples is None:
                 self._bank_samples = read_retrieval_bank(self.retrieval_bank, self.human_spec, self.config.max_frames)
             return self._bank_samples
-        bank = self.hparams.get("human_bank")
+        bank = self.human_bank
         if not bank or getattr(self, "human_bank_motion", None) is None:
             raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
                              "captioned clips in human_data.val, or before checkpoints kept them): give the human "
@@ -487,7 +514,7 @@ class OmniMotionModule(OmgModule):
         must not start from the prompt's own clip); (clips left out, clips left). ``key`` names the evaluation
         in the one-line error when no clip is left."""
         excluded = frozenset(caption_key(c) for c in captions)
-        if self.retrieval_bank is None and not self.hparams.get("human_bank") and self.companion is not None:
+        if self.retrieval_bank is None and not self.human_bank and self.human_spec is None:
             self.retrieval_excluded, self._bank = excluded, None  # a fit builds its bank when it starts
             return 0, 0
         clips = self.retrieval_clips(motion=False)
@@ -543,12 +570,20 @@ class OmniMotionModule(OmgModule):
         return motion.to(self.device), torch.stack(offsets).to(self.device)
 
 
+def check_maa(spec: DataSpec, key: str, skeleton: str) -> None:
+    """UsageError unless ``spec`` is ``skeleton`` motion in the maa representation."""
+    if spec.representation != "maa" or spec.skeleton != skeleton:
+        raise UsageError(f"{key}: OmniMotionGPT reads {skeleton} shards in the maa representation, got "
+                         f"{spec.skeleton} {spec.representation} (build them with `omg shards build ... --skeleton "
+                         f"{skeleton} --representation maa`)")
+
+
 def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
     """The human stream's batches are normalised with its shards' statistics and un-normalised with the
     checkpoint's (``human_spec``): a run that goes on from a checkpoint must read human shards like those."""
-    stored.check_compatible(found, "the checkpoint's human data", "human_data")
+    stored.check_compatible(found, "the checkpoint's human data", "data.human")
     if found.mean != stored.mean or found.std != stored.std:
-        raise UsageError("human_data: its shards' mean/std differ from those the checkpoint was trained with "
+        raise UsageError("data.human: its shards' mean/std differ from those the checkpoint was trained with "
                          "(human_spec); go on from this checkpoint with the same human shards")
 
 

@@ -33,7 +33,7 @@ import omg.callbacks  # noqa: F401  (short callback names: EvalCallback, RenderC
 import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
 from omg.callbacks.progress import PlainProgress
 from omg.callbacks.run import InterruptCheckpoint, run_dir
-from omg.data.datamodule import MotionDataModule
+from omg.data.paired import PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
 from omg.tools.args import Settings
@@ -210,6 +210,22 @@ def earlier_last(callback: ModelCheckpoint) -> str | None:
             "or give this run its own trainer.default_root_dir")
 
 
+def model_clip_sampling(model: Any) -> str:
+    """The ``clip_sampling`` of the model class a parsed config names (``model: CLASS`` or its
+    ``class_path``): what ``data.clips: auto`` cuts; ``windows`` for a class that names none."""
+    name = model.get("class_path") if hasattr(model, "get") else model
+    cls = LightningSettings.model_class([("model", str(name), True)]) if name else None
+    return getattr(cls, "clip_sampling", "windows")
+
+
+def _sets_any(group: Any) -> bool:
+    """Whether a parsed settings group (a Namespace or mapping of its fields) sets any field."""
+    if group is None:
+        return False
+    values = group.as_dict() if isinstance(group, Namespace) else dict(group)
+    return any(v is not None for v in values.values())
+
+
 SEED_TYPE = bool | int  # LightningCLI's --seed_everything
 
 
@@ -323,7 +339,7 @@ class LightningSettings(Settings):
             rest = rest.removeprefix("init_args.")
             cls = self.model_class(given)
         else:
-            cls = {"trainer": L.Trainer, "data": MotionDataModule}.get(root)
+            cls = {"trainer": L.Trainer, "data": PairedDataModule}.get(root)
         if cls is None or "." in rest:
             return None
         return self.parameter_type(cls, rest)
@@ -342,12 +358,13 @@ class OmgLightningCLI(LightningCLI):
         import docstring_parser
 
         self.command = command  # LightningCLI's own ``subcommand`` stays None (run=False)
+        self.ckpt_fit_state: dict[str, Any] | None = None  # --ckpt_path's, for the module once built
         self.method_arguments: list[str] = []
         doc = docstring_parser.parse(getattr(L.Trainer, command).__doc__ or "").short_description or ""
         super().__init__(
             model_class=L.LightningModule,
             subclass_mode_model=True,
-            datamodule_class=MotionDataModule,
+            datamodule_class=PairedDataModule,
             parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc},
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
@@ -361,6 +378,8 @@ class OmgLightningCLI(LightningCLI):
         from torch.optim import Optimizer
 
         parser.link_arguments("data", "model.init_args.spec", compute_fn=lambda data: data.spec, apply_on="instantiate")
+        # what data.clips=auto cuts: the model's clip_sampling, known once the config names its class
+        parser.link_arguments("model", "data.clip_sampling", compute_fn=model_clip_sampling, apply_on="parse")
         # the optimizer and scheduler options LightningCLI adds next (added here, so that the command's
         # arguments follow them, in the order of LightningCLI's own subcommands), then the command's
         parser.add_optimizer_args((Optimizer,))
@@ -396,6 +415,7 @@ class OmgLightningCLI(LightningCLI):
         logger: a versioned CSVLogger in default_root_dir (Lightning's own default is TensorBoard when
         installed, in a lightning_logs/ subfolder)."""
         self.check_ckpt_path()
+        self.route_human_data()
         trainer = self.config.trainer
         # before anything is built or run: a file or an unwritable folder would fail only at the first write
         # (a URL, s3://..., is Lightning's to open)
@@ -404,6 +424,20 @@ class OmgLightningCLI(LightningCLI):
         if trainer.logger is None or trainer.logger is True:
             trainer.logger = Namespace(class_path="lightning.pytorch.loggers.CSVLogger",
                                        init_args=Namespace(save_dir=trainer.default_root_dir or ".", name=""))
+
+    def route_human_data(self) -> None:
+        """``model.init_args.human_data``, the older place of OmniMotionGPT's human shards, read as ``data.human``
+        (one warning line); both set is refused."""
+        init_args = (self.config.get("model") or {}).get("init_args")
+        human_data = init_args.get("human_data") if init_args is not None else None
+        if not _sets_any(human_data):
+            return
+        if _sets_any((self.config.get("data") or {}).get("human")):
+            raise UsageError("model.init_args.human_data and data.human both name the human shards: keep data.human "
+                             "only (model.init_args.human_data is its older name)")
+        rank_zero_warn("model.init_args.human_data is read as data.human, where the human shards are set now")
+        self.config.data.human = human_data
+        init_args.human_data = None
 
     def instantiate_classes(self) -> None:
         from omg.tools.args import explain
@@ -414,6 +448,8 @@ class OmgLightningCLI(LightningCLI):
             raise
         except ValueError as e:  # a component refused its value (jsonargparse may wrap it in a union check)
             raise UsageError(explain(e)) from None
+        if self.ckpt_fit_state is not None and callable(restore := getattr(self.model, "restore_fit_state", None)):
+            restore(self.ckpt_fit_state)
 
     def instantiate_trainer(self, **kwargs) -> L.Trainer:
         """The configured Trainer, its checkpoints in the run directory, plus a checkpoint on
@@ -463,6 +499,8 @@ class OmgLightningCLI(LightningCLI):
         datamodule)`` method, e.g. EvalCallback's evaluator against the data) do so here: the
         Trainer's logger creates the run folder before any callback's ``setup``, which would leave
         it behind, empty, on a refusal there."""
+        if self.command == "fit" and callable(check := getattr(self.model, "check_data", None)):
+            check(self.datamodule)  # a model that trains on more than data's set (OmniMotionGPT: data.human)
         for callback in self.trainer.callbacks:
             if callable(check := getattr(callback, "preflight", None)):
                 check(self.model, self.datamodule)
@@ -498,7 +536,7 @@ class OmgLightningCLI(LightningCLI):
         what the run's config files and command line set: checkpoint < config files < command line,
         except for what shapes the weights, which comes from the checkpoint (a run that says
         otherwise is refused; ``omg.lit.checkpoint.run_hparams``)."""
-        from omg.lit.checkpoint import inert_hparams, inspect_checkpoint, run_hparams
+        from omg.lit.checkpoint import checkpoint_hparams, inert_hparams, inspect_checkpoint, run_hparams
 
         ckpt_path = self.config.get("ckpt_path")
         if not ckpt_path or str(ckpt_path) in SPECIAL_CKPT_PATHS:
@@ -520,10 +558,15 @@ class OmgLightningCLI(LightningCLI):
         configured = model.get("class_path") if model is not None and hasattr(model, "get") else None
         cls = self.check_ckpt_class(ckpt_path, header["module_class"], configured)
         hparams = dict(header["hyper_parameters"] or {}) if header["kind"] == "lightning" else {}
+        # what the module filled in from its data (OmniMotionGPT's human spec, animals, retrieval clips): the
+        # module takes it once built, so that the checks before the run (preflight) see the checkpoint's
+        self.ckpt_fit_state = {"fit_state": header.get("fit_state"), "hyper_parameters": dict(hparams)}
         hparams.pop("_instantiator", None)
         # where the run reads data (OmniMotionGPT's human_data, a companion checkpoint) comes from the
         # run's config, never from the file: a checkpoint that named a `pipe:` command would run it
         hparams = inert_hparams(cls, hparams) if cls is not None else hparams
+        if cls is not None:  # an older checkpoint's, as the class reads them (its fit-time state is restored later)
+            hparams = checkpoint_hparams(cls, hparams, {})
         class_path = hparams.pop("_class_path", None)  # LightningCLI's record of the class
         hparams = run_hparams(cls, hparams, self.given_model_args(), ckpt_path)
         if not hparams and class_path is None:  # as LightningCLI: the checkpoint's hyper-parameters become the model's

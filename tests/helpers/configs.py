@@ -13,7 +13,8 @@ from lightning.pytorch.cli import LightningArgumentParser
 import omg.callbacks  # noqa: F401  (short class names in configs resolve among imported modules)
 import omg.lit  # noqa: F401
 from helpers import REPO, TINY_DIT
-from omg.data.datamodule import MotionDataModule
+from omg.data.paired import PairedDataModule
+from omg.tools.lightning import model_clip_sampling
 
 # an overlay -> the config it completes
 OVERLAYS = {"mini/omgpt_self_eval.yaml": REPO / "configs/mini/omgpt_eval.yaml",
@@ -32,7 +33,8 @@ def parse(path: Path):
     parser.add_argument("--seed_everything", type=int | bool, default=True)
     parser.add_lightning_class_args(L.Trainer, "trainer")
     parser.add_lightning_class_args(L.LightningModule, "model", subclass_mode=True)
-    parser.add_lightning_class_args(MotionDataModule, "data")
+    parser.add_lightning_class_args(PairedDataModule, "data")
+    parser.link_arguments("model", "data.clip_sampling", compute_fn=model_clip_sampling, apply_on="parse")  # as omg fit
     # a data-only config (configs/data/) or an overlay follows the config it completes, as
     # `omg fit --config A --config B` composes them
     overlay = OVERLAYS.get(path.relative_to(REPO / "configs").as_posix())

@@ -20,14 +20,35 @@ def data(path, **kw):
     return MotionDataModule(str(path), **{**args, **kw})
 
 
+HUMAN = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
+             shuffle_buffer=32, clips="whole")  # the mini human stream of whole clips
+
+
+def paired(path, human: dict | None = None, **kw):
+    """The paired data module of a mini animal set (as ``data``) and the mini human set (``human``: its arguments
+    over ``HUMAN``'s)."""
+    from omg.data.paired import PairedDataModule
+
+    args = dict(batch_size=4, max_len=32, min_len=20, num_workers=0, shuffle_buffer=32, clips="whole")
+    return PairedDataModule(str(path), human={**HUMAN, **(human or {})}, **{**args, **kw})
+
+
+def human_batch(**kw) -> dict:
+    """The first training batch of the mini human stream (``HUMAN``'s arguments, ``kw`` over them)."""
+    from omg.data.datamodule import MotionDataModule
+
+    return next(iter(MotionDataModule(**{**HUMAN, **kw}).train_dataloader()))
+
+
 def tiny_module(spec, **kw):
-    """The tiny OmniMotionModule of these tests (hash text, no EMA) on the mini human stream of whole clips."""
+    """The tiny OmniMotionModule of these tests (hash text, no EMA), its human spec the mini human set's (what a
+    fit on ``paired`` data sets when it starts)."""
+    from omg.data.datamodule import MotionDataModule
     from omg.lit.omgpt import OmniMotionModule
 
-    human = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,
-                 shuffle_buffer=32, clips="whole")
-    return OmniMotionModule(human_data=human, flavor="mini", config=TINY, text_encoder="hash", spec=spec, ema_decay=0,
-                            **kw)
+    module = OmniMotionModule(flavor="mini", config=TINY, text_encoder="hash", spec=spec, ema_decay=0, **kw)
+    module.use_human_spec(MotionDataModule(**HUMAN).spec)
+    return module
 
 
 def fit_config() -> dict:
@@ -46,5 +67,5 @@ def fit_mini(root: Path) -> Path:
           f"--trainer.default_root_dir={root}", "--trainer.enable_progress_bar=false", "--trainer.val_check_interval=4",
           "--trainer.enable_model_summary=false", "--model.init_args.text_encoder=hash",
           f"--model.init_args.config={json.dumps(fit_config())}", "--data.batch_size=4",
-          "--model.init_args.human_data.batch_size=4"])
+          "--data.human.batch_size=4"])
     return root / "checkpoints/last.ckpt"
