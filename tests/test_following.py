@@ -197,12 +197,15 @@ class Replay(L.LightningModule):
         self.features, self.spec, self.seen = features, spec, []
         self.anchor = torch.nn.Parameter(torch.zeros(()))
 
-    def sample(self, texts, lengths, *, seed=0, **sampling):
+    def sample(self, texts, lengths, settings=None):  # omg.lit.sampling.Sampler
         self.seen.append(list(texts))
         out = torch.zeros(len(texts), int(lengths.max()), self.features.shape[-1])
         for b, n in enumerate(lengths.tolist()):
             out[b, :n] = self.features[:n]
         return out
+
+    def check_sampling(self, settings, key):
+        pass
 
     def test_step(self, batch, index):
         return None
