@@ -184,9 +184,7 @@ def check_request(card: GenerationCard, request: GenerationRequest, what: str = 
                          f"{request.steps}")
     if request.sampler is not None and not card.samplers:
         raise UsageError(f"--sampler: {what} has no sampler to choose")
-    if unknown := sorted(set(request.options) - set(card.options)):
-        takes = ", ".join(card.options) or "none"
-        raise UsageError(f"{what} takes no option {', '.join(unknown)}; its options: {takes}")
+    refuse_unknown_options(card, request.options, what)
     if request.species is not None and not card.open_species and request.species not in card.species:
         known = ", ".join(card.species) or "none (train the model first)"
         raise UsageError(f"unknown animal {request.species!r}; this checkpoint knows: {known}")
@@ -210,10 +208,16 @@ def parse_options(generator: Generator, pairs: list[str], what: str = "this chec
         if not sep or not key.strip():
             example = next(iter(card.options), "KEY")
             raise UsageError(f"--option {pair!r}: give KEY=VALUE, e.g. --option {example}=VALUE")
-        if key not in card.options:
-            raise UsageError(f"{what} takes no option {key}; its options: {', '.join(card.options) or 'none'}")
+        refuse_unknown_options(card, [key], what)
         options[key] = generator.option(key, value)
     return options
+
+
+def refuse_unknown_options(card: GenerationCard, keys: Any, what: str) -> None:
+    """One line naming the card's options when ``keys`` holds one the card does not list."""
+    if unknown := sorted(set(keys) - set(card.options)):
+        takes = ", ".join(card.options) or "none"
+        raise UsageError(f"{what} takes no option {', '.join(unknown)}; its options: {takes}")
 
 
 def number_option(key: str, value: str, low: float, high: float, low_open: bool = False) -> float:
