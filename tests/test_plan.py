@@ -135,11 +135,14 @@ def test_plan_keeps_a_configs_global_batch_on_other_gpu_counts(capsys):
         "accumulation 4 kept"
     with pytest.raises(UsageError, match="global batch 256 is not a multiple of micro-batch 8 x --gpus 3"):
         rebatch(giant, 3, None, None)
-    # through the command, on the mini config (16 x 1 x 8 = 128): the table and the line
-    main(["bench", "plan", "--configs", "[configs/mini/pretrain.yaml]", "--gpus", "2"])
-    out = capsys.readouterr().out
-    assert "| 128 (16 x 4 x 2 H100) x 120 |" in out
-    assert out.rstrip().endswith("pretrain: global batch 128 kept on 2 GPUs, accumulation 1 -> 4")
+    # through the command, on the mini config (16 x 1 x 8 = 128): the table and the line; one config is given
+    # as a plain path (the list option takes a lone value as its one item), as a list, and with `=`
+    for configs in (["configs/mini/pretrain.yaml"], ["[configs/mini/pretrain.yaml]"], []):
+        flag = ["--configs=configs/mini/pretrain.yaml"] if not configs else ["--configs", *configs]
+        main(["bench", "plan", *flag, "--gpus", "2"])
+        out = capsys.readouterr().out
+        assert "| 128 (16 x 4 x 2 H100) x 120 |" in out
+        assert out.rstrip().endswith("pretrain: global batch 128 kept on 2 GPUs, accumulation 1 -> 4")
 
 
 def test_plan_options_refuse_bad_input(capsys):

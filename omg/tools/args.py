@@ -398,12 +398,35 @@ def parse(parser: ArgumentParser, argv: list[str], help_prog: str | None = None,
 
     settings = settings or getattr(parser, "settings", None) or Settings()
     check_config_files(argv)
-    argv = underscore_options(argv, settings.options)
+    argv = lone_items_listed(underscore_options(argv, settings.options), settings.types)
     try:
         return parser.parse_args(argv)
     except (ArgumentError, argparse.ArgumentError) as e:
         where = locate(argv, settings)
         raise UsageError(explain(e, hint=f"see `{help_prog or parser.prog} --help`", where=where)) from None
+
+
+def _takes_a_list(hint: Any) -> bool:
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return any(_takes_a_list(a) for a in typing.get_args(hint))
+    return typing.get_origin(hint) in (list, tuple)
+
+
+def lone_items_listed(argv: list[str], types_: dict[str, Any]) -> list[str]:
+    """``argv`` with a list option given one plain value (``--configs a.yaml``, ``--batch_sizes 8``) as the
+    one-item list ``[a.yaml]`` jsonargparse takes; a value that is already a list, or holds what a list
+    would read differently (``,[]{}:#`` or quotes), is left for the parser to judge."""
+    listed = {f"--{key}" for key, hint in types_.items() if _takes_a_list(hint)}
+    out = list(argv)
+    for i, arg in enumerate(out):
+        flag, sep, value = arg.partition("=")
+        if flag not in listed:
+            continue
+        at = i if sep else i + 1
+        value = value if sep else (out[at] if at < len(out) else "")
+        if value and not value.startswith("-") and not set(value) & set(",[]{}:#'\"") and not value.isspace():
+            out[at] = f"{flag}=[{value}]" if sep else f"[{value}]"
+    return out
 
 
 def call(function: Callable, config: Namespace, command: str):
