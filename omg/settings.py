@@ -67,6 +67,42 @@ def settings(cls: type[T], value: Any, key: str) -> T:
     return cls(**value)
 
 
+def group(default: T, value: Any, key: str) -> T:
+    """``value`` as a group of ``default``'s class: None is ``default``, a mapping sets some of its fields (the
+    others ``default``'s: a family's own defaults, as ``--model.init_args.optim.lr`` keeps the rest); an unknown
+    key is one line naming ``key`` and the accepted ones. For the groups whose fields all have values (``optim``,
+    ``loss``), where ``settings`` reads those whose unset fields are None."""
+    cls = type(default)
+    if value is None:
+        return default
+    if isinstance(value, cls):
+        return value
+    accepted = [f.name for f in dataclasses.fields(cls)]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = settings_dict(value)
+    if not isinstance(value, Mapping):
+        raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
+    if unknown := [k for k in value if k not in accepted]:
+        raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
+    return dataclasses.replace(default, **value)
+
+
+def regroup(values: Mapping[str, Any], groups: Mapping[str, Any]) -> tuple[dict[str, Any], list[tuple[str, str]]]:
+    """``values`` with each key that is a field of a group of ``groups`` (name -> its class or a value of it) and
+    not itself a group moved into that group's mapping (``{lr: 1e-3}`` -> ``{optim: {lr: 1e-3}}``): the flat
+    keys of settings that are grouped now, as older checkpoints and configs hold them. Also the (key, group)
+    pairs moved."""
+    fields = {f.name: name for name, cls in groups.items() for f in dataclasses.fields(cls)}
+    out, moved = dict(values), []
+    for key in [k for k in values if k in fields and k not in groups]:
+        name = fields[key]
+        given = out.get(name)
+        given = settings_dict(given) if dataclasses.is_dataclass(given) else dict(given or {})
+        out[name] = {**given, key: out.pop(key)}
+        moved.append((key, name))
+    return out, moved
+
+
 def set_fields(cls: type, value: Any, key: str) -> dict[str, Any]:
     """The fields ``value`` (as ``settings`` reads it) sets, as plain types: the keyword arguments for the
     config or callable the group overrides, and what checkpoints keep."""
@@ -79,6 +115,12 @@ def settings_dict(group: Any) -> dict[str, Any]:
             if getattr(group, f.name) is not None}
 
 
+def check_range(key: str, value: Any, ok: bool, wanted: str) -> None:
+    """One line naming ``key`` unless ``ok``: ``key must be {wanted}, got {value!r}``."""
+    if not ok:
+        raise UsageError(f"{key} must be {wanted}, got {value!r}")
+
+
 def _plain(value: Any) -> Any:
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
@@ -87,4 +129,4 @@ def _plain(value: Any) -> Any:
     return value
 
 
-__all__ = ["arguments", "overrides", "set_fields", "settings", "settings_dict"]
+__all__ = ["arguments", "check_range", "group", "overrides", "regroup", "set_fields", "settings", "settings_dict"]

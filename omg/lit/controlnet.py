@@ -16,7 +16,8 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser
 from omg.errors import UsageError
-from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
+from omg.lit.base import OptimSettings
+from omg.lit.pretrain import DiffusionLossWeights, MotionDiffusionModule, PretrainModule
 from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
 from omg.motion import DataSpec
 from omg.settings import set_fields
@@ -35,8 +36,8 @@ class ControlNetModule(MotionDiffusionModule):
             ablation switches token_masks, zero_init, experts and wiring, see ``omg.models.controlnet.MoCConfig``).
         eot_drop: probability of replacing the end-of-text token with the empty text's (OMG: 0.5).
         guidance_scale: s in (1 − s)·D_u + s·D_c when sampling (OMG: 4.5).
-        lr, weight_decay, warmup_steps: AdamW and schedule (OMG: 3e-5, 1e-5, 1K warm-up, cosine).
-        vel_weight, foot_weight, ema_decay: as for ``PretrainModule``.
+        optim: AdamW and schedule (OMG: lr 3e-5, weight_decay 1e-5, 1K warm-up, cosine; ``OptimSettings``).
+        loss, ema_decay: as for ``PretrainModule``.
         activation_checkpointing: recompute the activations of the frozen blocks, their trainable
             copies and the MoC blocks in backward; applied by ``configure_model``.
         stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
@@ -61,12 +62,8 @@ class ControlNetModule(MotionDiffusionModule):
         moc: MoCOverrides | None = MoCOverrides(),
         eot_drop: float = 0.5,
         guidance_scale: float = 4.5,
-        lr: float = 3e-5,
-        weight_decay: float = 1e-5,
-        betas: tuple[float, float] = (0.9, 0.999),
-        warmup_steps: int = 1000,
-        vel_weight: float = 30.0,
-        foot_weight: float = 30.0,
+        optim: OptimSettings = OptimSettings(lr=3e-5, weight_decay=1e-5, warmup_steps=1000),
+        loss: DiffusionLossWeights = DiffusionLossWeights(),
         ema_decay: float = 0.9999,
         activation_checkpointing: bool = False,
         stance_root: float = 0.0,
@@ -80,9 +77,8 @@ class ControlNetModule(MotionDiffusionModule):
             base, pretrained_weights = _read_pretrained(pretrained)
         if not 0.0 <= eot_drop <= 1.0:
             raise UsageError(f"model.eot_drop must be in [0, 1], got {eot_drop}")
-        super().__init__(base["flavor"], base["dit"], base["spec"], lr=lr, weight_decay=weight_decay, betas=betas,
-                         warmup_steps=warmup_steps, vel_weight=vel_weight, foot_weight=foot_weight,
-                         ema_decay=ema_decay, loss_weighting="uniform",
+        super().__init__(base["flavor"], base["dit"], base["spec"], optim=optim, loss=loss, ema_decay=ema_decay,
+                         loss_weighting="uniform",
                          activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
         self.eot_drop, self.guidance_scale = eot_drop, guidance_scale
