@@ -51,7 +51,7 @@ from omg.models.habit import (
     posterior_sample,
 )
 from omg.motion import DataSpec, get_representation
-from omg.settings import check_range, set_fields
+from omg.settings import arguments, check_range, set_fields, settings, settings_dict
 from omg.skeleton import get_skeleton
 from omg.text.base import TextEncoderArgs, text_encoder_kwargs
 
@@ -438,6 +438,11 @@ def embed_categories(categories: list[str], text_encoder: str, text_encoder_args
     return descriptions, embeddings.tolist()
 
 
+HabitVQArgs = arguments(HabitVQModule, "HabitVQArgs", __name__, """The arguments of the frozen ``HabitVQModule`` a
+prior is fitted on, as its checkpoint holds them: read from ``vq_ckpt`` when the prior is first built and kept in
+the prior's checkpoints (they shape the VQ-VAE's weights saved with the flows). Each unset field is None.""")
+
+
 class HabitPriorModule(OmgModule):
     """Stage 2 of ``habit_order: kl_then_flows``: each known category's flow prior p(z), fitted by NLL to the
     frozen stage-1 habit posterior. On a VQ-VAE of the default order (``flow_prior``, whose flows were
@@ -451,8 +456,8 @@ class HabitPriorModule(OmgModule):
         optim: AdamW's lr, weight_decay, betas; warmup_steps of linear warm-up, then cosine decay
             (``OptimSettings``).
         spec: linked by ``omg fit`` from the data; must match the VQ-VAE's.
-        vq: the VQ-VAE's hyper-parameters, filled from ``vq_ckpt``: a prior checkpoint holds its
-            VQ-VAE (``vq.*`` weights), so it loads without that file, on any machine.
+        vq: the VQ-VAE's hyper-parameters (``HabitVQArgs``), filled from ``vq_ckpt``: a prior checkpoint
+            holds its VQ-VAE (``vq.*`` weights), so it loads without that file, on any machine.
     """
 
     clip_sampling = "windows"
@@ -462,7 +467,7 @@ class HabitPriorModule(OmgModule):
 
     def __init__(self, vq_ckpt: str | None = None, posterior_sample: bool = True,
                  optim: OptimSettings = OptimSettings(lr=2e-4, betas=(0.9, 0.99)),
-                 spec: DataSpec | dict | None = None, vq: dict[str, Any] | None = None):
+                 spec: DataSpec | dict | None = None, vq: HabitVQArgs | None = None):
         super().__init__()
         from omg.lit.checkpoint import build_module, load_module
 
@@ -480,10 +485,9 @@ class HabitPriorModule(OmgModule):
             self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
             vq = dict(self.vq.hparams)
         else:  # the structure: the weights come with this checkpoint's
-            # a prior written before habit_order existed fitted a VQ-VAE of omg's earlier order; one written before
-            # the VQ-VAE's settings were grouped holds them flat
-            vq = HabitVQModule.checkpoint_hparams({"habit_order": "kl_then_flows", **vq}, {})
+            vq = settings_dict(settings(HabitVQArgs, self.vq_hparams(vq), "model.init_args.vq"))
             self.vq = build_module(HabitVQModule, vq, "model.init_args.vq")
+            vq = dict(self.vq.hparams)  # plain types, as the VQ-VAE keeps them
         self.hparams["vq"] = dict(vq)
         self.vq.requires_grad_(False).eval()
         self.spec = self.vq.spec
@@ -492,6 +496,20 @@ class HabitPriorModule(OmgModule):
         self.flows = CategoryFlows(len(self.vq.categories), self.vq.config)
         if vq_ckpt is not None and hparams_from_file and self.vq.flows is not None:  # flow_prior: its pretrained flows
             self.flows.load_state_dict(self.vq.flows.state_dict())
+
+    @staticmethod
+    def vq_hparams(vq: Any) -> Any:
+        """A checkpoint's ``vq`` as ``HabitVQModule`` reads it: a prior written before ``habit_order`` existed fitted
+        a VQ-VAE of omg's earlier order; one written before the VQ-VAE's settings were grouped holds them flat."""
+        if not isinstance(vq, dict):
+            return vq
+        return HabitVQModule.checkpoint_hparams({"habit_order": "kl_then_flows", **vq}, {})
+
+    @classmethod
+    def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them: its own and its VQ-VAE's (``vq_hparams``)."""
+        hparams = super().checkpoint_hparams(hparams, state)
+        return {**hparams, "vq": cls.vq_hparams(hparams["vq"])} if "vq" in hparams else hparams
 
     @property
     def categories(self) -> list[str]:
