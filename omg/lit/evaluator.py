@@ -135,7 +135,7 @@ class EvaluatorModule(OmgModule):
         for name, p in self.evaluator.named_parameters():
             if p.requires_grad:  # the frozen backbone is left out
                 (decay if p.ndim >= 2 and not name.endswith("cls") else no_decay).append(p)
-        return [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+        return [{"params": decay, "weight_decay": self.optim.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
 
 
 def load_evaluator(path: str | Path, map_location: str | torch.device = "cpu"):
