@@ -8,6 +8,11 @@ groups were typed, and a checkpoint keeps the mapping it always kept (``settings
 fields, plain types, as checkpoints load weights-only). ``settings`` reads a group from what
 constructors are given: the dataclass (``omg fit``), a mapping (a checkpoint's hyper-parameters, a
 Python caller) or None, an unknown key being one line that names it and the accepted ones.
+
+A group of *values* (a module's ``optim``, its ``loss`` weights) has a value in every field, the family's
+defaults: ``group`` reads one from the same inputs, a mapping setting some fields over the default's, and
+``regroup`` moves the older flat keys of its fields (``lr``, ``vel_weight``) into it, as checkpoints and
+configs written before the groups hold them.
 """
 
 from __future__ import annotations
@@ -87,19 +92,25 @@ def group(default: T, value: Any, key: str) -> T:
     return dataclasses.replace(default, **value)
 
 
-def regroup(values: Mapping[str, Any], groups: Mapping[str, Any]) -> tuple[dict[str, Any], list[tuple[str, str]]]:
-    """``values`` with each key that is a field of a group of ``groups`` (name -> its class or a value of it) and
-    not itself a group moved into that group's mapping (``{lr: 1e-3}`` -> ``{optim: {lr: 1e-3}}``): the flat
-    keys of settings that are grouped now, as older checkpoints and configs hold them. Also the (key, group)
-    pairs moved."""
-    fields = {f.name: name for name, cls in groups.items() for f in dataclasses.fields(cls)}
+def regroup(values: Mapping[str, Any], fields: Mapping[str, str],
+            key: str = "model.init_args") -> tuple[dict[str, Any], list[tuple[str, str]]]:
+    """``values`` with each key that ``fields`` (flat key -> its group) names moved into its group's mapping
+    (``{lr: 1e-3}`` -> ``{optim: {lr: 1e-3}}``): the flat keys of settings that are grouped now, as older
+    checkpoints and configs hold them; also the (key, group) pairs moved. A field given both ways is one line
+    naming both (``key``: where ``values`` sit); a group that is no mapping is left to the caller's check."""
     out, moved = dict(values), []
-    for key in [k for k in values if k in fields and k not in groups]:
-        name = fields[key]
+    for flat in [k for k in values if k in fields and k not in fields.values()]:
+        name = fields[flat]
         given = out.get(name)
-        given = settings_dict(given) if dataclasses.is_dataclass(given) else dict(given or {})
-        out[name] = {**given, key: out.pop(key)}
-        moved.append((key, name))
+        if dataclasses.is_dataclass(given) and not isinstance(given, type):
+            given = settings_dict(given)
+        if given is not None and not isinstance(given, Mapping):
+            continue
+        if flat in (given or {}):
+            raise UsageError(f"{key}.{flat} and {key}.{name}.{flat} are both set: keep {key}.{name}.{flat} only "
+                             f"({key}.{flat} is its older name)")
+        out[name] = {**(given or {}), flat: out.pop(flat)}
+        moved.append((flat, name))
     return out, moved
 
 

@@ -144,6 +144,11 @@ class OmgModule(L.LightningModule):
                 and p.name not in cls.settings_groups}
 
     @classmethod
+    def grouped_fields(cls) -> dict[str, str]:
+        """Each field of the value groups -> its group (``{lr: optim, vel_weight: loss, ...}``)."""
+        return {f.name: name for name, default in cls.value_groups().items() for f in dataclasses.fields(default)}
+
+    @classmethod
     def value_group(cls, name: str, value: Any) -> Any:
         """The constructor's argument ``name`` (a value group: None, the group or a mapping of some of its fields)
         as the group, the fields it leaves out the class's defaults."""
@@ -154,7 +159,7 @@ class OmgModule(L.LightningModule):
         """A checkpoint's hyper-parameters as this class reads them (``omg.lit.checkpoint.load_module``): the
         fields of a value group (``lr``, ``vel_weight``) that a checkpoint written before the groups holds
         flat, in their group."""
-        return regroup(hparams, {k: type(v) for k, v in cls.value_groups().items()})[0]
+        return regroup(hparams, cls.grouped_fields())[0]
 
     def attached_trainer(self) -> L.Trainer | None:
         """The Trainer this module is attached to, None outside a run (``self.trainer`` raises there)."""

@@ -36,6 +36,7 @@ from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.paired import PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
+from omg.settings import regroup
 from omg.tools.args import Settings
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
@@ -229,13 +230,7 @@ def _sets_any(group: Any) -> bool:
 def grouped_settings() -> dict[str, str]:
     """The settings of omg's modules that live in a group now, by their older flat name: ``{lr: optim,
     vel_weight: loss, ...}`` (``OmgModule.value_groups``)."""
-    import dataclasses
-
-    keys = {}
-    for name in omg.lit.__all__:
-        for group, default in getattr(omg.lit, name).value_groups().items():
-            keys.update({f.name: group for f in dataclasses.fields(default)})
-    return keys
+    return {key: group for name in omg.lit.__all__ for key, group in getattr(omg.lit, name).grouped_fields().items()}
 
 
 def _warn_regrouped(key: str, group: str) -> None:
@@ -261,17 +256,9 @@ def regroup_args(args: list[str]) -> list[str]:
 def regroup_init_args(init_args: dict[str, Any]) -> dict[str, Any]:
     """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) moved into its group
     (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both name a field."""
-    keys, out = grouped_settings(), dict(init_args)
-    for key in [k for k in init_args if k in keys]:
-        group = keys[key]
-        given = out.get(group)
-        if given is not None and not isinstance(given, dict):
-            continue  # not a mapping: the parse refuses it, naming the group
-        if key in (given or {}):
-            raise UsageError(f"model.init_args.{key} and model.init_args.{group}.{key} are both set: keep "
-                             f"model.init_args.{group}.{key} only (model.init_args.{key} is its older name)")
+    out, moved = regroup(init_args, grouped_settings())
+    for key, group in moved:
         _warn_regrouped(key, group)
-        out[group] = {**(given or {}), key: out.pop(key)}
     return out
 
 
