@@ -321,7 +321,7 @@ ROWS = [
     ("fit-vel-weight-neg", [*FIT_DATA, "--model.init_args.loss.vel_weight", "-1"]),
     ("fit-optim-lr-zero", [*FIT_DATA, "--model.init_args.optim.lr", "0"]),
     ("fit-optim-unknown-key", [*FIT_DATA, "--model.init_args.optim.learning_rate", "1e-3"]),
-    ("fit-loss-unknown-key", [*FIT_DATA, "--model.init_args.loss.vel", "3"]),
+    ("fit-loss-unknown-key", [*FIT_DATA, "--model.init_args.loss.velocity_weight", "3"]),
     ("fit-optim-old-and-new-key", [*FIT_DATA, "--config", "{in}/old_and_new_lr.yaml"]),
     ("fit-dit-unknown-key", [*FIT_DATA, "--model.init_args.dit.dpeth", "3"]),
     ("fit-dit-key-not-a-number", [*FIT_DATA, "--model.init-args.dit.n-layers", "three"]),
@@ -582,7 +582,8 @@ SAYS = {
     "fit-optim-lr-zero": "model.optim.lr must be a finite number > 0, got 0.0",
     "fit-optim-unknown-key": "model.init_args.optim.learning_rate: unknown key 'learning_rate'; accepted keys: lr, "
                              "weight_decay, betas, warmup_steps",
-    "fit-loss-unknown-key": "model.init_args.loss.vel: unknown key 'vel'; accepted keys: vel_weight, foot_weight",
+    "fit-loss-unknown-key": "model.init_args.loss.velocity_weight: unknown key 'velocity_weight'; accepted keys: "
+                            "vel_weight, foot_weight",
     "fit-optim-old-and-new-key": "model.init_args.lr and model.init_args.optim.lr are both set: keep "
                                  "model.init_args.optim.lr only (model.init_args.lr is its older name)",
     "fit-dit-unknown-key": "model.init_args.dit.dpeth: unknown key 'dpeth'; accepted keys: n_layers, d_model, ",
