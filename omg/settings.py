@@ -8,6 +8,11 @@ groups were typed, and a checkpoint keeps the mapping it always kept (``settings
 fields, plain types, as checkpoints load weights-only). ``settings`` reads a group from what
 constructors are given: the dataclass (``omg fit``), a mapping (a checkpoint's hyper-parameters, a
 Python caller) or None, an unknown key being one line that names it and the accepted ones.
+
+A group of *values* (a module's ``optim``, its ``loss`` weights) has a value in every field, the family's
+defaults: ``group`` reads one from the same inputs, a mapping setting some fields over the default's, and
+``regroup`` moves the older flat keys of its fields (``lr``, ``vel_weight``) into it, as checkpoints and
+configs written before the groups hold them.
 """
 
 from __future__ import annotations
@@ -67,6 +72,48 @@ def settings(cls: type[T], value: Any, key: str) -> T:
     return cls(**value)
 
 
+def group(default: T, value: Any, key: str) -> T:
+    """``value`` as a group of ``default``'s class: None is ``default``, a mapping sets some of its fields (the
+    others ``default``'s: a family's own defaults, as ``--model.init_args.optim.lr`` keeps the rest); an unknown
+    key is one line naming ``key`` and the accepted ones. For the groups whose fields all have values (``optim``,
+    ``loss``), where ``settings`` reads those whose unset fields are None."""
+    cls = type(default)
+    if value is None:
+        return default
+    if isinstance(value, cls):
+        return value
+    accepted = [f.name for f in dataclasses.fields(cls)]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = settings_dict(value)
+    if not isinstance(value, Mapping):
+        raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
+    if unknown := [k for k in value if k not in accepted]:
+        raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
+    return dataclasses.replace(default, **value)
+
+
+def regroup(values: Mapping[str, Any], fields: Mapping[str, str],
+            key: str = "model.init_args") -> tuple[dict[str, Any], list[tuple[str, str]]]:
+    """``values`` with each key that ``fields`` (flat key -> its group) names moved into its group's mapping
+    (``{lr: 1e-3}`` -> ``{optim: {lr: 1e-3}}``): the flat keys of settings that are grouped now, as older
+    checkpoints and configs hold them; also the (key, group) pairs moved. A field given both ways is one line
+    naming both (``key``: where ``values`` sit); a group that is no mapping is left to the caller's check."""
+    out, moved = dict(values), []
+    for flat in [k for k in values if k in fields and k not in fields.values()]:
+        name = fields[flat]
+        given = out.get(name)
+        if dataclasses.is_dataclass(given) and not isinstance(given, type):
+            given = settings_dict(given)
+        if given is not None and not isinstance(given, Mapping):
+            continue
+        if flat in (given or {}):
+            raise UsageError(f"{key}.{flat} and {key}.{name}.{flat} are both set: keep {key}.{name}.{flat} only "
+                             f"({key}.{flat} is its older name)")
+        out[name] = {**(given or {}), flat: out.pop(flat)}
+        moved.append((flat, name))
+    return out, moved
+
+
 def set_fields(cls: type, value: Any, key: str) -> dict[str, Any]:
     """The fields ``value`` (as ``settings`` reads it) sets, as plain types: the keyword arguments for the
     config or callable the group overrides, and what checkpoints keep."""
@@ -79,6 +126,12 @@ def settings_dict(group: Any) -> dict[str, Any]:
             if getattr(group, f.name) is not None}
 
 
+def check_range(key: str, value: Any, ok: bool, wanted: str) -> None:
+    """One line naming ``key`` unless ``ok``: ``key must be {wanted}, got {value!r}``."""
+    if not ok:
+        raise UsageError(f"{key} must be {wanted}, got {value!r}")
+
+
 def _plain(value: Any) -> Any:
     if isinstance(value, (tuple, list)):
         return [_plain(v) for v in value]
@@ -87,4 +140,4 @@ def _plain(value: Any) -> Any:
     return value
 
 
-__all__ = ["arguments", "overrides", "set_fields", "settings", "settings_dict"]
+__all__ = ["arguments", "check_range", "group", "overrides", "regroup", "set_fields", "settings", "settings_dict"]

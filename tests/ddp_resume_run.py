@@ -48,8 +48,8 @@ if __name__ == "__main__":
     L.seed_everything(0, verbose=False)
     data = MotionDataModule(str(shards), batch_size=2, max_len=30, min_len=10, batches_per_epoch=3,
                             num_workers=0, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3,
-                           warmup_steps=2, ema_decay=0.9, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT,
+                           ema_decay=0.9, spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 2})
     recorder, start = Recorder(), StartState()
     callbacks = [L.pytorch.callbacks.ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1),
                  recorder, start]

@@ -83,6 +83,7 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
     (d / "list_out.yaml").write_text("source: synth\nout: [1, 2]\n")
     (d / "syntax.yaml").write_text("trainer:\n  max_steps: 3\n  devices: [1, 2\nmodel: x\n")  # ] missing
+    (d / "old_and_new_lr.yaml").write_text("model:\n  init_args:\n    lr: 1.0e-3\n    optim:\n      lr: 2.0e-3\n")
     (d / "empty.yaml").write_text("")
     animals = REPO / "shards/mini/animal_maa/train"
     (d / "mix_negative.yaml").write_text(f"data:\n  train:\n    - {{path: {MINI_SHARDS}, weight: -1}}\n")
@@ -317,7 +318,11 @@ ROWS = [
     ("fit-ckpt-hpc-none", [*FIT_DATA, "--trainer.default_root_dir", "{in}/empty", "--ckpt_path", "hpc"]),
     # omg fit: values refused before the run folder is made (they failed at fit start, or at the first batch)
     ("fit-ema-decay-over-1", [*FIT_DATA, "--model.init_args.ema_decay", "1.5"]),
-    ("fit-vel-weight-neg", [*FIT_DATA, "--model.init_args.vel_weight", "-1"]),
+    ("fit-vel-weight-neg", [*FIT_DATA, "--model.init_args.loss.vel_weight", "-1"]),
+    ("fit-optim-lr-zero", [*FIT_DATA, "--model.init_args.optim.lr", "0"]),
+    ("fit-optim-unknown-key", [*FIT_DATA, "--model.init_args.optim.learning_rate", "1e-3"]),
+    ("fit-loss-unknown-key", [*FIT_DATA, "--model.init_args.loss.velocity_weight", "3"]),
+    ("fit-optim-old-and-new-key", [*FIT_DATA, "--config", "{in}/old_and_new_lr.yaml"]),
     ("fit-dit-unknown-key", [*FIT_DATA, "--model.init_args.dit.dpeth", "3"]),
     ("fit-dit-key-not-a-number", [*FIT_DATA, "--model.init-args.dit.n-layers", "three"]),
     ("fit-root-dir-is-file", [*FIT_DATA, "--trainer.default_root_dir", "{in}/afile"]),
@@ -573,7 +578,14 @@ SAYS = {
     "fit-ckpt-hpc-torn": "--ckpt_path hpc: {in}/hpc_torn/hpc_ckpt_2.ckpt is corrupt",
     "fit-ckpt-hpc-none": "--ckpt_path hpc: {in}/empty holds no hpc_ckpt_N.ckpt",
     "fit-ema-decay-over-1": "model.ema_decay must be in [0, 1) (0: no EMA), got 1.5",
-    "fit-vel-weight-neg": "model.vel_weight must be a finite number >= 0, got -1.0",
+    "fit-vel-weight-neg": "model.loss.vel_weight must be a finite number >= 0, got -1.0",
+    "fit-optim-lr-zero": "model.optim.lr must be a finite number > 0, got 0.0",
+    "fit-optim-unknown-key": "model.init_args.optim.learning_rate: unknown key 'learning_rate'; accepted keys: lr, "
+                             "weight_decay, betas, warmup_steps",
+    "fit-loss-unknown-key": "model.init_args.loss.velocity_weight: unknown key 'velocity_weight'; accepted keys: "
+                            "vel_weight, foot_weight",
+    "fit-optim-old-and-new-key": "model.init_args.lr and model.init_args.optim.lr are both set: keep "
+                                 "model.init_args.optim.lr only (model.init_args.lr is its older name)",
     "fit-dit-unknown-key": "model.init_args.dit.dpeth: unknown key 'dpeth'; accepted keys: n_layers, d_model, ",
     "fit-dit-key-not-a-number": "model.init_args.dit.n_layers: expected an integer, got 'three'",
     "fit-root-dir-is-file": "trainer.default_root_dir {in}/afile: not a folder",
@@ -586,7 +598,7 @@ SAYS = {
     "test-evaluator-other-kind": f"the data and EvalCallback.evaluator {SPECS_DIFFER}",
     "fit-habit-order-banana": "model.habit_order must be one of flow_prior, kl_then_flows (flow_prior: the paper's",
     "fit-habit-fraction-one": "model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
-                              "encoders) and model.flow_weight >= 0, got 1.0, 0.01",
+                              "encoders), got 1.0",
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
     "fit-progress-every-neg": "progress_every: expected an integer >= 0, got '-1'",

@@ -31,7 +31,8 @@ def _data():
 
 def _module(data, seed=0):
     torch.manual_seed(seed)
-    return PretrainModule(flavor="mini", dit=TINY_DIT, spec=data.spec, lr=1e-3, warmup_steps=2, ema_decay=0)
+    return PretrainModule(flavor="mini", dit=TINY_DIT, spec=data.spec, ema_decay=0,
+                          optim={"lr": 1e-3, "warmup_steps": 2})
 
 
 def _trainer(root, steps, callbacks, logger=True):

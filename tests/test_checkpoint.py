@@ -39,7 +39,7 @@ def trained(tmp_path_factory) -> tuple[PretrainModule, Path]:
     predict 0 and hide wrong weights; and its EMA lags them, so EMA and trained weights differ.
     """
     torch.manual_seed(0)
-    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=SPEC, warmup_steps=1)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=SPEC, optim={"warmup_steps": 1})
     module.ema = EMA(module.model, decay=0.9)
     with torch.no_grad():
         for p in module.model.parameters():
@@ -214,7 +214,7 @@ def test_convert_ema_controlnet_writes_the_controlnet_ema(trained, tmp_path):
 
     torch.manual_seed(0)
     module = ControlNetModule(pretrained=str(trained[1]), text_encoder="hash", moc={"d_c": 32, "num_experts": 2},
-                              spec=SPEC, lr=1e-2, warmup_steps=1, ema_decay=0.9)
+                              spec=SPEC, ema_decay=0.9, optim={"lr": 1e-2, "warmup_steps": 1})
     ckpt = _fit_steps(module, [_motion_batch(0, "a person walks"), _motion_batch(1, "a person jumps")], tmp_path)
     state = assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "controlnet.")
     # the converted file rebuilds the module with the ControlNet's EMA weights and the frozen model
@@ -253,7 +253,7 @@ def test_convert_evaluator_and_its_ema(tmp_path, capsys):
     from omg.lit.evaluator import load_evaluator
 
     torch.manual_seed(0)
-    module = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC, lr=1e-3, warmup_steps=1)
+    module = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC, optim={"lr": 1e-3, "warmup_steps": 1})
     ckpt = _fit_steps(module, _evaluator_batches(), tmp_path)
     with pytest.raises(SystemExit):  # EvaluatorModule keeps no EMA: --ema is refused, plainly
         omg(["convert-ckpt", str(ckpt), str(tmp_path / "ema.safetensors"), "--ema"])
@@ -264,7 +264,7 @@ def test_convert_evaluator_and_its_ema(tmp_path, capsys):
 
     # an evaluator that keeps an EMA of its trainable `evaluator`: the prefix comes from the module
     torch.manual_seed(0)
-    module = EMAEvaluator(text_encoder="hash", flavor="mini", spec=SPEC, lr=1e-2, warmup_steps=1)
+    module = EMAEvaluator(text_encoder="hash", flavor="mini", spec=SPEC, optim={"lr": 1e-2, "warmup_steps": 1})
     ckpt = _fit_steps(module, _evaluator_batches(), tmp_path / "ema")
     assert_converted_ema(ckpt, tmp_path / "ema.safetensors", "evaluator.")
 

@@ -62,8 +62,8 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
     root = tmp_path_factory.mktemp("precedence")
     torch.manual_seed(0)
     config = write_config(root / "pre.yaml", MINI / "human263/train", root / "pre", max_steps=2)
-    main(["fit", "--config", config, "--model.init_args.stance_root=0.25", "--model.init_args.vel_weight=7",
-          "--model.init_args.foot_weight=5"])
+    main(["fit", "--config", config, "--model.init_args.stance_root=0.25", "--model.init_args.loss.vel_weight=7",
+          "--model.init_args.loss.foot_weight=5"])
     paths = {"pretrain": str(root / "pre/ckpt/last.ckpt")}
 
     def save(module, name):
@@ -77,13 +77,14 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
                           guidance_scale=2.0, eot_drop=0.3, stance_root=0.1, ema_decay=0), "controlnet")
     maa = MotionDataModule(str(MINI / "animal_maa/train"), batch_size=2, num_workers=0).spec
     save(EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1, "d_model": 32, "embed_dim": 32},
-                         r_precision_pool=4, warmup_steps=7, spec=maa), "evaluator")
-    save(tiny_module(maa, retrieval_top_k=3, retrieval_draw="uniform", retrieval_temperature=0.5, cons_weight=0.3),
+                         r_precision_pool=4, spec=maa, optim={"warmup_steps": 7}), "evaluator")
+    save(tiny_module(maa, retrieval_top_k=3, retrieval_draw="uniform", retrieval_temperature=0.5,
+                     loss={"cons_weight": 0.3}),
          "omgpt")
     quatvel = MotionDataModule(str(MINI / "animal_quatvel/train"), batch_size=2, num_workers=0).spec
-    vq = save(HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", alpha=0.4, beta=0.03, kl_weight=2e-3,
-                            spec=quatvel), "habit_vq")
-    save(HabitPriorModule(vq, posterior_sample=True, lr=3e-4, warmup_steps=3), "habit_prior")
+    vq = save(HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash",
+                            spec=quatvel, loss={"alpha": 0.4, "beta": 0.03, "kl_weight": 2e-3}), "habit_vq")
+    save(HabitPriorModule(vq, posterior_sample=True, optim={"lr": 3e-4, "warmup_steps": 3}), "habit_prior")
     return paths
 
 
@@ -108,9 +109,10 @@ def _flags(values: dict) -> list[str]:
 # the command line's over the config's, the config's over the checkpoint's, the checkpoint's where neither says)
 CASES = {
     "pretrain": ("test", "PretrainModule", "h263",
-                 {"flavor": "mini", "dit": {"n_layers": 2}, "stance_root": 0.5, "vel_weight": 10.0},
-                 {"vel_weight": 20.0},
-                 lambda m: {"stance_root": m.stance_root, "vel_weight": m.vel_weight, "foot_weight": m.foot_weight},
+                 {"flavor": "mini", "dit": {"n_layers": 2}, "stance_root": 0.5, "loss": {"vel_weight": 10.0}},
+                 {"loss.vel_weight": 20.0},
+                 lambda m: {"stance_root": m.stance_root, "vel_weight": m.loss.vel_weight,
+                            "foot_weight": m.loss.foot_weight},
                  {"stance_root": 0.5, "vel_weight": 20.0, "foot_weight": 5.0}),
     "controlnet": ("test", "ControlNetModule", "h263",
                    {"guidance_scale": 3.0, "stance_root": 0.2, "text_encoder": "hash"},
@@ -118,10 +120,10 @@ CASES = {
                    lambda m: {"guidance_scale": m.guidance_scale, "stance_root": m.stance_root, "eot_drop": m.eot_drop},
                    {"guidance_scale": 3.0, "stance_root": 0.4, "eot_drop": 0.3}),
     "evaluator": ("validate", "EvaluatorModule", "maa",
-                  {"r_precision_pool": 5, "weight_decay": 0.5},
+                  {"r_precision_pool": 5, "optim": {"weight_decay": 0.5}},
                   {"r_precision_pool": 6},
-                  lambda m: {"pool": m.val_r_precision.pool_size, "weight_decay": m.weight_decay,
-                             "warmup_steps": m.warmup_steps},
+                  lambda m: {"pool": m.val_r_precision.pool_size, "weight_decay": m.optim.weight_decay,
+                             "warmup_steps": m.optim.warmup_steps},
                   {"pool": 6, "weight_decay": 0.5, "warmup_steps": 7}),
     # configs/omgpt_eval.yaml's retrieval: the similarity draw among the 32 nearest clips at T = 0.1
     "omgpt": ("test", "OmniMotionModule", "maa",
@@ -131,15 +133,16 @@ CASES = {
                          "cons_weight": m.weights["cons"]},
               {"top_k": 32, "draw": "similarity", "temperature": 0.2, "cons_weight": 0.3}),
     "habit_vq": ("test", "HabitVQModule", "quatvel",
-                 {"categories": CATEGORIES, "alpha": 0.6, "quantizer": "nearest"},
-                 {"beta": 0.05},
-                 lambda m: {"alpha": m.alpha, "beta": m.beta, "kl_weight": m.kl_weight,
+                 {"categories": CATEGORIES, "loss": {"alpha": 0.6}, "quantizer": "nearest"},
+                 {"loss.beta": 0.05},
+                 lambda m: {"alpha": m.loss.alpha, "beta": m.loss.beta, "kl_weight": m.loss.kl_weight,
                             "quantizer": m.vqvae.quantizer.mode},
                  {"alpha": 0.6, "beta": 0.05, "kl_weight": 2e-3, "quantizer": "nearest"}),
     "habit_prior": ("test", "HabitPriorModule", "quatvel",
                     {"posterior_sample": False},
-                    {"warmup_steps": 5},
-                    lambda m: {"posterior_sample": m.posterior_sample, "warmup_steps": m.warmup_steps, "lr": m.lr},
+                    {"optim.warmup_steps": 5},
+                    lambda m: {"posterior_sample": m.posterior_sample, "warmup_steps": m.optim.warmup_steps,
+                               "lr": m.optim.lr},
                     {"posterior_sample": False, "warmup_steps": 5, "lr": 3e-4}),
 }
 
@@ -206,7 +209,7 @@ def test_run_hparams_merges_in_order_and_leaves_unset_architecture_to_the_checkp
 
     saved = {"base": {"flavor": "mini", "dit": {"n_layers": 2}}, "moc": {"d_c": 16, "num_experts": 2},
              "guidance_scale": 2.0, "eot_drop": 0.3}
-    given = {"base": None, "moc": {"d_c": 16}, "guidance_scale": 4.5, "lr": 1e-3}
+    given = {"base": None, "moc": {"d_c": 16}, "guidance_scale": 4.5, "optim": {"lr": 1e-3}}
     assert run_hparams(ControlNetModule, saved, given, "c.ckpt") == {
         "base": saved["base"], "moc": saved["moc"], "eot_drop": 0.3}
     with pytest.raises(UsageError, match=r"^--model.init_args.base.dit.n_heads: the checkpoint c.ckpt was trained "

@@ -66,7 +66,7 @@ def test_controlnet_configs_use_clip_and_name_its_missing_weights(tmp_path):
         cfg = parse(REPO / f"configs/controlnet_{flavor}.yaml")
         args = cfg.model.init_args
         assert args.text_encoder == "clip-vit-l-14" and args.guidance_scale == 4.5 and args.eot_drop == 0.5
-        assert args.lr == 3e-5 and args.weight_decay == 1e-5 and args.warmup_steps == 1000
+        assert (args.optim.lr, args.optim.weight_decay, args.optim.warmup_steps) == (3e-5, 1e-5, 1000)
     with pytest.raises(UsageError, match="pretrained"):
         build_text_encoder("clip-vit-l-14", pretrained=str(tmp_path / "missing.pt"))
 

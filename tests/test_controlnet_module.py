@@ -44,14 +44,15 @@ def pretrained(tmp_path_factory):
     root = tmp_path_factory.mktemp("pretrain")
     torch.manual_seed(0)
     data = _data()
-    module = PretrainModule(flavor="mini", dit=TINY, spec=data.spec, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+    module = PretrainModule(flavor="mini", dit=TINY, spec=data.spec, ema_decay=0.99,
+                            optim={"lr": 1e-3, "warmup_steps": 20})
     trainer = _fit(module, data, 300, root)
     trainer.save_checkpoint(root / "pretrain.ckpt")
     return root / "pretrain.ckpt"
 
 
 def _controlnet(pretrained, **kw):
-    args = dict(text_encoder="hash", moc=MOC, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+    args = dict(text_encoder="hash", moc=MOC, ema_decay=0.99, optim={"lr": 1e-3, "warmup_steps": 20})
     return ControlNetModule(pretrained=str(pretrained), spec=_data().spec, **{**args, **kw})
 
 

@@ -43,8 +43,8 @@ def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluator")
     torch.manual_seed(0)
     data = _data()
-    module = EvaluatorModule(text_encoder="minilm", flavor="mini", lr=1e-3, warmup_steps=20, r_precision_pool=10,
-                             spec=data.spec)
+    module = EvaluatorModule(text_encoder="minilm", flavor="mini", r_precision_pool=10,
+                             spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 20})
     backbone = {k: v.clone() for k, v in module.evaluator.text_encoder.state_dict().items()}
     trainer = L.Trainer(max_steps=STEPS, val_check_interval=STEPS, check_val_every_n_epoch=None, accelerator="cpu",
                         logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
@@ -218,8 +218,8 @@ def test_batches_carry_each_clips_labels(toy_shards):
 def test_any_skeleton_animals_train_and_registry(tmp_path):
     data = _data(ANIMAL, batch_size=8, max_len=60, min_len=40)
     assert data.spec.skeleton == "smal35" and data.spec.representation == "maa"
-    module = EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1}, lr=1e-3, warmup_steps=1,
-                             spec=data.spec)
+    module = EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1},
+                             spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 1})
     before = {k: v.clone() for k, v in module.evaluator.motion_encoder.state_dict().items()}
     trainer = L.Trainer(max_steps=3, limit_val_batches=1, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path)

@@ -27,7 +27,7 @@ def prior_30fps(tmp_path_factory):
     root = tmp_path_factory.mktemp("prior30")
     data = MotionDataModule(str(shards_at(root / "shards", 30.0)), batch_size=4, max_len=30, min_len=10,
                             batches_per_epoch=1, num_workers=0, shuffle_buffer=4)
-    model = PretrainModule(flavor="mini", dit=TINY_DIT, warmup_steps=1, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT, spec=data.spec, optim={"warmup_steps": 1})
     trainer = L.Trainer(accelerator="cpu", max_steps=1, logger=False, enable_progress_bar=False,
                         enable_model_summary=False, enable_checkpointing=False, limit_val_batches=0)
     trainer.fit(model, data)

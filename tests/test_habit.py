@@ -160,7 +160,8 @@ def test_species_descriptions_name_no_family():
 # ----------------------------------------------------------------------------- mini fit
 
 
-TINY_FIT = dict(flavor="tiny", temperature=0.1, lr=3e-3, lr_after=3e-4, lr_switch=0.8, condition_decoder=True)
+TINY_FIT = dict(flavor="tiny", temperature=0.1, condition_decoder=True,
+                optim={"lr": 3e-3, "lr_after": 3e-4, "lr_switch": 0.8})
 
 
 @pytest.fixture(scope="session")
@@ -173,10 +174,11 @@ def habit_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("habit")
     vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, habit_order="kl_then_flows", **TINY_FIT, spec=spec),
                        out / "vq", 250)
-    prior, prior_path = _fit(HabitPriorModule(str(vq_path), lr=3e-3), out / "prior", 60)
+    prior, prior_path = _fit(HabitPriorModule(str(vq_path), optim={"lr": 3e-3}), out / "prior", 60)
     evaluator, _ = _fit(lambda spec: EvaluatorModule(flavor="mini", evaluator={"n_layers": 1, "d_model": 64,
                                                                                 "embed_dim": 64},
-                                                     lr=2e-3, warmup_steps=10, r_precision_pool=10, spec=spec),
+                                                     r_precision_pool=10, spec=spec,
+                                                     optim={"lr": 2e-3, "warmup_steps": 10}),
                         out / "evaluator", 120)
     return {"vq": vq.eval(), "vq_path": vq_path, "prior": prior.eval(), "prior_path": prior_path,
             "evaluator": evaluator.evaluator.eval(), "evaluator_path": out / "evaluator" / "last.ckpt"}
@@ -573,7 +575,7 @@ def test_pretraining_trains_encoders_and_flows_on_the_flow_prior_kl_and_the_vqva
     rotations = batch["motion"][..., 4:35 * 4]  # SMAL-35's local rotations but the root's (no path)
     stats = torch.nn.functional.smooth_l1_loss(module.habit_stats(z), habit_statistics(rotations, batch["mask"]))
     torch.testing.assert_close(out["flow_kl"], kl)
-    torch.testing.assert_close(out["loss"], stats + module.flow_weight * kl)
+    torch.testing.assert_close(out["loss"], stats + module.loss.flow_weight * kl)
 
     def grads(loss):
         module.zero_grad()

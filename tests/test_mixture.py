@@ -267,8 +267,8 @@ def _fit_mixture(h263_shards, root, kill_at=None, resume=False):
     L.seed_everything(0, verbose=False)
     data = _dm([{"path": str(h263_shards / "train"), "weight": 0.7}, {"path": str(h263_shards / "val"), "weight": 0.3}],
                batch_size=4, batches_per_epoch=4, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3, warmup_steps=2,
-                           ema_decay=0.9, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT,
+                           ema_decay=0.9, spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 2})
     recorder = Recorder()
     run_until_killed(model, data, root, max_steps=7, kill_at=kill_at, resume=resume, callbacks=[recorder])
     return recorder.steps

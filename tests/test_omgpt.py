@@ -306,12 +306,13 @@ def tiny_controlnet(tmp_path_factory):
     human = _data(MINI / "human263/train", max_len=40)
     trainer_args = dict(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, default_root_dir=root)
-    pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec, warmup_steps=1, ema_decay=0)
+    pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec, ema_decay=0, optim={"warmup_steps": 1})
     trainer = L.Trainer(max_steps=2, **trainer_args)
     trainer.fit(pretrain, human)
     trainer.save_checkpoint(root / "pretrain.ckpt")
     controlnet = ControlNetModule(pretrained=str(root / "pretrain.ckpt"), text_encoder="hash",
-                                  moc={"d_c": 16, "num_experts": 2}, spec=human.spec, warmup_steps=1, ema_decay=0)
+                                  moc={"d_c": 16, "num_experts": 2}, spec=human.spec, ema_decay=0,
+                                  optim={"warmup_steps": 1})
     trainer = L.Trainer(max_steps=2, **trainer_args)
     trainer.fit(controlnet, _data(MINI / "human263/train", max_len=40))
     trainer.save_checkpoint(root / "controlnet.ckpt")
@@ -612,7 +613,7 @@ def _fit_omgpt(root, seen: dict, kill_at=None, resume=False):
     # the human stream turns epochs at other steps than the animal one
     data = paired(MINI / "animal_maa/train", human=dict(shuffle_buffer=8, batches_per_epoch=3), batches_per_epoch=4,
                   shuffle_buffer=8)
-    model = Recorded(flavor="mini", config=TINY, text_encoder="hash", spec=data.spec, lr=1e-3, ema_decay=0.9)
+    model = Recorded(flavor="mini", config=TINY, text_encoder="hash", spec=data.spec, ema_decay=0.9, optim={"lr": 1e-3})
     run_until_killed(model, data, root, max_steps=7, kill_at=kill_at, resume=resume)
 
 

@@ -5,6 +5,7 @@ step schedule and evaluation protocol. Each assertion names the section; changin
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 
 import lightning as L
@@ -24,11 +25,15 @@ from omg.losses import masked_smooth_l1
 
 OMGPT_WEIGHTS = {"jrec": 1.0, "clip": 1.0, "trec": 1.0, "cons": 0.1, "cross_clip": 1.0, "ee": 100.0,
                  "translation": 1.0}
-HABIT_MIX = {"alpha": 0.5, "beta": 0.02, "lr": 2e-4, "lr_after": 1e-5, "lr_switch": 0.5}
+HABIT_MIX = {"loss": {"alpha": 0.5, "beta": 0.02}, "optim": {"lr": 2e-4, "lr_after": 1e-5, "lr_switch": 0.5}}
 
 
 def _defaults(cls) -> dict:
     return {k: p.default for k, p in inspect.signature(cls).parameters.items()}
+
+
+def _group_defaults(cls, group: str) -> dict:
+    return dataclasses.asdict(_defaults(cls)[group])
 
 
 def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
@@ -37,7 +42,7 @@ def test_omnimotiongpt_total_loss_is_the_papers_weighted_sum():
     animal = _data(MINI / "animal_maa/train")
     module = tiny_module(animal.spec)
     assert module.weights == OMGPT_WEIGHTS
-    assert {f"{k}_weight": v for k, v in OMGPT_WEIGHTS.items()}.items() <= _defaults(OmniMotionModule).items()
+    assert {f"{k}_weight": v for k, v in OMGPT_WEIGHTS.items()} == _group_defaults(OmniMotionModule, "loss")
     batch, human = next(iter(animal.train_dataloader())), human_batch()
     out = module.losses(batch, human)
     parts = {k: out[f"{d}/{k}"] for d in ("human", "animal") for k in ("jrec", "clip", "trec", "translation")}
@@ -65,7 +70,7 @@ def test_habit_stage1_loss_is_the_papers_mix(quatvel, order):
     """L = smooth L1 (motion) + 0.5 · smooth L1 (velocity channels) + 0.02 · commitment, by default; the
     VQ-VAE of the paper's order (its encoders pretrained under their flows) has no KL term, omg's earlier
     order adds kl_weight · KL(q || N(0, I))."""
-    assert HABIT_MIX.items() <= _defaults(HabitVQModule).items()
+    assert all(HABIT_MIX[g].items() <= _group_defaults(HabitVQModule, g).items() for g in HABIT_MIX)
     torch.manual_seed(0)
     module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", spec=quatvel.spec).eval()
     batch = next(iter(quatvel.train_dataloader()))
@@ -76,7 +81,7 @@ def test_habit_stage1_loss_is_the_papers_mix(quatvel, order):
     torch.testing.assert_close(out["velocity"], masked_smooth_l1(recon[..., v:], batch["motion"][..., v:], mask))
     expected = out["motion"] + 0.5 * out["velocity"] + 0.02 * out["commitment"]
     if order == "kl_then_flows":
-        expected = expected + module.kl_weight * out["kl"]
+        expected = expected + module.loss.kl_weight * out["kl"]
     else:
         assert "kl" not in out
     torch.testing.assert_close(out["loss"], expected)
@@ -109,8 +114,9 @@ def test_habit_learning_rate_steps_from_2e4_to_1e5_for_the_second_half(quatvel, 
 def test_omgpt_config_has_the_papers_numbers():
     cfg = parse(REPO / "configs/omgpt.yaml")
     args = cfg.model.init_args
-    assert {k: args[f"{k}_weight"] for k in OMGPT_WEIGHTS} == OMGPT_WEIGHTS  # §3.1-3.2, Appendix C
-    assert (args.lr, tuple(args.betas), args.weight_decay, args.ema_decay) == (1e-4, (0.9, 0.999), 0.0, 0.99)  # §5
+    assert {k: args.loss[f"{k}_weight"] for k in OMGPT_WEIGHTS} == OMGPT_WEIGHTS  # §3.1-3.2, Appendix C
+    optim = args.optim
+    assert (optim.lr, tuple(optim.betas), optim.weight_decay, args.ema_decay) == (1e-4, (0.9, 0.999), 0.0, 0.99)  # §5
     assert (args.text_encoder, args.text_feature, args.flavor) == ("clip-vit-l-14", "projected", "paper")
     assert cfg.trainer.max_steps == 30000 and cfg.data.batch_size == cfg.data.human.batch_size == 256
     # whole clips of the papers' lengths: AnimalML3D 10-196, HumanML3D 20-196 frames
@@ -124,7 +130,7 @@ def test_habit_configs_have_the_papers_numbers():
 
     cfg = parse(REPO / "configs/habit_vqvae.yaml")
     args = cfg.model.init_args
-    assert {k: args[k] for k in HABIT_MIX} == HABIT_MIX
+    assert {g: {k: args[g][k] for k in HABIT_MIX[g]} for g in HABIT_MIX} == HABIT_MIX
     assert (args.quantizer, args.code_reset, args.condition_decoder, args.ema_decay) == ("soft", True, False, 0.99)
     # the paper's order: each category's habit encoder pretrained under its flow prior, then the VQ-VAE's
     # 200K iterations on the pretrained encoders
@@ -136,7 +142,7 @@ def test_habit_configs_have_the_papers_numbers():
     assert (base.num_codes, base.down_t, base.dilation_growth, base.width) == (512, 2, 3, 512)
     assert (base.habit_layers, base.habit_width, base.habit_heads) == (4, 512, 8)
     prior = parse(REPO / "configs/habit_prior.yaml")
-    assert prior.model.init_args.lr == 2e-4 and prior.data.batch_size == 32
+    assert prior.model.init_args.optim.lr == 2e-4 and prior.data.batch_size == 32
 
 
 def _omgpt_switches(path) -> dict:
@@ -174,7 +180,7 @@ def test_omg_pretraining_configs_have_the_papers_budget(size):
     tests/test_datamodule.py's."""
     cfg = parse(REPO / f"configs/pretrain_{size}.yaml")
     assert cfg.trainer.max_steps == 1_000_000, f"{size}: OMG Sec. 4.1 pretrains for 1M iterations"
-    assert cfg.model.init_args.lr == 1e-4, f"{size}: OMG Sec. 4.1: AdamW, learning rate 1e-4"
+    assert cfg.model.init_args.optim.lr == 1e-4, f"{size}: OMG Sec. 4.1: AdamW, learning rate 1e-4"
 
 
 def _controlnet_on_meta(cfg):

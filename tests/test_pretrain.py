@@ -88,14 +88,14 @@ def _fit_args(shards, root, steps):
             "--data.num_workers=1", f"--trainer.max_steps={steps}", "--trainer.val_check_interval=1000",
             f"--trainer.default_root_dir={root}", f"--trainer.callbacks.dirpath={root}/checkpoints",
             "--trainer.callbacks.every_n_train_steps=4", "--trainer.enable_progress_bar=false",
-            TINY_DIT_ARG, "--model.init_args.warmup_steps=5"]
+            TINY_DIT_ARG, "--model.init_args.optim.warmup_steps=5"]
 
 
 def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path, capsys):
     """In-process (the CLI's entry point, as the bad-input table runs it): a process each cost a minute."""
     cases = {
         "--model.init_args.flavor=colossal": "unknown DiT flavor 'colossal'",
-        "--model.init_args.lr=-1": "model.lr must be > 0",
+        "--model.init_args.optim.lr=-1": "model.optim.lr must be a finite number > 0, got -1.0",
         f"--data.train={tmp_path}/missing": "no such directory",
         "--data.batch_sise=4": "batch_sise",
         "--trainer.max_steps=many": "max_steps",

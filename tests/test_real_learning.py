@@ -66,12 +66,13 @@ def test_held_out_prompts_give_walking_backward_and_bowing(shards, tmp_path):
     torch.manual_seed(0)
     data = dict(batch_size=16, max_len=80, min_len=40, batches_per_epoch=50, num_workers=0, shuffle_buffer=64)
     windows = MotionDataModule(str(shards / "train"), clips="windows", **data)
-    prior = PretrainModule(flavor="mini", dit=TINY, spec=windows.spec, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+    prior = PretrainModule(flavor="mini", dit=TINY, spec=windows.spec, ema_decay=0.99,
+                           optim={"lr": 1e-3, "warmup_steps": 20})
     trainer = _fit(prior, windows, PRIOR_STEPS)
     trainer.save_checkpoint(tmp_path / "prior.ckpt")
     whole = MotionDataModule(str(shards / "train"), clips="whole", **data)
     module = ControlNetModule(pretrained=str(tmp_path / "prior.ckpt"), text_encoder="minilm", spec=whole.spec,
-                              moc={"d_c": 32, "num_experts": 4}, lr=1e-3, warmup_steps=20, ema_decay=0.99)
+                              moc={"d_c": 32, "num_experts": 4}, ema_decay=0.99, optim={"lr": 1e-3, "warmup_steps": 20})
     _fit(module, whole, CONTROLNET_STEPS)
 
     decode = get_representation("humanml3d263", "smpl22").decode

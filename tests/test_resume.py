@@ -38,8 +38,8 @@ def fit(shards, root, *, kill_at: int | None = None, resume: bool = False, num_w
     data = MotionDataModule(str(shards / "train"), val=str(shards / "val") if validate else None, batch_size=4,
                             max_len=30, min_len=10, batches_per_epoch=BATCHES_PER_EPOCH, num_workers=num_workers,
                             shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-3, warmup_steps=3,
-                           ema_decay=0.9, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT,
+                           ema_decay=0.9, spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 3})
     recorder = Recorder()
     validation = ({"limit_val_batches": 1, "val_check_interval": BATCHES_PER_EPOCH, "check_val_every_n_epoch": None}
                   if validate else {})
@@ -159,8 +159,8 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
     L.seed_everything(0, verbose=False)
     data = MotionDataModule(str(h263_shards / "train"), batch_size=2, max_len=30, min_len=10, batches_per_epoch=12,
                             num_workers=0, shuffle_buffer=8)
-    model = PretrainModule(flavor="mini", dit=TINY_DIT, lr=1e-2, warmup_steps=1,
-                           ema_decay=decay, spec=data.spec)
+    model = PretrainModule(flavor="mini", dit=TINY_DIT,
+                           ema_decay=decay, spec=data.spec, optim={"lr": 1e-2, "warmup_steps": 1})
     initial = {n: p.detach().clone() for n, p in model.model.named_parameters()}
     recorder = WeightsAfterStep()
     trainer = L.Trainer(accelerator="cpu", max_steps=3, accumulate_grad_batches=accumulate, logger=False,

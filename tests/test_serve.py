@@ -63,10 +63,11 @@ def serve_ckpts(tmp_path_factory) -> dict[str, Path]:
     torch.manual_seed(0)
     human = _data(MINI / "human263/train")
     pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=human.spec,
-                              warmup_steps=1, ema_decay=0)
+                              ema_decay=0, optim={"warmup_steps": 1})
     _fit_save(pretrain, human, root / "pretrain.ckpt")
     controlnet = ControlNetModule(pretrained=str(root / "pretrain.ckpt"), text_encoder="hash",
-                                  moc={"d_c": 16, "num_experts": 2}, spec=human.spec, warmup_steps=1, ema_decay=0)
+                                  moc={"d_c": 16, "num_experts": 2}, spec=human.spec, ema_decay=0,
+                                  optim={"warmup_steps": 1})
     _fit_save(controlnet, _data(MINI / "human263/train"), root / "human.ckpt")
     animal = _data(MINI / "animal_maa/train", max_len=32)
     stream = dict(train=str(MINI / "human_maa/train"), batch_size=4, max_len=32, min_len=20, num_workers=0,

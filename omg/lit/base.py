@@ -4,11 +4,14 @@ recorded in them, and activation checkpointing applied from outside the model co
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
+from typing import Any
 
 import lightning as L
 import torch
@@ -17,7 +20,38 @@ from torch.distributed._composable import checkpoint as checkpoint_activations
 
 from omg.lit.ema import EMA
 from omg.motion import DataSpec
-from omg.settings import set_fields
+from omg.settings import check_range, group, regroup, set_fields
+
+
+@dataclass(frozen=True)
+class OptimSettings:
+    """The optimizer and its schedule (``OmgModule.make_optimizer``, ``lr_factor``): ``lr``, ``weight_decay`` and
+    ``betas`` of AdamW (a family's paper may name another optimizer), ``warmup_steps`` of linear warm-up. A
+    family's schedule adds its own fields in a subclass (habit's ``StepOptimSettings``). Their ranges are
+    checked once, when the settings are made: one line naming ``model.optim.<field>``."""
+
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    warmup_steps: int = 0
+
+    def __post_init__(self) -> None:
+        check_range("model.optim.lr", self.lr, 0 < self.lr < math.inf, "a finite number > 0")
+        check_range("model.optim.weight_decay", self.weight_decay, 0 <= self.weight_decay < math.inf,
+                    "a finite number >= 0")
+        check_range("model.optim.betas", self.betas, len(self.betas) == 2 and all(0 <= b < 1 for b in self.betas),
+                    "two numbers in [0, 1)")
+        check_range("model.optim.warmup_steps", self.warmup_steps,
+                    isinstance(self.warmup_steps, int) and self.warmup_steps >= 0, "an integer >= 0")
+        object.__setattr__(self, "betas", tuple(self.betas))
+
+
+def check_weights(group: Any) -> None:
+    """One line naming ``model.loss.<field>`` for a loss weight of ``group`` (a loss-weights dataclass) that is
+    not a finite number >= 0: the one check of every family's loss weights."""
+    for field in dataclasses.fields(group):
+        value = getattr(group, field.name)
+        check_range(f"model.loss.{field.name}", value, 0 <= value < math.inf, "a finite number >= 0")
 
 
 def warmup_cosine(warmup_steps: int, total_steps: int):
@@ -56,7 +90,7 @@ class NonFiniteLoss(FloatingPointError):
     CLI prints it as one line (``omg.tools.lightning``)."""
 
 
-def check_finite(loss: torch.Tensor, step: int, batch: dict, what: str = "loss", hint: str = "lower model.lr",
+def check_finite(loss: torch.Tensor, step: int, batch: dict, what: str = "loss", hint: str = "lower model.optim.lr",
                  terms: dict[str, torch.Tensor] | None = None) -> None:
     """NonFiniteLoss unless ``loss`` is finite, naming the clips of ``batch`` (and the loss's
     ``terms``): data whose values overflow (garbled bytes in a set read without checksums)
@@ -84,9 +118,13 @@ class OmgModule(L.LightningModule):
     the checkpoint and a config that says otherwise is refused; every other one (sampling,
     evaluation, optimisation, loss weights) is the run's to set (``omg.lit.checkpoint.run_hparams``).
     They give
-    their parameter groups in ``optimizer_groups`` and set ``lr``, ``betas``, ``weight_decay``
-    and ``warmup_steps``; ``make_optimizer`` (AdamW) and ``lr_factor`` (linear warm-up then cosine
-    decay over the run) are the hooks of a family whose paper says otherwise.
+    their parameter groups in ``optimizer_groups`` and take an ``optim`` (``OptimSettings``, or the
+    subclass their schedule reads) that ``make_optimizer`` (AdamW) and ``lr_factor`` (linear warm-up
+    then cosine decay over the run) read, the hooks of a family whose paper says otherwise; their loss
+    weights come as one ``loss`` group. Such groups, whose every field has a value (a constructor
+    default of a dataclass that is not in ``settings_groups``), are kept in the hyper-parameters as
+    the mapping of all their fields, and a checkpoint that holds their fields flat (written before
+    they were grouped) is read into them (``checkpoint_hparams``).
     """
 
     frozen_prefixes: tuple[str, ...] = ()
@@ -96,10 +134,32 @@ class OmgModule(L.LightningModule):
     architecture_hparams: tuple[str, ...] = ()  # the weights' own: from the checkpoint under --ckpt_path
     ema_decay: float = 0.0  # the weight EMA's decay (0: none), over ``trainable_module()``
     ema: EMA | None = None
-    lr: float
-    betas: tuple[float, float]
-    weight_decay: float
-    warmup_steps: int
+    optim: OptimSettings
+
+    @classmethod
+    def value_groups(cls) -> dict[str, Any]:
+        """The constructor's groups whose every field has a value (``optim``, ``loss``): name -> its default."""
+        return {p.name: p.default for p in inspect.signature(cls.__init__).parameters.values()
+                if dataclasses.is_dataclass(p.default) and not isinstance(p.default, type)
+                and p.name not in cls.settings_groups}
+
+    @classmethod
+    def grouped_fields(cls) -> dict[str, str]:
+        """Each field of the value groups -> its group (``{lr: optim, vel_weight: loss, ...}``)."""
+        return {f.name: name for name, default in cls.value_groups().items() for f in dataclasses.fields(default)}
+
+    @classmethod
+    def value_group(cls, name: str, value: Any) -> Any:
+        """The constructor's argument ``name`` (a value group: None, the group or a mapping of some of its fields)
+        as the group, the fields it leaves out the class's defaults."""
+        return group(cls.value_groups()[name], value, f"model.init_args.{name}")
+
+    @classmethod
+    def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them (``omg.lit.checkpoint.load_module``): the
+        fields of a value group (``lr``, ``vel_weight``) that a checkpoint written before the groups holds
+        flat, in their group."""
+        return regroup(hparams, cls.grouped_fields())[0]
 
     def attached_trainer(self) -> L.Trainer | None:
         """The Trainer this module is attached to, None outside a run (``self.trainer`` raises there)."""
@@ -115,12 +175,17 @@ class OmgModule(L.LightningModule):
         plain = {}
         if isinstance(spec := self.hparams.get("spec"), DataSpec):
             plain["spec"] = spec.to_dict()
-        for key, group in self.settings_groups.items():
+        for key in self.value_groups():
+            # every field, as plain types: a family's defaults may change, a checkpoint keeps what it trained with
+            if key in self.hparams:
+                value = self.value_group(key, self.hparams[key])
+                plain[key] = {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        for key, overrides in self.settings_groups.items():
             # a typed group (or the mapping LightningCLI dumps of it, every field listed) kept as the
             # mapping of the keys it sets, None where it sets none (the default): what checkpoints
             # written before the groups were typed hold
             if (value := self.hparams.get(key)) is not None:
-                plain[key] = set_fields(group, value, f"model.init_args.{key}") or None
+                plain[key] = set_fields(overrides, value, f"model.init_args.{key}") or None
         if plain:
             super().save_hyperparameters(plain)
 
@@ -149,7 +214,7 @@ class OmgModule(L.LightningModule):
         if losses is None:
             return None
         check_finite(losses["loss"], self.global_step, batch, what=self.loss_name,
-                     hint="lower model.lr, enable gradient clipping", terms=losses)
+                     hint="lower model.optim.lr, enable gradient clipping", terms=losses)
         self.log_training(losses, batch)
         return losses["loss"]
 
@@ -166,13 +231,14 @@ class OmgModule(L.LightningModule):
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
     def make_optimizer(self, groups: list[dict]) -> torch.optim.Optimizer:
-        """The optimizer over ``groups``: AdamW with ``lr``, ``betas`` and ``weight_decay``."""
-        return torch.optim.AdamW(groups, lr=self.lr, weight_decay=self.weight_decay, betas=tuple(self.betas))
+        """The optimizer over ``groups``: AdamW with ``optim``'s lr, betas and weight_decay."""
+        optim = self.optim
+        return torch.optim.AdamW(groups, lr=optim.lr, weight_decay=optim.weight_decay, betas=tuple(optim.betas))
 
     def lr_factor(self, total_steps: int) -> Callable[[int], float] | None:
         """The LR multiplier of each optimizer step of a run of ``total_steps`` (None: the LR stays
-        ``lr``): linear warm-up over ``warmup_steps``, then cosine decay to 0."""
-        return warmup_cosine(self.warmup_steps, total_steps)
+        ``optim.lr``): linear warm-up over ``optim.warmup_steps``, then cosine decay to 0."""
+        return warmup_cosine(self.optim.warmup_steps, total_steps)
 
     def configure_optimizers(self):
         optimizer = self.make_optimizer(self.optimizer_groups())
@@ -218,6 +284,10 @@ class OmgModule(L.LightningModule):
 
     def on_train_start(self) -> None:
         start_epoch_after_restored_last_batch(self.trainer)
+
+
+def _plain(value: Any) -> Any:
+    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
 
 
 def start_epoch_after_restored_last_batch(trainer: L.Trainer) -> None:

@@ -406,7 +406,8 @@ def run_hparams(cls: type | None, hparams: dict[str, Any], given: dict[str, Any]
     line naming it; every other hyper-parameter the run gives (sampling, evaluation, the optimizer, loss
     weights) is the run's, and those it does not give are the checkpoint's. A ``null`` given for an
     architecture hyper-parameter (a run's saved config.yaml lists ``base: null``, ``animals: null``, the
-    values the module fills in) leaves it to the checkpoint."""
+    values the module fills in) leaves it to the checkpoint. A value group (``OmgModule.value_groups``: ``optim``,
+    ``loss``) is read field by field: the fields the run gives are the run's, the others the checkpoint's."""
     architecture = set(getattr(cls, "architecture_hparams", ()))
     for key in sorted(architecture & set(given) & set(hparams)):
         if given[key] is not None and (found := _contradiction(hparams[key], given[key], key)):
@@ -414,7 +415,12 @@ def run_hparams(cls: type | None, hparams: dict[str, Any], given: dict[str, Any]
             raise UsageError(f"--model.init_args.{name}: the checkpoint {src} was trained with {trained}; this run's "
                              f"config says {says} (what shapes the weights comes from the checkpoint: leave it out, "
                              "or pass a checkpoint trained with it)")
-    return {k: v for k, v in hparams.items() if k in architecture or k not in given}
+    taken = {k: v for k, v in hparams.items() if k in architecture or k not in given}
+    groups = cls.value_groups() if callable(getattr(cls, "value_groups", None)) else {}
+    for key in set(groups) & set(given) & set(hparams):
+        if isinstance(hparams[key], dict) and isinstance(given[key], dict):
+            taken[key] = {f: v for f, v in hparams[key].items() if given[key].get(f) is None}
+    return taken
 
 
 def _check_rebuildable(ckpt: dict[str, Any], src: PathLike) -> None:

@@ -9,18 +9,39 @@ frozen model D_u and the ControlNet D_c: x̂0 = (1 − s)·D_u + s·D_c.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from omg.diffusion import Denoiser
 from omg.errors import UsageError
-from omg.lit.pretrain import MotionDiffusionModule, PretrainModule
+from omg.lit.base import OptimSettings
+from omg.lit.pretrain import DiffusionLossWeights, MotionDiffusionModule, PretrainModule
 from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
+from omg.models.dit import DiTOverrides
 from omg.motion import DataSpec
-from omg.settings import set_fields
+from omg.settings import set_fields, settings
 from omg.text import TextEncoderArgs, TextFeatures, build_text_encoder, text_encoder_kwargs
+
+
+@dataclass(frozen=True)
+class PretrainedBase:
+    """The frozen stage-1 model a ControlNet is fine-tuned on, as its checkpoint describes it: the DiT ``flavor``,
+    its ``dit`` overrides (``DiTOverrides``' fields it set) and the data's ``spec`` it was pretrained on. Read from
+    ``pretrained`` when the ControlNet is first built and kept in its checkpoints (it shapes the weights)."""
+
+    flavor: str | None = None
+    dit: DiTOverrides | None = None
+    spec: DataSpec | dict | None = None
+
+    def plain(self, key: str) -> dict:
+        """The description as plain types, as checkpoints keep it; one line naming ``key`` when a field is missing."""
+        if self.flavor is None or self.spec is None:
+            raise UsageError(f"{key} must give the pretrained model's flavor and spec (it is filled in from "
+                             "model.init_args.pretrained: leave it out)")
+        spec = self.spec.to_dict() if isinstance(self.spec, DataSpec) else dict(self.spec)
+        return {"flavor": self.flavor, "dit": set_fields(DiTOverrides, self.dit, f"{key}.dit") or None, "spec": spec}
 
 
 class ControlNetModule(MotionDiffusionModule):
@@ -35,14 +56,14 @@ class ControlNetModule(MotionDiffusionModule):
             ablation switches token_masks, zero_init, experts and wiring, see ``omg.models.controlnet.MoCConfig``).
         eot_drop: probability of replacing the end-of-text token with the empty text's (OMG: 0.5).
         guidance_scale: s in (1 − s)·D_u + s·D_c when sampling (OMG: 4.5).
-        lr, weight_decay, warmup_steps: AdamW and schedule (OMG: 3e-5, 1e-5, 1K warm-up, cosine).
-        vel_weight, foot_weight, ema_decay: as for ``PretrainModule``.
+        optim: AdamW and schedule (OMG: lr 3e-5, weight_decay 1e-5, 1K warm-up, cosine; ``OptimSettings``).
+        loss, ema_decay: as for ``PretrainModule``.
         activation_checkpointing: recompute the activations of the frozen blocks, their trainable
             copies and the MoC blocks in backward; applied by ``configure_model``.
         stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
             in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
-        base: the pretrained model's flavor, DiT overrides and spec; filled from ``pretrained``
-            and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
+        base: the pretrained model's flavor, DiT overrides and spec (``PretrainedBase``); filled from
+            ``pretrained`` and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
     """
 
@@ -61,28 +82,25 @@ class ControlNetModule(MotionDiffusionModule):
         moc: MoCOverrides | None = MoCOverrides(),
         eot_drop: float = 0.5,
         guidance_scale: float = 4.5,
-        lr: float = 3e-5,
-        weight_decay: float = 1e-5,
-        betas: tuple[float, float] = (0.9, 0.999),
-        warmup_steps: int = 1000,
-        vel_weight: float = 30.0,
-        foot_weight: float = 30.0,
+        optim: OptimSettings = OptimSettings(lr=3e-5, weight_decay=1e-5, warmup_steps=1000),
+        loss: DiffusionLossWeights = DiffusionLossWeights(),
         ema_decay: float = 0.9999,
         activation_checkpointing: bool = False,
         stance_root: float = 0.0,
-        base: dict[str, Any] | None = None,
+        base: PretrainedBase | None = None,
         spec: DataSpec | dict | None = None,
     ):
         pretrained_weights = None
-        if base is None:
+        if base is not None:  # the checkpoint's description (a mapping), or a config's
+            base = settings(PretrainedBase, base, "model.init_args.base").plain("model.init_args.base")
+        else:
             if pretrained is None:
                 raise UsageError("ControlNetModule needs model.init_args.pretrained: a stage-1 checkpoint")
             base, pretrained_weights = _read_pretrained(pretrained)
         if not 0.0 <= eot_drop <= 1.0:
             raise UsageError(f"model.eot_drop must be in [0, 1], got {eot_drop}")
-        super().__init__(base["flavor"], base["dit"], base["spec"], lr=lr, weight_decay=weight_decay, betas=betas,
-                         warmup_steps=warmup_steps, vel_weight=vel_weight, foot_weight=foot_weight,
-                         ema_decay=ema_decay, loss_weighting="uniform",
+        super().__init__(base["flavor"], base["dit"], base["spec"], optim=optim, loss=loss, ema_decay=ema_decay,
+                         loss_weighting="uniform",
                          activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
         self.eot_drop, self.guidance_scale = eot_drop, guidance_scale

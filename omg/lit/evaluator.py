@@ -18,7 +18,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule
+from omg.lit.base import OmgModule, OptimSettings
 from omg.lit.checkpoint import load_module
 from omg.losses import info_nce
 from omg.metrics import MMDist, RPrecision
@@ -37,7 +37,7 @@ class EvaluatorModule(OmgModule):
         flavor: evaluator size preset: mini, base or large.
         evaluator: EvaluatorConfig fields to override in the flavor's (``EvaluatorOverrides``), e.g.
             ``{n_layers: 6, embed_dim: 512}``.
-        lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
+        optim: AdamW's lr, weight_decay, betas; warmup_steps of linear warm-up, then cosine decay (``OptimSettings``).
         r_precision_pool: pool size of the validation R-precision (HumanML3D: 32); a validation
             set with fewer samples logs loss and MM-Dist only.
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
@@ -54,20 +54,15 @@ class EvaluatorModule(OmgModule):
         text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         flavor: str = "base",
         evaluator: EvaluatorOverrides | None = EvaluatorOverrides(),
-        lr: float = 1e-4,
-        weight_decay: float = 1e-2,
-        betas: tuple[float, float] = (0.9, 0.999),
-        warmup_steps: int = 500,
+        optim: OptimSettings = OptimSettings(lr=1e-4, weight_decay=1e-2, warmup_steps=500),
         r_precision_pool: int = 32,
         spec: DataSpec | dict | None = None,
     ):
         super().__init__()
-        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or r_precision_pool < 3:
-            raise UsageError("model.lr must be > 0, model.weight_decay and model.warmup_steps >= 0 and "
-                             "model.r_precision_pool >= 3; "
-                             f"got {lr}, {weight_decay}, {warmup_steps}, {r_precision_pool}")
+        self.optim = self.value_group("optim", optim)
+        if r_precision_pool < 3:
+            raise UsageError(f"model.r_precision_pool must be >= 3, got {r_precision_pool}")
         self.save_hyperparameters()
-        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         overridden = set_fields(EvaluatorOverrides, evaluator, "model.init_args.evaluator")
         config = EvaluatorConfig.from_name(flavor, **overridden)
         self.evaluator = TextMotionEvaluator(DataSpec.coerce(spec), text_encoder,
@@ -140,7 +135,7 @@ class EvaluatorModule(OmgModule):
         for name, p in self.evaluator.named_parameters():
             if p.requires_grad:  # the frozen backbone is left out
                 (decay if p.ndim >= 2 and not name.endswith("cls") else no_decay).append(p)
-        return [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+        return [{"params": decay, "weight_decay": self.optim.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
 
 
 def load_evaluator(path: str | Path, map_location: str | torch.device = "cpu"):

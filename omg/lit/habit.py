@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from omg.errors import UsageError
-from omg.lit.base import OmgModule
+from omg.lit.base import OmgModule, OptimSettings, check_weights
 from omg.losses import masked_smooth_l1
 from omg.models.habit import (
     CategoryFlows,
@@ -50,7 +51,7 @@ from omg.models.habit import (
     posterior_sample,
 )
 from omg.motion import DataSpec, get_representation
-from omg.settings import set_fields
+from omg.settings import arguments, check_range, set_fields, settings, settings_dict
 from omg.skeleton import get_skeleton
 from omg.text.base import TextEncoderArgs, text_encoder_kwargs
 
@@ -68,6 +69,36 @@ def step_lr(lr: float, lr_after: float, switch_fraction: float):
     return schedule
 
 
+@dataclass(frozen=True)
+class StepOptimSettings(OptimSettings):
+    """``OptimSettings`` of the paper's step schedule (``HabitVQModule.lr_factor``): ``lr`` until ``lr_switch``
+    of the VQ-VAE's steps, then ``lr_after``."""
+
+    lr_after: float = 1e-5
+    lr_switch: float = 0.5
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_range("model.optim.lr_after", self.lr_after, self.lr_after > 0, "> 0")
+        check_range("model.optim.lr_switch", self.lr_switch, 0 <= self.lr_switch <= 1, "in [0, 1]")
+
+
+@dataclass(frozen=True)
+class HabitLossWeights:
+    """The habit model's loss weights: ``alpha`` of the velocity reconstruction term (paper: 0.5), ``beta`` of
+    the commitment (paper: 0.02), ``kl_weight`` of KL(q(z | m) || N(0, I)) on the habit posterior
+    (``kl_then_flows`` only), ``flow_weight`` of KL(q(z | m) || p_flow(z)) per latent dimension in the habit
+    pretraining (``flow_prior``)."""
+
+    alpha: float = 0.5
+    beta: float = 0.02
+    kl_weight: float = 1e-3
+    flow_weight: float = 0.01
+
+    def __post_init__(self) -> None:
+        check_weights(self)
+
+
 class HabitVQModule(OmgModule):
     """The motion VQ-VAE conditioned on each category's habit latent and text embedding; in the default
     ``habit_order`` it first pretrains the per-category habit encoders under their flow priors.
@@ -81,7 +112,6 @@ class HabitVQModule(OmgModule):
             ``kl_weight`` · KL(q || N(0, I)) from the first step, and ``HabitPriorModule`` (stage 2) fits
             the flows afterwards.
         habit_fraction: the share of the run's steps that pretrains the encoders and flows (``flow_prior``).
-        flow_weight: weight of KL(q(z | m) || p_flow(z)) per latent dimension in that pretraining.
         flavor: model size preset (``base``: the paper's T2M-GPT sizes; ``mini``, ``tiny`` for CPU runs).
         habit: HabitConfig fields to override in the flavor's (``HabitOverrides``).
         quantizer: ``soft`` (softmax sampling at ``temperature``, the paper's) or ``nearest``.
@@ -92,18 +122,17 @@ class HabitVQModule(OmgModule):
             the paper gives them to the encoder only. A named deviation (the mini config uses it):
             with the decoder conditioned too, the codes need not carry the category, which lets a
             short run's target habit replace the source's.
-        alpha: weight of the velocity reconstruction term (paper: 0.5).
-        beta: commitment weight (paper: 0.02).
-        kl_weight: weight of KL(q(z | m) || N(0, I)) on the habit posterior (``kl_then_flows`` only).
+        loss: alpha (velocity reconstruction, paper: 0.5), beta (commitment, paper: 0.02), kl_weight
+            (KL to N(0, I), ``kl_then_flows``) and flow_weight (KL to the flow prior in the habit pretraining)
+            (``HabitLossWeights``).
         text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
             (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
         species_file: a YAML of extra or overriding species descriptions (omg.text.habit).
         descriptions, category_embeddings: filled in when the module is first built (the descriptions
             and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
             needed to transfer to a known category).
-        lr, lr_after, lr_switch: AdamW lr until ``lr_switch`` of the VQ-VAE's steps, then ``lr_after`` (the
-            habit pretraining runs at ``lr``).
-        weight_decay, betas, warmup_steps: AdamW and a linear warm-up.
+        optim: AdamW lr until ``lr_switch`` of the VQ-VAE's steps, then ``lr_after`` (the habit pretraining
+            runs at ``lr``); weight_decay, betas and a linear warm-up over warmup_steps (``StepOptimSettings``).
         spec: the data's representation (quatvel), skeleton, fps and stats; linked by ``omg fit``.
     """
 
@@ -120,7 +149,6 @@ class HabitVQModule(OmgModule):
         categories: list[str],
         habit_order: str = "flow_prior",
         habit_fraction: float = 0.2,
-        flow_weight: float = 0.01,
         flavor: str = "base",
         habit: HabitOverrides | None = HabitOverrides(),
         quantizer: str = "soft",
@@ -128,9 +156,7 @@ class HabitVQModule(OmgModule):
         code_reset: bool = True,
         ema_decay: float = 0.99,
         condition_decoder: bool = False,
-        alpha: float = 0.5,
-        beta: float = 0.02,
-        kl_weight: float = 1e-3,
+        loss: HabitLossWeights = HabitLossWeights(),
         text_encoder: str = "minilm",
         text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         species_file: str | None = None,
@@ -138,12 +164,7 @@ class HabitVQModule(OmgModule):
         # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
         # minutes to parse under `omg test --ckpt_path` (it is filled in, never written by hand)
         category_embeddings: list | None = None,
-        lr: float = 2e-4,
-        lr_after: float = 1e-5,
-        lr_switch: float = 0.5,
-        weight_decay: float = 0.0,
-        betas: tuple[float, float] = (0.9, 0.99),
-        warmup_steps: int = 0,
+        optim: StepOptimSettings = StepOptimSettings(lr=2e-4, betas=(0.9, 0.99)),
         spec: DataSpec | dict | None = None,
     ):
         super().__init__()
@@ -153,23 +174,17 @@ class HabitVQModule(OmgModule):
             raise UsageError(f"model.habit_order must be one of {', '.join(HABIT_ORDERS)} (flow_prior: the paper's "
                              f"encoders pretrained under their flows; kl_then_flows: KL to N(0, I), flows fitted "
                              f"after), got {habit_order!r}")
-        if not 0 < habit_fraction < 1 or not flow_weight >= 0:
+        if not 0 < habit_fraction < 1:
             raise UsageError("model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
-                             f"encoders) and model.flow_weight >= 0, got {habit_fraction}, {flow_weight}")
-        if lr <= 0 or lr_after <= 0 or not 0 <= lr_switch <= 1 or weight_decay < 0 or warmup_steps < 0:
-            raise UsageError("model.lr and model.lr_after must be > 0, model.lr_switch in [0, 1], model.weight_decay "
-                             f"and model.warmup_steps >= 0; got {lr}, {lr_after}, {lr_switch}, {weight_decay}, "
-                             f"{warmup_steps}")
+                             f"encoders), got {habit_fraction}")
+        self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
         self.save_hyperparameters()
         self.spec = DataSpec.coerce(spec)
         if self.spec.representation != "quatvel":
             raise UsageError(f"habit transfer trains on quatvel shards, got {self.spec.representation!r} "
                              "(build them with --representation quatvel)")
         self.categories = list(categories)
-        self.lr, self.lr_after, self.lr_switch = lr, lr_after, lr_switch
-        self.weight_decay, self.betas, self.warmup_steps = weight_decay, betas, warmup_steps
-        self.alpha, self.beta, self.kl_weight = alpha, beta, kl_weight
-        self.habit_order, self.habit_fraction, self.flow_weight = habit_order, habit_fraction, flow_weight
+        self.habit_order, self.habit_fraction = habit_order, habit_fraction
         if category_embeddings is None:  # first build: describe and embed the categories once
             descriptions, category_embeddings = embed_categories(self.categories, text_encoder,
                                                                  text_encoder_kwargs(text_encoder_args),
@@ -202,10 +217,12 @@ class HabitVQModule(OmgModule):
         self.register_buffer("habit_count", torch.zeros(N, dtype=torch.float64))
         self._generator: torch.Generator | None = None
 
-    @staticmethod
-    def checkpoint_hparams(hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+    @classmethod
+    def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
         """A checkpoint's hyper-parameters as this class reads them (``omg.lit.checkpoint.load_module``): one
-        written before ``habit_order`` existed holds no flows and was trained in omg's earlier order."""
+        written before ``habit_order`` existed holds no flows and was trained in omg's earlier order; its
+        optimizer settings and loss weights as ``OmgModule.checkpoint_hparams`` reads them."""
+        hparams = super().checkpoint_hparams(hparams, state)
         if "habit_order" not in hparams and not any(k.startswith("flows.") for k in state):
             return {**hparams, "habit_order": "kl_then_flows"}
         return hparams
@@ -294,7 +311,7 @@ class HabitVQModule(OmgModule):
         rotations = motion[..., 4:self.num_joints * 4]  # local joint rotations but the root's: no path
         stats = F.smooth_l1_loss(self.habit_stats(z), habit_statistics(rotations, mask))
         kl = flow_prior_kl(z, mu, log_sigma, self.flows, category).mean() / z.shape[1]
-        return {"loss": stats + self.flow_weight * kl, "habit_stats": stats, "flow_kl": kl}
+        return {"loss": stats + self.loss.flow_weight * kl, "habit_stats": stats, "flow_kl": kl}
 
     def losses(self, batch: dict, generator: torch.Generator | None = None) -> tuple[dict[str, Tensor], Tensor, dict]:
         """The VQ-VAE's losses; in ``flow_prior`` on the frozen (pretrained) habit encoders, with no KL term."""
@@ -310,12 +327,12 @@ class HabitVQModule(OmgModule):
         v = self.num_joints * 4  # quatvel: quaternions first, then the joint velocities
         motion_loss = masked_smooth_l1(recon, motion, mask)
         velocity_loss = masked_smooth_l1(recon[..., v:], motion[..., v:], mask)
-        loss = motion_loss + self.alpha * velocity_loss + self.beta * terms["commitment"]
+        loss = motion_loss + self.loss.alpha * velocity_loss + self.loss.beta * terms["commitment"]
         out = {"loss": loss, "motion": motion_loss, "velocity": velocity_loss, "commitment": terms["commitment"],
                "embedding": terms["embedding"], "perplexity": terms["perplexity"]}
         if not frozen:  # kl_then_flows: the posterior kept near N(0, I) for the flows fitted after
             out["kl"] = kl = gaussian_kl(mu, log_sigma).mean()
-            out["loss"] = loss + self.kl_weight * kl
+            out["loss"] = loss + self.loss.kl_weight * kl
         return out, recon, {"category": category, "mu": mu}
 
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
@@ -360,7 +377,8 @@ class HabitVQModule(OmgModule):
         them), after a linear warm-up over ``warmup_steps``; in ``flow_prior`` the habit pretraining before it
         runs at ``lr`` after its own warm-up."""
         habit = self.habit_steps(total_steps)  # < total_steps: habit_fraction < 1
-        after, warmup = step_lr(self.lr, self.lr_after, self.lr_switch)(total_steps - habit), self.warmup_steps
+        optim = self.optim
+        after, warmup = step_lr(optim.lr, optim.lr_after, optim.lr_switch)(total_steps - habit), optim.warmup_steps
 
         def factor(step: int) -> float:
             phase = step if step < habit else step - habit
@@ -420,6 +438,11 @@ def embed_categories(categories: list[str], text_encoder: str, text_encoder_args
     return descriptions, embeddings.tolist()
 
 
+HabitVQArgs = arguments(HabitVQModule, "HabitVQArgs", __name__, """The arguments of the frozen ``HabitVQModule`` a
+prior is fitted on, as its checkpoint holds them: read from ``vq_ckpt`` when the prior is first built and kept in
+the prior's checkpoints (they shape the VQ-VAE's weights saved with the flows). Each unset field is None.""")
+
+
 class HabitPriorModule(OmgModule):
     """Stage 2 of ``habit_order: kl_then_flows``: each known category's flow prior p(z), fitted by NLL to the
     frozen stage-1 habit posterior. On a VQ-VAE of the default order (``flow_prior``, whose flows were
@@ -430,10 +453,11 @@ class HabitPriorModule(OmgModule):
         vq_ckpt: the HabitVQModule checkpoint to fit on (frozen); read once, when the prior is first
             built: its weights and hyper-parameters are then kept in the prior's checkpoints.
         posterior_sample: fit the flows to samples z ~ q(z | m) (True) or to the posterior means.
-        lr, weight_decay, betas, warmup_steps: AdamW, linear warm-up then cosine decay.
+        optim: AdamW's lr, weight_decay, betas; warmup_steps of linear warm-up, then cosine decay
+            (``OptimSettings``).
         spec: linked by ``omg fit`` from the data; must match the VQ-VAE's.
-        vq: the VQ-VAE's hyper-parameters, filled from ``vq_ckpt``: a prior checkpoint holds its
-            VQ-VAE (``vq.*`` weights), so it loads without that file, on any machine.
+        vq: the VQ-VAE's hyper-parameters (``HabitVQArgs``), filled from ``vq_ckpt``: a prior checkpoint
+            holds its VQ-VAE (``vq.*`` weights), so it loads without that file, on any machine.
     """
 
     clip_sampling = "windows"
@@ -441,15 +465,13 @@ class HabitPriorModule(OmgModule):
     location_hparams = ("vq_ckpt",)
     architecture_hparams = ("vq", "spec")  # the frozen VQ-VAE's; posterior_sample and the optimizer are the run's
 
-    def __init__(self, vq_ckpt: str | None = None, posterior_sample: bool = True, lr: float = 2e-4,
-                 weight_decay: float = 0.0, betas: tuple[float, float] = (0.9, 0.99), warmup_steps: int = 0,
-                 spec: DataSpec | dict | None = None, vq: dict[str, Any] | None = None):
+    def __init__(self, vq_ckpt: str | None = None, posterior_sample: bool = True,
+                 optim: OptimSettings = OptimSettings(lr=2e-4, betas=(0.9, 0.99)),
+                 spec: DataSpec | dict | None = None, vq: HabitVQArgs | None = None):
         super().__init__()
         from omg.lit.checkpoint import build_module, load_module
 
-        if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
-            raise UsageError(f"model.lr must be > 0, weight_decay and warmup_steps >= 0; got {lr}, {weight_decay}, "
-                             f"{warmup_steps}")
+        self.optim = self.value_group("optim", optim)
         if vq is None and vq_ckpt is None:
             raise UsageError("HabitPriorModule needs model.init_args.vq_ckpt, the HabitVQModule checkpoint to fit on "
                              "(a prior checkpoint written before priors kept their VQ-VAE has neither: refit it)")
@@ -457,16 +479,15 @@ class HabitPriorModule(OmgModule):
             raise UsageError(f"model.vq_ckpt: no HabitVQModule checkpoint at {vq_ckpt}; train it first with "
                              "`omg fit --config configs/mini/habit_vqvae.yaml`")
         self.save_hyperparameters()
-        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
         self.posterior_sample = posterior_sample
         hparams_from_file = vq is None
         if vq is None:
             self.vq: HabitVQModule = load_module(vq_ckpt, default_class=HabitVQModule, expect=HabitVQModule)
             vq = dict(self.vq.hparams)
         else:  # the structure: the weights come with this checkpoint's
-            # a prior written before habit_order existed fitted a VQ-VAE of omg's earlier order
-            vq = {"habit_order": "kl_then_flows", **vq}
+            vq = settings_dict(settings(HabitVQArgs, self.vq_hparams(vq), "model.init_args.vq"))
             self.vq = build_module(HabitVQModule, vq, "model.init_args.vq")
+            vq = dict(self.vq.hparams)  # plain types, as the VQ-VAE keeps them
         self.hparams["vq"] = dict(vq)
         self.vq.requires_grad_(False).eval()
         self.spec = self.vq.spec
@@ -475,6 +496,20 @@ class HabitPriorModule(OmgModule):
         self.flows = CategoryFlows(len(self.vq.categories), self.vq.config)
         if vq_ckpt is not None and hparams_from_file and self.vq.flows is not None:  # flow_prior: its pretrained flows
             self.flows.load_state_dict(self.vq.flows.state_dict())
+
+    @staticmethod
+    def vq_hparams(vq: Any) -> Any:
+        """A checkpoint's ``vq`` as ``HabitVQModule`` reads it: a prior written before ``habit_order`` existed fitted
+        a VQ-VAE of omg's earlier order; one written before the VQ-VAE's settings were grouped holds them flat."""
+        if not isinstance(vq, dict):
+            return vq
+        return HabitVQModule.checkpoint_hparams({"habit_order": "kl_then_flows", **vq}, {})
+
+    @classmethod
+    def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+        """A checkpoint's hyper-parameters as this class reads them: its own and its VQ-VAE's (``vq_hparams``)."""
+        hparams = super().checkpoint_hparams(hparams, state)
+        return {**hparams, "vq": cls.vq_hparams(hparams["vq"])} if "vq" in hparams else hparams
 
     @property
     def categories(self) -> list[str]:

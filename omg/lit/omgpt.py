@@ -22,7 +22,7 @@ displacement in m/s), the latent and velocity errors as they come. Inference
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,18 +33,49 @@ from torch import Tensor
 
 from omg.data.paired import CompanionData
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, modes_restored
+from omg.lit.base import OmgModule, OptimSettings, check_weights, modes_restored
 from omg.lit.sampling import Sampler, SamplingSettings
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.motion.maa import maa_from_positions, root_translation
-from omg.settings import set_fields
+from omg.settings import check_range, set_fields
 from omg.skeleton import get_skeleton
 from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
 from omg.text.omgpt import about_animal, caption_key, choose_animal, to_animal, to_person
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
+
+
+@dataclass(frozen=True)
+class OmniMotionOptimSettings(OptimSettings):
+    """``OptimSettings`` with the ``schedule``: ``constant`` (the paper's Adam at ``lr``, it names no schedule) or
+    ``cosine`` (omg's: AdamW, warm-up over ``warmup_steps`` and cosine decay)."""
+
+    schedule: str = "constant"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_range("model.optim.schedule", self.schedule, self.schedule in ("constant", "cosine"),
+                    "constant or cosine")
+
+
+@dataclass(frozen=True)
+class OmniMotionLossWeights:
+    """OmniMotionGPT's loss weights: per domain ``jrec_weight``, ``clip_weight``, ``trec_weight`` (paper: 1, 1, 1),
+    across domains ``cons_weight``, ``cross_clip_weight``, ``ee_weight`` (paper: 0.1, 1, 100) and the global
+    translation's ``translation_weight`` (paper: 1, Appendix C)."""
+
+    jrec_weight: float = 1.0
+    clip_weight: float = 1.0
+    trec_weight: float = 1.0
+    cons_weight: float = 0.1
+    cross_clip_weight: float = 1.0
+    ee_weight: float = 100.0
+    translation_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_weights(self)
 
 
 class OmniMotionModule(OmgModule):
@@ -61,13 +92,13 @@ class OmniMotionModule(OmgModule):
             into the joint image-text space) or ``eot`` (the EOT token before that projection, what
             omg used before). Encoders without a projection of their own (MiniLM, hash) give the EOT
             feature either way.
-        lr, betas, weight_decay: Adam (paper: 1e-4, (0.9, 0.999), 0).
-        schedule: ``constant`` (the paper names no schedule) or ``cosine`` (omg's warm-up + cosine).
-        warmup_steps: linear warm-up steps of the cosine schedule.
+        optim: Adam's lr, betas, weight_decay (paper: 1e-4, (0.9, 0.999), 0); ``schedule``: ``constant``
+            (the paper names no schedule) or ``cosine`` (omg's warm-up over ``warmup_steps`` + cosine)
+            (``OmniMotionOptimSettings``).
         ema_decay: weight EMA (paper: 0.99); 0 disables it.
-        jrec_weight, clip_weight, trec_weight: the per-domain loss weights (paper: 1.0, 1.0, 1.0).
-        cons_weight, cross_clip_weight, ee_weight: the cross-domain weights (paper: 0.1, 1.0, 100).
-        translation_weight: the global-translation loss (paper: 1.0, Appendix C).
+        loss: the per-domain loss weights jrec_weight, clip_weight, trec_weight (paper: 1.0, 1.0, 1.0), the
+            cross-domain cons_weight, cross_clip_weight, ee_weight (paper: 0.1, 1.0, 100) and the
+            global-translation translation_weight (paper: 1.0, Appendix C) (``OmniMotionLossWeights``).
         standardize: the autoencoders read and write features standardised by the training data's
             per-dimension mean and std (floored at ``std_floor``), and the reconstruction losses
             compare standardised features; without it (``false``) both see raw maa, where the many
@@ -128,19 +159,9 @@ class OmniMotionModule(OmgModule):
         text_encoder: str = "clip-vit-l-14",
         text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
         text_feature: str = "projected",
-        lr: float = 1e-4,
-        betas: tuple[float, float] = (0.9, 0.999),
-        weight_decay: float = 0.0,
-        schedule: str = "constant",
-        warmup_steps: int = 0,
+        optim: OmniMotionOptimSettings = OmniMotionOptimSettings(lr=1e-4),
         ema_decay: float = 0.99,
-        jrec_weight: float = 1.0,
-        clip_weight: float = 1.0,
-        trec_weight: float = 1.0,
-        cons_weight: float = 0.1,
-        cross_clip_weight: float = 1.0,
-        ee_weight: float = 100.0,
-        translation_weight: float = 1.0,
+        loss: OmniMotionLossWeights = OmniMotionLossWeights(),
         standardize: bool = False,
         std_floor: float = 0.05,
         human_source: str = "retrieval",
@@ -151,11 +172,9 @@ class OmniMotionModule(OmgModule):
         spec: DataSpec | dict | None = None,
     ):
         super().__init__()
-        if lr <= 0 or weight_decay < 0 or warmup_steps < 0 or not 0 <= ema_decay < 1:
-            raise UsageError("model.lr must be > 0, model.weight_decay and model.warmup_steps >= 0 and model.ema_decay "
-                             f"in [0, 1); got {lr}, {weight_decay}, {warmup_steps}, {ema_decay}")
-        if schedule not in ("constant", "cosine"):
-            raise UsageError(f"model.schedule must be constant or cosine, got {schedule!r}")
+        self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
+        if not 0 <= ema_decay < 1:
+            raise UsageError(f"model.ema_decay must be in [0, 1) (0: no EMA), got {ema_decay!r}")
         if retrieval_top_k < 1 or retrieval_draw not in ("uniform", "similarity") or retrieval_temperature <= 0:
             raise UsageError("model.retrieval_top_k must be >= 1, model.retrieval_draw uniform or similarity and "
                              f"model.retrieval_temperature > 0; got {retrieval_top_k}, {retrieval_draw!r}, "
@@ -170,10 +189,8 @@ class OmniMotionModule(OmgModule):
         self.spec = DataSpec.coerce(spec, "the data")
         check_maa(self.spec, "data", ANIMAL_SKELETON)
         self.save_hyperparameters()
-        self.lr, self.betas, self.weight_decay, self.warmup_steps = lr, betas, weight_decay, warmup_steps
-        self.schedule, self.ema_decay = schedule, ema_decay
-        self.weights = {"jrec": jrec_weight, "clip": clip_weight, "trec": trec_weight, "cons": cons_weight,
-                        "cross_clip": cross_clip_weight, "ee": ee_weight, "translation": translation_weight}
+        self.ema_decay = ema_decay
+        self.weights = {name.removesuffix("_weight"): value for name, value in asdict(self.loss).items()}
         # fit-time state (fit_state_keys): the data's when training starts, else a checkpoint's
         self.animals: dict[str, Tensor] = {}
         self.animal_table: dict[str, list] | None = None  # the same offsets as found (kept as they were saved)
@@ -372,12 +389,13 @@ class OmniMotionModule(OmgModule):
         self.validation_step(batch, batch_idx, stage="test")
 
     def make_optimizer(self, groups: list[dict]) -> torch.optim.Optimizer:
-        if self.schedule == "cosine":  # omg's variant: AdamW, warm-up and cosine decay
+        optim = self.optim
+        if optim.schedule == "cosine":  # omg's variant: AdamW, warm-up and cosine decay
             return super().make_optimizer(groups)
-        return torch.optim.Adam(groups, lr=self.lr, betas=tuple(self.betas), weight_decay=self.weight_decay)
+        return torch.optim.Adam(groups, lr=optim.lr, betas=tuple(optim.betas), weight_decay=optim.weight_decay)
 
     def lr_factor(self, total_steps: int):
-        return super().lr_factor(total_steps) if self.schedule == "cosine" else None  # the paper: Adam, constant
+        return super().lr_factor(total_steps) if self.optim.schedule == "cosine" else None  # the paper: constant
 
     def fit_state(self) -> dict[str, Any]:
         """The fit-time state as plain types (``checkpoint["fit_state"]``)."""
@@ -400,11 +418,13 @@ class OmniMotionModule(OmgModule):
                 self._register_bank(torch.zeros(sum(bank["lengths"]), self.human_spec.feature_dim),
                                     torch.zeros(len(bank["lengths"]), self.human_rep.skeleton.num_joints, 3))
 
-    @staticmethod
-    def checkpoint_hparams(hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
+    @classmethod
+    def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:
         """A checkpoint's hyper-parameters as this class reads them: one written before ``fit_state`` holds the
-        fit-time state there (``restore_fit_state`` reads it from the checkpoint)."""
-        return {k: v for k, v in hparams.items() if k not in OmniMotionModule.fit_state_keys}
+        fit-time state there (``restore_fit_state`` reads it from the checkpoint), and its optimizer settings and
+        loss weights flat (``OmgModule.checkpoint_hparams``)."""
+        hparams = super().checkpoint_hparams(hparams, state)
+        return {k: v for k, v in hparams.items() if k not in cls.fit_state_keys}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         super().on_save_checkpoint(checkpoint)

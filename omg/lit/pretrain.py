@@ -9,9 +9,9 @@ velocities of x̂0 and x0, and L_foot penalises the velocity of feet that are in
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -19,7 +19,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, checkpoint_each, modes_restored
+from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
 from omg.lit.sampling import SamplingSettings, check_stance_root
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
@@ -38,6 +38,18 @@ def fresh_noise_seed(seed: int, step: int, rank: int) -> int:
     return int(np.random.SeedSequence([seed, step, rank]).generate_state(1, np.uint64)[0])
 
 
+@dataclass(frozen=True)
+class DiffusionLossWeights:
+    """The weights of the diffusion stages' geometric terms: L = L_simple + vel_weight · L_vel + foot_weight ·
+    L_foot (OMG/MDM: 30 each)."""
+
+    vel_weight: float = 30.0
+    foot_weight: float = 30.0
+
+    def __post_init__(self) -> None:
+        check_weights(self)
+
+
 class MotionDiffusionModule(OmgModule):
     """What the diffusion stages share: the x̂0-predicting MotionDiT, its losses, optimizer and
     schedule, the weight EMA and sampling (``sample``). Subclasses save their own
@@ -46,25 +58,16 @@ class MotionDiffusionModule(OmgModule):
     text_conditional = False  # whether ``sample`` follows texts
     clip_sampling = "windows"  # what data.clips=auto cuts from clips (omg.data.windows)
 
-    def __init__(self, flavor: str, dit: DiTOverrides | dict | None, spec: DataSpec | dict | None, *, lr: float,
-                 weight_decay: float, betas: tuple[float, float], warmup_steps: int, vel_weight: float,
-                 foot_weight: float, ema_decay: float, loss_weighting: str, activation_checkpointing: bool,
-                 stance_root: float = 0.0):
+    def __init__(self, flavor: str, dit: DiTOverrides | dict | None, spec: DataSpec | dict | None, *,
+                 optim: OptimSettings | dict | None, loss: DiffusionLossWeights | dict | None, ema_decay: float,
+                 loss_weighting: str, activation_checkpointing: bool, stance_root: float = 0.0):
         super().__init__()
-        if lr <= 0 or weight_decay < 0 or warmup_steps < 0:
-            raise UsageError("model.lr must be > 0 and model.weight_decay, model.warmup_steps >= 0; "
-                             f"got {lr}, {weight_decay}, {warmup_steps}")
-        # checked here, when the module is built: the EMA and the optimizer would refuse them only at fit start
-        for key, value, ok, wanted in (
-                ("ema_decay", ema_decay, 0 <= ema_decay < 1, "in [0, 1) (0: no EMA)"),
-                ("vel_weight", vel_weight, 0 <= vel_weight < math.inf, "a finite number >= 0"),
-                ("foot_weight", foot_weight, 0 <= foot_weight < math.inf, "a finite number >= 0"),
-                ("betas", betas, len(betas) == 2 and all(0 <= b < 1 for b in betas), "two numbers in [0, 1)")):
-            if not ok:
-                raise UsageError(f"model.{key} must be {wanted}, got {value!r}")
+        # checked here, when the module is built: the EMA would refuse it only at fit start
+        if not 0 <= ema_decay < 1:
+            raise UsageError(f"model.ema_decay must be in [0, 1) (0: no EMA), got {ema_decay!r}")
+        self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
         self.spec = DataSpec.coerce(spec)
-        self.lr, self.weight_decay, self.betas, self.warmup_steps = lr, weight_decay, betas, warmup_steps
-        self.vel_weight, self.foot_weight, self.ema_decay = vel_weight, foot_weight, ema_decay
+        self.ema_decay = ema_decay
         self.activation_checkpointing, self._blocks_checkpointed = activation_checkpointing, False
         dit = set_fields(DiTOverrides, dit, "model.init_args.dit")
         self.config = DiTConfig.from_name(flavor, input_dim=self.spec.feature_dim, **dit)
@@ -134,7 +137,7 @@ class MotionDiffusionModule(OmgModule):
         mask = batch["mask"]
         simple = self.diffusion.loss(x0_hat, x0, t, mask)
         vel, foot = self.geometric_loss(self.denormalize(x0_hat), self.denormalize(x0), mask, batch.get("offsets"))
-        return {"loss": simple + self.vel_weight * vel + self.foot_weight * foot,
+        return {"loss": simple + self.loss.vel_weight * vel + self.loss.foot_weight * foot,
                 "simple": simple, "vel": vel, "foot": foot}
 
     def training_losses(self, batch: dict) -> dict[str, Tensor]:
@@ -302,9 +305,10 @@ class PretrainModule(MotionDiffusionModule):
     Args:
         flavor: DiT size preset: mini, base, large, huge or giant.
         dit: DiTConfig fields to override in the flavor's, e.g. ``{n_layers: 4}`` (``DiTOverrides``).
-        lr, weight_decay, betas: AdamW settings (OMG: 1e-4, 0).
-        warmup_steps: linear LR warm-up, then cosine decay over the run's optimizer steps.
-        vel_weight, foot_weight: weights of L_vel and L_foot (OMG/MDM: 30 each).
+        optim: AdamW's lr, weight_decay, betas (OMG: 1e-4, 0) and warmup_steps, a linear LR warm-up, then
+            cosine decay over the run's optimizer steps (``OptimSettings``).
+        loss: vel_weight, foot_weight, the weights of L_vel and L_foot (OMG/MDM: 30 each;
+            ``DiffusionLossWeights``).
         ema_decay: decay of the fp32 weight EMA kept in checkpoints (0 disables it).
         loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
         activation_checkpointing: recompute each block's activations in backward (less memory,
@@ -321,20 +325,14 @@ class PretrainModule(MotionDiffusionModule):
         self,
         flavor: str = "base",
         dit: DiTOverrides | None = DiTOverrides(),  # every key listed by --print_config
-        lr: float = 1e-4,
-        weight_decay: float = 0.0,
-        betas: tuple[float, float] = (0.9, 0.999),
-        warmup_steps: int = 10_000,
-        vel_weight: float = 30.0,
-        foot_weight: float = 30.0,
+        optim: OptimSettings = OptimSettings(lr=1e-4, weight_decay=0.0, warmup_steps=10_000),
+        loss: DiffusionLossWeights = DiffusionLossWeights(),
         ema_decay: float = 0.9999,
         loss_weighting: str = "uniform",
         activation_checkpointing: bool = False,
         stance_root: float = 0.0,
         spec: DataSpec | dict | None = None,
     ):
-        super().__init__(flavor, dit, spec, lr=lr, weight_decay=weight_decay, betas=betas, warmup_steps=warmup_steps,
-                         vel_weight=vel_weight, foot_weight=foot_weight, ema_decay=ema_decay,
-                         loss_weighting=loss_weighting, activation_checkpointing=activation_checkpointing,
-                         stance_root=stance_root)
+        super().__init__(flavor, dit, spec, optim=optim, loss=loss, ema_decay=ema_decay, loss_weighting=loss_weighting,
+                         activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()

@@ -36,6 +36,7 @@ from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.paired import PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
+from omg.settings import regroup
 from omg.tools.args import Settings
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
@@ -226,6 +227,58 @@ def _sets_any(group: Any) -> bool:
     return any(v is not None for v in values.values())
 
 
+def grouped_settings() -> dict[str, str]:
+    """The settings of omg's modules that live in a group now, by their older flat name: ``{lr: optim,
+    vel_weight: loss, ...}`` (``OmgModule.value_groups``)."""
+    return {key: group for name in omg.lit.__all__ for key, group in getattr(omg.lit, name).grouped_fields().items()}
+
+
+def _warn_regrouped(key: str, group: str) -> None:
+    rank_zero_warn(f"model.init_args.{key} is read as model.init_args.{group}.{key}, where it is set now")
+
+
+def regroup_args(args: list[str]) -> list[str]:
+    """``args`` with each older flat module setting (``--model.init_args.lr 1e-3``, ``--model.lr=1e-3``) given as
+    its group's field (``--model.init_args.optim.lr``), with one warning line naming the new key."""
+    keys, out = grouped_settings(), []
+    for i, arg in enumerate(args):
+        if arg == "--":
+            return out + args[i:]
+        name, sep, value = arg.partition("=")
+        key = name.removeprefix("--model.").removeprefix("init_args.") if name.startswith("--model.") else None
+        if key in keys:
+            _warn_regrouped(key, keys[key])
+            arg = f"--model.init_args.{keys[key]}.{key}{sep}{value}"
+        out.append(arg)
+    return out
+
+
+def regroup_init_args(init_args: dict[str, Any]) -> dict[str, Any]:
+    """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) moved into its group
+    (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both name a field."""
+    out, moved = regroup(init_args, grouped_settings())
+    for key, group in moved:
+        _warn_regrouped(key, group)
+    return out
+
+
+def _load_config(text: str) -> Any:
+    """jsonargparse's YAML loader, older flat module settings in a config's ``model.init_args`` (or a
+    ``--model`` file's ``init_args``) read into their groups (``regroup_init_args``)."""
+    from jsonargparse import get_loader
+
+    value = get_loader("yaml")(text)
+    model = value.get("model") if isinstance(value, dict) else None
+    if isinstance(value, dict) and str(value.get("class_path")).rpartition(".")[2] in omg.lit.__all__:
+        model = value  # a --model file
+    if isinstance(model, dict) and isinstance(model.get("init_args"), dict):
+        model["init_args"] = regroup_init_args(model["init_args"])
+    return value
+
+
+CONFIG_MODE = "omg_yaml"  # the LightningCLI parser's loader: ``_load_config``
+
+
 SEED_TYPE = bool | int  # LightningCLI's --seed_everything
 
 
@@ -356,7 +409,10 @@ class OmgLightningCLI(LightningCLI):
 
     def __init__(self, command: str, args: list[str]):
         import docstring_parser
+        import yaml
+        from jsonargparse import set_loader
 
+        set_loader(CONFIG_MODE, _load_config, exceptions=(yaml.YAMLError,))
         self.command = command  # LightningCLI's own ``subcommand`` stays None (run=False)
         self.ckpt_fit_state: dict[str, Any] | None = None  # --ckpt_path's, for the module once built
         self.method_arguments: list[str] = []
@@ -365,7 +421,8 @@ class OmgLightningCLI(LightningCLI):
             model_class=L.LightningModule,
             subclass_mode_model=True,
             datamodule_class=PairedDataModule,
-            parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc},
+            parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc,
+                           "parser_mode": CONFIG_MODE},
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
             args=args,
@@ -402,7 +459,7 @@ class OmgLightningCLI(LightningCLI):
             keys = []
         options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
         settings = LightningSettings(self.command, options, self.method_arguments)
-        args = underscore_options(list(args), options)
+        args = regroup_args(underscore_options(list(args), options))
         self.args = args  # parsed again without defaults under --ckpt_path (``given_model_args``)
         try:
             self.config = parser.parse_args(args)

@@ -57,8 +57,8 @@ def write_config(path, shards, root, *, max_steps=8, num_workers=0, callbacks=()
                           *callbacks],
         },
         "model": {"class_path": "PretrainModule",
-                  "init_args": {"flavor": "mini", "dit": TINY_DIT, "lr": 1e-3,
-                                "warmup_steps": 2, "ema_decay": 0.9}},
+                  "init_args": {"flavor": "mini", "dit": TINY_DIT, "optim": {"lr": 1e-3, "warmup_steps": 2},
+                                "ema_decay": 0.9}},
         "data": {"train": str(shards), "batch_size": 4, "max_len": 30, "min_len": 10, "batches_per_epoch": 5,
                  "num_workers": num_workers, "shuffle_buffer": 8, **data},
     }
