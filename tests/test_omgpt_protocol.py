@@ -10,6 +10,7 @@ from helpers import REPO
 from helpers.configs import parse
 from helpers.omgpt import MINI, TINY
 from helpers.omgpt import data as _data
+from omg.lit.human_source import OmniMotionSampler, human_source_of
 from omg.lit.sampling import SamplingSettings
 
 pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt.py
@@ -60,18 +61,19 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
     for draw, k in (("uniform", 3), ("similarity", 10)):
         module = _module(retrieval_draw=draw, retrieval_top_k=k, retrieval_temperature=1.0)
         lengths = torch.full((repeats,), 40)
-        human, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=0)
+        humans, person = human_source_of(module), [prompt.replace("a dog", "a person")] * repeats
+        human, _ = humans.retrieve(person, lengths, seed=0)
         clips, counts = torch.unique(human.flatten(1), dim=0, return_counts=True)
         distinct[draw] = len(clips)
         if draw == "similarity":
-            again, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=0)
-            other, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=1)
+            again, _ = humans.retrieve(person, lengths, seed=0)
+            other, _ = humans.retrieve(person, lengths, seed=1)
             assert torch.equal(human, again) and not torch.equal(human, other)
             module.retrieval_top_k = 1
-            nearest, _ = module.retrieve_human(["a person waves with the left hand."], lengths[:1], seed=0)
+            nearest, _ = humans.retrieve(["a person waves with the left hand."], lengths[:1], seed=0)
             module.retrieval_top_k = k
             assert torch.equal(clips[counts.argmax()], nearest.flatten(1)[0])  # the likeliest is the nearest
-            animals = module.sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
+            animals = OmniMotionSampler(module).sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
             assert len(torch.unique(animals.flatten(1), dim=0)) > 3  # and so do the animals made from them
     assert distinct["uniform"] <= 3 < distinct["similarity"], distinct
     with pytest.raises(Exception, match="retrieval_draw uniform or similarity"):
