@@ -135,3 +135,21 @@ def test_ood_r_precision_falls_below_chance_only_when_motion_avoids_the_prompts_
     chance = torch.tensor([1, 2, 3]) / 32
     independent, anti = _ood_r_precision(False), _ood_r_precision(True)
     assert (independent > chance).all() and (anti < chance).all(), (independent, anti)
+
+
+def test_an_exclusion_applies_to_the_next_draw_of_a_source_that_has_drawn():
+    """The caption features retrieval has built are built again when the exclusions change: the nearest clip,
+    once its caption is excluded, is never drawn again, and the sampler of the module draws through the same
+    source (one per module: the callbacks sampling a module share its exclusions)."""
+    from omg.lit.sampling import sampler_of
+
+    module = _module(retrieval_top_k=1)
+    humans, lengths, prompt = human_source_of(module), torch.tensor([40]), ["a person waves with the left hand."]
+    nearest, _ = humans.retrieve(prompt, lengths, seed=0)
+    drawn = humans.retrieved[0]
+    left_out, left = humans.exclude(drawn, "test")
+    assert left_out >= 1 and left >= 1
+    other, _ = humans.retrieve(prompt, lengths, seed=0)
+    assert not set(drawn) & set(humans.retrieved[0]) and not torch.equal(nearest, other)
+    sampler_of(module, "test").sample(["a dog waves with the left hand."], lengths, SamplingSettings(seed=0))
+    assert not set(drawn) & set(humans.retrieved[0])
