@@ -35,6 +35,11 @@ def _where(obj: Any) -> str:
         return f"{type(obj).__module__}.{type(obj).__qualname__} instance"
 
 
+def class_key(cls: type) -> str:
+    """The key of a class in the registries keyed by class (``GENERATORS``, ``MODULE_SAMPLERS``): its class path."""
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
 class Registry:
     """Maps short names to components (classes, factories or instances) of one kind."""
 
@@ -86,6 +91,15 @@ class Registry:
     def __iter__(self) -> Iterator[str]:
         return iter(self.names())
 
+    def for_class(self, cls: type) -> Any | None:
+        """The entry registered for the nearest class of ``cls``'s method resolution order, keyed by class path
+        (``class_key``): a subclass takes its family's entry until it registers its own; None if there is none."""
+        self._load_builtins()
+        for base in cls.__mro__:
+            if (key := class_key(base)) in self._entries:
+                return self._entries[key]
+        return None
+
     def describe(self, name: str) -> str:
         obj = self.get(name)
         if isinstance(obj, PurePath):  # a data file (joint maps): its first comment line, or its path
@@ -113,6 +127,9 @@ JOINT_MAPS = Registry("joint map", ("omg.joint_maps",))  # YAML paths or omg.ret
 # a LightningModule's class path -> the adapter that generates with it (omg.generation.registry); keyed by
 # class path as Lightning objects are named, so not among ALL's domain components
 GENERATORS = Registry("generator", ("omg.generation.omg", "omg.generation.omgpt", "omg.generation.habit"))
+# a LightningModule's class path -> the tensor-level sampler made of it where the module is not one itself
+# (omg.lit.sampling.sampler_of): OmniMotionGPT's, which composes the module with its human source
+MODULE_SAMPLERS = Registry("module sampler", ("omg.lit.human_source",))
 
 ALL: dict[str, Registry] = {
     "skeletons": SKELETONS,

@@ -144,7 +144,8 @@ def test_cli_export_features(tmp_path):
 
 @pytest.mark.parametrize(
     "array, reason",
-    [(np.zeros((10, 21, 3)), "expected joint positions (T, 22, 3)"), (np.full((10, 22, 3), np.nan), "NaN")],
+    [(np.zeros((10, 21, 3)), "expected joint positions (T, 22, 3)"),
+     (np.full((10, 22, 3), np.nan), "holds NaN or inf values")],  # the one reader's words (generation.read)
 )
 def test_cli_export_rejects_bad_files(tmp_path, capsys, array, reason):
     _generated_dir(tmp_path)

@@ -43,6 +43,26 @@ def test_the_registry_finds_each_familys_adapter(cls, adapter):
                                                    "transfer_motions", "species_condition"))
 
 
+def test_omnimotiongpt_human_source_chain_lives_outside_its_module():
+    """OmniMotionModule holds training and ``translate``; the retrieval and human-source chain, and the sampler the
+    callbacks call, are ``omg.lit.human_source``'s, found for the module by its class."""
+    import omg.lit.omgpt
+    from omg.lit.human_source import HumanSource, OmniMotionSampler, human_source_of
+
+    chain = ("sample", "check_sampling", "text_conditional", "human_motion", "check_human_source", "retrieval_clips",
+             "exclude_from_retrieval", "retrieve_human", "retrieved", "human_generator")
+    assert [name for name in chain if hasattr(OmniMotionModule, name)] == []
+    assert [name for name in ("generate_human", "read_retrieval_bank", "HumanSource", "OmniMotionSampler")
+            if hasattr(omg.lit.omgpt, name)] == []
+    assert callable(OmniMotionModule.translate)  # the model's own forward stays the module's
+    module = bare(OmniMotionModule)
+    assert not isinstance(module, Sampler)
+    sampler = sampler_of(module, "EvalCallback")
+    assert type(sampler) is OmniMotionSampler and isinstance(sampler, Sampler) and sampler.module is module
+    assert type(sampler.humans) is HumanSource and sampler.humans is human_source_of(module)  # one per module
+    assert human_source_of(bare(OmniMotionModule)) is not sampler.humans
+
+
 def test_a_module_without_an_adapter_is_one_line():
     class Trainer(L.LightningModule):
         pass

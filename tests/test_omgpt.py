@@ -15,7 +15,7 @@ from helpers import REPO, TINY_DIT
 from helpers.omgpt import MINI, TINY, fit_config, human_batch, paired, tiny_module
 from helpers.omgpt import data as _data
 from omg.errors import UsageError
-from omg.lit.sampling import SamplingSettings
+from omg.lit.sampling import SamplingSettings, sampler_of
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, end_effector_velocity, primal_joints
 from omg.motion import get_representation
 from omg.rotations import quat_normalize, quat_to_6d
@@ -337,7 +337,7 @@ def test_omg_controlnet_to_omnimotiongpt_chain(omgpt_ckpt, tiny_controlnet, tmp_
     from dataclasses import replace
 
     from omg.lit.checkpoint import load_module
-    from omg.lit.omgpt import generate_human
+    from omg.lit.human_source import generate_human
     from omg.motion.maa import maa_from_positions
 
     generator = load_module(tiny_controlnet, expect=ControlNetModule)
@@ -524,17 +524,19 @@ def test_animal_and_prompt_follow_one_rule_in_generate_and_sample(omgpt_ckpt, tm
     assert (record["animal"], record["animal_prompt"], record["human_prompt"]) == (
         "cat", "a cat jumps over a log", "a person jumps over a log")
     module = load_module(omgpt_ckpt)
+    sampler = sampler_of(module, "test")
     human, offsets = (torch.from_numpy(a)[None] for a in read_human_motion(tmp_path / "human.joints.npy", 20.0))
     weights = SamplingSettings(use_ema=False)
-    sampled = module.sample(["a dog jumps over a log"], [30], weights, animal="cat", human=human, human_offsets=offsets)
+    sampled = sampler.sample(["a dog jumps over a log"], [30], weights, animal="cat", human=human,
+                             human_offsets=offsets)
     np.testing.assert_allclose(sampled[0].numpy(), np.load(out / "sample_000.features.npy"), atol=1e-5)
     cat = module.translate(["a cat jumps over a log"], human, offsets, [30], ["cat"], use_ema=False)
     dog = module.translate(["a dog jumps over a log"], human, offsets, [30], ["dog"], use_ema=False)
     torch.testing.assert_close(sampled, cat)
-    torch.testing.assert_close(module.sample(["a dog jumps over a log"], [30], weights, human=human,
+    torch.testing.assert_close(sampler.sample(["a dog jumps over a log"], [30], weights, human=human,
                                              human_offsets=offsets), dog)
     with pytest.raises(UsageError, match="names no animal this checkpoint knows"):
-        module.sample(["a unicorn jumps"], [30], human=human, human_offsets=offsets)
+        sampler.sample(["a unicorn jumps"], [30], human=human, human_offsets=offsets)
 
 
 def test_generated_motion_depends_on_the_text_and_on_the_human_motion(omgpt_ckpt):
@@ -543,14 +545,14 @@ def test_generated_motion_depends_on_the_text_and_on_the_human_motion(omgpt_ckpt
     the same ones; 4 training steps say nothing about how much they should differ)."""
     from omg.lit.checkpoint import load_module
 
-    module = load_module(omgpt_ckpt)
+    sampler = sampler_of(load_module(omgpt_ckpt), "test")
     human = _data(MINI / "human_maa/train", max_len=40, min_len=32)
     batch = next(iter(human.train_dataloader()))
     motion = (batch["motion"] * torch.tensor(human.spec.std) + torch.tensor(human.spec.mean))[:2, :32]
     offsets, lengths = batch["offsets"][:2], torch.tensor([32, 32])
-    same_motion = module.sample(["a dog walks forward", "a dog lies down"], lengths, human=motion[:1].expand(2, -1, -1),
-                                human_offsets=offsets[:1].expand(2, -1, -1))
-    same_text = module.sample(["a dog walks forward"] * 2, lengths, human=motion, human_offsets=offsets)
+    same_motion = sampler.sample(["a dog walks forward", "a dog lies down"], lengths,
+                                 human=motion[:1].expand(2, -1, -1), human_offsets=offsets[:1].expand(2, -1, -1))
+    same_text = sampler.sample(["a dog walks forward"] * 2, lengths, human=motion, human_offsets=offsets)
     for pair in (same_motion, same_text):
         assert (pair[0] - pair[1]).square().mean().sqrt() > 1e-5
 

@@ -10,6 +10,7 @@ from helpers import REPO
 from helpers.configs import parse
 from helpers.omgpt import MINI, TINY
 from helpers.omgpt import data as _data
+from omg.lit.human_source import OmniMotionSampler, human_source_of
 from omg.lit.sampling import SamplingSettings
 
 pytestmark = pytest.mark.xdist_group("omgpt")  # omgpt_ckpt, as tests/test_omgpt.py
@@ -60,18 +61,19 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
     for draw, k in (("uniform", 3), ("similarity", 10)):
         module = _module(retrieval_draw=draw, retrieval_top_k=k, retrieval_temperature=1.0)
         lengths = torch.full((repeats,), 40)
-        human, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=0)
+        humans, person = human_source_of(module), [prompt.replace("a dog", "a person")] * repeats
+        human, _ = humans.retrieve(person, lengths, seed=0)
         clips, counts = torch.unique(human.flatten(1), dim=0, return_counts=True)
         distinct[draw] = len(clips)
         if draw == "similarity":
-            again, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=0)
-            other, _ = module.retrieve_human([prompt.replace("a dog", "a person")] * repeats, lengths, seed=1)
+            again, _ = humans.retrieve(person, lengths, seed=0)
+            other, _ = humans.retrieve(person, lengths, seed=1)
             assert torch.equal(human, again) and not torch.equal(human, other)
             module.retrieval_top_k = 1
-            nearest, _ = module.retrieve_human(["a person waves with the left hand."], lengths[:1], seed=0)
+            nearest, _ = humans.retrieve(["a person waves with the left hand."], lengths[:1], seed=0)
             module.retrieval_top_k = k
             assert torch.equal(clips[counts.argmax()], nearest.flatten(1)[0])  # the likeliest is the nearest
-            animals = module.sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
+            animals = OmniMotionSampler(module).sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
             assert len(torch.unique(animals.flatten(1), dim=0)) > 3  # and so do the animals made from them
     assert distinct["uniform"] <= 3 < distinct["similarity"], distinct
     with pytest.raises(Exception, match="retrieval_draw uniform or similarity"):
@@ -133,3 +135,21 @@ def test_ood_r_precision_falls_below_chance_only_when_motion_avoids_the_prompts_
     chance = torch.tensor([1, 2, 3]) / 32
     independent, anti = _ood_r_precision(False), _ood_r_precision(True)
     assert (independent > chance).all() and (anti < chance).all(), (independent, anti)
+
+
+def test_an_exclusion_applies_to_the_next_draw_of_a_source_that_has_drawn():
+    """The caption features retrieval has built are built again when the exclusions change: the nearest clip,
+    once its caption is excluded, is never drawn again, and the sampler of the module draws through the same
+    source (one per module: the callbacks sampling a module share its exclusions)."""
+    from omg.lit.sampling import sampler_of
+
+    module = _module(retrieval_top_k=1)
+    humans, lengths, prompt = human_source_of(module), torch.tensor([40]), ["a person waves with the left hand."]
+    nearest, _ = humans.retrieve(prompt, lengths, seed=0)
+    drawn = humans.retrieved[0]
+    left_out, left = humans.exclude(drawn, "test")
+    assert left_out >= 1 and left >= 1
+    other, _ = humans.retrieve(prompt, lengths, seed=0)
+    assert not set(drawn) & set(humans.retrieved[0]) and not torch.equal(nearest, other)
+    sampler_of(module, "test").sample(["a dog waves with the left hand."], lengths, SamplingSettings(seed=0))
+    assert not set(drawn) & set(humans.retrieved[0])

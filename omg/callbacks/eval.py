@@ -215,7 +215,8 @@ class EvalCallback(Callback):
 
     def generate(self, module: L.LightningModule, texts: list[str], lengths: Tensor, seed: int) -> Tensor:
         """The model's motions for a batch of prompts (``OODEvalCallback`` also counts what they started from)."""
-        return module.sample(conditioning(module, texts), lengths, replace(self.sampling, seed=seed))
+        sampler = sampler_of(module, "EvalCallback")
+        return sampler.sample(conditioning(sampler, texts), lengths, replace(self.sampling, seed=seed))
 
     # -- fit -------------------------------------------------------------------------------
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:

@@ -30,6 +30,8 @@ from omg.data.windows import WindowSampler
 from omg.errors import UsageError
 from omg.evaluation import PromptSet, markdown_table, write_report
 from omg.files import atomic_write, write_json
+from omg.lit.human_source import OmniMotionSampler, human_source_of
+from omg.lit.sampling import sampler_of
 from omg.models.omgpt import primal_joints
 from omg.text.omgpt import caption_key, one_sided_limb, to_animal
 
@@ -68,16 +70,17 @@ class OODEvalCallback(EvalCallback):
             self._captions = [(t, len(s["motion"])) for s in human for t in s["texts"]]
         if not self._captions:
             raise UsageError(f"OODEvalCallback.prompts: {self.prompt_shards} holds no captions")
-        source = getattr(model, "human_source", None)
-        if source == "retrieval" and callable(getattr(model, "exclude_from_retrieval", None)):
-            excluded, left = model.exclude_from_retrieval([c for c, _ in self._captions], "OODEvalCallback")
+        sampler = sampler_of(model, "OODEvalCallback")
+        if not isinstance(sampler, OmniMotionSampler):
+            return
+        if model.human_source == "retrieval":
+            excluded, left = sampler.humans.exclude([c for c, _ in self._captions], "OODEvalCallback")
             self._source = {"human_source": "retrieval", "retrieval_bank": model.retrieval_bank or "checkpoint",
                             "retrieval_clips": left, "retrieval_excluded": excluded, "generations": 0,
                             "from_prompt_clip": 0}
-        elif source is not None:
-            if callable(check := getattr(model, "check_human_source", None)):
-                check()
-            self._source = {"human_source": str(source)}
+        else:
+            sampler.humans.check()
+            self._source = {"human_source": str(model.human_source)}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         super().setup(trainer, pl_module, stage)  # preflight: the prompts
@@ -124,7 +127,7 @@ class OODEvalCallback(EvalCallback):
         own caption: the human motion must not be the prompt's answer."""
         motion = super().generate(module, texts, lengths, seed)
         if self._source.get("human_source") == "retrieval":
-            drawn = [{caption_key(t) for t in clip} for clip in module.retrieved]
+            drawn = [{caption_key(t) for t in clip} for clip in human_source_of(module).retrieved]
             self._source["generations"] += len(texts)
             self._source["from_prompt_clip"] += sum(bool(self._sources.get(t, set()) & d)
                                                     for t, d in zip(texts, drawn))

@@ -16,6 +16,7 @@ from omg.callbacks.eval import check_generative, conditioning, sampling_settings
 from omg.callbacks.run import run_dir, sampling
 from omg.errors import UsageError
 from omg.io.render import render_gif
+from omg.lit.sampling import sampler_of
 
 
 class RenderCallback(Callback):
@@ -96,9 +97,10 @@ class RenderCallback(Callback):
         self._last_step = step
         frames = max(2, round(self.seconds * self.spec.fps))
         texts = [t for t in self._texts for _ in range(self.num_samples)]
+        sampler = sampler_of(pl_module, "RenderCallback")
         with sampling(pl_module):
-            features = pl_module.sample(conditioning(pl_module, texts), torch.full((len(texts),), frames),
-                                        replace(self.sampling, seed=self.seed))
+            features = sampler.sample(conditioning(sampler, texts), torch.full((len(texts),), frames),
+                                      replace(self.sampling, seed=self.seed))
             joints = pl_module.representation.decode(features.float()).cpu().numpy()  # (P·S, T, J, 3)
         directory.mkdir(parents=True, exist_ok=True)
         paths = []

@@ -14,7 +14,8 @@ from omg.errors import UsageError
 from omg.generation.protocol import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest, ModuleGenerator
 from omg.generation.read import read_human_motion
 from omg.generation.registry import register_generator
-from omg.lit.omgpt import HUMAN_SKELETON, OmniMotionModule, generate_human
+from omg.lit.human_source import generate_human, human_source_of
+from omg.lit.omgpt import HUMAN_SKELETON, OmniMotionModule
 from omg.lit.sampling import SamplingSettings
 from omg.motion import get_representation
 from omg.registry import SAMPLERS
@@ -50,7 +51,7 @@ class OmniMotionGenerator(ModuleGenerator):
         names = m.animal_names
         if not names:
             raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [choose_animal(p, names, request.species) for p in request.prompts]  # the rule of ``sample``
+        chosen = [choose_animal(p, names, request.species) for p in request.prompts]  # the sampler's rule
         frames, repeats = self._frames_and_repeats(request)
         if frames < 2:
             raise UsageError(f"the motion has {frames} frame(s) at {m.spec.fps:g} fps; need 2 or more")
@@ -69,8 +70,8 @@ class OmniMotionGenerator(ModuleGenerator):
                 human, human_offsets = generate_human(request.source_module.module, [person], lengths, m.spec.fps,
                                                       replace(human_sampling, seed=request.seed + index))
             else:
-                human, human_offsets = m.human_motion([person], lengths.to(m.device),
-                                                      SamplingSettings(seed=request.seed + index))
+                human, human_offsets = human_source_of(m).human_motion([person], lengths.to(m.device),
+                                                                       SamplingSettings(seed=request.seed + index))
             # use_ema=False: the weights as loaded (load_module puts the EMA in)
             features = m.translate([prompt], human.to(m.device), human_offsets.to(m.device), lengths, [name],
                                    use_ema=False)[0].cpu().float()

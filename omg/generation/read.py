@@ -1,6 +1,6 @@
 """Source motion as a model takes it: a user's motion file read, retargeted onto the model's skeleton and
 encoded in the representation the model reads (OmniMotionGPT's human smpl22 maa, habit transfer's quadruped
-quatvel)."""
+quatvel), or as joint positions (``omg export``'s motions)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
-from omg.lit.omgpt import HUMAN_SKELETON
 from omg.motion import Clip, get_representation
 from omg.motion.maa import maa_from_positions
 from omg.skeleton import Skeleton, get_skeleton
@@ -22,11 +21,12 @@ def read_source_motion(path: Path, skeleton: Skeleton, fps: float, joint_map: st
     """The one reader of a user's source motion: a ``.npy`` as its numeric, finite array (the family says which
     shapes it takes), any other motion file (BVH, ASF/AMC, DeepMimic) read and retargeted onto ``skeleton`` at
     ``fps`` (``joint_map``: the file's rig's map, default detected) as a ``Clip``. ``what`` names the input
-    in the one-line errors (``--from_motion``, ``SOURCE``)."""
+    in the one-line errors (``--from_motion``, ``SOURCE``; empty: the path alone)."""
     from omg.files import file_problem, read_array
 
+    where = f"{what} {path}" if what else str(path)
     if problem := file_problem(path):
-        raise UsageError(f"{what} {path}: {problem}")
+        raise UsageError(f"{where}: {problem}")
     if path.suffix.lower() != ".npy":
         from omg.io.read import read_motion
         from omg.retarget import retarget
@@ -35,19 +35,45 @@ def read_source_motion(path: Path, skeleton: Skeleton, fps: float, joint_map: st
     try:
         array = read_array(path, what)
     except (OSError, ValueError) as e:
-        raise UsageError(f"{what} {path}: not a readable .npy array ({e})") from None
+        raise UsageError(f"{where}: not a readable .npy array ({e})") from None
     if array.dtype.kind not in "biufc":
-        raise UsageError(f"{what} {path}: expected a numeric array, got dtype {array.dtype}")
+        raise UsageError(f"{where}: expected a numeric array, got dtype {array.dtype}")
     if not np.isfinite(array).all():  # the model would sample from NaN
-        raise UsageError(f"{what} {path}: holds NaN or inf values ({int((~np.isfinite(array)).sum())} of "
+        raise UsageError(f"{where}: holds NaN or inf values ({int((~np.isfinite(array)).sum())} of "
                          f"{array.size}); give finite motion")
     return array
+
+
+def read_positions(path: Path, skeleton: Skeleton, fps: float, representation: str | None = None,
+                   what: str = "") -> np.ndarray:
+    """Joint positions (T, J, 3) of ``skeleton`` from a motion file: a ``.npy`` of joint positions, or of
+    features (T, D) of ``representation`` decoded to them (``omg export``'s ``*.features.npy``); any other
+    motion file read and retargeted at ``fps``. ``what`` as ``read_source_motion``'s."""
+    motion = read_source_motion(Path(path), skeleton, fps, None, what)
+    if isinstance(motion, Clip):
+        return motion.positions.astype(np.float32)
+    where = f"{what} {path}" if what else str(path)
+    if representation is not None:
+        try:
+            rep = get_representation(representation, skeleton)
+        except UsageError as e:
+            raise UsageError(f"{where}: {e}") from None
+        if motion.ndim != 2 or motion.shape[1] != rep.dim or len(motion) < 1:
+            raise UsageError(f"{where}: expected features (T, {rep.dim}) for {rep.name}, got shape {motion.shape}")
+        return rep.decode(torch.from_numpy(motion.astype(np.float32))).numpy()
+    J = skeleton.num_joints
+    if motion.ndim != 3 or motion.shape[1:] != (J, 3) or len(motion) < 1:
+        raise UsageError(f"{where}: expected joint positions (T, {J}, 3) for skeleton {skeleton.name!r}, got shape "
+                         f"{motion.shape}")
+    return motion.astype(np.float32)
 
 
 def read_human_motion(path: Path, fps: float, joint_map: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A human motion file -> smpl22 maa features (T, 138) and offsets (22, 3) at ``fps``: BVH / ASF-AMC /
     DeepMimic retargeted to smpl22, or a ``.npy`` of joints (T, 22, 3) or features (T, 138) maa or (T, 263)
     humanml3d263 (OmniMotionGPT's source)."""
+    from omg.lit.omgpt import HUMAN_SKELETON
+
     skeleton = get_skeleton(HUMAN_SKELETON)
     motion = read_source_motion(Path(path), skeleton, fps, joint_map, "--from_motion")
     if isinstance(motion, Clip):

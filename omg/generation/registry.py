@@ -19,12 +19,9 @@ from typing import Any
 
 from omg.errors import UsageError
 from omg.generation.protocol import Generator
-from omg.registry import GENERATORS
+from omg.registry import GENERATORS, class_key
 
-
-def module_key(cls: type) -> str:
-    """The registry key of a module class: its class path."""
-    return f"{cls.__module__}.{cls.__qualname__}"
+module_key = class_key  # the registry key of a module class: its class path
 
 
 def register_generator(module_class: type | str) -> Callable[[type], type]:
@@ -36,7 +33,6 @@ def register_generator(module_class: type | str) -> Callable[[type], type]:
 
 def generator_for(module: Any, what: str | Path = "this checkpoint") -> Generator:
     """``module``'s family adapter, or one line saying that what ``what`` holds generates no motion."""
-    for cls in type(module).__mro__:
-        if module_key(cls) in GENERATORS:
-            return GENERATORS.get(module_key(cls))(module)
+    if (adapter := GENERATORS.for_class(type(module))) is not None:
+        return adapter(module)
     raise UsageError(f"{what} holds a {module_key(type(module))} checkpoint, which generates no motion")

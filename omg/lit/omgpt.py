@@ -15,34 +15,34 @@ and across domains (§3.2), with the human caption's subject replaced by the pai
 plus w_translation · the root-translation error of the joint and the text paths (Appendix C). The feature
 errors are in the autoencoders' own units (``standardize``: each maa number divided by its std over
 the training data; with ``config.root_velocity`` the root's ground position as per-frame
-displacement in m/s), the latent and velocity errors as they come. Inference
-(``sample``): a human motion -> E^h -> Z^h; D_t^a(C̃, Z^h) -> D^a with the chosen animal's offsets.
+displacement in m/s), the latent and velocity errors as they come. Inference (``translate``): a human
+motion -> E^h -> Z^h; D_t^a(C̃, Z^h) -> D^a with the chosen animal's offsets. Where the human motion comes
+from when none is given (``human_source``: retrieval or an OMG ControlNet) and the ``Sampler`` the
+evaluation calls are ``omg.lit.human_source``'s.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from omg.data.omgpt import check_maa, check_same_stats
 from omg.data.paired import CompanionData
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, modes_restored
-from omg.lit.sampling import Sampler, SamplingSettings
 from omg.losses import cosine_gap, masked_mse
 from omg.models.omgpt import OmniMotionConfig, OmniMotionGPT, OmniMotionOverrides, end_effector_velocity
 from omg.motion import DataSpec, get_representation, length_mask
-from omg.motion.maa import maa_from_positions, root_translation
+from omg.motion.maa import root_translation
 from omg.settings import check_range, set_fields
 from omg.skeleton import get_skeleton
 from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
-from omg.text.omgpt import about_animal, caption_key, choose_animal, to_animal, to_person
+from omg.text.omgpt import about_animal, to_animal
 
 HUMAN_SKELETON, ANIMAL_SKELETON = "smpl22", "smal35"
 
@@ -107,7 +107,7 @@ class OmniMotionModule(OmgModule):
             (configs/omgpt_variant.yaml, configs/mini/omgpt.yaml) turns it on. It moves the balance
             the paper's weights were set for: reconstruction is then in std units while L_ee
             (end-effector velocity, x100) and the translation loss stay in metres per frame.
-        human_source: where ``sample`` takes human motion when none is given: ``retrieval`` (a
+        human_source: where sampling takes human motion when none is given: ``retrieval`` (a
             human clip whose caption is near the prompt made about "a person", drawn among the
             ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
             checkpoint (omg's own text-to-motion, from the prompt made about "a person"; the
@@ -124,7 +124,7 @@ class OmniMotionModule(OmgModule):
         retrieval_bank: human shards (smpl22 maa, captioned) that retrieval draws from instead of
             the validation clips kept in the checkpoint: an evaluation's bank must not be the split
             whose captions are its prompts (``OODEvalCallback`` also drops every clip captioned by
-            a prompt, ``exclude_from_retrieval``). A location, so not taken from a checkpoint.
+            a prompt, ``omg.lit.human_source.HumanSource.exclude``). A location, so not taken from a checkpoint.
         spec: the animal data's spec (``omg fit`` links it from ``data``).
 
     Fit-time state, filled from the data when training starts and kept in checkpoints beside the
@@ -141,9 +141,8 @@ class OmniMotionModule(OmgModule):
     (locations, ``location_hparams``) is never opened when it loads.
     """
 
-    text_conditional = True
     clip_sampling = "whole"  # a caption describes its whole clip
-    frozen_prefixes = ("text_encoder.", "human_generator.")
+    frozen_prefixes = ("text_encoder.",)
     location_hparams = ("human_data", "human_source", "retrieval_bank")
     # what the weights were trained with or on; the retrieval, loss and optimizer settings are the run's
     architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "spec")
@@ -198,8 +197,6 @@ class OmniMotionModule(OmgModule):
         self.human_bank: dict[str, list] | None = None
         self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
         self.retrieval_bank = retrieval_bank or None
-        self.retrieval_excluded: frozenset[str] = frozenset()  # captions whose clips retrieval never draws
-        self.retrieved: list[list[str]] = []  # the captions of the clip each prompt of the last retrieval drew
         self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
         self.config = OmniMotionConfig.from_name(flavor, **set_fields(OmniMotionOverrides, config,
                                                                       "model.init_args.config"))
@@ -218,9 +215,6 @@ class OmniMotionModule(OmgModule):
         self.register_buffer("animal_mean", torch.zeros(self.spec.feature_dim), persistent=False)
         self.register_buffer("animal_std", torch.ones(self.spec.feature_dim), persistent=False)
         self._use_stats("animal", self.spec)
-        self.human_generator = None  # an OMG ControlNet module, loaded when first needed
-        self._bank: dict | None = None  # retrieval: the human clips drawn from and their caption features
-        self._bank_samples: list[dict] | None = None  # the clips of retrieval_bank, read once
 
     def _use_stats(self, prefix: str, spec: DataSpec) -> None:
         """Normalise the ``prefix`` (human, animal) domain by ``spec``'s mean and std."""
@@ -326,7 +320,6 @@ class OmniMotionModule(OmgModule):
         one after another, and offsets (clips, J, 3)."""
         self.register_buffer("human_bank_motion", motion.float())
         self.register_buffer("human_bank_offsets", offsets.float())
-        self._bank = None
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         # a module built without the clips (a resumed run in Python) takes them from the checkpoint
@@ -454,213 +447,3 @@ class OmniMotionModule(OmgModule):
             self.eval()
             return self.model.translate(human.to(self.device).float() * mask[..., None], human_offsets.to(self.device),
                                         mask, self.sentence(prompts), offsets)
-
-    @torch.no_grad()
-    def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
-               settings: SamplingSettings | None = None, *, animal: str | None = None, human: Tensor | None = None,
-               human_offsets: Tensor | None = None) -> Tensor:
-        """Animal motions for prompts: (B, max(lengths), 216) un-normalised maa; the ``Sampler`` protocol
-        (``omg.lit.sampling``).
-
-        The animal is ``animal`` when given, else the one each prompt names (``choose_animal``, the rule of
-        ``omg generate``); the human motion is ``human`` (B, T, 138) with ``human_offsets``, or comes from
-        ``human_source`` (drawn with ``settings.seed``; a human generator samples with the settings' steps,
-        sampler and guidance). ``settings.use_ema``: the EMA weights where kept.
-        """
-        settings = settings or SamplingSettings()
-        if not texts:
-            raise UsageError("OmniMotionGPT generates from prompts: give at least one")
-        lengths = torch.as_tensor(lengths, device=self.device)
-        names = self.animal_names
-        if not names:
-            raise UsageError("this OmniMotionGPT module knows no animal yet (train it first)")
-        chosen = [choose_animal(t, names, animal) for t in texts]
-        if human is None:
-            human, human_offsets = self.human_motion([to_person(t, names) for t in texts], lengths, settings)
-        return self.translate(texts, human, human_offsets, lengths, chosen, use_ema=settings.use_ema)
-
-    def check_sampling(self, settings: SamplingSettings, key: str) -> None:
-        """OmniMotionGPT translates a human motion: no stance foot steps its root."""
-        if settings.stance_root is not None:
-            raise UsageError(f"{key}: {type(self).__name__} is not a diffusion model that can step its root by the "
-                             "stance foot")
-
-    def human_motion(self, prompts: Sequence[str], lengths: Tensor,
-                     settings: SamplingSettings) -> tuple[Tensor, Tensor]:
-        """Human maa (B, T, 138) and offsets (B, 22, 3) for prompts about "a person", from ``human_source``
-        (drawn with ``settings.seed``)."""
-        if self.human_source == "retrieval":
-            return self.retrieve_human(prompts, lengths, settings.seed)
-        if self.human_generator is None:
-            from omg.lit.checkpoint import load_module
-            from omg.lit.controlnet import ControlNetModule
-
-            self.check_human_source()
-            try:
-                self.human_generator = load_module(self.human_source, expect=ControlNetModule).to(self.device)
-            except UsageError as e:
-                raise UsageError(f"model.init_args.human_source: {e}") from None
-        return generate_human(self.human_generator, prompts, lengths, self.spec.fps, settings)
-
-    def check_human_source(self) -> None:
-        """One line unless ``human_source`` is ``retrieval`` or names a file (an evaluation checks it before it
-        starts: a generator that is not there would otherwise fail at its first prompt)."""
-        source = str(self.human_source)
-        if source != "retrieval" and "://" not in source and not Path(source).exists():
-            raise UsageError(f"model.init_args.human_source: no OMG ControlNet checkpoint at {source} (train one, "
-                             "e.g. `omg fit --config configs/mini/controlnet.yaml`, or set it to retrieval)")
-
-    def retrieval_clips(self, motion: bool = True) -> list[dict]:
-        """The human clips retrieval may draw from, exclusions not applied: ``{"motion" (T, 138) un-normalised,
-        "offsets" (22, 3), "texts"}`` of ``retrieval_bank`` when set, else of the validation clips kept in the
-        checkpoint (``motion=False``: texts only, which needs no weights loaded)."""
-        if self.retrieval_bank is not None:
-            if self._bank_samples is None:
-                self._bank_samples = read_retrieval_bank(self.retrieval_bank, self.human_spec, self.config.max_frames)
-            return self._bank_samples
-        bank = self.human_bank
-        if not bank or getattr(self, "human_bank_motion", None) is None:
-            raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
-                             "captioned clips in human_data.val, or before checkpoints kept them): give the human "
-                             "motion with --from_motion or --human_ckpt, or human shards as "
-                             "model.init_args.retrieval_bank")
-        if not motion:
-            return [{"texts": list(t)} for t in bank["captions"]]
-        clips = self.human_bank_motion.cpu().split(list(bank["lengths"]))
-        return [{"motion": m, "offsets": o, "texts": list(t)}
-                for m, o, t in zip(clips, self.human_bank_offsets.cpu(), bank["captions"])]
-
-    def exclude_from_retrieval(self, captions: Iterable[str], key: str) -> tuple[int, int]:
-        """Retrieval never draws a clip captioned by one of ``captions`` (an evaluation's prompts: a generation
-        must not start from the prompt's own clip); (clips left out, clips left). ``key`` names the evaluation
-        in the one-line error when no clip is left."""
-        excluded = frozenset(caption_key(c) for c in captions)
-        if self.retrieval_bank is None and not self.human_bank and self.human_spec is None:
-            self.retrieval_excluded, self._bank = excluded, None  # a fit builds its bank when it starts
-            return 0, 0
-        clips = self.retrieval_clips(motion=False)
-        left = sum(not excluded & {caption_key(t) for t in c["texts"]} for c in clips)
-        if not left:
-            raise UsageError(f"{key}: {self._nothing_left()}")
-        self.retrieval_excluded, self._bank = excluded, None
-        return len(clips) - left, left
-
-    def _nothing_left(self) -> str:
-        where = self.retrieval_bank or "the human validation clips kept in the checkpoint"
-        return (f"every clip retrieval draws from ({where}) is captioned by one of the prompts; set "
-                "model.init_args.retrieval_bank to human shards of another split (e.g. the human training set) or "
-                "model.init_args.human_source to an OMG ControlNet checkpoint")
-
-    def retrieve_human(self, prompts: Sequence[str], lengths: Tensor, seed: int) -> tuple[Tensor, Tensor]:
-        """The human clips whose captions are nearest the prompts (one of the top k distinct clips, drawn with
-        ``seed`` by ``retrieval_draw``; never one captioned by an excluded caption), each cut or held at its last
-        frame to the prompt's length. The drawn clips' captions are kept in ``retrieved``."""
-        if self._bank is None:
-            samples = [c for c in self.retrieval_clips()
-                       if not self.retrieval_excluded & {caption_key(t) for t in c["texts"]}]
-            if not samples:
-                raise UsageError(self._nothing_left())
-            captions = [(i, t) for i, s in enumerate(samples) for t in s["texts"]]
-            self._bank = {"samples": samples, "owner": torch.tensor([i for i, _ in captions]),
-                          "text": F.normalize(self.sentence([t for _, t in captions]).cpu(), dim=-1)}
-        bank = self._bank
-        similarity = F.normalize(self.sentence(prompts).cpu(), dim=-1) @ bank["text"].T  # (B, captions)
-        gen = torch.Generator().manual_seed(seed)
-        T = int(lengths.max())
-        motion = torch.zeros(len(prompts), T, self.human_spec.feature_dim)
-        offsets, self.retrieved = [], []
-        for b, row in enumerate(similarity):
-            order = row.argsort(descending=True)
-            seen: list[int] = []
-            for c in order.tolist():  # the top k distinct clips
-                if (owner := int(bank["owner"][c])) not in seen:
-                    seen.append(owner)
-                if len(seen) == self.retrieval_top_k:
-                    break
-            if self.retrieval_draw == "similarity":  # each clip scored by its nearest caption
-                best = torch.stack([row[bank["owner"] == owner].max() for owner in seen])
-                pick = int(torch.multinomial(torch.softmax(best / self.retrieval_temperature, 0), 1, generator=gen))
-            else:
-                pick = int(torch.randint(len(seen), (1,), generator=gen))
-            sample = bank["samples"][seen[pick]]
-            clip = torch.as_tensor(sample["motion"])[:T]
-            motion[b, : len(clip)] = clip
-            motion[b, len(clip):] = clip[-1]
-            offsets.append(torch.as_tensor(sample["offsets"], dtype=torch.float32))
-            self.retrieved.append(list(sample["texts"]))
-        return motion.to(self.device), torch.stack(offsets).to(self.device)
-
-
-def check_maa(spec: DataSpec, key: str, skeleton: str) -> None:
-    """UsageError unless ``spec`` is ``skeleton`` motion in the maa representation."""
-    if spec.representation != "maa" or spec.skeleton != skeleton:
-        raise UsageError(f"{key}: OmniMotionGPT reads {skeleton} shards in the maa representation, got "
-                         f"{spec.skeleton} {spec.representation} (build them with `omg shards build ... --skeleton "
-                         f"{skeleton} --representation maa`)")
-
-
-def check_same_stats(found: DataSpec, stored: DataSpec) -> None:
-    """The human stream's batches are normalised with its shards' statistics and un-normalised with the
-    checkpoint's (``human_spec``): a run that goes on from a checkpoint must read human shards like those."""
-    stored.check_compatible(found, "the checkpoint's human data", "data.human")
-    if found.mean != stored.mean or found.std != stored.std:
-        raise UsageError("data.human: its shards' mean/std differ from those the checkpoint was trained with "
-                         "(human_spec); go on from this checkpoint with the same human shards")
-
-
-def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, fps: float,
-                   settings: SamplingSettings) -> tuple[Tensor, Tensor]:
-    """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
-    at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames), sampled with the settings'
-    steps, sampler, guidance and seed on the weights as loaded.
-
-    ``generator``: an OMG ControlNet module (its ``Sampler``); its features (humanml3d263) are decoded to joint
-    positions and turned into rotations by IK. A generator at another rate makes the same durations
-    at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
-    animal moves at the speed the human did."""
-    from omg.data.sources.amass import resample
-
-    if generator.spec.skeleton != HUMAN_SKELETON:
-        raise UsageError(f"the human generator makes {generator.spec.skeleton} motion; OmniMotionGPT needs "
-                         f"{HUMAN_SKELETON}")
-    if generator.spec.fps <= 0:
-        raise UsageError("the human generator's checkpoint records no frame rate")
-    source_fps = generator.spec.fps
-    lengths = torch.as_tensor(lengths).cpu()
-    source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
-    features = generator.sample(list(prompts), source_lengths, SamplingSettings(
-        steps=settings.steps, sampler=settings.sampler, guidance=settings.guidance, seed=settings.seed, use_ema=False))
-    joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
-    T = int(lengths.max())
-    motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)
-    offsets = []
-    for b, n in enumerate(lengths.tolist()):
-        positions = joints[b, : source_lengths[b]]
-        if abs(source_fps - fps) > 1e-6:
-            positions = resample(positions, source_fps, fps)
-        maa, off = maa_from_positions(positions[: max(2, n)], fps)
-        maa = torch.from_numpy(maa)[:T]
-        motion[b, : len(maa)] = maa
-        motion[b, len(maa):] = maa[-1]
-        offsets.append(torch.from_numpy(off))
-    return motion, torch.stack(offsets)
-
-
-def read_retrieval_bank(location: str | list, human_spec: DataSpec, max_frames: int) -> list[dict]:
-    """The captioned clips of human shards (``retrieval_bank``): ``{"motion" (T, 138) un-normalised, "offsets",
-    "texts"}``, cut to ``max_frames``; smpl22 maa at the checkpoint's human rate."""
-    from omg.data.datamodule import MotionDataModule
-
-    key = "model.init_args.retrieval_bank"
-    try:
-        data = MotionDataModule(val=location, max_len=max_frames, min_len=2, clips="whole", num_workers=0)
-        human_spec.check_compatible(data.spec, "the checkpoint's human data", "its shards")
-        samples = [s for s in data.val_clips().samples if s["texts"]]
-    except UsageError as e:
-        message = str(e)
-        raise UsageError(message if message.startswith(key) else f"{key}: {message}") from None
-    if not samples:
-        raise UsageError(f"{key}: {location} holds no captioned clips to retrieve from")
-    return [{"motion": torch.from_numpy(np.asarray(s["motion"], dtype=np.float32)[:max_frames]),
-             "offsets": torch.tensor(s["meta"]["offsets"], dtype=torch.float32), "texts": list(s["texts"])}
-            for s in samples]

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from omg.errors import UsageError
-from omg.registry import SAMPLERS
+from omg.registry import MODULE_SAMPLERS, SAMPLERS
 
 
 def check_stance_root(strength: float, key: str) -> float:
@@ -83,8 +83,12 @@ class Sampler(Protocol):
 
 
 def sampler_of(module: Any, key: str) -> Sampler:
-    """``module`` when it declares the ``Sampler`` protocol, else one line naming ``key`` and the module."""
-    if not isinstance(module, Sampler):
+    """``module`` when it declares the ``Sampler`` protocol, else the sampler registered for its class
+    (``MODULE_SAMPLERS``: OmniMotionGPT's composes the module with its human source), else one line naming
+    ``key`` and the module."""
+    if isinstance(module, Sampler):
+        return module
+    if (sampler := MODULE_SAMPLERS.for_class(type(module))) is None:
         raise UsageError(f"{key} needs a model that samples motion (omg.lit.sampling.Sampler: sample(texts, lengths, "
                          f"settings)); {type(module).__name__} has none")
-    return module
+    return sampler(module)

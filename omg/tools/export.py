@@ -7,7 +7,6 @@ representation and the prompts, which become the previews' captions).
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
@@ -16,14 +15,12 @@ import time
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-import torch
-
 from omg.errors import UsageError
 from omg.export import EULER_ORDERS, FORMATS, export_motion
-from omg.files import MOTION_MAX_BYTES, check_output_dir, read_file, read_text
+from omg.files import check_output_dir, read_text
+from omg.generation.read import read_positions
 from omg.retarget import read_rig
-from omg.skeleton import Skeleton, get_skeleton
+from omg.skeleton import get_skeleton
 from omg.tools.args import PositiveFiniteFloat, run
 
 DEFAULT_FPS = 20.0
@@ -84,11 +81,14 @@ def export(
     for path in [f for spec in inputs for f in _inputs(spec)]:
         settings = _settings(path.parent)
         skel = get_skeleton(skeleton or settings.get("skeleton") or DEFAULT_SKELETON)
-        positions = _load_positions(path, skel, representation or settings.get("representation"))
+        rate = fps or settings.get("fps") or DEFAULT_FPS
+        decode = (representation or settings.get("representation")) if path.name.endswith(".features.npy") else None
+        if path.name.endswith(".features.npy") and decode is None:
+            raise UsageError(f"{path}: a features file needs --representation (e.g. humanml3d263)")
+        positions = read_positions(path, skel, rate, decode)  # joints, or features decoded to them
         stem = path.with_name(re.sub(r"(\.joints|\.features)?\.npy$", "", path.name))
         if out:
             stem = out / stem.name
-        rate = fps or settings.get("fps") or DEFAULT_FPS
         if to_rig is not None and skel.name not in rigs:
             rigs[skel.name] = read_rig(to_rig, skel, joint_map)
         jobs.append((path, stem, positions, skel, rate, _prompt(settings, stem.name)))
@@ -172,37 +172,6 @@ def _prompt(settings: dict, stem: str) -> list[str]:
         return []
     index = int(match.group(1)) // max(int(settings.get("num_samples", 1)), 1)
     return [prompts[index]] if index < len(prompts) else []
-
-
-def _load_positions(path: Path, skeleton: Skeleton, representation: str | None) -> np.ndarray:
-    """(T, J, 3) joint positions from a joints file, or decoded from a features file."""
-    data = read_file(path, "", MOTION_MAX_BYTES)  # a regular file (a FIFO in a folder would block), bounded
-    try:
-        array = np.load(io.BytesIO(data), allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise UsageError(f"{path}: cannot read as a .npy array ({e})") from None
-    if not np.issubdtype(array.dtype, np.number):
-        raise UsageError(f"{path}: expected a numeric array, got dtype {array.dtype}")
-    if not np.isfinite(array).all():
-        raise UsageError(f"{path}: contains NaN or inf values")
-    J = skeleton.num_joints
-    if path.name.endswith(".features.npy"):
-        from omg.motion import get_representation
-
-        if representation is None:
-            raise UsageError(f"{path}: a features file needs --representation (e.g. humanml3d263)")
-        try:
-            rep = get_representation(representation, skeleton)
-        except UsageError as e:
-            raise UsageError(f"{path}: {e}") from None
-        if array.ndim != 2 or array.shape[1] != rep.dim or len(array) < 1:
-            raise UsageError(f"{path}: expected features (T, {rep.dim}) for {rep.name}, got shape {array.shape}")
-        return rep.decode(torch.from_numpy(array.astype(np.float32))).numpy()
-    if array.ndim != 3 or array.shape[1:] != (J, 3) or len(array) < 1:
-        raise UsageError(
-            f"{path}: expected joint positions (T, {J}, 3) for skeleton {skeleton.name!r}, got shape {array.shape}"
-        )
-    return array.astype(np.float32)
 
 
 def main(argv: list[str]) -> None:

@@ -33,10 +33,10 @@ import omg.callbacks  # noqa: F401  (short callback names: EvalCallback, RenderC
 import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
 from omg.callbacks.progress import PlainProgress
 from omg.callbacks.run import InterruptCheckpoint, run_dir
-from omg.data.paired import PairedDataModule
+from omg.data.paired import CompanionData, PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
-from omg.settings import regroup
+from omg.settings import regroup, set_fields
 from omg.tools.args import Settings
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
@@ -219,12 +219,9 @@ def model_clip_sampling(model: Any) -> str:
     return getattr(cls, "clip_sampling", "windows")
 
 
-def _sets_any(group: Any) -> bool:
-    """Whether a parsed settings group (a Namespace or mapping of its fields) sets any field."""
-    if group is None:
-        return False
-    values = group.as_dict() if isinstance(group, Namespace) else dict(group)
-    return any(v is not None for v in values.values())
+def _fields(group: Any) -> Any:
+    """A parsed settings group (a Namespace of its fields, a mapping, None) as ``set_fields`` reads it."""
+    return group.as_dict() if isinstance(group, Namespace) else group
 
 
 def grouped_settings() -> dict[str, str]:
@@ -487,9 +484,9 @@ class OmgLightningCLI(LightningCLI):
         (one warning line); both set is refused."""
         init_args = (self.config.get("model") or {}).get("init_args")
         human_data = init_args.get("human_data") if init_args is not None else None
-        if not _sets_any(human_data):
+        if not set_fields(CompanionData, _fields(human_data), "model.init_args.human_data"):
             return
-        if _sets_any((self.config.get("data") or {}).get("human")):
+        if set_fields(CompanionData, _fields((self.config.get("data") or {}).get("human")), "data.human"):
             raise UsageError("model.init_args.human_data and data.human both name the human shards: keep data.human "
                              "only (model.init_args.human_data is its older name)")
         rank_zero_warn("model.init_args.human_data is read as data.human, where the human shards are set now")
