@@ -666,19 +666,34 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     }  # fmt: skip
 
 
-def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
-    """The rig of a BVH file for ``onto_rig``, checked against ``skeleton`` before any work is done:
-    a rig no map fits, one of the other kind (a dog rig for a human motion) or one without a rest
-    pose is one UsageError."""
-    from omg.io.bvh import read_bvh
+RIG_SUFFIXES = (".bvh", ".glb", ".gltf")
 
-    if Path(path).suffix.lower() != ".bvh":
-        raise UsageError(f"--to_rig {path}: the rig must be a .bvh file (its HIERARCHY is the rig)")
-    rig = read_bvh(path, what="--to_rig")  # a regular file of bounded size: no FIFO or /dev/zero
+
+def read_rig_file(path: str | Path, what: str = "--to_rig") -> RigMotion:
+    """A user's rig: a BVH file's hierarchy, or a skinned glTF character (``omg.io.gltf.read_character``,
+    which the glTF writer animates whole); a regular file of bounded size (no FIFO or /dev/zero)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".bvh":
+        from omg.io.bvh import read_bvh
+
+        return read_bvh(path, what=what)
+    if suffix in (".glb", ".gltf"):
+        from omg.io.gltf import read_character
+
+        return read_character(path, what=what)
+    raise UsageError(f"{what} {path}: the rig must be a .bvh file (its HIERARCHY is the rig) or a skinned glTF "
+                     "character (.glb, .gltf)")
+
+
+def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
+    """The rig of a BVH file or glTF character for ``onto_rig``, checked against ``skeleton`` before any
+    work is done: a rig no map fits, one of the other kind (a dog rig for a human motion) or one without
+    a rest pose is one UsageError."""
+    rig = read_rig_file(path)
     skel = get_skeleton(skeleton)
     plan = _plan(skel, _rig_joint_map(rig, skel, joint_map), source_names(rig))
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))
     if not float(_leg_length(skel, _proxy(plan, skel, rest[None])[0])) > 1e-6:
-        raise UsageError(f"{path}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
-                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+        why = "its leg joints' OFFSETs are zero" if rig.character is None else "its leg joints stand on one point"
+        raise UsageError(f"{path}: the rig has no rest pose ({why}); give a rig whose hierarchy holds its bones")
     return rig
