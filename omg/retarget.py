@@ -540,6 +540,37 @@ def _parent_of(rig: RigMotion, column: int) -> int:
     return rig.parents[column] if column < rig.num_joints else rig.end_sites[column - rig.num_joints][0]
 
 
+def _foot_points(rig: RigMotion, feet: list[int]) -> list[int]:
+    """Columns of ``positions_with_end_sites``: the rig's mapped foot joints, every joint below them (toes,
+    a toe's end joint) and their end sites: what stands on the ground."""
+    below = set(feet)
+    for j, p in enumerate(rig.parents):  # parents come first
+        if p in below:
+            below.add(j)
+    return sorted(below) + [rig.num_joints + k for k, (p, _) in enumerate(rig.end_sites) if p in below]
+
+
+def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
+    """Metres the rig's lowest foot point stands above its ground when planted: on a glTF character its
+    height above the mesh's sole at rest (toe joints sit inside the shoe), on a BVH rig with a clip its
+    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
+    else 0; a clearance over a tenth of the leg is no foot's, and 0 is taken."""
+    sole = getattr(rig.character, "sole", None)
+    if sole is not None:
+        clearance = float((torch.from_numpy(rig.rest_positions(end_sites=True))[points] @ up_axis).min()) - sole
+    elif len(rig) > 2:
+        at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
+        yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
+        yup[..., 1] = at
+        yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
+                       - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
+        planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
+        clearance = float(at.min(1).values[planted].median()) if planted.any() else 0.0
+    else:
+        clearance = 0.0
+    return clearance if 0.0 <= clearance <= 0.1 * leg else 0.0
+
+
 def onto_rig(
     positions: np.ndarray,  # (T, J, 3) metres, Y up, on ``skeleton``
     skeleton: Skeleton | str,
@@ -611,7 +642,17 @@ def onto_rig(
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
 
-    out = placed(*solve(pos * scale))
+    local, top, at = solve(pos * scale)
+    # the ground: in the frames where the model's feet are planted, the rig's lowest foot point stands at its
+    # own clearance at rest, on the floor of the rig's frame (its up axis); the scaled path alone leaves the
+    # feet where the model's ankle height, scaled, puts them, off the rig's by the difference of the two
+    points = _foot_points(rig, [plan.source[f] for f in skel.feet if f in plan.source])
+    up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
+    lowest = (torch.from_numpy(placed(local, top, at).positions_with_end_sites())[:, points] @ up_axis).min(1).values
+    contact = ground_contacts(pos, skel.feet, float(fps)).any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
+    ground = lowest[contact].median() if contact.any() else torch.quantile(lowest, 0.02)
+    clearance = _clearance(rig, points, up_axis, rig_leg)
+    out = placed(local, top, at - (ground - clearance) * up_axis)
     if clean_contacts and T > 1:
         # the rig's own places of the model joints, Y up: its feet are what must stay planted
         on_rig = _proxy(plan, skel, torch.from_numpy(out.positions_with_end_sites()))
@@ -652,6 +693,12 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     contact = ground_contacts(torch.from_numpy(clip.positions).double(), skel.feet, clip.fps).numpy()  # (T, F)
     planted = contact[:-1] & contact[1:]  # (T - 1, F)
     feet = [plan.source[f] for f in skel.feet]
+    # the lowest foot point of the rig on the way back, over the frames with a planted foot, from the ground
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(a)), skel, None)
+    up_axis = quat_apply(quat_conjugate(turn), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)).numpy()
+    points = _foot_points(rig, feet)
+    heights = [(x[:, points] @ up_axis).min(1) for x in (a, b)]  # (T,) the lowest foot point, original and back
+    off_ground = np.abs(heights[1] - heights[0])[contact.any(1)] * 100  # (planted frames,) cm
 
     def slide(x: np.ndarray) -> float:
         speed = np.linalg.norm(np.diff(x[:, feet], axis=0), axis=-1) * clip.fps * 100  # (T - 1, F) cm/s
@@ -663,6 +710,9 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
         "mapped_mean_cm": float(err[:, mapped].mean()),
         "bone_cm": float(np.abs(lengths(b) - lengths(a)).max() * 100),
         "slide_original_cm_s": slide(a), "slide_back_cm_s": slide(b),
+        "ground_cm": float(np.median(off_ground)) if len(off_ground) else 0.0,
+        "ground_p95_cm": float(np.percentile(off_ground, 95)) if len(off_ground) else 0.0,
+        "ground_max_cm": float(off_ground.max(initial=0.0)),
     }  # fmt: skip
 
 

@@ -42,6 +42,7 @@ class Character:
     rest_translation: np.ndarray  # (J, 3) each joint node's translation in the rest pose, in its parent's units
     parent_rest: np.ndarray  # (J, 4) (w, x, y, z): the world rotation of each joint node's parent node at rest
     root_parent: np.ndarray  # (4, 4) world matrix of the root joint's parent node (the identity without one)
+    sole: float | None  # m: the height of the skinned meshes' lowest point in the rest pose (None: no mesh)
 
 
 def _local_matrix(node: gl.Node) -> np.ndarray:
@@ -143,9 +144,8 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
         stack.extend(reversed(nodes[n].children or []))
     index = {n: j for j, n in enumerate(order)}
     rest_world = np.stack([world_of(n) for n in order])  # (J, 4, 4) the nodes' own pose
-    bind_world = _bind_pose(gltf, order, rest_world)
-    posed = bind_world is not None
-    if posed:
+    bind_world, mesh_to_world = _bind_pose(gltf, order, rest_world)
+    if bind_world is not None:
         rest_world = bind_world
     node_parent_rest = {}  # node -> its rest world matrix, for the joints' parent nodes below the root
 
@@ -170,16 +170,18 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
     parents = [-1] + [index[joint_parent(n)] for n in order[1:]]
     offsets = rest - np.concatenate([np.zeros((1, 3)), rest[parents[1:]]])
     character = Character(gltf=gltf, nodes=order, rest_local=_rotation_of(local), rest_translation=local[:, :3, 3],
-                          parent_rest=_rotation_of(parent_world), root_parent=root_parent)
+                          parent_rest=_rotation_of(parent_world), root_parent=root_parent,
+                          sole=_sole(gltf, mesh_to_world))
     J = len(order)
     return RigMotion(name=path.stem, names=names, parents=parents, offsets=offsets, fps=30.0,
                      rotations=np.tile([1.0, 0.0, 0.0, 0.0], (1, J, 1)), translations=offsets[None].copy(),
                      source=str(path), character=character)  # fmt: skip
 
 
-def _bind_pose(gltf: gl.GLTF2, order: list[int], rest_world: np.ndarray) -> np.ndarray | None:
+def _bind_pose(gltf: gl.GLTF2, order: list[int], rest_world: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
     """(J, 4, 4) the joints' world matrices in the pose their inverse bind matrices bind the mesh in, placed
-    at the root joint's node; None where the nodes already stand in it (or no skin has the matrices)."""
+    at the root joint's node (None where the nodes already stand in it, or no skin has the matrices), and
+    the (4, 4) transform from the skinned meshes' space to the world in that pose."""
     blob = gltf.binary_blob() or b""
     bind: dict[int, np.ndarray] = {}
     for skin in gltf.skins:
@@ -189,14 +191,32 @@ def _bind_pose(gltf: gl.GLTF2, order: list[int], rest_world: np.ndarray) -> np.n
         for n, m in zip(skin.joints, mats):
             bind.setdefault(n, np.linalg.inv(m))
     if any(n not in bind for n in order):
-        return None
+        return None, np.eye(4)
     b = np.stack([bind[n] for n in order])
-    placed = rest_world[0] @ np.linalg.inv(b[0]) @ b  # (J, 4, 4) the bind pose with the root where it stands
+    mesh_to_world = rest_world[0] @ np.linalg.inv(b[0])
+    placed = mesh_to_world @ b  # (J, 4, 4) the bind pose with the root where it stands
     size = max(float(np.ptp(rest_world[:, :3, 3], axis=0).max()), 1e-9)
     moved = np.abs(placed[:, :3, 3] - rest_world[:, :3, 3]).max() / size
     unit = max(float(np.abs(rest_world[0, :3, :3]).max()), 1e-12)  # the scale the joints' matrices carry
     turned = np.abs(placed[:, :3, :3] - rest_world[:, :3, :3]).max() / unit
-    return placed if max(moved, turned) > BIND_TOLERANCE else None
+    return (placed if max(moved, turned) > BIND_TOLERANCE else None), mesh_to_world
+
+
+def _sole(gltf: gl.GLTF2, mesh_to_world: np.ndarray) -> float | None:
+    """The lowest height of the skinned meshes' bounding boxes (their POSITION min and max, which glTF
+    requires) in the rest pose, in the world; None without a skinned mesh."""
+    lows = []
+    for node in gltf.nodes or []:
+        if node.mesh is None or node.skin is None:
+            continue
+        for primitive in gltf.meshes[node.mesh].primitives:
+            acc = gltf.accessors[primitive.attributes.POSITION]
+            if acc.min is None or acc.max is None:
+                continue
+            corners = np.array([[x, y, z, 1.0] for x in (acc.min[0], acc.max[0]) for y in (acc.min[1], acc.max[1])
+                                for z in (acc.min[2], acc.max[2])])  # fmt: skip
+            lows.append(float((corners @ mesh_to_world.T)[:, 1].min()))
+    return min(lows) if lows else None
 
 
 class _Builder:
