@@ -673,7 +673,10 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     one constant translation (the import puts the floor at y = 0): ``mean_cm`` and ``max_cm``;
     ``mapped_mean_cm`` over the joints the map names; ``bone_cm``: the largest change of a bone's
     length in any frame; ``slide_*_cm_s``: the mean speed of the mapped foot points over the frames
-    where the model's feet are planted (``ground_contacts``), in the original and on the way back.
+    where the model's feet are planted (``ground_contacts``), in the original and on the way back;
+    ``ground_cm``, ``ground_p95_cm``, ``ground_max_cm``: over those frames, how far the rig's lowest foot
+    point (its feet, toes and their end sites, along its up axis, no translation removed) is on the way
+    back from where the original has it: the median, 95th percentile and largest.
     """
     skel = get_skeleton(skeleton)
     jmap = _rig_joint_map(rig, skel, joint_map)
