@@ -36,10 +36,11 @@ is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slo
 and the motion is resampled to the requested fps before anything else.
 
 The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
-file read by ``read_rig``), with the same maps (detected from the rig's names, or given). Mapped
-rig joints turn so that their bones follow the model's, from the rig's own rest orientation;
-joints the model lacks keep their rest rotation; the root travels the model's path scaled to the
-rig's leg length, and planted feet are pinned (``omg.io.contacts``). ``rig_round_trip`` measures
+file or a skinned glTF character read by ``read_rig``), with the same maps (detected from the rig's
+names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
+rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
+scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
+(``omg.io.contacts``). ``rig_round_trip`` measures
 import + export on a rig's own clip (``omg bench rig``).
 """
 
@@ -580,16 +581,18 @@ def onto_rig(
     up: str | None = None,
     clean_contacts: bool = True,
 ) -> RigMotion:
-    """A motion of a model skeleton on a user's rig (read with ``omg.io.bvh.read_bvh``): the rig's
-    hierarchy, names, channels, unit, rest pose and bone lengths, its animation replaced.
+    """A motion of a model skeleton on a user's rig (read with ``read_rig``: a BVH file or a glTF character):
+    the rig's hierarchy, names, channels, unit, rest pose and bone lengths (and character), its animation
+    replaced.
 
     The joint map is the import's, used the other way (detected from the rig's names, or given).
     Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
     the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
     spine joints) keep their rest rotation relative to their parent. The root travels the model's
     path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
-    from its own frames as on import; ``up`` names it). With ``clean_contacts`` feet planted on the
-    rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
+    from its own frames as on import; ``up`` names it), on the rig's ground: where the model's feet are
+    planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
+    planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
     """
     from omg.io.contacts import clean_foot_contacts
 

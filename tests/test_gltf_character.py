@@ -255,3 +255,20 @@ def test_mixamo_names_are_detected(written):
     from omg.retarget import detect_joint_map
 
     assert detect_joint_map(rig, "smpl22").name == "mixamo"
+
+
+def test_a_character_saved_off_its_bind_pose_is_read_in_its_bind_pose(written, tmp_path):
+    """The rest pose is the one the inverse bind matrices bind the mesh in, not the pose the nodes were saved
+    in: the rig reads as the unposed figure, and the mesh follows the joints on the written file."""
+    clean = read_rig(written["t_pose_m"][0], "smpl22")
+    posed = read_rig(write_character(tmp_path / "posed.glb", posed=True), "smpl22")
+    np.testing.assert_allclose(posed.rest_positions(), clean.rest_positions(), atol=1e-6)
+    clip = written["t_pose_m"][2]["raise-up-right-hand"][0]
+    report = export_motion(tmp_path / "raise", clip.positions[:30], "smpl22", 20, rig=posed, format="glb",
+                           preview=False)
+    gltf, world, skinned = evaluate(Path(report["glb"]))
+    places = _joint_places(gltf, world, posed.names)
+    assert np.abs(places - onto_rig(clip.positions[:30], "smpl22", posed, 20).positions()).max() < 1e-4
+    for j in range(1, posed.num_joints):
+        if not posed.names[j].endswith(("ToeBase", "Toe_End")):
+            assert np.abs(skinned[:, 8 * j - 4: 8 * j].mean(1) - places[:, j]).max() < 1e-4, posed.names[j]

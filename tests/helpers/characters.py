@@ -60,12 +60,13 @@ def figure_rest(pose: str = "T") -> tuple[list[str], list[int], np.ndarray]:
 
 
 def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool = False,
-                    turned: bool = False) -> Path:
+                    turned: bool = False, posed: bool = False) -> Path:
     """A skinned character at ``path`` (.glb, or .gltf with its buffer as a data URI).
 
     ``unit``: metres per unit of the joints' translations (0.01: centimetres, under a root node scaled
     0.01); ``z_up``: that root node also turns the Z-up authored skeleton to glTF's Y up; ``turned``:
-    every joint node has its own rest rotation (their translations turned to match). Returns ``path``."""
+    every joint node has its own rest rotation (their translations turned to match); ``posed``: saved with
+    the spine and left forearm nodes turned off the pose the inverse bind matrices bind. Returns ``path``."""
     names, parents, rest = figure_rest(pose)
     J = len(names)
     rng = np.random.default_rng(7)
@@ -108,6 +109,11 @@ def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool =
         gltf.nodes.append(gl.Node(name=names[j], translation=local[:3, 3].tolist(),
                                   rotation=None if not (turned or z_up) else [x, y, z, w],
                                   children=[c + 1 for c in range(J) if parents[c] == j] or None))
+    if posed:  # the nodes stand in another pose than the bind pose (a file saved mid-animation)
+        for name, turn in (("Spine", Rotation.from_euler("x", 20, degrees=True)),
+                           ("LeftForeArm", Rotation.from_euler("z", 40, degrees=True))):
+            node = gltf.nodes[names.index(M + name) + 1]
+            node.rotation = (turn * Rotation.from_quat(node.rotation or [0, 0, 0, 1])).as_quat().tolist()
     # the mesh: a box around each bone (parent joint -> joint), bound to the parent joint; the feet's boxes
     # reach down to the ground; the vertices at a bone's far end are shared half and half with that joint
     positions, joints, weights, uvs, indices = [], [], [], [], []
