@@ -95,6 +95,8 @@ def _load(path: Path, what: str) -> gl.GLTF2:
             gltf._path = path.parent  # relative buffer and image URIs resolve beside the file
             gltf.convert_images(gl.ImageFormat.BUFFERVIEW)
             gltf.convert_buffers(gl.BufferFormat.BINARYBLOB)
+        if gltf is None or not isinstance(gltf.nodes, list):  # pygltflib answers a broken chunk with None
+            raise ValueError("its chunks cannot be read")
     except UsageError:
         raise
     except Exception as e:  # pygltflib raises whatever its parser meets
