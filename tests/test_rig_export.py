@@ -252,7 +252,8 @@ def test_the_rig_keeps_its_unit_and_rest_offsets(tmp_path):
 
 def test_generate_writes_onto_the_rig(tmp_path):
     """``omg generate --to_rig RIG.bvh --format glb`` (an untrained tiny checkpoint: only the plumbing is
-    under test): every sample is a .glb on the rig, and generation.json records the rig."""
+    under test): every sample is a .glb on the rig, and generation.json records the rig; ``--to_rig
+    character.glb`` writes the character with its animation by default."""
     import json
 
     from helpers import REPO
@@ -276,3 +277,14 @@ def test_generate_writes_onto_the_rig(tmp_path):
     settings = json.loads((tmp_path / "g" / "generation.json").read_text())
     assert settings["to_rig"] == str(tmp_path / "rig.bvh") and settings["format"] == "glb"
     assert (tmp_path / "g" / "preview.gif").exists()
+    # a glTF character: the default format is the character itself, animated
+    from helpers.characters import write_character
+
+    figure = write_character(tmp_path / "figure.glb")
+    main(["generate", "--unconditional", "--ckpt", str(tmp_path / "pre.ckpt"), "--steps", "2", "--length", "1",
+          "--num_samples", "1", "--to_rig", str(figure), "--out", str(tmp_path / "c"), "--device", "cpu",
+          "--no_preview"])
+    animated = pygltflib.GLTF2().load(str(tmp_path / "c" / "sample_000.glb"))
+    kept = json.loads(pygltflib.GLTF2().load(str(figure)).to_json())
+    assert json.loads(animated.to_json())["meshes"] == kept["meshes"] and len(animated.animations) == 1
+    assert json.loads((tmp_path / "c" / "generation.json").read_text())["format"] == "glb"
