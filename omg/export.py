@@ -49,6 +49,13 @@ def positions_to_rotations(
 FORMATS = ("bvh", "glb")
 
 
+def output_format(format: str | None, to_rig: str | Path | None) -> str:
+    """``--format`` as given; by default glb onto a glTF character (the character itself, animated), else bvh."""
+    if format is not None:
+        return format
+    return "glb" if to_rig is not None and Path(to_rig).suffix.lower() in (".glb", ".gltf") else "bvh"
+
+
 def model_motion(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarray, offsets: np.ndarray, fps: float,
                  name: str = "motion") -> RigMotion:
     """A motion on a model skeleton as a ``RigMotion`` (what the glTF writer takes)."""
@@ -81,10 +88,11 @@ def export_motion(
     are on the model skeleton (an IK round trip would change each bone's twist); without them, or with
     ``clean_contacts`` or a ``rig`` (both work from the positions), rotations are solved by IK.
 
-    With ``rig`` (a BVH read by ``read_bvh``) the motion is written onto that rig
-    (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
-    channels and unit (``order`` and ``scale`` are the model skeleton's BVH settings and do not apply);
-    the preview draws the rig's bones.
+    With ``rig`` (``omg.retarget.read_rig``'s: a BVH rig or a glTF character) the motion is written onto
+    that rig (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
+    channels and unit (``order`` and ``scale`` are the model skeleton's BVH settings and do not apply), as
+    glb a character whole with the animation added (``omg.io.gltf.write_glb``); the preview draws the rig's
+    bones.
     """
     from omg.io.render import render_gif
 

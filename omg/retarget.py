@@ -36,10 +36,11 @@ is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slo
 and the motion is resampled to the requested fps before anything else.
 
 The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
-file read by ``read_rig``), with the same maps (detected from the rig's names, or given). Mapped
-rig joints turn so that their bones follow the model's, from the rig's own rest orientation;
-joints the model lacks keep their rest rotation; the root travels the model's path scaled to the
-rig's leg length, and planted feet are pinned (``omg.io.contacts``). ``rig_round_trip`` measures
+file or a skinned glTF character read by ``read_rig``), with the same maps (detected from the rig's
+names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
+rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
+scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
+(``omg.io.contacts``). ``rig_round_trip`` measures
 import + export on a rig's own clip (``omg bench rig``).
 """
 
@@ -540,6 +541,37 @@ def _parent_of(rig: RigMotion, column: int) -> int:
     return rig.parents[column] if column < rig.num_joints else rig.end_sites[column - rig.num_joints][0]
 
 
+def _foot_points(rig: RigMotion, feet: list[int]) -> list[int]:
+    """Columns of ``positions_with_end_sites``: the rig's mapped foot joints, every joint below them (toes,
+    a toe's end joint) and their end sites: what stands on the ground."""
+    below = set(feet)
+    for j, p in enumerate(rig.parents):  # parents come first
+        if p in below:
+            below.add(j)
+    return sorted(below) + [rig.num_joints + k for k, (p, _) in enumerate(rig.end_sites) if p in below]
+
+
+def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
+    """Metres the rig's lowest foot point stands above its ground when planted: on a glTF character its
+    height above the mesh's sole at rest (toe joints sit inside the shoe), on a BVH rig with a clip its
+    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
+    else 0; a clearance over a tenth of the leg is no foot's, and 0 is taken."""
+    sole = getattr(rig.character, "sole", None)
+    if sole is not None:
+        clearance = float((torch.from_numpy(rig.rest_positions(end_sites=True))[points] @ up_axis).min()) - sole
+    elif len(rig) > 2:
+        at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
+        yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
+        yup[..., 1] = at
+        yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
+                       - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
+        planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
+        clearance = float(at.min(1).values[planted].median()) if planted.any() else 0.0
+    else:
+        clearance = 0.0
+    return clearance if 0.0 <= clearance <= 0.1 * leg else 0.0
+
+
 def onto_rig(
     positions: np.ndarray,  # (T, J, 3) metres, Y up, on ``skeleton``
     skeleton: Skeleton | str,
@@ -549,16 +581,18 @@ def onto_rig(
     up: str | None = None,
     clean_contacts: bool = True,
 ) -> RigMotion:
-    """A motion of a model skeleton on a user's rig (read with ``omg.io.bvh.read_bvh``): the rig's
-    hierarchy, names, channels, unit, rest pose and bone lengths, its animation replaced.
+    """A motion of a model skeleton on a user's rig (read with ``read_rig``: a BVH file or a glTF character):
+    the rig's hierarchy, names, channels, unit, rest pose and bone lengths (and character), its animation
+    replaced.
 
     The joint map is the import's, used the other way (detected from the rig's names, or given).
     Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
     the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
     spine joints) keep their rest rotation relative to their parent. The root travels the model's
     path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
-    from its own frames as on import; ``up`` names it). With ``clean_contacts`` feet planted on the
-    rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
+    from its own frames as on import; ``up`` names it), on the rig's ground: where the model's feet are
+    planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
+    planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
     """
     from omg.io.contacts import clean_foot_contacts
 
@@ -611,7 +645,17 @@ def onto_rig(
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
 
-    out = placed(*solve(pos * scale))
+    local, top, at = solve(pos * scale)
+    # the ground: in the frames where the model's feet are planted, the rig's lowest foot point stands at its
+    # own clearance at rest, on the floor of the rig's frame (its up axis); the scaled path alone leaves the
+    # feet where the model's ankle height, scaled, puts them, off the rig's by the difference of the two
+    points = _foot_points(rig, [plan.source[f] for f in skel.feet if f in plan.source])
+    up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
+    lowest = (torch.from_numpy(placed(local, top, at).positions_with_end_sites())[:, points] @ up_axis).min(1).values
+    contact = ground_contacts(pos, skel.feet, float(fps)).any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
+    ground = lowest[contact].median() if contact.any() else torch.quantile(lowest, 0.02)
+    clearance = _clearance(rig, points, up_axis, rig_leg)
+    out = placed(local, top, at - (ground - clearance) * up_axis)
     if clean_contacts and T > 1:
         # the rig's own places of the model joints, Y up: its feet are what must stay planted
         on_rig = _proxy(plan, skel, torch.from_numpy(out.positions_with_end_sites()))
@@ -632,7 +676,10 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     one constant translation (the import puts the floor at y = 0): ``mean_cm`` and ``max_cm``;
     ``mapped_mean_cm`` over the joints the map names; ``bone_cm``: the largest change of a bone's
     length in any frame; ``slide_*_cm_s``: the mean speed of the mapped foot points over the frames
-    where the model's feet are planted (``ground_contacts``), in the original and on the way back.
+    where the model's feet are planted (``ground_contacts``), in the original and on the way back;
+    ``ground_cm``, ``ground_p95_cm``, ``ground_max_cm``: over those frames, how far the rig's lowest foot
+    point (its feet, toes and their end sites, along its up axis, no translation removed) is on the way
+    back from where the original has it: the median, 95th percentile and largest.
     """
     skel = get_skeleton(skeleton)
     jmap = _rig_joint_map(rig, skel, joint_map)
@@ -652,6 +699,12 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     contact = ground_contacts(torch.from_numpy(clip.positions).double(), skel.feet, clip.fps).numpy()  # (T, F)
     planted = contact[:-1] & contact[1:]  # (T - 1, F)
     feet = [plan.source[f] for f in skel.feet]
+    # the lowest foot point of the rig on the way back, over the frames with a planted foot, from the ground
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(a)), skel, None)
+    up_axis = quat_apply(quat_conjugate(turn), torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)).numpy()
+    points = _foot_points(rig, feet)
+    heights = [(x[:, points] @ up_axis).min(1) for x in (a, b)]  # (T,) the lowest foot point, original and back
+    off_ground = np.abs(heights[1] - heights[0])[contact.any(1)] * 100  # (planted frames,) cm
 
     def slide(x: np.ndarray) -> float:
         speed = np.linalg.norm(np.diff(x[:, feet], axis=0), axis=-1) * clip.fps * 100  # (T - 1, F) cm/s
@@ -663,22 +716,40 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
         "mapped_mean_cm": float(err[:, mapped].mean()),
         "bone_cm": float(np.abs(lengths(b) - lengths(a)).max() * 100),
         "slide_original_cm_s": slide(a), "slide_back_cm_s": slide(b),
+        "ground_cm": float(np.median(off_ground)) if len(off_ground) else 0.0,
+        "ground_p95_cm": float(np.percentile(off_ground, 95)) if len(off_ground) else 0.0,
+        "ground_max_cm": float(off_ground.max(initial=0.0)),
     }  # fmt: skip
 
 
-def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
-    """The rig of a BVH file for ``onto_rig``, checked against ``skeleton`` before any work is done:
-    a rig no map fits, one of the other kind (a dog rig for a human motion) or one without a rest
-    pose is one UsageError."""
-    from omg.io.bvh import read_bvh
+RIG_SUFFIXES = (".bvh", ".glb", ".gltf")
 
-    if Path(path).suffix.lower() != ".bvh":
-        raise UsageError(f"--to_rig {path}: the rig must be a .bvh file (its HIERARCHY is the rig)")
-    rig = read_bvh(path, what="--to_rig")  # a regular file of bounded size: no FIFO or /dev/zero
+
+def read_rig_file(path: str | Path, what: str = "--to_rig") -> RigMotion:
+    """A user's rig: a BVH file's hierarchy, or a skinned glTF character (``omg.io.gltf.read_character``,
+    which the glTF writer animates whole); a regular file of bounded size (no FIFO or /dev/zero)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".bvh":
+        from omg.io.bvh import read_bvh
+
+        return read_bvh(path, what=what)
+    if suffix in (".glb", ".gltf"):
+        from omg.io.gltf import read_character
+
+        return read_character(path, what=what)
+    raise UsageError(f"{what} {path}: the rig must be a .bvh file (its HIERARCHY is the rig) or a skinned glTF "
+                     "character (.glb, .gltf)")
+
+
+def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
+    """The rig of a BVH file or glTF character for ``onto_rig``, checked against ``skeleton`` before any
+    work is done: a rig no map fits, one of the other kind (a dog rig for a human motion) or one without
+    a rest pose is one UsageError."""
+    rig = read_rig_file(path)
     skel = get_skeleton(skeleton)
     plan = _plan(skel, _rig_joint_map(rig, skel, joint_map), source_names(rig))
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))
     if not float(_leg_length(skel, _proxy(plan, skel, rest[None])[0])) > 1e-6:
-        raise UsageError(f"{path}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
-                         "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
+        why = "its leg joints' OFFSETs are zero" if rig.character is None else "its leg joints stand on one point"
+        raise UsageError(f"{path}: the rig has no rest pose ({why}); give a rig whose hierarchy holds its bones")
     return rig

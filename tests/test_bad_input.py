@@ -101,6 +101,8 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "rigs/dog.bvh").write_text(rig_bvh(DOG_RIG))
     (d / "rigs/flat.bvh").write_text(rig_bvh(BANDAI_RIG, zero=True))
     (d / "rigs/motion_only.bvh").write_text("MOTION\nFrames: 1\nFrame Time: 0.05\n0 0 0\n")
+    (d / "rigs/garbage.glb").write_bytes(b"glTF\x02\0\0\0" + bytes(range(40)))
+    (d / "rigs/truncated.gltf").write_text('{"asset": {"version": "2.0"}, "nodes": [')
     (d / "rigs/folder.bvh").mkdir()  # --to_rig: no regular file (a FIFO or /dev/zero: tests/test_user_files.py)
     (d / "rigs/null.bvh").symlink_to(os.devnull)
     with open(d / "rigs/huge.bvh", "wb") as f:  # sparse: one byte over the bound, no disk used
@@ -222,6 +224,8 @@ ROWS = [
     ("export-rig-no-rest-pose", [*RIG_EXPORT, "--to_rig", "{in}/rigs/flat.bvh"]),
     ("export-rig-no-hierarchy", [*RIG_EXPORT, "--to_rig", "{in}/rigs/motion_only.bvh"]),
     ("export-rig-not-bvh", [*RIG_EXPORT, "--to_rig", "{in}/afile"]),
+    ("export-rig-glb-garbage", [*RIG_EXPORT, "--to_rig", "{in}/rigs/garbage.glb"]),
+    ("export-rig-gltf-truncated", [*RIG_EXPORT, "--to_rig", "{in}/rigs/truncated.gltf"]),
     ("export-joint-map-without-rig", [*RIG_EXPORT, "--joint_map", "bandai"]),
     ("export-rig-wrong-map", [*RIG_EXPORT, "--to_rig", "{in}/rigs/human.bvh", "--joint_map", "cmu"]),
     ("export-rig-dir", [*RIG_EXPORT, "--to_rig", "{in}/rigs/folder.bvh"]),
@@ -488,6 +492,8 @@ SAYS = {
     "export-rig-no-rest-pose": "{in}/rigs/flat.bvh: the rig has no rest pose (its leg joints' OFFSETs are zero)",
     "export-rig-no-hierarchy": "{in}/rigs/motion_only.bvh:1: no HIERARCHY before MOTION",
     "export-rig-not-bvh": "--to_rig {in}/afile: the rig must be a .bvh file",
+    "export-rig-glb-garbage": "--to_rig {in}/rigs/garbage.glb: not a readable glTF 2.0 file",
+    "export-rig-gltf-truncated": "--to_rig {in}/rigs/truncated.gltf: not a readable glTF 2.0 file",
     "export-joint-map-without-rig": "--joint_map names the map of the --to_rig rig; give --to_rig",
     "export-rig-wrong-map": "{in}/rigs/human.bvh: joint map 'cmu' needs joints the file lacks: Spine1, Neck1",
     "export-rig-dir": "--to_rig {in}/rigs/folder.bvh: is a directory; a file is expected",
@@ -685,7 +691,7 @@ SAYS = {
     "serve-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
     "serve-allowed-hosts-port": "--allowed_hosts 'localhost:8000': give host names or addresses without a port",
     "joint-map-rig-missing": "RIG {in}/nope.bvh: no such file",
-    "joint-map-rig-not-bvh": "RIG {in}/afile: give the rig as a .bvh file",
+    "joint-map-rig-not-bvh": "RIG {in}/afile: the rig must be a .bvh file (its HIERARCHY is the rig) or a skinned glTF",
     "joint-map-target-banana": "target: expected one of smpl22, smal35",
     "plot-run-missing": "RUN {in}/nope: no such folder; give a run folder",
     "plot-run-without-metrics": "RUN {in}: no metrics.csv in it or in a version_N folder of it",

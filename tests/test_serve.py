@@ -866,3 +866,33 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     assert not errors, errors
     assert requests and all(u.startswith(server.url + "/") for u in requests), [u for u in requests
                                                                                 if not u.startswith(server.url)]
+
+
+def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):
+    """``omg serve --to_rig character.glb``: the rig is read for the models whose skeleton it fits (the human
+    ones, not the animal's), and each human motion's files link the character animated (``glb``)."""
+    import pygltflib
+
+    from helpers.characters import write_character
+    from omg.errors import UsageError
+    from omg.tools.serve import load_models, model_rigs
+    from omg.tools.serve.app import Limits, create_app
+
+    character = write_character(tmp_path / "figure.glb")
+    models = load_models([serve_ckpts["human"], serve_ckpts["animal"]], serve_ckpts["human"], torch.device("cpu"))
+    rigs = model_rigs(models, character, None)
+    assert set(rigs) == {"smpl22"}
+    with pytest.raises(UsageError, match="human rig"):
+        model_rigs([m for m in models if m.card.skeleton == "smal35"], character, None)
+    running = ThreadServer(create_app(models, tmp_path / "out", Limits(), rigs=rigs))
+    try:
+        with httpx.Client(base_url=running.url, timeout=120) as client:
+            result = _generate(client, model="human", prompts=["a person waves"], length=1, steps=2)
+            files = result["motions"][0]["files"]
+            assert set(files) == {"glb", "joints", "features"}
+            animated = pygltflib.GLTF2.load_from_bytes(client.get(files["glb"]).content)
+            kept = json.loads(pygltflib.GLTF2().load(str(character)).to_json())
+            assert len(animated.animations) == 1 and json.loads(animated.to_json())["meshes"] == kept["meshes"]
+            assert client.get(result["settings"]).json()["to_rig"] == "figure.glb"
+    finally:
+        running.stop()

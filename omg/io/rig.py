@@ -35,6 +35,7 @@ class RigMotion:
     source: str = ""  # the file it was read from
     channels: list[tuple[str, ...]] = field(default_factory=list)  # BVH only: per joint, as listed in the file
     unit: float = 1.0  # metres per unit of the file (BVH: 0.01 for centimetres), so a writer keeps the file's unit
+    character: object | None = None  # a glTF character's document (``omg.io.gltf.Character``): its writer adds to it
 
     def __len__(self) -> int:
         return self.rotations.shape[0]

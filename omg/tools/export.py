@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from omg.errors import UsageError
-from omg.export import EULER_ORDERS, FORMATS, export_motion
+from omg.export import EULER_ORDERS, FORMATS, export_motion, output_format
 from omg.files import check_output_dir, read_text
 from omg.generation.read import read_positions
 from omg.retarget import read_rig
@@ -42,7 +42,7 @@ def export(
     clean_contacts: bool = False,
     to_rig: Path | None = None,
     joint_map: str | None = None,
-    format: OutputFormat = "bvh",
+    format: OutputFormat | None = None,
 ) -> list[dict]:
     """Write BVH files (and GIF previews) of generated motions.
 
@@ -59,10 +59,12 @@ def export(
         preview: write a GIF preview beside each BVH file
         out: write the files into this folder (default: beside each input)
         clean_contacts: pin planted feet (removes foot skating) before IK
-        to_rig: write the motions onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
+        to_rig: write the motions onto this rig: a BVH file's (its hierarchy, names, channels, unit, rest pose),
+            or a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept)
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected
             from its joint names, as on import)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
+            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
 
     Returns:
         What was written per input (``export_motion``'s reports).
@@ -75,7 +77,8 @@ def export(
         get_skeleton(skeleton)
     out = check_output_dir(out) if out else None
     if joint_map is not None and to_rig is None:
-        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
+    format = output_format(format, to_rig)
     rigs: dict = {}  # skeleton name -> the rig, read and checked once before anything is written
     jobs = []  # every file is read and checked before anything is written
     for path in [f for spec in inputs for f in _inputs(spec)]:

@@ -16,6 +16,7 @@ from typing import Any, Literal
 import torch
 
 from omg.errors import UsageError
+from omg.export import output_format
 from omg.files import check_output_dir, read_text
 from omg.generation.protocol import MAX_SECONDS, GenerationRequest, check_request, parse_options
 from omg.generation.write import MAX_PREVIEW, check_finite_motions, output_files, write_generation
@@ -50,7 +51,7 @@ def generate(
     option: list[str] | None = None,
     to_rig: Path | None = None,
     joint_map: str | None = None,
-    format: OutputFormat = "bvh",
+    format: OutputFormat | None = None,
     device: str | None = None,
     autocast: Literal["bf16", "fp16"] | None = None,
     compile: bool = False,
@@ -89,9 +90,11 @@ def generate(
             sampling step, this much in [0, 1] (default: the checkpoint's; removes foot sliding while sampling)
         option: a family option of the checkpoint's generation card as KEY=VALUE, repeatable (e.g. habit
             transfer's temperature=0.8, quantizer=nearest, species_file=FILE; OMG's stance_root=0.5)
-        to_rig: write each motion onto this BVH file's rig (its hierarchy, names, channels, unit, rest pose)
+        to_rig: write each motion onto this rig: a BVH file's (its hierarchy, names, channels, unit, rest pose),
+            or a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept)
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
+            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
         device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
@@ -133,7 +136,7 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
                    sampler: str | None = None, guidance: float | None = None, seed: int = 0, batch_size: int = 32,
                    ema: bool = True, preview: bool = True, preview_count: int = MAX_PREVIEW,
                    clean_contacts: bool = False, options: list[str] | dict[str, Any] = (), to_rig: Path | None = None,
-                   joint_map: str | None = None, format: str = "bvh", device: str | None = None,
+                   joint_map: str | None = None, format: str | None = None, device: str | None = None,
                    autocast: str | None = None, compile: bool = False, animal: str | None = None,
                    from_motion: Path | None = None, from_motion_joint_map: str | None = None,
                    human_ckpt: Path | None = None, prior_ckpt: Path | None = None, expect: type | None = None,
@@ -156,7 +159,8 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     if sampler is not None:
         SAMPLERS.get(sampler)  # an unknown name is one line before anything is loaded
     if joint_map is not None and to_rig is None:
-        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG.bvh with it")
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
+    format = output_format(format, to_rig)
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
     if from_motion_joint_map is not None and from_motion is None:

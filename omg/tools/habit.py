@@ -40,7 +40,7 @@ def transfer(
     preview: bool = True,
     to_rig: Path | None = None,
     to_rig_joint_map: str | None = None,
-    format: OutputFormat = "bvh",
+    format: OutputFormat | None = None,
     out: Path = Path("out/transfer"),
     command: str = "",
 ) -> dict:
@@ -59,18 +59,22 @@ def transfer(
         temperature: scale of the prior's base Gaussian
         quantizer: soft or nearest (default: the checkpoint's)
         preview: write preview.gif (source and transfer side by side)
-        to_rig: write the transfer onto this BVH file's quadruped rig (its hierarchy, names, channels, unit)
+        to_rig: write the transfer onto this quadruped rig: a BVH file's (its hierarchy, names, channels, unit),
+            or a skinned glTF character (.glb, .gltf)
         to_rig_joint_map: the --to_rig rig's joint map (a registered name or a YAML file; default: detected;
             --joint_map is the source's)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation)
+        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
+            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in transfer.json
 
     Returns:
         The settings written to transfer.json.
     """
+    from omg.export import output_format
     from omg.lit.habit import HabitVQModule
 
+    format = output_format(format, to_rig)
     settings = run_generation(
         ckpt, prompts=[], animal=to, from_motion=Path(source), from_motion_joint_map=joint_map,
         prior_ckpt=prior_ckpt, seed=seed, options={"species_file": species_file, "temperature": temperature,

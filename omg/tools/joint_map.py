@@ -6,15 +6,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from omg.errors import UsageError
 from omg.tools.args import run
 
 
 def joint_map(rig: Path, target: Literal["smpl22", "smal35"] | None = None, out: Path | None = None) -> dict[str, int]:
-    """Print (or write) the YAML of the closest joint map for a BVH rig, each joint matched, guessed or TODO.
+    """Print (or write) the YAML of the closest joint map for a rig, each joint matched, guessed or TODO.
 
     Args:
-        rig: the rig's BVH file (its HIERARCHY's joint names are what the map names)
+        rig: the rig: a BVH file (its HIERARCHY's joint names are what the map names) or a skinned glTF
+            character (.glb, .gltf: its skin's joint nodes' names)
         target: the model skeleton to map onto: smpl22 (humans) or smal35 (quadrupeds); default: that of
             the registered map closest to the rig
         out: the YAML file to write (default: print it)
@@ -23,12 +23,9 @@ def joint_map(rig: Path, target: Literal["smpl22", "smal35"] | None = None, out:
         How many target joints were matched by name, guessed and left TODO.
     """
     from omg.files import atomic_write, check_output_dir
-    from omg.io.bvh import read_bvh
-    from omg.retarget import scaffold_joint_map
+    from omg.retarget import read_rig_file, scaffold_joint_map
 
-    if rig.suffix.lower() != ".bvh":
-        raise UsageError(f"RIG {rig}: give the rig as a .bvh file (its HIERARCHY names the joints)")
-    motion = read_bvh(rig, what="RIG")
+    motion = read_rig_file(rig, what="RIG")
     text, counts = scaffold_joint_map(motion, target)
     if out is None:
         print(text, end="")

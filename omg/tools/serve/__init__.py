@@ -50,6 +50,24 @@ def load_models(ckpts: list[Path], human_ckpt: Path | None, device: torch.device
     return models
 
 
+def model_rigs(models: list, to_rig: Path | None, joint_map: str | None) -> dict:
+    """The ``--to_rig`` rig for each model skeleton it fits (a human character for the human models); one
+    line where it fits none of them (the reason its first skeleton gave)."""
+    from omg.retarget import read_rig
+
+    if to_rig is None:
+        return {}
+    rigs, refusals = {}, []
+    for skeleton in dict.fromkeys(m.card.skeleton for m in models):
+        try:
+            rigs[skeleton] = read_rig(to_rig, skeleton, joint_map)
+        except UsageError as e:
+            refusals.append(e)
+    if not rigs:
+        raise refusals[0]
+    return rigs
+
+
 def _name(ckpt: Path, taken: set[str]) -> str:
     path = Path(ckpt)
     stem = path.stem if path.stem not in ("last", "model", "checkpoint") else path.parent.parent.name or path.stem
@@ -77,6 +95,8 @@ def serve(
     max_results_mb: PositiveFiniteFloat = 1024.0,
     allowed_hosts: list[str] | None = None,
     out: Path | None = None,
+    to_rig: Path | None = None,
+    joint_map: str | None = None,
     command: str = "",
 ) -> None:
     """Serve checkpoints on a local page and HTTP API (FastAPI on uvicorn) until Ctrl-C or SIGTERM.
@@ -102,6 +122,10 @@ def serve(
             loopback names when that is a loopback or wildcard address); * for any. Other names are refused:
             a web page cannot reach the server by rebinding its DNS name to it
         out: folder the results are written to (default: a temporary folder removed at exit)
+        to_rig: write each result's motions onto this rig as well, for the models whose skeleton it fits: a BVH
+            file's (sample_NNN.bvh on the rig) or a skinned glTF character (.glb, .gltf: sample_NNN.glb, the
+            character with the animation added), linked from each motion's files
+        joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
         command: the command line (unused; kept for the command's record)
     """
     import uvicorn
@@ -116,14 +140,18 @@ def serve(
     if out is not None:  # before the checkpoints load: a file or /proc is one line, not a traceback later
         out = check_output_dir(out, "--out")
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if joint_map is not None and to_rig is None:
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
     models = load_models(ckpt, human_ckpt, device, ema)
+    rigs = model_rigs(models, to_rig, joint_map)
     temporary = out is None
     results = Path(tempfile.mkdtemp(prefix="omg-serve-")) if temporary else Path(out)
     limits = Limits(max_batch=max_batch, max_wait=max_wait, max_samples=max_samples,
                     max_upload_bytes=int(max_upload_mb * 2**20), max_json_bytes=int(max_json_kb * 2**10),
                     read_timeout=read_timeout, result_ttl=result_ttl,
                     max_results_bytes=int(max_results_mb * 2**20))
-    app = create_app(models, results, limits, remove_out=temporary, allowed_hosts=hosts)
+    app = create_app(models, results, limits, remove_out=temporary, allowed_hosts=hosts, rigs=rigs,
+                     joint_map=joint_map)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     print(f"omg serve: {', '.join(m.name for m in models)} on http://{host}:{port}/ (results in {results})",
           flush=True)

@@ -242,11 +242,17 @@ class GenerateBody(BaseModel):
 
 
 def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
-               allowed_hosts: tuple[str, ...] = LOOPBACK) -> FastAPI:
+               allowed_hosts: tuple[str, ...] = LOOPBACK, rigs: dict[str, Any] | None = None,
+               joint_map: str | None = None) -> FastAPI:
     """The application serving ``models``; results are written under ``out`` (one folder per result), which
     is removed at shutdown under ``remove_out`` (uvicorn re-raises SIGTERM after it: no later code runs).
-    ``allowed_hosts``: the names a request's ``Host`` may give (``*``: any)."""
+    ``allowed_hosts``: the names a request's ``Host`` may give (``*``: any). ``rigs``: per model skeleton, the
+    ``--to_rig`` rig (``omg.retarget.read_rig``) its motions are also written onto, with ``joint_map``: a
+    BVH rig's ``.bvh``, a glTF character's ``.glb`` (the character animated), in place of the skeleton's BVH."""
+    from omg.export import output_format
+
     limits = limits or Limits()
+    rigs = rigs or {}
     by_name = {m.name: m for m in models}
     batcher = Batcher(limits)
     results = Results(out, limits.result_ttl, limits.max_results_bytes)
@@ -415,8 +421,13 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             settings = _public(settings)  # a module's settings may name a checkpoint by its absolute path
             folder = out / result
 
+            rig = rigs.get(model.card.skeleton)
+            if rig is not None:
+                settings["to_rig"] = Path(rig.source).name
+
             def write() -> int:
-                write_generation(folder, motions, model.card, settings, preview=False)
+                write_generation(folder, motions, model.card, settings, preview=False, rig=rig, joint_map=joint_map,
+                                 format=output_format(None, rig.source if rig is not None else None))
                 return sum(f.stat().st_size for f in folder.iterdir())
 
             size = await asyncio.get_running_loop().run_in_executor(None, write)
@@ -437,7 +448,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             "motions": [{"title": m.title, "record": record, "frames": len(m.joints),
                          "joints": np.round(np.asarray(m.joints, np.float64), 4).tolist(),
                          "files": {kind: f"{url}/{record['file']}{ext}" for kind, ext in
-                                   (("bvh", ".bvh"), ("joints", ".joints.npy"), ("features", ".features.npy"))
+                                   (("bvh", ".bvh"), ("glb", ".glb"), ("joints", ".joints.npy"),
+                                                     ("features", ".features.npy"))
                                    if f"{record['file']}{ext}" in files}}
                         for m, record in zip(motions, settings["samples"])]})
 
