@@ -279,3 +279,34 @@ def test_the_parser_keeps_the_file_and_checks_against_a_motion():
     spans.check("smpl22", 4.0 + 0.4 / FPS, FPS)  # within a frame's rounding
     with pytest.raises(UsageError, match="before the motion's end"):
         spans.check("smpl22", 5.0, FPS)
+
+
+def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, tmp_path, capsys):
+    """``omg bench timeline`` on a held-out set of two actions: timelines of two and three of its captions, a
+    walk on the legs with a wave on the arms, every figure of the table there."""
+    from helpers import walking_clip
+    from omg.data.shards import ShardWriter
+    from omg.motion import Clip, get_representation
+    from omg.tools.bench.timeline import bench_timeline
+
+    clips = []
+    for i, (action, text) in enumerate([("walk", "a person walks forward"), ("bye", "a person waves goodbye"),
+                                        ("walk", "a person walks forward slowly"), ("bye", "a person says bye")]):
+        walk = walking_clip(200 + i)
+        clips.append(Clip(id=f"{action}{i}", skeleton=SMPL22, fps=FPS, positions=walk.positions, texts=[text],
+                          category="human", source="test", labels={"content": action}))
+    rep = get_representation("humanml3d263", SMPL22)
+    ShardWriter(tmp_path / "val", rep, FPS, max_clips=8, log=lambda m: None).write(iter(clips))
+    result = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=1,
+                            samples=2, steps=2, segment_seconds=1.0, composition_seconds=1.0)
+    assert [len(t) for t in result["timelines"]] == [2, 3]
+    for timeline in result["timelines"]:
+        assert all(("walk" in a) != ("walk" in b) for a, b in zip(timeline, timeline[1:]))  # neighbours differ
+    assert len(result["segments"]) == 5 and all(len(r["passed"]) == 2 for r in result["segments"])
+    assert set(result["alone"]) == {r["text"] for r in result["segments"]}
+    assert result["jerk"]["real"] > 0 and result["jerk"]["boundary"] > 0
+    (composition,) = result["compositions"]
+    assert composition["arm"] == "arms" and "walks" in composition["walk"] and "and" in composition["sentence"]
+    assert set(result["seconds_per_motion_second"]) == {"timeline", "plain", "parts"}
+    out = capsys.readouterr().out
+    assert "| segments passing, in timelines / alone |" in out and "| body-part compositions: both parts" in out
