@@ -153,6 +153,38 @@ def _offsets_from_positions(positions: list[list[float]], parents: list[int]) ->
     return off
 
 
+def body_parts(skeleton: Skeleton) -> dict[str, tuple[int, ...]]:
+    """The skeleton's body parts by name, read from its chains, feet and joint names (a chain's own joints are
+    those after its first, which belongs to the chain it branches from):
+
+    - ``root``: joint 0, whose features carry the trajectory;
+    - ``left_leg`` / ``right_leg``: the chains that hold a joint of ``feet_left`` / ``feet_right``;
+    - ``left_arm`` / ``right_arm``: the other chains whose joints are all named ``left...`` / ``right...``;
+    - ``torso``: every other joint (spine, neck, head; a joint in no chain goes with its parent's part);
+    - the unions ``legs``, ``arms`` and ``upper_body`` (torso and arms).
+
+    Parts no joint falls in are left out (a skeleton without chains has ``root`` and ``torso``); two chains of one
+    kind (a quadruped's front and hind legs) make one part."""
+    part: dict[int, str] = {0: "root"}
+    for chain in skeleton.chains:
+        own = [j for j in chain[1:] if j != 0]
+        names = [skeleton.names[j].lower() for j in own]
+        side = next((s for s in ("left", "right") if names and all(n.startswith(s) for n in names)), None)
+        feet = {"left": skeleton.feet_left, "right": skeleton.feet_right}
+        leg = next((s for s in ("left", "right") if set(own) & set(feet[s])), None)
+        name = f"{leg}_leg" if leg else f"{side}_arm" if side else "torso"
+        for j in own:
+            part.setdefault(j, name)
+    for j, p in enumerate(skeleton.parents):
+        part.setdefault(j, part.get(p, "torso"))  # parents come first: theirs is known
+    parts = {name: tuple(j for j in range(skeleton.num_joints) if part[j] == name)
+             for name in ("root", "torso", "left_arm", "right_arm", "left_leg", "right_leg")}
+    for union, members in (("legs", ("left_leg", "right_leg")), ("arms", ("left_arm", "right_arm")),
+                           ("upper_body", ("torso", "left_arm", "right_arm"))):
+        parts[union] = tuple(sorted(j for m in members for j in parts[m]))
+    return {name: joints for name, joints in parts.items() if joints}
+
+
 SMPL22_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19]
 
 # Joint locations of the neutral SMPL body in its rest pose (metres, +X = body's left),

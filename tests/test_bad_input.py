@@ -78,6 +78,7 @@ def _write_inputs(d: Path, out: Path) -> None:
     (d / "random.bin").write_bytes(b"\x81\xff" + rng.bytes(2000))
     (d / "nul.txt").write_bytes(b"\x00" * 64 + b"\n")  # valid UTF-8, still binary
     (d / "afile").write_text("a file, not a folder\n")
+    (d / "timeline.json").write_text('[{"start": 0, "end": 1, "text": "a person walks"}]')
     torch.save({"state_dict": {"w": torch.zeros(2)}}, d / "bare.ckpt")  # weights without hyper-parameters
     (d / "latin1.yaml").write_bytes("trainer:\n  default_root_dir: caf\u00e9\n".encode("latin-1"))
     (d / "nan.yaml").write_text(f"source: synth\nout: {out}\nfps: .nan\noption: {{num_clips: 2}}\n")
@@ -299,6 +300,12 @@ ROWS = [
     # omg generate's animal options on a checkpoint that is not OmniMotionGPT's
     ("gen-animal-on-controlnet", [*TEXT, "--animal", "dog"]),
     ("gen-from-motion-on-controlnet", [*TEXT, "--from_motion", "{in}/bvh/tiny.bvh"]),
+    # omg generate --timeline (the file is read before a checkpoint; what fits the model, after it loads)
+    ("gen-timeline-missing", [*GEN, "--ckpt", "{cn}", "--timeline", "{in}/nope.json", "--out", "{out}"]),
+    ("gen-timeline-binary", [*GEN, "--ckpt", "{cn}", "--timeline", "{in}/elf.bin", "--out", "{out}"]),
+    ("gen-timeline-not-json", [*GEN, "--ckpt", "{cn}", "--timeline", "{in}/afile", "--out", "{out}"]),
+    ("gen-timeline-on-prior", ["generate", "--steps", "2", "--ckpt", "{pre}", "--timeline", "{in}/timeline.json",
+                               "--out", "{out}"]),
     # omg shards inspect on a mixture
     ("inspect-mixture-negative-weight", ["shards", "inspect", "{in}/mix_negative.yaml"]),
     ("inspect-mixture-unknown-key", ["shards", "inspect", "{in}/mix_unknown_key.yaml"]),
@@ -413,6 +420,8 @@ ROWS = [
     ("bench-sides-prompts-missing", ["bench", "sides", "--prompts", "{in}/nope.yaml", "--encoders", "[hash]"]),
     ("bench-sides-no-captions", ["bench", "sides", "--prompts", "none", "--encoders", "[hash]"]),
     ("bench-sides-encoder-option", ["bench", "sides", "--encoders", "[hash:dim]"]),
+    ("bench-timeline-prior", ["bench", "timeline", "--ckpt", "{pre}", "--val", MINI_VAL]),
+    ("bench-timeline-val-without-actions", ["bench", "timeline", "--ckpt", "{cn}", "--val", MINI_VAL]),
     ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
     ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
     # omg serve (checked before a checkpoint loads or a port is bound)
@@ -562,6 +571,10 @@ SAYS = {
                                 "prompts",
     "gen-from-motion-on-controlnet": "{cn} (ControlNetModule) does not generate from a source motion (--from_motion); "
                                      "it takes prompts",
+    "gen-timeline-missing": "--timeline {in}/nope.json: no such file",
+    "gen-timeline-binary": "--timeline {in}/elf.bin: not a UTF-8 text file",
+    "gen-timeline-not-json": "--timeline {in}/afile: not valid JSON",
+    "gen-timeline-on-prior": "--timeline: {pre} (PretrainModule) takes no prompt timeline; its card lists none",
     "inspect-mixture-negative-weight": f"{{in}}/mix_negative.yaml: data.train[0] ({MINI_SHARDS}): 'weight' must be a "
                                        "positive number, got -1",
     "inspect-mixture-unknown-key": "{in}/mix_unknown_key.yaml: data.train[0]: unknown key 'pat'",
@@ -685,6 +698,9 @@ SAYS = {
     "bench-sides-prompts-missing": "the prompt file {in}/nope.yaml: no such file",
     "bench-sides-no-captions": "--manifests or --prompts: no captions to measure",
     "bench-sides-encoder-option": "--encoders: 'hash:dim': options are key=value pairs",
+    "bench-timeline-prior": "--ckpt {pre}: a timeline needs a text-conditioned (ControlNet) checkpoint",
+    "bench-timeline-val-without-actions": f"--val {MINI_VAL}: fewer than two actions with targets among its "
+                                          "captions ('content' labels)",
     "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
     "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
     "serve-out-is-file": "--out {in}/afile: not a folder",
@@ -734,7 +750,8 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu", "bench rig", "serve", "plot", "joint-map"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig", "bench timeline", "serve", "plot",
+                        "joint-map"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

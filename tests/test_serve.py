@@ -178,6 +178,21 @@ def test_generate_answers_joints_and_the_files_omg_generate_writes(client):
     assert [s["seed"] for s in settings["samples"]] == [5, 6] and [s["repeat"] for s in settings["samples"]] == [0, 1]
 
 
+def test_generate_follows_a_timeline_in_the_body(client, server):
+    """A prompt timeline with a body part, sampled alone (never batched with another request), its settings
+    recorded; the card says which models take one."""
+    timeline = {"timeline": [{"start": 0, "end": 1, "text": "a person walks forward"},
+                             {"start": 0.8, "end": 2, "text": "a person turns left"}],
+                "parts": [{"parts": ["right_arm"], "text": "a person waves the right hand", "start": 0.5}]}
+    result = _generate(client, model="human", timeline=timeline, num_samples=2, steps=2, seed=3)
+    assert [m["frames"] for m in result["motions"]] == [40, 40]  # the timeline's 2 s
+    settings = client.get(result["settings"]).json()
+    assert settings["timeline"]["parts"][0]["parts"] == ["right_arm"] and settings["length_s"] == 2.0
+    cards = {m["name"]: m["card"] for m in client.get("/v1/models").json()["models"]}
+    assert cards["human"]["timeline"] == ["timeline", "parts"]
+    assert cards["animal"]["timeline"] == cards["habit"]["timeline"] == cards["pretrain"]["timeline"] == []
+
+
 def test_animal_from_text_through_the_human_chain_and_unconditional(client):
     result = _generate(client, model="animal", prompts=["a dog jumps over a log"], length=1, steps=2)
     motion = result["motions"][0]
@@ -289,6 +304,19 @@ def test_the_server_answers_while_it_samples(client, server):
     (dict(model="animal", prompts=["a dog walks"], species="unicorn"), 422, "unknown animal 'unicorn'"),
     (dict(model="habit", prompts=["a dog walks"]), 422, "does not generate from prompts"),
     ([1, 2], 422, "Input should be a valid dictionary"),
+    (dict(model="human", timeline=[{"start": 0, "end": 1, "text": "a person walks"},
+                                   {"start": 2, "end": 3, "text": "a person waves"}]), 422,
+     "timeline: a gap between timeline[0] (ends at 1 s) and timeline[1] (starts at 2 s)"),
+    (dict(model="human", timeline={"parts": [{"parts": ["wings"], "text": "a person flies"}]}), 422,
+     "timeline: parts[0]: unknown body part 'wings'; smpl22's: root, torso"),
+    (dict(model="human", timeline=[{"start": 0, "end": 1, "text": "a\x00b"}]), 422,
+     "timeline[0].text holds the control character"),
+    (dict(model="human", prompts=["a person walks"], timeline=[{"start": 0, "end": 1, "text": "a person walks"}]),
+     422, "give prompts or timeline (whose segments carry their texts), not both"),
+    (dict(model="animal", timeline=[{"start": 0, "end": 1, "text": "a dog walks"}]), 422,
+     "timeline: model 'animal' takes no prompt timeline; its card lists none"),
+    (dict(model="pretrain", timeline=[{"start": 0, "end": 1, "text": "a person walks"}]), 422,
+     "timeline: model 'pretrain' takes no prompt timeline; its card lists none"),
     (dict(model="human", prompts=["a person walks " * 3000] * 2), 413, "bytes allowed (--max_json_kb)"),
 ])
 def test_bad_generate_requests_are_one_readable_line(client, body, status, message):

@@ -36,7 +36,7 @@ class OmgGenerator(ModuleGenerator):
             inputs=("text", "unconditional") if m.text_conditional else ("unconditional",),  # D_u: the prior
             max_frames=round(MAX_SECONDS * m.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=m.diffusion.num_timesteps, default_steps=min(200, m.diffusion.num_timesteps),
-            guidance=getattr(m, "guidance_scale", None), row_seeds=True,
+            guidance=getattr(m, "guidance_scale", None), row_seeds=True, timeline=timeline_kinds(m),
             options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
             if m.representation.stance_root else {})
 
@@ -53,10 +53,13 @@ class OmgGenerator(ModuleGenerator):
         m = self.module
         prompts, steps = request.prompts or [None], request.steps or self.generation_card().default_steps
         jobs = [(p, k) for p in prompts for k in range(request.num_samples)]
+        timeline = None if request.timeline is None else request.timeline.resolve(request.frames, m.spec.fps,
+                                                                                  m.representation)
         # use_ema=False: the weights as loaded (load_module puts the EMA in)
         sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
                                     use_ema=False, autocast=request.autocast, compile=request.compile,
-                                    stance_root=request.options.get("stance_root"))
+                                    stance_root=request.options.get("stance_root"), timeline=timeline)
+        untitled = "unconditional" if timeline is None else "timeline: " + " | ".join(timeline.texts)
         if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
             raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
         motions = []
@@ -72,13 +75,27 @@ class OmgGenerator(ModuleGenerator):
                 seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
                 motions.append(GeneratedMotion(
                     features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
-                    title=prompt or "unconditional", record={"prompt": prompt, "repeat": k, **seed}))
+                    title=prompt or untitled, record={"prompt": prompt, "repeat": k, **seed}))
         return motions
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:
         m = self.module
-        return {"unconditional": not request.prompts, "steps": request.steps or self.generation_card().default_steps,
+        texts = bool(request.prompts) or request.timeline is not None
+        return {"unconditional": not texts, "steps": request.steps or self.generation_card().default_steps,
                 "sampler": request.sampler or "ddim",
                 "guidance_scale": (request.guidance if request.guidance is not None else m.guidance_scale)
-                if request.prompts else None, "batch_size": request.batch_size,
-                "stance_root": request.options.get("stance_root", m.stance_root)}
+                if texts else None, "batch_size": request.batch_size,
+                "stance_root": request.options.get("stance_root", m.stance_root),
+                **({} if request.timeline is None else {"timeline": request.timeline.to_dict()})}
+
+
+def timeline_kinds(module: MotionDiffusionModule) -> tuple[str, ...]:
+    """What a timeline may hold for ``module``: segments for a text-conditioned one, body parts too where its
+    representation maps each feature to a joint (``Representation.channel_joints``); none for the prior."""
+    if not module.text_conditional:
+        return ()
+    try:
+        module.representation.channel_joints()
+    except UsageError:
+        return ("timeline",)
+    return ("timeline", "parts")

@@ -34,7 +34,8 @@ class GenerationCard:
     guidance scale), empty for a family without them. ``species``: the animals it knows by name;
     ``open_species``: any other species or description is answered too (by retrieval).
     ``source_generator``: a checkpoint may make the source motion from the prompt (OmniMotionGPT's
-    OMG → animal chain)."""
+    OMG → animal chain). ``timeline``: what ``GenerationRequest.timeline`` may hold (``timeline``: prompt
+    segments in time; ``parts``: body parts each with its own text; ``omg.generation.timeline``)."""
 
     family: str
     skeleton: str
@@ -55,6 +56,7 @@ class GenerationCard:
     deterministic_source: bool = False  # a given source motion yields one motion, whatever num_samples says
     options: dict[str, str] = field(default_factory=dict)  # family options a request may set: name -> meaning
     row_seeds: bool = False  # ``generate`` honours ``GenerationRequest.row_seeds`` (a server may batch requests)
+    timeline: tuple[str, ...] = ()  # what a request's timeline may hold: "timeline" (segments), "parts" (body parts)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
@@ -85,6 +87,9 @@ class GenerationRequest:
     # one noise seed per motion (prompt-major, as ``generate`` returns them) where the card says ``row_seeds``:
     # each motion is then the same whatever it is sampled with (a server batches requests); None: ``seed``
     row_seeds: list[int] | None = None
+    # a prompt timeline and body-part composition (``omg.generation.timeline.TimelineFile``), given instead of
+    # prompts: each of the ``num_samples`` motions follows it
+    timeline: Any = None
 
 
 @dataclass
@@ -157,7 +162,10 @@ class ModuleGenerator:
 def check_request(card: GenerationCard, request: GenerationRequest, what: str = "this checkpoint") -> None:
     """A request the card can answer, or one line saying what is wrong, before anything is sampled.
     ``what`` names the model in the message (its file and class)."""
-    given = {"text": bool(request.prompts), "motion": request.source is not None or request.source_module is not None,
+    if request.timeline is not None:
+        check_timeline_request(card, request, what)
+    given = {"text": bool(request.prompts) or request.timeline is not None,
+             "motion": request.source is not None or request.source_module is not None,
              "species": request.species is not None}
     if given["text"] and "text" not in card.inputs and "unconditional" in card.inputs:
         raise UsageError(f"{what} is an unconditional pretraining checkpoint: it samples without a condition; pass "
@@ -188,6 +196,18 @@ def check_request(card: GenerationCard, request: GenerationRequest, what: str = 
     if request.species is not None and not card.open_species and request.species not in card.species:
         known = ", ".join(card.species) or "none (train the model first)"
         raise UsageError(f"unknown animal {request.species!r}; this checkpoint knows: {known}")
+
+
+def check_timeline_request(card: GenerationCard, request: GenerationRequest, what: str) -> None:
+    """One line when the card takes no timeline of this kind, prompts come with it, or it does not fit the
+    request's motion (``TimelineFile.check``)."""
+    if missing := [kind for kind in request.timeline.kinds if kind not in card.timeline]:
+        takes = f"it takes {' and '.join(card.timeline)} only" if card.timeline else "its card lists none"
+        name = {"timeline": "prompt timeline", "parts": "body-part composition"}[missing[0]]
+        raise UsageError(f"--timeline: {what} takes no {name}; {takes}")
+    if request.prompts:
+        raise UsageError("give prompts or --timeline (whose segments carry their texts), not both")
+    request.timeline.check(card.skeleton, request.frames / card.fps, card.fps)
 
 
 def card_inputs(card: GenerationCard) -> str:

@@ -21,6 +21,7 @@ from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
 from omg.lit.sampling import SamplingSettings, check_stance_root
+from omg.lit.timeline import check_timeline, timeline_denoiser
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -224,11 +225,16 @@ class MotionDiffusionModule(OmgModule):
         (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
         ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
         ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
-        foot (``stance_denoiser``).
+        foot (``stance_denoiser``). ``timeline`` (texts=None): each motion follows the timeline's texts by
+        stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``).
         """
         settings = settings or SamplingSettings()
         if texts is not None and not self.text_conditional:
             raise UsageError(f"{type(self).__name__} is unconditional: sample it with texts=None")
+        if settings.timeline is not None:
+            check_timeline(settings.timeline, self.text_conditional, self.config.input_dim, type(self).__name__)
+            if texts is not None:
+                raise ValueError("a timeline carries its own texts: sample it with texts=None")
         mask = length_mask(lengths, device=self.device)  # (B, T) real frames
         if texts is not None and len(texts) != len(mask):
             raise ValueError(f"{len(texts)} texts for {len(mask)} lengths")
@@ -238,7 +244,10 @@ class MotionDiffusionModule(OmgModule):
         with modes_restored(self), self.ema_weights(settings.use_ema):
             self.eval()
             dtype = next(self.model.parameters()).dtype
-            denoise = self.denoiser(texts, mask, settings.guidance)
+            if settings.timeline is None:
+                denoise = self.denoiser(texts, mask, settings.guidance)
+            else:  # each text's x̂0 blended at every step (omg.lit.timeline)
+                denoise = timeline_denoiser(self.denoiser, settings.timeline, mask, settings.guidance)
             if settings.autocast is not None:
                 denoise = autocasting(denoise, self.device.type, settings.autocast)
             if settings.compile:

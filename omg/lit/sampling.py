@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from omg.errors import UsageError
+from omg.lit.timeline import Timeline
 from omg.registry import MODULE_SAMPLERS, SAMPLERS
 
 
@@ -39,7 +40,9 @@ class SamplingSettings:
     the module's) steps the root of every denoised estimate by its stance foot; ``autocast`` (a torch
     dtype) runs the network under autocast; ``compile`` runs it through ``torch.compile``. ``key`` names
     the settings in the one-line errors (``EvalCallback``); a family takes the settings that apply to it
-    (OmniMotionGPT passes steps, sampler and guidance to its human generator)."""
+    (OmniMotionGPT passes steps, sampler and guidance to its human generator). ``timeline``
+    (``omg.lit.timeline.Timeline``): every motion follows its texts, by stretches of frames and by body
+    parts, sampled with ``texts=None`` (a text-conditioned module's)."""
 
     steps: int = 200
     sampler: str = "ddim"
@@ -51,6 +54,7 @@ class SamplingSettings:
     autocast: torch.dtype | None = None
     compile: bool = False
     key: str = ""
+    timeline: Timeline | None = None
 
     def __post_init__(self) -> None:
         where = f"{self.key}." if self.key else ""

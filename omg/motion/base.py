@@ -104,6 +104,13 @@ class Representation(ABC):
         mirrored = features[..., index] * (sign if isinstance(features, torch.Tensor) else sign.astype(features.dtype))
         return mirrored, (None if offsets is None else self.skeleton.mirror(offsets))
 
+    def channel_joints(self) -> np.ndarray:
+        """(D,) the joint each feature belongs to (0: the root, whose features carry the trajectory): what
+        body-part composition takes from each part's text (``omg.lit.timeline``). Representations that cannot
+        say raise."""
+        raise UsageError(f"representation {self.name!r} does not map its features to joints (channel_joints): "
+                         "body-part composition needs that, as humanml3d263 has")
+
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor | None:
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None

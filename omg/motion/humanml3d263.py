@@ -264,6 +264,14 @@ class HumanML3D263(Representation):
         out[..., :-1, 1:3] = features[..., :-1, 1:3] + weight * (velocity - features[..., :-1, 1:3])
         return out
 
+    def channel_joints(self) -> np.ndarray:
+        """The root's yaw velocity, XZ velocity and height [0:4] are joint 0's; each ric position [4:67] and 6D
+        rotation [67:193] its joint's (1..21); each local velocity [193:259] its joint's (0..21); each foot
+        contact [259:263] its foot joint's."""
+        blocks = ([0] * 4, np.repeat(np.arange(1, 22), 3), np.repeat(np.arange(1, 22), 6),
+                  np.repeat(np.arange(22), 3), FEET_LEFT + FEET_RIGHT)
+        return np.concatenate([np.asarray(b, dtype=np.int64) for b in blocks])
+
     def mirror_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The mirror image in HumanML3D's canonical frame (x -> -x, left <-> right joints): the root's
         yaw velocity and sideways velocity flip, its forward velocity and height stay; ric positions

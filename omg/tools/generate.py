@@ -37,7 +37,8 @@ def generate(
     prompts_file: Path | None = None,
     unconditional: bool = False,
     num_samples: PositiveInt = 4,
-    length: Seconds = 6.0,
+    length: Seconds | None = None,
+    timeline: Path | None = None,
     steps: PositiveInt | None = None,
     sampler: str | None = None,
     guidance: FiniteFloat | None = None,
@@ -75,8 +76,11 @@ def generate(
         ckpt: a .ckpt file, a DeepSpeed checkpoint directory or a .safetensors file
         prompts_file: a UTF-8 text file with one prompt per line
         unconditional: sample the pretrained motion prior without text
-        num_samples: motions per prompt (or in total when unconditional)
-        length: seconds per motion
+        num_samples: motions per prompt (or in total when unconditional or with --timeline)
+        length: seconds per motion (default 6, or the --timeline's end)
+        timeline: a JSON prompt timeline and body-part composition, instead of prompts (docs/guide/timelines.md):
+            [{"start": 0, "end": 3, "text": ...}, ...] or {"timeline": [...], "parts": [{"parts": ["left_arm"],
+            "text": ...}, ...]}; text-conditioned OMG checkpoints (their card lists timeline)
         steps: sampling steps (at most the checkpoint's diffusion steps; default OMG's 200 DDIM steps)
         sampler: a registered sampler: ddim (OMG's, the default), dpmpp (DPM-Solver++(2M): ~20 steps), euler
         guidance: classifier-free guidance scale s (default: the checkpoint's, OMG: 4.5)
@@ -118,8 +122,13 @@ def generate(
     Returns:
         The settings written to generation.json.
     """
+    from omg.generation.timeline import read_timeline
+
+    spans = read_timeline(timeline, check_plain_text) if timeline is not None else None
+    if length is None:
+        length = spans.end if spans is not None and spans.end is not None else 6.0
     settings = run_generation(
-        ckpt, prompts=read_prompts(prompts or [], prompts_file), unconditional=unconditional,
+        ckpt, prompts=read_prompts(prompts or [], prompts_file), unconditional=unconditional, timeline=spans,
         num_samples=num_samples, length=length, steps=steps, sampler=sampler, guidance=guidance, seed=seed,
         batch_size=batch_size, ema=ema, preview=preview, preview_count=preview_count, clean_contacts=clean_contacts,
         options=([f"stance_root={stance_root}"] if stance_root is not None else []) + list(option or []),
@@ -132,6 +141,7 @@ def generate(
 
 
 def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, unconditional: bool = False,
+                   timeline: Any = None,
                    num_samples: int = 1, length: float | None = None, steps: int | None = None,
                    sampler: str | None = None, guidance: float | None = None, seed: int = 0, batch_size: int = 32,
                    ema: bool = True, preview: bool = True, preview_count: int = MAX_PREVIEW,
@@ -146,14 +156,18 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     written, the checkpoint's generator (``omg.generation.registry``) asked for the motions, the one writer
     (``omg.generation.write``) writing them. ``options``: ``--option KEY=VALUE`` pairs, or the family options
     already typed (an alias's own flags); ``length`` None: the source motion's (a transfer); ``names``,
-    ``settings_file``, ``extra_files`` and ``extra_settings``: an alias's file names and what its settings add."""
+    ``settings_file``, ``extra_files`` and ``extra_settings``: an alias's file names and what its settings add;
+    ``timeline``: a read ``omg.generation.timeline.TimelineFile``, instead of prompts."""
     from omg.generation.registry import generator_for
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import PretrainModule
 
     if animal is not None:  # a description of an animal goes to the text encoder as a prompt does
         check_plain_text(animal, "--animal")
-    if unconditional == bool(prompts) and from_motion is None:
+    if timeline is not None and (prompts or unconditional):
+        raise UsageError(f"give prompts, --timeline (whose segments carry their texts) or --unconditional, not "
+                         f"{'prompts' if prompts else '--unconditional'} and --timeline")
+    if unconditional == (bool(prompts) or timeline is not None) and from_motion is None:
         raise UsageError("give prompts (or --prompts_file) for text-to-motion, or --unconditional to sample the "
                          "motion prior")
     if sampler is not None:
@@ -185,7 +199,7 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     request = GenerationRequest(prompts=prompts or None, frames=frames, num_samples=num_samples,
                                 seed=seed, steps=steps, sampler=sampler, guidance=guidance, species=animal,
                                 batch_size=batch_size, autocast=AUTOCAST.get(autocast), compile=compile,
-                                options=typed)
+                                options=typed, timeline=timeline)
     if human_ckpt is not None:
         request.source_module = generator_for(load_module(human_ckpt), human_ckpt).to(device)
     request.source = from_motion  # read once the card says the model takes it

@@ -2,7 +2,7 @@
 
 Every benchmark makes its own inputs (no dataset download) and prints one Markdown table row
 per measurement, with the command that reproduces it. One module per subcommand (``data``,
-``train``, ``sample``, ``quality``, ``following``, ``sides``, ``rig``, ``gpu``; ``plan`` is
+``train``, ``sample``, ``quality``, ``following``, ``sides``, ``rig``, ``timeline``, ``gpu``; ``plan`` is
 ``omg.tools.plan``); ``measure`` holds what they share (a worker process run with its memory
 sampled); the device's peaks are in ``omg.tools.devices``. ``python -m
 omg.tools.bench`` is the data benchmark's worker: one loader measured in its own process
@@ -19,15 +19,18 @@ from omg.tools.bench.quality import bench_quality
 from omg.tools.bench.rig import RIG_CLIPS, bench_rig, rig_round_trips
 from omg.tools.bench.sample import bench_sample
 from omg.tools.bench.sides import bench_sides
+from omg.tools.bench.timeline import bench_timeline
 from omg.tools.bench.train import bench_train
 from omg.tools.plan import bench_plan
 
 __all__ = ["BENCHMARKS", "RIG_CLIPS", "bench_data", "bench_following", "bench_gpu", "bench_plan", "bench_quality",
-           "bench_rig", "bench_sample", "bench_sides", "bench_train", "main", "rig_round_trips"]
+           "bench_rig", "bench_sample", "bench_sides", "bench_timeline", "bench_train", "main",
+           "rig_round_trips"]
 
 BENCHMARKS = {"data": (bench_data, {}), "train": (bench_train, {}), "sample": (bench_sample, {}),
               "quality": (bench_quality, {}), "following": (bench_following, {}), "sides": (bench_sides, {}),
-              "plan": (bench_plan, {}), "gpu": (bench_gpu, {}), "rig": (bench_rig, {})}
+              "plan": (bench_plan, {}), "gpu": (bench_gpu, {}), "rig": (bench_rig, {}),
+              "timeline": (bench_timeline, {})}
 
 
 def main(argv: list[str]) -> None:

@@ -53,6 +53,7 @@ from omg.generation.protocol import (
     card_inputs,
     check_request,
 )
+from omg.generation.timeline import parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
 from omg.registry import SAMPLERS
 from omg.skeleton import get_skeleton
@@ -176,9 +177,9 @@ def _fail(job: Job, e: Exception) -> None:
 
 def _key(job: Job) -> tuple | None:
     """Jobs with the same key are sampled in one call; None: alone (a family without per-motion seeds, or a
-    request with a source motion)."""
+    request with a source motion or a timeline)."""
     r = job.request
-    if not job.model.card.row_seeds or r.source is not None or r.source_module is not None:
+    if not job.model.card.row_seeds or r.source is not None or r.source_module is not None or r.timeline is not None:
         return None
     return (job.model.name, r.frames, r.steps, r.sampler, r.guidance, r.species, bool(r.prompts))
 
@@ -239,6 +240,9 @@ class GenerateBody(BaseModel):
     sampler: str | None = Field(None, description="a sampler of the model's card")
     guidance: float | None = Field(None, ge=0, allow_inf_nan=False, description="classifier-free guidance scale")
     species: str | None = Field(None, description="the animal (models whose card takes a species)")
+    timeline: list | dict | None = Field(None, description="a prompt timeline and body-part composition instead of "
+                                         "prompts, as omg generate --timeline reads it (models whose card lists "
+                                         "timeline)")
 
 
 def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
@@ -331,16 +335,19 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             _text(body.species, "species", limits)
         if body.sampler is not None:
             _sampler(card, body.sampler)
+        spans = None if body.timeline is None else parse_timeline(
+            body.timeline, "timeline", lambda text, what: _text(text, what, limits))
         rows = max(len(prompts), 1) * body.num_samples
         if rows > limits.max_samples:
             raise UsageError(f"{rows} motions asked for; at most {limits.max_samples} per request")
-        length = body.length if body.length is not None else min(4.0, card.max_frames / card.fps)
+        length = body.length if body.length is not None else spans.end if spans is not None and spans.end else \
+            min(4.0, card.max_frames / card.fps)
         if length * card.fps > 2 * card.max_frames:  # 1e308 s: no frame count to round
             raise UsageError(_length_message(card, length))
         request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps),
                                     num_samples=body.num_samples, seed=body.seed, steps=body.steps,
                                     sampler=body.sampler, guidance=body.guidance, species=body.species,
-                                    batch_size=limits.max_batch)
+                                    batch_size=limits.max_batch, timeline=spans)
         if model.source_module is not None and prompts:
             request.source_module = model.source_module
         _check(card, request, model, length)
@@ -541,11 +548,12 @@ def _prompts(prompts: list[str], limits: Limits) -> list[str]:
     return prompts
 
 
-def _text(text: str, what: str, limits: Limits) -> None:
-    """A species or an animal's description: text for the text encoder, as a prompt is."""
+def _text(text: str, what: str, limits: Limits) -> str:
+    """A species, an animal's description or a timeline's text: text for the text encoder, as a prompt is."""
     check_plain_text(text, what)
     if len(text) > limits.max_prompt_chars:
         raise UsageError(f"{what} is {len(text)} characters long; at most {limits.max_prompt_chars}")
+    return text
 
 
 def _upload_name(filename: str | None) -> str:
@@ -608,7 +616,7 @@ def _check(card: GenerationCard, request: GenerationRequest, model: Model, lengt
             message = _length_message(card, length)
         for flag, field_ in (("--length", "length"), ("--steps", "steps"), ("--sampler", "sampler"),
                              ("--animal", "species"), ("--from_motion", "an uploaded motion (/v1/transfer)"),
-                             ("--unconditional", "no prompts")):
+                             ("--unconditional", "no prompts"), ("--timeline", "timeline")):
             message = message.replace(flag, field_)
         raise UsageError(message) from None
 

@@ -1,0 +1,168 @@
+"""Prompt timelines and body-part composition at sampling time: one continuous motion whose stretches of
+frames, and whose body parts, each follow their own text.
+
+At every sampling step the text-conditioned denoiser runs once per distinct text over the whole sequence
+(the texts batched together), and the denoised estimates x̂0 are blended frame by frame and feature by
+feature (DiffCollage / FlowMDM): ``x̂0 = Σ_k W_k ⊙ x̂0_k`` with weights ``W`` (K, T, D) that sum to 1 over
+the texts. Where two segments of a timeline meet, the weights cross over smoothly (a smoothstep over the
+overlap, or over ``transition`` seconds centred on the boundary where they only touch), so every step moves
+the whole sequence towards one motion that changes from one text to the next; a body part takes the features
+of its joints (``Representation.channel_joints``: the root's features carry the trajectory) from its own
+text. Away from every crossing a frame's estimate is its own text's alone.
+
+``resolve_timeline`` turns seconds and body-part names into the tensor-level ``Timeline`` that
+``SamplingSettings.timeline`` carries; reading and checking a user's file is ``omg.generation.timeline``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from omg.diffusion import Denoiser
+from omg.errors import UsageError
+from omg.motion.base import Representation
+from omg.skeleton import body_parts
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A stretch of the motion, ``start`` to ``end`` seconds, that follows ``text``."""
+
+    start: float
+    end: float
+    text: str
+
+
+@dataclass(frozen=True)
+class PartText:
+    """Body ``parts`` (names of ``omg.skeleton.body_parts``) that follow ``text``, from ``start`` to ``end``
+    seconds (None: the whole motion)."""
+
+    parts: tuple[str, ...]
+    text: str
+    start: float | None = None
+    end: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Timeline:
+    """What a sampler blends: ``texts`` (K distinct captions) and ``weights`` (K, T, D), the share of text k's
+    denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere."""
+
+    texts: tuple[str, ...]
+    weights: Tensor  # (K, T, D)
+
+    def __post_init__(self) -> None:
+        w = self.weights
+        if w.ndim != 3 or w.shape[0] != len(self.texts) or not self.texts:
+            raise ValueError(f"timeline weights (K, T, D) for {len(self.texts)} texts, got {tuple(w.shape)}")
+        if not torch.isfinite(w).all() or not torch.allclose(w.sum(0), torch.ones_like(w[0]), atol=1e-5):
+            raise ValueError("timeline weights must be finite and sum to 1 over the texts")
+
+
+def smoothstep(u: Tensor) -> Tensor:
+    """3u² − 2u³ on u clamped to [0, 1]: 0 → 1 with zero slope at both ends."""
+    u = u.clamp(0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+def _crossing(times: Tensor, start: float, end: float) -> Tensor:
+    """(T,) 0 before ``start``, 1 after ``end``, a smoothstep between (a step at ``start`` when end == start)."""
+    if end <= start:
+        return (times >= start).to(times.dtype)
+    return smoothstep((times - start) / (end - start))
+
+
+def segment_weights(segments: Sequence[Segment], times: Tensor, transition: float) -> Tensor:
+    """(S, T) each segment's share of each frame: 1 inside it, crossing smoothly to its neighbour over their
+    overlap, or over ``transition`` seconds centred on the boundary where they only touch (or overlap less);
+    normalised over the segments. ``segments`` in time order, with no gap between neighbours."""
+    weights = torch.ones(len(segments), len(times), dtype=times.dtype)
+    for i in range(len(segments) - 1):
+        a, b = segments[i], segments[i + 1]
+        centre, half = (b.start + a.end) / 2, max(a.end - b.start, transition) / 2
+        rise = _crossing(times, centre - half, centre + half)
+        weights[i] *= 1.0 - rise
+        weights[i + 1] *= rise
+    total = weights.sum(0)
+    if (total <= 0).any():  # crossings of a segment shorter than them meet: its own frames are its own
+        inside = torch.stack([(times >= s.start) & (times <= s.end) for s in segments]).to(times.dtype)
+        weights = torch.where(total > 0, weights, inside)
+        total = weights.sum(0)
+    return weights / total
+
+
+def part_window(part: PartText, times: Tensor, seconds: float, transition: float) -> Tensor:
+    """(T,) 1 while ``part`` holds (its start to its end, the whole motion without them), crossing in and
+    out over ``transition`` seconds centred on its start and end (none at the motion's own ends)."""
+    start, end = part.start or 0.0, seconds if part.end is None else part.end
+    window = torch.ones_like(times)
+    if start > 0:
+        window = window * _crossing(times, start - transition / 2, start + transition / 2)
+    if end < seconds:
+        window = window * (1.0 - _crossing(times, end - transition / 2, end + transition / 2))
+    return window
+
+
+def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], frames: int, fps: float,
+                     representation: Representation, transition: float = 0.5) -> Timeline:
+    """The ``Timeline`` of ``frames`` feature frames at ``fps`` for a model of ``representation``: the segments
+    (in time order, meeting or overlapping) share the frames, then each ``PartText`` in turn takes its joints'
+    features (``channel_joints``) while it holds. Without segments, the first part's text is the base the
+    others replace. The checks of a user's values (times inside the motion, known part names) are
+    ``omg.generation.timeline``'s; ``body_parts`` and ``channel_joints`` raise their own one line."""
+    times = torch.arange(frames, dtype=torch.float64) / fps  # (T,) the time of each feature frame
+    dim = representation.dim
+    texts = list(dict.fromkeys([s.text for s in segments] + [p.text for p in parts]))
+    weights = torch.zeros(len(texts), frames, dim, dtype=torch.float64)  # (K, T, D)
+    if segments:
+        for segment, share in zip(segments, segment_weights(segments, times, transition)):
+            weights[texts.index(segment.text)] += share[:, None]
+    else:
+        weights[texts.index(parts[0].text)] = 1.0
+    if parts:
+        named = body_parts(representation.skeleton)
+        channel_joints = torch.as_tensor(representation.channel_joints())  # (D,)
+        seconds = frames / fps
+        for part in parts:
+            joints = torch.tensor(sorted({j for name in part.parts for j in named[name]}))
+            channels = torch.isin(channel_joints, joints).to(weights.dtype)  # (D,)
+            take = part_window(part, times, seconds, transition)[:, None] * channels  # (T, D)
+            own = torch.zeros(len(texts), 1, 1, dtype=weights.dtype)
+            own[texts.index(part.text)] = 1.0
+            weights = weights * (1.0 - take) + own * take
+    return Timeline(tuple(texts), weights.float())
+
+
+TextDenoiser = Callable[[Sequence[str], Tensor, "float | None"], Denoiser]  # (texts, mask, guidance) -> denoiser
+
+
+def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
+    """The blended x̂0 of ``timeline`` for a batch of B motions (``mask`` (B, T)), each following the whole
+    timeline: ``denoiser`` (a module's ``denoiser(texts, mask, guidance)``: guidance as it does it) runs once
+    per step on the K texts' copies of the batch, batched as K·B rows."""
+    k, (b, frames) = len(timeline.texts), mask.shape
+    if timeline.weights.shape[1] != frames:
+        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
+    texts = [text for text in timeline.texts for _ in range(b)]
+    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
+    weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
+
+    def blended(x: Tensor, t: Tensor) -> Tensor:
+        x0 = denoise(x.repeat(k, 1, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, T, D)
+        return (weights.to(x0.dtype) * x0).sum(0)
+
+    return blended
+
+
+def check_timeline(timeline: Timeline, text_conditional: bool, dim: int, module: str) -> None:
+    """One line when a module cannot sample ``timeline``: an unconditional one, or features of another size."""
+    if not text_conditional:
+        raise UsageError(f"{module} is unconditional: a prompt timeline needs a text-conditioned model")
+    if timeline.weights.shape[2] != dim:
+        raise ValueError(f"a timeline of {timeline.weights.shape[2]} features for a model of {dim}")
+

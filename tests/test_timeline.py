@@ -1,0 +1,312 @@
+"""Prompt timelines and body-part composition (``omg.lit.timeline``, ``omg.generation.timeline``): each stretch of
+frames and each body part follows its own text in one continuous motion, the file is checked in one line per error
+with nothing written, and sampling without a timeline is the plain path."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from helpers import MINI, TINY_DIT
+from omg.errors import UsageError
+from omg.generation.timeline import parse_timeline
+from omg.lit.sampling import SamplingSettings
+from omg.lit.timeline import PartText, Segment, resolve_timeline, segment_weights, timeline_denoiser
+from omg.motion import length_mask
+from omg.skeleton import SMPL22, body_parts
+
+WALK, WAVE = "a person walks forward", "a person waves the left hand"
+FPS = 20.0
+
+
+@pytest.fixture(scope="module")
+def controlnet_ckpt(tmp_path_factory):
+    """A tiny ControlNet (hash text) whose weights, the zero-initialised ones too, are random: every text gives
+    its own x̂0."""
+    from omg.data.datamodule import MotionDataModule
+    from omg.lit.checkpoint import class_path
+    from omg.lit.controlnet import ControlNetModule
+    from omg.lit.pretrain import PretrainModule
+
+    root = tmp_path_factory.mktemp("timeline")
+    spec = MotionDataModule(str(MINI / "human263/train"), batch_size=4, max_len=40, min_len=20, num_workers=0,
+                            clips="whole").spec
+    torch.manual_seed(0)
+    pretrain = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
+    for module, name in ((pretrain, "pre.ckpt"), (None, "cn.ckpt")):
+        if module is None:
+            module = ControlNetModule(pretrained=str(root / "pre.ckpt"), text_encoder="hash",
+                                      moc={"d_c": 16, "num_experts": 2}, spec=spec, ema_decay=0)
+            with torch.no_grad():
+                for p in module.controlnet.parameters():
+                    p.add_(torch.randn_like(p) * 0.05)
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                    "module_class": class_path(type(module))}, root / name)
+    return {"controlnet": root / "cn.ckpt", "pretrain": root / "pre.ckpt"}
+
+
+@pytest.fixture(scope="module")
+def controlnet(controlnet_ckpt):
+    from omg.lit.checkpoint import load_module
+
+    return load_module(controlnet_ckpt["controlnet"]).eval()
+
+
+# -- the format ----------------------------------------------------------------------------------------------------
+
+BAD = [
+    ({"timeline": []}, "no segments and no parts"),
+    ([{"start": 0, "end": 2, "text": WALK}, {"start": 3, "end": 5, "text": WAVE}],
+     "a gap between timeline[0] (ends at 2 s) and timeline[1] (starts at 3 s)"),
+    ([{"start": 0, "end": 2, "text": WALK}, {"start": 2, "end": 2, "text": WAVE}],
+     "timeline[1] has zero length (start = end = 2 s)"),
+    ([{"start": 1, "end": 2, "text": WALK}], "timeline[0] starts at 1 s; the timeline starts the motion, at 0 s"),
+    ([{"start": 0, "end": 3, "text": WALK}, {"start": 1, "end": 2, "text": WAVE}],
+     "timeline[1] (1..2 s) lies inside timeline[0] (0..3 s)"),
+    ([{"start": 0, "end": 2, "text": WALK}, {"start": 1.5, "end": 4, "text": WAVE}, {"start": 1, "end": 5,
+                                                                                       "text": WALK}],
+     "timeline[2] starts at 1 s, before timeline[1] (1.5 s); list the segments in time order"),
+    ([{"start": 0, "end": float("nan"), "text": WALK}], "timeline[0].end must be a finite number of seconds"),
+    ([{"start": 0, "end": 2, "text": ""}], "timeline[0].text must be a non-empty sentence"),
+    ([{"start": 0, "end": 2, "txt": WALK}], "timeline[0]: unknown key 'txt'; a segment has start, end, text"),
+    ([{"start": 0, "end": 2, "text": "a\x00b"}], "timeline[0].text holds the control character"),
+    ({"parts": [{"parts": [], "text": WALK}]}, "parts[0].parts must be a non-empty list of body part names"),
+    ({"timeline": [{"start": 0, "end": 2, "text": WALK}], "extra": 1}, "unknown key 'extra'"),
+    ("walk", "expected a list of segments"),
+]
+
+
+@pytest.mark.parametrize("data,message", BAD)
+def test_a_bad_file_is_one_line_before_anything_is_loaded(data, message, tmp_path, capsys):
+    from omg.cli import main
+
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(SystemExit) as e:  # no checkpoint at all: the file fails first
+        main(["generate", "--ckpt", str(tmp_path / "none.ckpt"), "--timeline", str(path), "--out",
+              str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(f"omg: error: --timeline {path}: ") and err.count("\n") == 1, err
+    assert message in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("data,extra,message", [
+    ([{"start": 0, "end": 2, "text": WALK}, {"start": 2, "end": 5, "text": WAVE}], ["--length", "4"],
+     "timeline[1] ends at 5 s, after the motion's end (4 s)"),
+    ([{"start": 0, "end": 2, "text": WALK}], ["--length", "3"],
+     "the timeline ends at 2 s, before the motion's end (3 s): a gap"),
+    ({"parts": [{"parts": ["legs", "tail"], "text": WALK}]}, [],
+     "parts[0]: unknown body part 'tail'; smpl22's: root, torso, left_arm, right_arm, left_leg, right_leg, legs, "
+     "arms, upper_body"),
+    ({"parts": [{"parts": ["legs", "root"], "text": WALK}, {"parts": ["left_leg"], "text": WAVE, "start": 1}]}, [],
+     "parts[0] and parts[1] both move left_hip at the same time"),
+    ({"parts": [{"parts": ["left_arm"], "text": WAVE, "start": 7, "end": 9}]}, ["--length", "6"],
+     "parts[0] ends at 9 s, after the motion's end (6 s)"),
+])
+def test_a_file_that_does_not_fit_the_model_is_one_line_and_nothing_written(controlnet_ckpt, data, extra, message,
+                                                                            tmp_path, capsys):
+    from omg.cli import main
+
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(SystemExit) as e:
+        main(["generate", "--ckpt", str(controlnet_ckpt["controlnet"]), "--timeline", str(path), *extra, "--out",
+              str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(f"omg: error: --timeline: {message}"), err
+    assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+def test_prompts_and_a_timeline_together_and_models_without_one_are_one_line(controlnet_ckpt, tmp_path, capsys):
+    from omg.cli import main
+
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps([{"start": 0, "end": 1, "text": WALK}]))
+    for args, message in (
+            (["a person jumps", "--ckpt", str(controlnet_ckpt["controlnet"])],
+             "give prompts, --timeline (whose segments carry their texts) or --unconditional, not prompts and "
+             "--timeline"),
+            (["--ckpt", str(controlnet_ckpt["pretrain"])],
+             f"--timeline: {controlnet_ckpt['pretrain']} (PretrainModule) takes no prompt timeline; its card lists "
+             "none")):
+        with pytest.raises(SystemExit) as e:
+            main(["generate", *args, "--timeline", str(path), "--out", str(tmp_path / "out")])
+        assert e.value.code == 2 and capsys.readouterr().err == f"omg: error: {message}\n"
+        assert not (tmp_path / "out").exists()
+
+
+def test_body_parts_come_from_the_skeletons_chains_and_names():
+    parts = body_parts(SMPL22)
+    name = {k: [SMPL22.names[j] for j in v] for k, v in parts.items()}
+    assert name["root"] == ["pelvis"] and name["left_arm"] == ["left_collar", "left_shoulder", "left_elbow",
+                                                                 "left_wrist"]
+    assert name["right_leg"] == ["right_hip", "right_knee", "right_ankle", "right_foot"]
+    assert name["torso"] == ["spine1", "spine2", "spine3", "neck", "head"]
+    every = sorted(j for k in ("root", "torso", "left_arm", "right_arm", "left_leg", "right_leg") for j in parts[k])
+    assert every == list(range(22))  # each joint in exactly one part
+
+
+def test_segments_cross_over_smoothly_and_share_every_frame():
+    times = torch.arange(80, dtype=torch.float64) / FPS
+    touching = segment_weights([Segment(0, 2, WALK), Segment(2, 4, WAVE)], times, transition=0.5)
+    overlapping = segment_weights([Segment(0, 2.5, WALK), Segment(1.5, 4, WAVE)], times, transition=0.5)
+    for w in (touching, overlapping):
+        assert torch.allclose(w.sum(0), torch.ones(80, dtype=torch.float64))
+        assert (w[0, 1:] <= w[0, :-1]).all() and (w[1, 1:] >= w[1, :-1]).all()  # one crossing, no jump back
+    assert (touching[0, times <= 1.75] == 1).all() and (touching[1, times >= 2.25] == 1).all()
+    assert (overlapping[0, times <= 1.5] == 1).all() and (overlapping[1, times >= 2.5] == 1).all()
+    assert (overlapping[:, (times > 1.6) & (times < 2.4)] < 1).all()  # the whole overlap is blended
+    assert float((touching[0, 1:] - touching[0, :-1]).abs().max()) < 0.2  # no jump at the boundary
+
+
+# -- sampling ------------------------------------------------------------------------------------------------------
+
+
+def _estimates(module, texts: list[str], mask, x, t):
+    return module.denoiser(texts, mask, None)(x, t)
+
+
+def test_each_segment_follows_its_own_text_away_from_the_crossing(controlnet):
+    """The blended x̂0 is segment A's text's estimate on A's frames and B's on B's, the crossing a mix of the
+    two: the same noisy motion denoised with each text alone, over the whole sequence."""
+    frames, rep = 60, controlnet.representation
+    timeline = resolve_timeline([Segment(0, 1.5, WALK), Segment(1.5, 3, WAVE)], [], frames, FPS, rep)
+    mask = length_mask([frames, frames])
+    gen = torch.Generator().manual_seed(0)
+    x, t = torch.randn(2, frames, 263, generator=gen), torch.tensor([500, 900])
+    with torch.no_grad():
+        blended = timeline_denoiser(controlnet.denoiser, timeline, mask, None)(x, t)
+        walk, wave = _estimates(controlnet, [WALK] * 2, mask, x, t), _estimates(controlnet, [WAVE] * 2, mask, x, t)
+    a, b, crossing = slice(0, 25), slice(35, 60), slice(27, 33)  # the crossing: 1.25..1.75 s
+    assert not torch.allclose(walk[:, a], wave[:, a], atol=1e-3)  # the texts differ
+    assert torch.allclose(blended[:, a], walk[:, a], atol=1e-5)
+    assert torch.allclose(blended[:, b], wave[:, b], atol=1e-5)
+    mixed = blended[:, crossing]
+    assert not torch.allclose(mixed, walk[:, crossing], atol=1e-4) and not torch.allclose(mixed, wave[:, crossing],
+                                                                                         atol=1e-4)
+    share = timeline.weights[0, crossing, :1]  # (6, 1) the walk's share there
+    assert torch.allclose(mixed, share * walk[:, crossing] + (1 - share) * wave[:, crossing], atol=1e-5)
+
+
+def test_each_body_part_takes_its_features_from_its_own_text(controlnet):
+    """Legs and root from the walk, the left arm from the wave: each feature of the blended x̂0 is its joint's
+    text's (the root's, which carry the trajectory, the walk's); the rest of the body follows the first entry."""
+    frames, rep = 40, controlnet.representation
+    timeline = resolve_timeline([], [PartText(("legs", "root"), WALK), PartText(("left_arm",), WAVE)], frames, FPS,
+                                rep)
+    mask = length_mask([frames])
+    x, t = torch.randn(1, frames, 263, generator=torch.Generator().manual_seed(1)), torch.tensor([700])
+    with torch.no_grad():
+        blended = timeline_denoiser(controlnet.denoiser, timeline, mask, None)(x, t)
+        walk, wave = _estimates(controlnet, [WALK], mask, x, t), _estimates(controlnet, [WAVE], mask, x, t)
+    arm = torch.isin(torch.as_tensor(rep.channel_joints()), torch.tensor(body_parts(SMPL22)["left_arm"]))  # (D,)
+    assert arm.sum() == 4 * 3 + 4 * 6 + 4 * 3  # ric, 6D rotation and velocity of its 4 joints
+    assert torch.allclose(blended[..., arm], wave[..., arm], atol=1e-5)
+    assert torch.allclose(blended[..., ~arm], walk[..., ~arm], atol=1e-5)
+    assert not torch.allclose(walk[..., arm], wave[..., arm], atol=1e-3)
+    assert list(torch.nonzero(~arm).flatten()[:4]) == [0, 1, 2, 3]  # the trajectory is the walk's
+
+
+def test_a_part_with_a_window_holds_only_then(controlnet):
+    frames = 60
+    timeline = resolve_timeline([Segment(0, 3, WALK)], [PartText(("left_arm",), WAVE, start=1.0, end=2.0)], frames,
+                                FPS, controlnet.representation)
+    arm = torch.isin(torch.as_tensor(controlnet.representation.channel_joints()),
+                     torch.tensor(body_parts(SMPL22)["left_arm"]))
+    wave = timeline.weights[timeline.texts.index(WAVE)]  # (T, D)
+    assert (wave[:15] == 0).all() and (wave[45:] == 0).all()  # before 0.75 s, after 2.25 s: the walk's alone
+    assert (wave[25:35][:, arm] == 1).all() and (wave[:, ~arm] == 0).all()
+
+
+def test_sampling_a_timeline_is_one_motion_and_without_one_the_plain_path(controlnet):
+    """With a timeline the sampler draws one motion per row through the blended denoiser (every registered
+    sampler, stance_root on top); without one, ``sample`` is the plain solver on the module's denoiser."""
+    from omg.registry import SAMPLERS
+
+    frames = 40
+    settings = SamplingSettings(steps=3, seed=4, use_ema=False)
+    plain = controlnet.sample([WALK, WALK], [frames, frames], settings)
+    mask = length_mask([frames, frames])
+    with torch.no_grad():
+        x = SAMPLERS.get("ddim")(controlnet.diffusion, controlnet.denoiser([WALK, WALK], mask, None),
+                                 (2, frames, 263), steps=3, generator=torch.Generator().manual_seed(4), device="cpu",
+                                 dtype=torch.float32, mask=mask)
+    assert torch.equal(plain, controlnet.denormalize(x))
+    alone = resolve_timeline([Segment(0, frames / FPS, WALK)], [], frames, FPS, controlnet.representation)
+    assert torch.equal(controlnet.sample(None, [frames, frames], SamplingSettings(steps=3, seed=4, use_ema=False,
+                                                                                 timeline=alone)), plain)
+    two = resolve_timeline([Segment(0, 1, WALK), Segment(1, 2, WAVE)], [], frames, FPS, controlnet.representation)
+    for sampler in SAMPLERS.names():
+        motion = controlnet.sample(None, [frames], SamplingSettings(steps=3, sampler=sampler, use_ema=False,
+                                                                    timeline=two, stance_root=0.5))
+        assert motion.shape == (1, frames, 263) and torch.isfinite(motion).all()
+    with pytest.raises(ValueError, match="a timeline carries its own texts"):
+        controlnet.sample([WALK], [frames], SamplingSettings(steps=1, timeline=two))
+
+
+def test_omg_generate_follows_a_timeline_file(controlnet_ckpt, tmp_path):
+    from omg.cli import main
+    from omg.generation.registry import generator_for
+    from omg.lit.checkpoint import load_module
+
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps({"timeline": [{"start": 0, "end": 1.2, "text": WALK},
+                                             {"start": 0.8, "end": 2, "text": "a person turns left"}],
+                                "parts": [{"parts": ["left_arm"], "text": WAVE, "start": 0.5}]}))
+    main(["generate", "--ckpt", str(controlnet_ckpt["controlnet"]), "--timeline", str(path), "--num_samples", "2",
+          "--steps", "2", "--no_preview", "--out", str(tmp_path / "out")])
+    settings = json.loads((tmp_path / "out/generation.json").read_text())
+    assert settings["frames"] == 40 and settings["length_s"] == 2.0  # the timeline's end
+    assert settings["timeline"]["timeline"][1] == {"start": 0.8, "end": 2.0, "text": "a person turns left"}
+    assert settings["timeline"]["parts"] == [{"parts": ["left_arm"], "text": WAVE, "start": 0.5}]
+    assert not settings["unconditional"] and settings["guidance_scale"] == 4.5
+    first, second = (np.load(tmp_path / f"out/sample_00{i}.features.npy") for i in (0, 1))
+    assert first.shape == (40, 263) and not np.array_equal(first, second)
+    assert generator_for(load_module(controlnet_ckpt["controlnet"])).generation_card().timeline == ("timeline",
+                                                                                                    "parts")
+    assert generator_for(load_module(controlnet_ckpt["pretrain"])).generation_card().timeline == ()
+
+
+def test_the_parser_keeps_the_file_and_checks_against_a_motion():
+    spans = parse_timeline({"timeline": [{"start": 0, "end": 2, "text": WALK}, {"start": 2, "end": 4, "text": WAVE}],
+                            "transition": 1})
+    assert spans.end == 4.0 and spans.kinds == ("timeline",) and spans.transition == 1.0
+    spans.check("smpl22", 4.0, FPS)
+    spans.check("smpl22", 4.0 + 0.4 / FPS, FPS)  # within a frame's rounding
+    with pytest.raises(UsageError, match="before the motion's end"):
+        spans.check("smpl22", 5.0, FPS)
+
+
+def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, tmp_path, capsys):
+    """``omg bench timeline`` on a held-out set of two actions: timelines of two and three of its captions, a
+    walk on the legs with a wave on the arms, every figure of the table there."""
+    from helpers import walking_clip
+    from omg.data.shards import ShardWriter
+    from omg.motion import Clip, get_representation
+    from omg.tools.bench.timeline import bench_timeline
+
+    clips = []
+    for i, (action, text) in enumerate([("walk", "a person walks forward"), ("bye", "a person waves goodbye"),
+                                        ("walk", "a person walks forward slowly"), ("bye", "a person says bye")]):
+        walk = walking_clip(200 + i)
+        clips.append(Clip(id=f"{action}{i}", skeleton=SMPL22, fps=FPS, positions=walk.positions, texts=[text],
+                          category="human", source="test", labels={"content": action}))
+    rep = get_representation("humanml3d263", SMPL22)
+    ShardWriter(tmp_path / "val", rep, FPS, max_clips=8, log=lambda m: None).write(iter(clips))
+    result = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=1,
+                            samples=2, steps=2, segment_seconds=1.0, composition_seconds=1.0)
+    assert [len(t) for t in result["timelines"]] == [2, 3]
+    for timeline in result["timelines"]:
+        assert all(("walk" in a) != ("walk" in b) for a, b in zip(timeline, timeline[1:]))  # neighbours differ
+    assert len(result["segments"]) == 5 and all(len(r["passed"]) == 2 for r in result["segments"])
+    assert set(result["alone"]) == {r["text"] for r in result["segments"]}
+    assert result["jerk"]["real"] > 0 and result["jerk"]["boundary"] > 0
+    (composition,) = result["compositions"]
+    assert composition["arm"] == "arms" and "walks" in composition["walk"] and "and" in composition["sentence"]
+    assert set(result["seconds_per_motion_second"]) == {"timeline", "plain", "parts"}
+    out = capsys.readouterr().out
+    assert "| segments passing, in timelines / alone |" in out and "| body-part compositions: both parts" in out
