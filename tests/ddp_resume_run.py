@@ -1,5 +1,6 @@
 """One gloo (CPU) training run for tests/test_resume.py: ``python ddp_resume_run.py SHARDS ROOT
-KILL_AT|-1 RESUME(0|1) [DEVICES [RECORD]]`` (two devices unless given). With RECORD, each rank
+KILL_AT|-1 RESUME(0|1|CKPT) [DEVICES [RECORD]]`` (two devices unless given); RESUME 1 resumes from
+ROOT/ckpt/last.ckpt, a path from that checkpoint (another run's). With RECORD, each rank
 writes ROOT/RECORD-rank{r}.pt: what each step trained on, and the state it started training from.
 Lightning's DDP launcher starts rank 1 by running this script again with LOCAL_RANK set."""
 
@@ -41,7 +42,8 @@ def _copy(value):
 
 
 if __name__ == "__main__":
-    shards, root, kill_at, resume = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
+    shards, root, kill_at = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+    resume = {"0": None, "1": str(root / "ckpt" / "last.ckpt")}.get(sys.argv[4], sys.argv[4])
     devices = int(sys.argv[5]) if len(sys.argv) > 5 else 2
     record = sys.argv[6] if len(sys.argv) > 6 else None
     torch.set_num_threads(1)
@@ -51,7 +53,10 @@ if __name__ == "__main__":
     model = PretrainModule(flavor="mini", dit=TINY_DIT,
                            ema_decay=0.9, spec=data.spec, optim={"lr": 1e-3, "warmup_steps": 2})
     recorder, start = Recorder(), StartState()
-    callbacks = [L.pytorch.callbacks.ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1),
+    # every step's checkpoint stays: a run killed at the start of step k leaves the checkpoint of step k,
+    # which tests/test_resume.py resumes from the run never killed instead of starting a killed run
+    callbacks = [L.pytorch.callbacks.ModelCheckpoint(dirpath=root / "ckpt", save_last=True, every_n_train_steps=1,
+                                                     save_top_k=-1),
                  recorder, start]
     if kill_at >= 0:
         callbacks.append(KillAt(kill_at))
@@ -59,7 +64,7 @@ if __name__ == "__main__":
                         max_steps=MAX_STEPS, logger=False, enable_progress_bar=False, enable_model_summary=False,
                         limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=root, callbacks=callbacks)
     try:
-        trainer.fit(model, data, ckpt_path=str(root / "ckpt" / "last.ckpt") if resume else None)
+        trainer.fit(model, data, ckpt_path=resume)
         code = 0
     except Killed:
         code = 3

@@ -177,8 +177,9 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
         torch.testing.assert_close(model.ema.shadow[n], expected, rtol=0, atol=1e-6)
 
 
-def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> tuple[int, str]:
-    """tests/ddp_resume_run.py on ``devices`` gloo ranks: (exit code, the end of its stderr)."""
+def ddp_run(shards, root, kill_at=-1, resume: bool | Path = False, devices=2, record=None) -> tuple[int, str]:
+    """tests/ddp_resume_run.py on ``devices`` gloo ranks: (exit code, the end of its stderr); ``resume``: from
+    ``root``'s last checkpoint (True) or from that file (another run's)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -186,7 +187,8 @@ def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> t
     for key in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK"):
         env.pop(key, None)
     script = Path(__file__).with_name("ddp_resume_run.py")
-    args = [str(shards), str(root), str(kill_at), str(int(resume)), str(devices)] + ([record] if record else [])
+    resume = str(resume) if isinstance(resume, Path) else str(int(resume))
+    args = [str(shards), str(root), str(kill_at), resume, str(devices)] + ([record] if record else [])
     done = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True, timeout=300)
     return done.returncode, done.stderr[-3000:]
 
@@ -196,7 +198,8 @@ def ddp_run(shards, root, kill_at=-1, resume=False, devices=2, record=None) -> t
 @pytest.fixture(scope="session")
 def never_killed(h263_shards, tmp_path_factory):
     """``never_killed(devices)``: the folder of tests/ddp_resume_run.py's run on ``devices`` gloo ranks,
-    never killed, each rank's steps and start state recorded as ``fresh-rank{r}.pt`` (each run once)."""
+    never killed, each rank's steps and start state recorded as ``fresh-rank{r}.pt`` and every step's checkpoint
+    kept in ``ckpt/`` (each run once)."""
     runs = {}
 
     def run(devices: int):
@@ -213,13 +216,15 @@ def never_killed(h263_shards, tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.xdist_group("ddp_resume")
 def test_two_rank_run_resumes_bit_for_bit(h263_shards, never_killed, tmp_path):
-    """Two gloo ranks on the CPU: kill at an epoch boundary, resume, kill at the next boundary,
+    """Two gloo ranks on the CPU: resume from an epoch boundary, be killed at the next boundary,
     resume again, and compare with the run never killed, each rank's noise RNG and the loop
     counters included."""
     shards = h263_shards / "train"  # 4 shards, 2 per rank
-    code, err = ddp_run(shards, tmp_path / "killed", kill_at=3)  # ddp_resume_run.py: 3 batches per epoch, 7 steps
-    assert code == 3, err
-    code, err = ddp_run(shards, tmp_path / "killed", kill_at=6, resume=True)
+    # ddp_resume_run.py: 3 batches per epoch, 7 steps. A run killed at the start of step 3 leaves the
+    # never-killed run's step-3 checkpoint (the kill comes after it is written): the chain starts from that
+    # file, and its own kill, at step 6, is a real one
+    [written] = (never_killed(2) / "ckpt").glob("epoch=*-step=3.ckpt")
+    code, err = ddp_run(shards, tmp_path / "killed", kill_at=6, resume=written)
     assert code == 3, err
     code, err = ddp_run(shards, tmp_path / "killed", resume=True)
     assert code == 0, err
@@ -235,11 +240,12 @@ def test_two_rank_run_resumes_bit_for_bit(h263_shards, never_killed, tmp_path):
 @pytest.mark.parametrize("old,new", [(2, 1), (1, 2)], ids=["2to1", "1to2"])
 def test_resume_on_another_number_of_ranks(h263_shards, never_killed, tmp_path, old, new):
     shards, kill_at = h263_shards / "train", 4
-    code, err = ddp_run(shards, tmp_path / "run", kill_at=kill_at, devices=old)
-    assert code == 3, err
-    saved = torch.load(tmp_path / "run" / "ckpt" / "last.ckpt", map_location="cpu", weights_only=False)
+    # the checkpoint an `old`-rank run killed at the start of step 4 leaves is the never-killed run's step-4
+    # checkpoint (the kill comes after it is written; test_two_rank_run_resumes_bit_for_bit kills for real)
+    [written] = (never_killed(old) / "ckpt").glob(f"epoch=*-step={kill_at}.ckpt")
+    saved = torch.load(written, map_location="cpu", weights_only=False)
     assert saved["global_step"] == kill_at and saved["noise_rng"].shape[0] == old
-    code, resumed_err = ddp_run(shards, tmp_path / "run", resume=True, devices=new, record="resumed")
+    code, resumed_err = ddp_run(shards, tmp_path / "run", resume=written, devices=new, record="resumed")
     assert code == 0, resumed_err
     fresh_run = never_killed(new)  # the new world size from scratch
     for rank in range(new):
