@@ -169,32 +169,48 @@ def feature_change(change: Tensor, integrated: tuple[int, ...], smooth: Callable
 
 def steer(x0: Tensor, control: Control, representation: Representation, std: Tensor, mean: Tensor, mask: Tensor,
           iterations: int) -> Tensor:
-    """x̂0 (B, T, D) normalised -> moved to meet ``control``: Gauss-Newton passes on the residuals of its decoded
-    joints (``residuals``), each solved by up to ``PASS`` conjugate-gradient (CGLS) iterations, ``iterations``
-    in all. The change is sought in normalised units through ``feature_change`` (smoothed over time, integrated
-    channels changed by differences), and CGLS started from no change finds the least change that meets the
-    targets: each feature moves in proportion to its spread in the data, the rest of the motion stays."""
-    keep = mask[..., None].to(x0.dtype)  # (B, T, 1)
+    """x̂0 (B, T, D) normalised -> moved to meet ``control`` (``solve``): with a facing, first the heading alone
+    towards it (the one channel decode is not linear in), then every other channel, the heading kept, towards the
+    targets and planted feet (turning the whole body is no way to reach a hand's target)."""
     base = x0 * std + mean
     if control.inpaint:
         stated = control.axes & (control.weights > 0)[..., None]
         base = torch.where(mask[..., None], representation.inpaint(base, control.targets, stated), base)
-    smooth = gaussian_smoother(control.smooth, x0.shape[1], x0.device, x0.dtype)
-    integrated = representation.integrated_features()
+    if iterations <= 0:
+        return (base - mean) / std
+    integrated, heading = representation.integrated_features(), list(representation.heading_features())
     # the change's unit per channel: the feature's spread in the data, so that the least change moves each feature
     # in proportion to it; an integrated channel's change is an offset of its running sum (a root displacement, a
     # heading), whose spread over T frames of a random walk is √T velocities': in a velocity's own spread, the
     # displacements the targets ask would be T-fold and CG would crawl through them
     scale = std.clone()
     scale[list(integrated)] *= math.sqrt(x0.shape[1])
-    if control.facing is None:  # the heading stays: turning the body is no way to reach a target, and it is the
-        scale[list(representation.heading_features())] = 0.0  # one channel decode is not linear in
-    change = torch.zeros_like(x0)
+    turning = torch.zeros_like(scale)
+    turning[heading] = scale[heading]
+    scale[heading] = 0.0
+    if control.facing is not None and heading:
+        facing_only = replace(control, weights=torch.zeros_like(control.weights), contacts=None, own_contacts=False)
+        base = solve(base, facing_only, representation, turning, mask, iterations)
+    return (solve(base, control, representation, scale, mask, iterations) - mean) / std
+
+
+def solve(base: Tensor, control: Control, representation: Representation, scale: Tensor, mask: Tensor,
+          iterations: int) -> Tensor:
+    """Features (B, T, D) -> changed to meet ``control``: Gauss-Newton passes on the residuals of their decoded
+    joints (``residuals``), each solved by up to ``PASS`` conjugate-gradient (CGLS) iterations, ``iterations`` in
+    all. The change is sought in units of ``scale`` (D,) per channel (0: the channel stays) through
+    ``feature_change`` (smoothed over time, integrated channels changed by differences), and CGLS started from no
+    change finds the least change that meets the targets, the rest of the motion kept."""
+    keep = mask[..., None].to(base.dtype)  # (B, T, 1)
+    smooth = gaussian_smoother(control.smooth, base.shape[1], base.device, base.dtype)
+    integrated = representation.integrated_features()
+    change = torch.zeros_like(base)
+
+    def features_of(z: Tensor) -> Tensor:
+        return base + feature_change(z, integrated, smooth) * scale * keep
+
     with torch.enable_grad():
         for start in range(0, iterations, PASS):
-            def features_of(z: Tensor) -> Tensor:
-                return base + feature_change(z, integrated, smooth) * scale * keep
-
             now = features_of(change)
             planted = planted_feet(now, control, representation)
             pull = target_pull(representation.decode(now), control)
@@ -209,8 +225,8 @@ def steer(x0: Tensor, control: Control, representation: Representation, std: Ten
                 return torch.autograd.grad(r0, point, u, retain_graph=True)[0]
 
             def jvp(v: Tensor) -> Tensor:
-                # a forward difference: exact where decode is linear in the change (positions given the heading:
-                # every channel but the yaw rate), and a fifth of the cost of forward-mode autograd here
+                # a forward difference: exact where decode is linear in the change (positions given the heading),
+                # and a fifth of the cost of forward-mode autograd here
                 h = 1e-2 / v.abs().flatten(1).amax(1).clamp(min=1e-12)  # (B,) a step of 0.01 in the largest unit
                 with torch.no_grad():
                     return (residual(change + h[:, None, None] * v) - r0.detach()) / h[:, None]
@@ -227,7 +243,7 @@ def steer(x0: Tensor, control: Control, representation: Representation, std: Ten
                 gamma_next = s.square().flatten(1).sum(1)
                 p, gamma = s + (gamma_next / gamma.clamp(min=1e-30))[:, None, None] * p, gamma_next
             change = (change + delta).detach()
-    return ((base + feature_change(change, integrated, smooth) * scale * keep) - mean) / std
+    return features_of(change)
 
 
 def steered(denoise: Denoiser, control: Control, representation: Representation, std: Tensor, mean: Tensor,
