@@ -45,7 +45,7 @@ def read_constraints(source: Path | str | dict, card: GenerationCard, frames: in
         path = Path(source)
         folder = path.parent
         try:
-            spec = json.loads(read_text(path, what), parse_constant=_refuse_constant(what))
+            spec = json.loads(read_text(path, what), parse_constant=_refuse_constant(f"{what} {path}"))
         except json.JSONDecodeError as e:
             raise UsageError(f"{what} {path}: not JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
         what = f"{what} {path}"
@@ -224,7 +224,12 @@ class _Builder:
         joint_map = item.get("joint_map")
         if joint_map is not None and not isinstance(joint_map, str):
             raise UsageError(f"{self.what}: {where}.joint_map must be a joint map's name or YAML file")
-        take = read_source_motion(path, self.skeleton, self.card.fps, joint_map, f"{where}.file")
+        try:
+            take = read_source_motion(path, self.skeleton, self.card.fps, joint_map, f"{self.what}: {where}.file")
+        except UsageError as e:  # a rig no joint map fits: said of this keyframe
+            message = str(e)
+            raise UsageError(message if message.startswith(self.what) else f"{self.what}: {where}.file: {message}"
+                             ) from None
         positions = take.positions if isinstance(take, Clip) else take
         J = self.skeleton.num_joints
         if positions.ndim != 3 or positions.shape[1:] != (J, 3):

@@ -247,11 +247,13 @@ def solve(base: Tensor, control: Control, representation: Representation, scale:
 
 
 def steered(denoise: Denoiser, control: Control, representation: Representation, std: Tensor, mean: Tensor,
-            mask: Tensor, num_timesteps: int) -> Denoiser:
+            mask: Tensor, num_timesteps: int, steps: int) -> Denoiser:
     """``denoise`` whose every x̂0 is steered towards ``control`` (``steer``): ``control.iterations`` per
     estimate, ``control.final_iterations`` once the noise level t is in the last ``final_share`` of the
     schedule (the estimates that become the sample)."""
-    final = math.ceil(control.final_share * num_timesteps)
+    # the last share of the schedule, and at least the last of ``steps`` evenly spaced steps (a few-step solver's
+    # last noise level is T / steps, above a tenth of T)
+    final = max(control.final_share * num_timesteps, num_timesteps / steps + 1)
 
     def steered_denoise(x: Tensor, t: Tensor) -> Tensor:
         x0 = denoise(x, t)

@@ -246,7 +246,7 @@ class MotionDiffusionModule(OmgModule):
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
             if settings.control is not None:
-                denoise = self.control_denoiser(denoise, mask, settings.control)
+                denoise = self.control_denoiser(denoise, mask, settings.control, settings.steps)
             shape = (*mask.shape, self.config.input_dim)
             given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
             x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
@@ -258,15 +258,15 @@ class MotionDiffusionModule(OmgModule):
         if settings.stance_root:
             self.checked_stance_root(settings.stance_root, key)
 
-    def control_denoiser(self, denoise: Denoiser, mask: Tensor, control: Control) -> Denoiser:
-        """Spatial control: every x̂0 steered towards ``control``'s targets in global joint positions
-        (``omg.lit.control.steered``), for ``control.frames`` = the longest motion's frames."""
+    def control_denoiser(self, denoise: Denoiser, mask: Tensor, control: Control, steps: int) -> Denoiser:
+        """Spatial control: every x̂0 of a ``steps``-step sampler steered towards ``control``'s targets in global
+        joint positions (``omg.lit.control.steered``), for ``control.frames`` = the longest motion's frames."""
         if control.frames != mask.shape[1] or control.targets.shape[0] not in (1, mask.shape[0]):
             raise ValueError(f"a control of {control.targets.shape[0]} x {control.frames} frames for "
                              f"{mask.shape[0]} motions of up to {mask.shape[1]} frames")
         dtype = next(self.model.parameters()).dtype
         return steered(denoise, control.to(self.device, dtype), self.representation, self.std.to(dtype),
-                       self.mean.to(dtype), mask, self.diffusion.num_timesteps)
+                       self.mean.to(dtype), mask, self.diffusion.num_timesteps, steps)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
