@@ -241,3 +241,15 @@ def test_the_api_takes_constraints_with_the_same_checks(pretrain_ckpt, tmp_path)
         bad = client.post("/v1/generate", json={**body, "constraints": late})
         assert bad.status_code == 422 and bad.json()["detail"] == ("constraints: targets[0].time 9 s is outside the "
                                                                    "motion (0..2 s)")
+
+
+def test_bench_control_measures_the_held_out_takes_met(pretrain_ckpt, h263_shards, capsys):
+    from omg.tools.bench.control import bench_control
+
+    results = bench_control(pretrain_ckpt, str(h263_shards / "val"), takes=2, steps=3, batch_size=2, max_len=40,
+                            contacts=False)  # an untrained model plants its feet anywhere
+    free, steered = results["unconstrained"], results["constrained"]
+    assert steered["within_5cm"] > 0.95 and steered["mean_cm"] < 2 and steered["path_cm"] < 2, steered
+    assert free["mean_cm"] > 10 * steered["mean_cm"], free
+    table = capsys.readouterr().out
+    assert "| constrained |" in table and "constrained / unconstrained: foot skating" in table
