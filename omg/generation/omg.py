@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from omg.errors import UsageError
+from omg.generation.control import KINDS, unmet
 from omg.generation.protocol import (
     MAX_SECONDS,
     GeneratedMotion,
@@ -18,6 +19,7 @@ from omg.generation.protocol import (
     number_option,
 )
 from omg.generation.registry import register_generator
+from omg.lit.control import constraint_errors
 from omg.lit.pretrain import MotionDiffusionModule
 from omg.lit.sampling import SamplingSettings
 from omg.registry import SAMPLERS
@@ -36,7 +38,7 @@ class OmgGenerator(ModuleGenerator):
             inputs=("text", "unconditional") if m.text_conditional else ("unconditional",),  # D_u: the prior
             max_frames=round(MAX_SECONDS * m.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=m.diffusion.num_timesteps, default_steps=min(200, m.diffusion.num_timesteps),
-            guidance=getattr(m, "guidance_scale", None), row_seeds=True, timeline=timeline_kinds(m),
+            guidance=getattr(m, "guidance_scale", None), row_seeds=True, timeline=timeline_kinds(m), constraints=KINDS,
             options={"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
             if m.representation.stance_root else {})
 
@@ -58,7 +60,8 @@ class OmgGenerator(ModuleGenerator):
         # use_ema=False: the weights as loaded (load_module puts the EMA in)
         sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
                                     use_ema=False, autocast=request.autocast, compile=request.compile,
-                                    stance_root=request.options.get("stance_root"), timeline=timeline)
+                                    stance_root=request.options.get("stance_root"), timeline=timeline,
+                                    control=request.control)
         untitled = "unconditional" if timeline is None else "timeline: " + " | ".join(timeline.texts)
         if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
             raise ValueError(f"{len(request.row_seeds)} row seeds for {len(jobs)} motions")
@@ -71,11 +74,16 @@ class OmgGenerator(ModuleGenerator):
             features = m.sample(texts, [request.frames] * len(batch),
                                 replace(sampling, seed=batch_seed, seeds=seeds))  # (n, T, D)
             joints = m.representation.decode(features.float())  # (n, T, J, 3)
+            reached = None if request.control is None else constraint_errors(joints, request.control.to(joints.device))
             for i, (prompt, k) in enumerate(batch):
-                seed = {"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]}
+                record = {"prompt": prompt, "repeat": k,
+                          **({"batch_seed": batch_seed} if seeds is None else {"seed": seeds[i]})}
+                if reached is not None:  # each constraint's worst distance, and those beyond their tolerance
+                    record["control_error_m"] = {name: round(e, 4) for name, e in reached[i].items()}
+                    record["control_unmet"] = {n: round(e, 4) for n, e in unmet(reached[i], request.control).items()}
                 motions.append(GeneratedMotion(
                     features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
-                    title=prompt or untitled, record={"prompt": prompt, "repeat": k, **seed}))
+                    title=prompt or untitled, record=record))
         return motions
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:

@@ -57,6 +57,8 @@ class GenerationCard:
     options: dict[str, str] = field(default_factory=dict)  # family options a request may set: name -> meaning
     row_seeds: bool = False  # ``generate`` honours ``GenerationRequest.row_seeds`` (a server may batch requests)
     timeline: tuple[str, ...] = ()  # what a request's timeline may hold: "timeline" (segments), "parts" (body parts)
+    # the kinds of spatial constraint ``generate`` takes (``GenerationRequest.control``; omg.generation.control)
+    constraints: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
@@ -90,6 +92,8 @@ class GenerationRequest:
     # a prompt timeline and body-part composition (``omg.generation.timeline.TimelineFile``), given instead of
     # prompts: each of the ``num_samples`` motions follows it
     timeline: Any = None
+    # spatial constraints resolved for one motion of ``frames`` (omg.lit.control.Control), where the card takes them
+    control: Any = None
 
 
 @dataclass
@@ -193,6 +197,11 @@ def check_request(card: GenerationCard, request: GenerationRequest, what: str = 
     if request.sampler is not None and not card.samplers:
         raise UsageError(f"--sampler: {what} has no sampler to choose")
     refuse_unknown_options(card, request.options, what)
+    if request.control is not None:
+        if not card.constraints:
+            raise UsageError(f"{what} takes no constraints (its generation card lists none)")
+        if request.control.frames != request.frames:
+            raise ValueError(f"constraints resolved for {request.control.frames} frames, {request.frames} asked")
     if request.species is not None and not card.open_species and request.species not in card.species:
         known = ", ".join(card.species) or "none (train the model first)"
         raise UsageError(f"unknown animal {request.species!r}; this checkpoint knows: {known}")

@@ -20,6 +20,7 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
+from omg.lit.control import Control, steered
 from omg.lit.sampling import SamplingSettings, check_stance_root
 from omg.lit.timeline import check_timeline, timeline_denoiser
 from omg.losses import GeometricLoss
@@ -225,7 +226,8 @@ class MotionDiffusionModule(OmgModule):
         (matmuls and attention in that dtype, the sampler's update in the weights' dtype);
         ``compile`` runs it through ``torch.compile`` (compiled once per shape, then reused).
         ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
-        foot (``stance_denoiser``). ``timeline`` (texts=None): each motion follows the timeline's texts by
+        foot (``stance_denoiser``); ``control`` then steers it towards joint targets (``omg.lit.control``), on
+        the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
         stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``).
         """
         settings = settings or SamplingSettings()
@@ -255,6 +257,8 @@ class MotionDiffusionModule(OmgModule):
             strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
+            if settings.control is not None:
+                denoise = self.control_denoiser(denoise, mask, settings.control, settings.steps)
             shape = (*mask.shape, self.config.input_dim)
             given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
             x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
@@ -265,6 +269,16 @@ class MotionDiffusionModule(OmgModule):
         """One line when ``settings`` step the root by the stance foot of a representation that cannot."""
         if settings.stance_root:
             self.checked_stance_root(settings.stance_root, key)
+
+    def control_denoiser(self, denoise: Denoiser, mask: Tensor, control: Control, steps: int) -> Denoiser:
+        """Spatial control: every x̂0 of a ``steps``-step sampler steered towards ``control``'s targets in global
+        joint positions (``omg.lit.control.steered``), for ``control.frames`` = the longest motion's frames."""
+        if control.frames != mask.shape[1] or control.targets.shape[0] not in (1, mask.shape[0]):
+            raise ValueError(f"a control of {control.targets.shape[0]} x {control.frames} frames for "
+                             f"{mask.shape[0]} motions of up to {mask.shape[1]} frames")
+        dtype = next(self.model.parameters()).dtype
+        return steered(denoise, control.to(self.device, dtype), self.representation, self.std.to(dtype),
+                       self.mean.to(dtype), mask, self.diffusion.num_timesteps, steps)
 
     def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
         """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -20,6 +20,9 @@ from torch import Tensor
 from omg.errors import UsageError
 from omg.lit.timeline import Timeline
 from omg.registry import MODULE_SAMPLERS, SAMPLERS
+
+if TYPE_CHECKING:
+    from omg.lit.control import Control
 
 
 def check_stance_root(strength: float, key: str) -> float:
@@ -38,7 +41,8 @@ class SamplingSettings:
     classifier-free guidance scale (None: the module's); ``seed`` fixes the initial noise, or ``seeds``
     (one per motion) each motion's own; ``use_ema``: the EMA weights where kept; ``stance_root`` (None:
     the module's) steps the root of every denoised estimate by its stance foot; ``autocast`` (a torch
-    dtype) runs the network under autocast; ``compile`` runs it through ``torch.compile``. ``key`` names
+    dtype) runs the network under autocast; ``compile`` runs it through ``torch.compile``; ``control``
+    (``omg.lit.control.Control``, None: none) steers every denoised estimate towards joint targets. ``key`` names
     the settings in the one-line errors (``EvalCallback``); a family takes the settings that apply to it
     (OmniMotionGPT passes steps, sampler and guidance to its human generator). ``timeline``
     (``omg.lit.timeline.Timeline``): every motion follows its texts, by stretches of frames and by body
@@ -53,6 +57,7 @@ class SamplingSettings:
     stance_root: float | None = None
     autocast: torch.dtype | None = None
     compile: bool = False
+    control: Control | None = None
     key: str = ""
     timeline: Timeline | None = None
 
@@ -67,8 +72,11 @@ class SamplingSettings:
             object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
 
     def report(self) -> dict[str, Any]:
-        """What an evaluation report records: steps, guidance, use_ema, sampler, and stance_root when set."""
+        """What an evaluation report records: steps, guidance, use_ema, sampler, and stance_root and the
+        constraints' names when set."""
         shown = {"steps": self.steps, "guidance": self.guidance, "use_ema": self.use_ema, "sampler": self.sampler}
+        if self.control is not None:
+            shown["control"] = list(self.control.names)
         return shown if self.stance_root is None else {**shown, "stance_root": self.stance_root}
 
 

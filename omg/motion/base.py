@@ -115,6 +115,22 @@ class Representation(ABC):
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None
 
+    def integrated_features(self) -> tuple[int, ...]:
+        """The feature channels whose running sum ``decode`` takes (a root velocity, a yaw rate): row t moves
+        frame t to t + 1. Spatial control changes them by differences of a change per frame (``omg.lit.control``),
+        so that a target at frame t asks a change of its own frame, not of every frame before it."""
+        return ()
+
+    def heading_features(self) -> tuple[int, ...]:
+        """The channels that turn the whole body (a yaw rate): spatial control changes them only for a facing."""
+        return ()
+
+    def inpaint(self, features: torch.Tensor, targets: torch.Tensor, stated: torch.Tensor) -> torch.Tensor:
+        """(..., T', D) features with the values that joint targets (..., T', J, 3) state outright written in
+        where ``stated`` (..., T', J, 3) says a target gives that axis (spatial control's inpainting,
+        ``omg.lit.control``); a representation whose features state no joint position returns them as they are."""
+        return features
+
     def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         """(..., T', D) features with the root's horizontal motion taken from the stance foot: where a
         foot is planted, the root steps so that the foot stays still (sampling's ``stance_root``).

@@ -235,6 +235,18 @@ class HumanML3D263(Representation):
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
         return features[..., 259:263]
 
+    def integrated_features(self) -> tuple[int, ...]:
+        return (0, 1, 2)  # the yaw rate and the root's XZ velocity
+
+    def heading_features(self) -> tuple[int, ...]:
+        return (0,)
+
+    def inpaint(self, features: torch.Tensor, targets: torch.Tensor, stated: torch.Tensor) -> torch.Tensor:
+        """The root's height (feature 3) set where a target states it: the one joint coordinate these features
+        hold in the world frame (the root's XZ is integrated from velocities, the other joints turn with it)."""
+        height = torch.where(stated[..., 0, 1], targets[..., 0, 1], features[..., 3])  # (..., T)
+        return torch.cat([features[..., :3], height[..., None], features[..., 4:]], dim=-1)
+
     def root_from_stance(self, features: torch.Tensor, strength: float = 1.0) -> torch.Tensor:
         """(..., T, 263) -> the features with the root's XZ velocity [1:3] moved ``strength`` of the way to
         the step that keeps the stance foot still, at every step t -> t+1 where a foot joint is in contact

@@ -46,6 +46,10 @@ class QuatVel(Representation):
         meta = {"offsets": offsets.tolist(), "root_start": positions[0, 0].tolist()}
         return np.concatenate([quats, velocity], axis=1).astype(np.float32), meta
 
+    def integrated_features(self) -> tuple[int, ...]:
+        J = self.skeleton.num_joints
+        return tuple(range(J * 4, J * 4 + 3))  # the root's velocity
+
     def decode(
         self,
         features: torch.Tensor,  # (..., T', J * 7)

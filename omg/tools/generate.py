@@ -9,6 +9,7 @@ in metres, Y up, and ``sample_NNN.bvh`` (rotations solved by IK on the model's s
 
 from __future__ import annotations
 
+import sys
 import unicodedata
 from pathlib import Path
 from typing import Any, Literal
@@ -61,6 +62,7 @@ def generate(
     from_motion_joint_map: str | None = None,
     human_ckpt: Path | None = None,
     prior_ckpt: Path | None = None,
+    constraints: Path | None = None,
     out: Path = Path("out/generate"),
     command: str = "",
 ) -> dict:
@@ -116,6 +118,9 @@ def generate(
             (without either, the checkpoint's own human source)
         prior_ckpt: habit checkpoints of the kl_then_flows order: the HabitPriorModule checkpoint whose flows
             draw the habit latent (without it, the checkpoint's own flows or the mean of the target's posterior)
+        constraints: a JSON file of spatial constraints (keyframes, joint targets, root waypoints and paths, facing,
+            foot contacts; docs/guide/control.md) the motions are steered to meet, for checkpoints whose card takes
+            them (OMG); one not met is written with a warning stating the error reached
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in generation.json
 
@@ -134,7 +139,7 @@ def generate(
         options=([f"stance_root={stance_root}"] if stance_root is not None else []) + list(option or []),
         to_rig=to_rig, joint_map=joint_map, format=format, device=device, autocast=autocast, compile=compile,
         animal=animal, from_motion=from_motion, from_motion_joint_map=from_motion_joint_map, human_ckpt=human_ckpt,
-        prior_ckpt=prior_ckpt, out=out, command=command)
+        prior_ckpt=prior_ckpt, constraints=constraints, out=out, command=command)
     frames, fps = settings["frames"], settings["fps"]
     print(f"wrote {len(settings['samples'])} motions of {frames} frames ({frames / fps:g} s at {fps:g} fps) to {out}")
     return settings
@@ -149,7 +154,8 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
                    joint_map: str | None = None, format: str | None = None, device: str | None = None,
                    autocast: str | None = None, compile: bool = False, animal: str | None = None,
                    from_motion: Path | None = None, from_motion_joint_map: str | None = None,
-                   human_ckpt: Path | None = None, prior_ckpt: Path | None = None, expect: type | None = None,
+                   human_ckpt: Path | None = None, prior_ckpt: Path | None = None, constraints: Path | None = None,
+                   expect: type | None = None,
                    names: list[str] | None = None, settings_file: str = "generation.json",
                    extra_files: tuple[str, ...] = (), extra_settings: dict[str, Any] | None = None) -> dict:
     """``omg generate`` and its aliases (``omg transfer``): every input checked before anything is loaded or
@@ -204,6 +210,11 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
         request.source_module = generator_for(load_module(human_ckpt), human_ckpt).to(device)
     request.source = from_motion  # read once the card says the model takes it
     check_request(card, request, what)
+    given = None
+    if constraints is not None:  # read and resolved before anything is sampled or written
+        from omg.generation.control import read_constraints
+
+        request.control, given = read_constraints(constraints, card, frames)
     if from_motion is not None:
         request.source = generator.read_source(from_motion, from_motion_joint_map)
     rig = read_rig(to_rig, card.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
@@ -211,12 +222,17 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     motions = generator.generate(request)
     check_finite_motions(motions, ckpt, f" or --guidance {guidance:g} too large" if prompts and guidance is not None
                          else "")
+    for i, motion in enumerate(motions):  # a constraint that cannot be met is generated, never silently
+        for name, error in motion.record.get("control_unmet", {}).items():
+            print(f"omg: warning: motion {i}: {name} not met: {100 * error:.1f} cm from its target at worst",
+                  file=sys.stderr)
     settings = {"command": command, "ckpt": str(ckpt), "module": type(module).__name__, "family": card.family,
                 "prompts": prompts, "num_samples": num_samples, "length_s": length, "frames": request.frames,
                 "fps": card.fps, "seed": seed, "ema": ema, "autocast": autocast, "compile": compile,
                 "from_motion": None if from_motion is None else str(from_motion),
                 "human_ckpt": None if human_ckpt is None else str(human_ckpt),
                 "prior_ckpt": None if prior_ckpt is None else str(prior_ckpt), "clean_contacts": clean_contacts,
+                **({} if constraints is None else {"constraints_file": str(constraints), "constraints": given}),
                 "to_rig": None if to_rig is None else str(to_rig), "joint_map": joint_map, "format": format,
                 **generator.generation_settings(request),
                 "representation": card.representation, "skeleton": card.skeleton, **(extra_settings or {})}

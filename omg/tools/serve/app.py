@@ -177,9 +177,10 @@ def _fail(job: Job, e: Exception) -> None:
 
 def _key(job: Job) -> tuple | None:
     """Jobs with the same key are sampled in one call; None: alone (a family without per-motion seeds, or a
-    request with a source motion or a timeline)."""
+    request with a source motion, a timeline or constraints)."""
     r = job.request
-    if not job.model.card.row_seeds or r.source is not None or r.source_module is not None or r.timeline is not None:
+    if (not job.model.card.row_seeds or r.source is not None or r.source_module is not None or r.timeline is not None
+            or r.control is not None):
         return None
     return (job.model.name, r.frames, r.steps, r.sampler, r.guidance, r.species, bool(r.prompts))
 
@@ -243,6 +244,8 @@ class GenerateBody(BaseModel):
     timeline: list | dict | None = Field(None, description="a prompt timeline and body-part composition instead of "
                                          "prompts, as omg generate --timeline reads it (models whose card lists "
                                          "timeline)")
+    constraints: dict[str, Any] | None = Field(None, description="spatial constraints, as a constraints file's JSON "
+                                               "(docs/guide/control.md; keyframes give joints or positions, no file)")
 
 
 def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
@@ -351,7 +354,13 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         if model.source_module is not None and prompts:
             request.source_module = model.source_module
         _check(card, request, model, length)
-        return await _answer(model, request, rows, {"length_s": length})
+        extra: dict[str, Any] = {"length_s": length}
+        if body.constraints is not None:  # the same reading as --constraints: one line (422) per error
+            from omg.generation.control import read_constraints
+
+            request.control, extra["constraints"] = read_constraints(body.constraints, card, request.frames,
+                                                                     "constraints", allow_files=False)
+        return await _answer(model, request, rows, extra)
 
     @app.post("/v1/transfer", summary="an uploaded motion moved onto another species (or made by a model that "
                                       "takes a source motion)")

@@ -1,0 +1,279 @@
+"""Spatial control of diffusion sampling: every denoised estimate steered towards joint targets in the space they
+are stated in, global joint positions (OmniControl's spatial guidance, Xie et al. ICLR 2024, applied to x̂0).
+
+``Control`` is the resolved, tensor-level form of a constraints file (``omg.generation.control`` reads and checks
+the file): per frame and joint a target position in the model's world (metres, Y up; a motion's first frame has
+its root above the XZ origin and faces +Z, as the representation decodes it), the axes that count, a weight and a
+tolerance; feet that must stay planted (given, or the model's own contact channels); a facing. It travels in
+``SamplingSettings.control``, so ``omg generate``, ``omg serve``, ``omg bench control`` and the callbacks sample
+along one path (``MotionDiffusionModule.sample``).
+
+``steered`` wraps the sampler's denoiser: each x̂0 the network estimates is moved to meet the constraints on the
+representation's differentiable ``decode`` (``steer``: Gauss-Newton, each pass solved by conjugate gradients
+for the least change in the features' own spread; a few iterations per estimate, more on the last estimates,
+whose last is the sample). On all but the last estimates the change is smoothed over time by a Gaussian of
+``smooth`` frames, the realism term: a target at one frame bends its neighbourhood instead of one frame's pose,
+and the network, which denoises the steered estimate at the next step, carries the unconstrained joints and
+frames along as its prior would; the last estimates are met exactly, frame by frame. Features a target states
+outright (humanml3d263's root height) are written in (``Representation.inpaint``). Why x̂0 and not x_t: every
+registered sampler steps on x̂0 (``omg.samplers``), so one wrapper serves them all, and the estimate is in the
+space the targets are stated in after one decode, without a backward pass through the network.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omg.diffusion import Denoiser
+from omg.motion.base import Representation
+
+FEET_STILL = 1.0  # weight of a planted foot's step (m²) against a target's miss (m²)
+PASS = 16  # conjugate-gradient iterations of one Gauss-Newton pass
+FACING_WEIGHT = 0.05  # weight of the facing's miss (unit vectors) against a target's (m²): 0.05 ≈ (22 cm)² per rad²
+
+
+@dataclass(frozen=True, eq=False)
+class Control:
+    """Resolved constraints of N motions (N = 1: the same for every motion sampled) over T frames and the
+    skeleton's J joints.
+
+    ``targets`` (N, T, J, 3) metres; ``axes`` (N, T, J, 3) bool: the axes a target states (a hand's height: Y
+    only); ``weights`` (N, T, J) >= 0, 0 where no target is; ``tolerance`` (N, T, J) metres within which a
+    target counts as met and pulls no further; ``groups`` (N, T, J) long: the index in ``names`` of the
+    constraint that set the target (-1: none), for the errors reported per constraint. ``contacts`` (N, T, F)
+    bool: the skeleton's feet (``skeleton.feet`` order) planted at frame t; ``own_contacts``: keep still the
+    feet the model's own contact channels plant (``Representation.foot_contacts``). ``facing`` (N, T, 2): the
+    unit XZ direction the body faces (zero where free). Steering: ``iterations`` conjugate-gradient iterations
+    per estimate, ``final_iterations`` on the estimates of the last ``final_share`` of the noise levels, met
+    without smoothing; ``smooth``: the Gaussian's sigma in frames on the others (0: each frame moves alone);
+    ``inpaint``: write in the features a target states outright."""
+
+    targets: Tensor
+    axes: Tensor
+    weights: Tensor
+    tolerance: Tensor
+    groups: Tensor
+    names: tuple[str, ...] = ()
+    contacts: Tensor | None = None
+    own_contacts: bool = False
+    facing: Tensor | None = None
+    iterations: int = 4
+    final_iterations: int = 16
+    final_share: float = 0.1
+    smooth: float = 2.0
+    inpaint: bool = True
+
+    @property
+    def frames(self) -> int:
+        return self.targets.shape[1]
+
+    def to(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> Control:
+        """The tensors on ``device``, positions in ``dtype``."""
+        moved = {k: getattr(self, k) for k in ("targets", "axes", "weights", "tolerance", "groups", "contacts",
+                                               "facing")}
+        moved = {k: None if v is None else v.to(device, dtype if v.is_floating_point() else v.dtype)
+                 for k, v in moved.items()}
+        return Control(**moved, names=self.names, own_contacts=self.own_contacts, iterations=self.iterations,
+                       final_iterations=self.final_iterations, final_share=self.final_share, smooth=self.smooth,
+                       inpaint=self.inpaint)
+
+
+def distances(joints: Tensor, control: Control) -> Tensor:
+    """(B, T, J, 3) positions -> (B, T, J) metres from each target on its stated axes (0 where none is)."""
+    return ((joints - control.targets) * control.axes).square().sum(-1).add(1e-12).sqrt() * (control.weights > 0)
+
+
+def facing_of(joints: Tensor, face_joints: tuple[int, ...]) -> Tensor:
+    """(..., J, 3) -> (..., 2) unit XZ direction the body faces, from its hips and shoulders (right hip, left hip,
+    right shoulder, left shoulder): perpendicular to the line from its right side to its left, Y up."""
+    r_hip, l_hip, r_shoulder, l_shoulder = face_joints
+    across = (joints[..., l_hip, :] - joints[..., r_hip, :]) + (joints[..., l_shoulder, :] - joints[..., r_shoulder, :])
+    forward = torch.stack((-across[..., 2], across[..., 0]), dim=-1)  # (across × up) in XZ
+    return F.normalize(forward, dim=-1, eps=1e-8)
+
+
+def residuals(joints: Tensor, control: Control, representation: Representation, planted: Tensor | None,
+              pull: Tensor) -> Tensor:
+    """(B, T, J, 3) positions -> (B, R) residuals whose squares sum to the constraint loss: each target's miss on
+    its stated axes times ``pull`` (B, T, J: √weight and the share of the miss beyond the tolerance, fixed where
+    the joints were linearised); each planted foot's step (``planted`` (B, T, F) or None); the facing's miss."""
+    parts = [((joints - control.targets) * control.axes * pull[..., None]).flatten(1)]
+    feet = list(representation.skeleton.feet)
+    if planted is not None and feet:
+        still = (planted[:, 1:] & planted[:, :-1])[..., None]  # (B, T-1, F, 1) planted at both ends of the step
+        step = joints[:, 1:, feet] - joints[:, :-1, feet]  # (B, T-1, F, 3)
+        parts.append((math.sqrt(FEET_STILL) * step * still).flatten(1))
+    if control.facing is not None and representation.skeleton.face_joints:
+        given = (control.facing.norm(dim=-1, keepdim=True) > 0)  # (N, T, 1)
+        miss = (facing_of(joints, representation.skeleton.face_joints) - control.facing) * given
+        parts.append((math.sqrt(FACING_WEIGHT) * miss).flatten(1))
+    return torch.cat([p.expand(joints.shape[0], -1) for p in parts], dim=1)
+
+
+def planted_feet(features: Tensor, control: Control, representation: Representation) -> Tensor | None:
+    """(B, T, F) bool: the feet ``control`` plants, with those the features' own contact channels plant."""
+    planted = control.contacts
+    if control.own_contacts and (own := representation.foot_contacts(features)) is not None:
+        planted = own > 0.5 if planted is None else planted | (own > 0.5)
+    return planted
+
+
+def target_pull(joints: Tensor, control: Control) -> Tensor:
+    """(B, T, J): √weight times the share of each target's miss beyond its tolerance (0 within it)."""
+    dist = distances(joints, control)
+    beyond = (1 - control.tolerance / dist.clamp(min=1e-9)).clamp(min=0)
+    return control.weights.sqrt() * beyond
+
+
+def gaussian_smoother(sigma: float, frames: int, device: torch.device,
+                      dtype: torch.dtype) -> Callable[[Tensor], Tensor]:
+    """(B, T, D) -> the same smoothed along T by a Gaussian of ``sigma`` frames (edges repeated); identity at 0."""
+    if sigma <= 0:
+        return lambda z: z
+    radius = min(int(3 * sigma + 0.5), frames - 1)
+    if radius < 1:
+        return lambda z: z
+    offsets = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
+    kernel = torch.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel = (kernel / kernel.sum()).view(1, 1, -1)
+
+    def smooth(z: Tensor) -> Tensor:
+        B, T, D = z.shape
+        flat = z.transpose(1, 2).reshape(B * D, 1, T)
+        flat = F.conv1d(F.pad(flat, (radius, radius), mode="replicate"), kernel)
+        return flat.reshape(B, D, T).transpose(1, 2)
+
+    return smooth
+
+
+def feature_change(change: Tensor, integrated: tuple[int, ...], smooth: Callable[[Tensor], Tensor]) -> Tensor:
+    """(B, T, D) change per frame, in the features' own units -> the change of the features: smoothed over time,
+    and on the ``integrated`` channels (a velocity whose running sum ``decode`` takes) the difference of the
+    change from frame t to t + 1, so that each frame's target asks a change of its own frame (a root displaced
+    at frame t), not a sum over every frame before it: the problem stays about as well conditioned as the targets
+    are."""
+    change = smooth(change)
+    if not integrated:
+        return change
+    index = list(integrated)
+    moved = change[..., index]
+    stepped = F.pad(moved[:, 1:] - moved[:, :-1], (0, 0, 0, 1))  # the last row moves no frame after it
+    return change.index_copy(-1, torch.tensor(index, device=change.device), stepped)
+
+
+def steer(x0: Tensor, control: Control, representation: Representation, std: Tensor, mean: Tensor, mask: Tensor,
+          iterations: int) -> Tensor:
+    """x̂0 (B, T, D) normalised -> moved to meet ``control`` (``solve``): with a facing, first the heading alone
+    towards it (the one channel decode is not linear in), then every other channel, the heading kept, towards the
+    targets and planted feet (turning the whole body is no way to reach a hand's target)."""
+    base = x0 * std + mean
+    if control.inpaint:
+        stated = control.axes & (control.weights > 0)[..., None]
+        base = torch.where(mask[..., None], representation.inpaint(base, control.targets, stated), base)
+    if iterations <= 0:
+        return (base - mean) / std
+    integrated, heading = representation.integrated_features(), list(representation.heading_features())
+    # the change's unit per channel: the feature's spread in the data, so that the least change moves each feature
+    # in proportion to it; an integrated channel's change is an offset of its running sum (a root displacement, a
+    # heading), whose spread over T frames of a random walk is √T velocities': in a velocity's own spread, the
+    # displacements the targets ask would be T-fold and CG would crawl through them
+    scale = std.clone()
+    scale[list(integrated)] *= math.sqrt(x0.shape[1])
+    turning = torch.zeros_like(scale)
+    turning[heading] = scale[heading]
+    scale[heading] = 0.0
+    if control.facing is not None and heading:
+        facing_only = replace(control, weights=torch.zeros_like(control.weights), contacts=None, own_contacts=False)
+        base = solve(base, facing_only, representation, turning, mask, iterations)
+    return (solve(base, control, representation, scale, mask, iterations) - mean) / std
+
+
+def solve(base: Tensor, control: Control, representation: Representation, scale: Tensor, mask: Tensor,
+          iterations: int) -> Tensor:
+    """Features (B, T, D) -> changed to meet ``control``: Gauss-Newton passes on the residuals of their decoded
+    joints (``residuals``), each solved by up to ``PASS`` conjugate-gradient (CGLS) iterations, ``iterations`` in
+    all. The change is sought in units of ``scale`` (D,) per channel (0: the channel stays) through
+    ``feature_change`` (smoothed over time, integrated channels changed by differences), and CGLS started from no
+    change finds the least change that meets the targets, the rest of the motion kept."""
+    keep = mask[..., None].to(base.dtype)  # (B, T, 1)
+    smooth = gaussian_smoother(control.smooth, base.shape[1], base.device, base.dtype)
+    integrated = representation.integrated_features()
+    change = torch.zeros_like(base)
+
+    def features_of(z: Tensor) -> Tensor:
+        return base + feature_change(z, integrated, smooth) * scale * keep
+
+    with torch.enable_grad():
+        for start in range(0, iterations, PASS):
+            now = features_of(change)
+            planted = planted_feet(now, control, representation)
+            pull = target_pull(representation.decode(now), control)
+
+            def residual(z: Tensor) -> Tensor:
+                return residuals(representation.decode(features_of(z)), control, representation, planted, pull)
+
+            point = change.clone().requires_grad_(True)
+            r0 = residual(point)  # (B, R), its graph kept for the transposed products
+
+            def vjp(u: Tensor) -> Tensor:
+                return torch.autograd.grad(r0, point, u, retain_graph=True)[0]
+
+            def jvp(v: Tensor) -> Tensor:
+                # a forward difference: exact where decode is linear in the change (positions given the heading),
+                # and a fifth of the cost of forward-mode autograd here
+                h = 1e-2 / v.abs().flatten(1).amax(1).clamp(min=1e-12)  # (B,) a step of 0.01 in the largest unit
+                with torch.no_grad():
+                    return (residual(change + h[:, None, None] * v) - r0.detach()) / h[:, None]
+
+            # CGLS for each motion on its own (its own step sizes): min ‖r0 + J·delta‖ from delta = 0
+            delta, r = torch.zeros_like(change), -r0.detach()
+            s = vjp(r)
+            p, gamma = s, s.square().flatten(1).sum(1)  # (B,)
+            for _ in range(min(PASS, iterations - start)):
+                q = jvp(p)
+                alpha = gamma / q.square().flatten(1).sum(1).clamp(min=1e-30)
+                delta, r = delta + alpha[:, None, None] * p, r - alpha[:, None] * q
+                s = vjp(r)
+                gamma_next = s.square().flatten(1).sum(1)
+                p, gamma = s + (gamma_next / gamma.clamp(min=1e-30))[:, None, None] * p, gamma_next
+            change = (change + delta).detach()
+    return features_of(change)
+
+
+def steered(denoise: Denoiser, control: Control, representation: Representation, std: Tensor, mean: Tensor,
+            mask: Tensor, num_timesteps: int, steps: int) -> Denoiser:
+    """``denoise`` whose every x̂0 is steered towards ``control`` (``steer``): ``control.iterations`` per
+    estimate, ``control.final_iterations`` once the noise level t is in the last ``final_share`` of the
+    schedule (the estimates that become the sample)."""
+    # the last share of the schedule, and at least the last of ``steps`` evenly spaced steps (a few-step solver's
+    # last noise level is T / steps, above a tenth of T)
+    final = max(control.final_share * num_timesteps, num_timesteps / steps + 1)
+
+    def steered_denoise(x: Tensor, t: Tensor) -> Tensor:
+        x0 = denoise(x, t)
+        if float(t.max()) < final:  # the estimates that become the sample: met exactly, each frame on its own
+            return steer(x0, replace(control, smooth=0.0), representation, std, mean, mask, control.final_iterations)
+        return steer(x0, control, representation, std, mean, mask, control.iterations)
+
+    return steered_denoise
+
+
+def constraint_errors(joints: Tensor, control: Control) -> list[dict[str, float]]:
+    """(B, T, J, 3) -> per motion, each named constraint's worst distance to its targets (metres)."""
+    dist = distances(joints, control)  # (B, T, J)
+    groups = control.groups.expand(dist.shape)
+    out = []
+    for b in range(dist.shape[0]):
+        row: dict[str, float] = {}
+        for index, name in enumerate(control.names):
+            chosen = groups[b] == index
+            if chosen.any():
+                row[name] = float(dist[b][chosen].max())
+        out.append(row)
+    return out

@@ -1,0 +1,129 @@
+"""``omg bench control``: spatial control measured on held-out real takes: control error, foot skating and cost."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from omg.tools.args import NonNegativeInt, PositiveInt
+
+
+def bench_control(
+    ckpt: Path,
+    val: str,
+    takes: PositiveInt = 16,
+    max_len: PositiveInt = 120,
+    steps: PositiveInt = 50,
+    sampler: str = "ddim",
+    keyframe_every: float = 2.0,
+    wrist: str = "right_wrist",
+    batch_size: PositiveInt = 16,
+    iterations: NonNegativeInt | None = None,
+    final_iterations: NonNegativeInt | None = None,
+    smooth: float | None = None,
+    contacts: bool = True,
+    seed: NonNegativeInt = 0,
+    command: str = "omg bench control",
+) -> dict:
+    """Each held-out take's own root path (every frame), its full-body keyframes every ``keyframe_every``
+    seconds and one wrist's positions (every frame) as constraints; the checkpoint samples every take (from its
+    caption when text-conditioned) with and without them at the same settings. Prints a Markdown table: control
+    error at the constrained joints and frames (mean and max cm, share within 5 and 10 cm), the root path's
+    mean error, foot skating of both and of the real takes, and seconds per motion of both.
+
+    Args:
+        ckpt: an OMG checkpoint (the ControlNet, or the pretrained prior)
+        val: the held-out shard directory (the small recipe's shards/bandai1/val, or a user's own)
+        takes: held-out takes to constrain (the first ones of a seeded order)
+        max_len: longest take, in frames (longer takes are cropped)
+        steps: sampling steps
+        sampler: a registered sampler
+        keyframe_every: seconds between full-body keyframes (from 0)
+        wrist: the joint whose positions are constrained at every frame
+        batch_size: motions sampled at once
+        iterations, final_iterations, smooth: the steering's (``omg.lit.control.Control``; default its own)
+        contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
+        seed: the prompt order's and the noise's seed
+        command: the command line, recorded with the results
+    """
+    from omg.data.datamodule import MotionDataModule
+    from omg.evaluation import prompt_set
+    from omg.lit.checkpoint import load_module
+    from omg.lit.control import Control, distances
+    from omg.lit.pretrain import MotionDiffusionModule
+    from omg.lit.sampling import SamplingSettings
+    from omg.metrics.joints import FootSkating
+    from omg.motion import length_mask
+
+    module = load_module(ckpt, expect=MotionDiffusionModule).eval()
+    data = MotionDataModule(val=val, max_len=max_len, clips="whole")
+    chosen = prompt_set(data.val_clips().samples, takes, seed, data.windows)
+    rep, skeleton, fps = module.representation, module.representation.skeleton, module.spec.fps
+    hand = skeleton.index(wrist)
+    real = rep.decode(chosen.motions)  # (N, T, J, 3) the takes in the model's world
+    mask = length_mask(chosen.lengths, real.shape[1])  # (N, T)
+    N, T, J = real.shape[:3]
+    weights = torch.zeros(N, T, J)
+    axes = torch.zeros(N, T, J, 3, dtype=torch.bool)
+    groups = torch.full((N, T, J), -1)
+    every = max(round(keyframe_every * fps), 1)
+    keyframes = torch.zeros(T, dtype=torch.bool)
+    keyframes[::every] = True
+    weights[:, keyframes] = 1.0
+    axes[:, keyframes] = True
+    groups[:, keyframes] = 0
+    weights[:, :, hand], axes[:, :, hand], groups[:, :, hand] = 1.0, True, 1
+    weights[:, :, 0], axes[:, :, 0, 0], axes[:, :, 0, 2], groups[:, :, 0] = 1.0, True, True, 2
+    weights, groups = weights * mask[..., None], torch.where(mask[..., None], groups, -1)
+    steering = {k: v for k, v in (("iterations", iterations), ("final_iterations", final_iterations),
+                                  ("smooth", smooth)) if v is not None}
+    control = Control(targets=real, axes=axes, weights=weights, tolerance=torch.zeros(N, T, J), groups=groups,
+                      names=("keyframes", wrist, "path"), own_contacts=contacts, **steering)
+    texts = chosen.texts if module.text_conditional else None
+    results: dict[str, dict] = {}
+    for name, given in (("unconstrained", None), ("constrained", control)):
+        seconds, motions = 0.0, []
+        for start in range(0, N, batch_size):
+            rows = slice(start, min(start + batch_size, N))
+            part = None if given is None else _rows(given, rows)
+            began = time.perf_counter()
+            motion = module.sample(None if texts is None else list(texts[rows]), chosen.lengths[rows],
+                                   SamplingSettings(steps=steps, sampler=sampler, seed=seed + start, use_ema=False,
+                                                    control=part))
+            seconds += time.perf_counter() - began
+            motions.append(torch.nn.functional.pad(motion, (0, 0, 0, T - motion.shape[1])))
+        features = torch.cat(motions)
+        joints = rep.decode(features)
+        skating = FootSkating(skeleton, fps)
+        skating.update(joints, mask)
+        dist = distances(joints, control)[weights > 0] * 100  # cm at every constrained joint and frame
+        path = (joints[:, :, 0, [0, 2]] - real[:, :, 0, [0, 2]]).norm(dim=-1)[mask] * 100
+        results[name] = {"mean_cm": float(dist.mean()), "max_cm": float(dist.max()),
+                         "within_5cm": float((dist <= 5).double().mean()),
+                         "within_10cm": float((dist <= 10).double().mean()), "path_cm": float(path.mean()),
+                         "foot_skating": float(skating.compute()), "s_per_motion": seconds / N}
+    real_skating = FootSkating(skeleton, fps)
+    real_skating.update(real, mask)
+    print(f"`{command}`: {N} held-out takes of {val}, {steps} {sampler} steps, keyframes every {keyframe_every:g} s, "
+          f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}; real takes' "
+          f"foot skating {float(real_skating.compute()):.3f}")
+    print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating | s / motion |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, r in results.items():
+        print(f"| {name} | {r['mean_cm']:.2f} | {r['max_cm']:.2f} | {r['within_5cm']:.3f} | {r['within_10cm']:.3f} "
+              f"| {r['path_cm']:.2f} | {r['foot_skating']:.3f} | {r['s_per_motion']:.2f} |", flush=True)
+    free, steered = results["unconstrained"], results["constrained"]
+    skating = steered["foot_skating"] / max(free["foot_skating"], 1e-9)
+    print(f"constrained / unconstrained: foot skating {skating:.2f}x, cost "
+          f"{steered['s_per_motion'] / free['s_per_motion']:.2f}x")
+    return results
+
+
+def _rows(control, rows: slice):
+    """The ``Control`` of some motions of a batch of per-motion controls."""
+    from dataclasses import replace
+
+    return replace(control, targets=control.targets[rows], axes=control.axes[rows], weights=control.weights[rows],
+                   tolerance=control.tolerance[rows], groups=control.groups[rows])

@@ -1,0 +1,255 @@
+"""Spatial control (issue #38's spatial half): the constraints file read and checked in one line per error, every
+sampler steered onto keyframes, joint targets and root paths that unconstrained sampling misses, sampling without
+constraints untouched, and the routes: ``omg generate --constraints`` and ``omg serve``'s ``constraints``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from helpers import TINY_DIT
+from helpers.checkpoints import SPEC
+from omg.errors import UsageError
+from omg.generation.control import KINDS, read_constraints
+from omg.generation.protocol import GenerationCard
+from omg.lit.control import constraint_errors
+from omg.lit.pretrain import PretrainModule
+from omg.lit.sampling import SamplingSettings
+
+CARD = GenerationCard(family="omg", skeleton="smpl22", representation="humanml3d263", fps=20.0,
+                      inputs=("text", "unconditional"), constraints=KINDS)
+FRAMES = 40  # 2 s at 20 fps
+BVH = Path(__file__).parent.parent / "../shared/data/motion/human/bandai1/dataset-1_bow_normal_001.bvh"
+TWO_JOINT_BVH = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT Spine
+  {
+    OFFSET 0 10 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 10 0
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.05
+0 90 0 0 0 0 0 0 0
+0 90 0 0 0 0 0 0 0
+"""
+
+
+def _module() -> PretrainModule:
+    """An untrained mini prior with random weights and the mini shards' feature statistics: its samples go
+    anywhere, so only steering meets a target."""
+    stats = json.loads((Path(__file__).parent.parent / "shards/mini/human263/train/manifest.json").read_text())
+    torch.manual_seed(0)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec={**SPEC, "mean": stats["mean"], "std": stats["std"]},
+                            ema_decay=0)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    return module.eval()
+
+
+@pytest.fixture(scope="module")
+def module() -> PretrainModule:
+    return _module()
+
+
+@pytest.fixture(scope="module")
+def pretrain_ckpt(tmp_path_factory, module) -> Path:
+    from omg.lit.checkpoint import class_path
+
+    ckpt = tmp_path_factory.mktemp("control") / "pre.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "module_class": class_path(type(module))}, ckpt)
+    return ckpt
+
+
+def _error(spec, card: GenerationCard = CARD) -> str:
+    with pytest.raises(UsageError) as e:
+        read_constraints(spec, card, FRAMES, "constraints", allow_files=False)  # as a request is read
+    message = str(e.value)
+    assert "\n" not in message
+    return message
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"targets": [{"joint": "right_wrist", "time": 2.5, "position": [0, 1, 0]}]},
+     "constraints: targets[0].time 2.5 s is outside the motion (0..2 s)"),
+    ({"targets": [{"joint": "rigth_wrist", "time": 1, "position": [0, 1, 0]}]},
+     "constraints: targets[0].joint 'rigth_wrist' is not a joint of smpl22 (pelvis, left_hip"),
+    ({"targets": [{"joint": "right_wrist", "time": 1, "position": [0, float("nan"), 0]}]},
+     "constraints: targets[0].position[1] must be a finite number, got nan"),
+    ({"targets": [{"joint": "right_wrist", "span": [1.5, 0.5], "position": [0, 1, 0]}]},
+     "constraints: targets[0].span ends before it starts (1.5 > 0.5)"),
+    ({"targets": [{"joint": "right_wrist", "time": 1, "position": [0, 1, 0], "axes": "w"}]},
+     "constraints: targets[0].axes must name some of x, y, z"),
+    ({"waypoints": [{"position": [1, 1], "time": 1.5}, {"position": [2, 2], "time": 0.5}]},
+     "constraints: waypoints[1] comes before the waypoint listed ahead of it"),
+    ({"keyframes": [{"time": 1, "positions": [[0, 1, 0]] * 3}]},
+     "constraints: keyframes[0].positions must list [x, y, z] for each of the 22 joints of smpl22"),
+    ({"keyframes": [{"time": 1, "file": "take.bvh"}]},
+     "constraints: keyframes[0].file: a request names no file; give joints or positions"),
+    ({"facing": [{"time": 1, "direction": [0, 0]}]}, "constraints: facing[0].direction [0, 0] points nowhere"),
+    ({"contacts": [{"joint": "left_wrist", "span": [0, 1]}]}, "constraints: contacts[0].joint 'left_wrist' is no foot"),
+    ({"timeline": [{"start": 0, "end": 1, "text": "a person walks"}]},
+     "constraints: 'timeline' is a prompt timeline's key: use --timeline for it"),
+    ({"parts": []}, "constraints: 'parts' is a prompt timeline's key: use --timeline for it"),
+    ({"trajectory": []}, "constraints: unknown key 'trajectory'"),
+    ({"targets": [{"joint": "right_wrist", "time": 1, "position": [0, 1, 0], "weight": -1}]},
+     "constraints: targets[0].weight must be in [0, 1e+06], got -1"),
+])
+def test_bad_constraints_are_one_line(spec, message):
+    assert _error(spec).startswith(message)
+
+
+def test_a_card_without_constraints_refuses_them_and_a_file_is_read_with_its_rows(tmp_path):
+    animal = GenerationCard(family="habit", skeleton="smal35", representation="quatvel", fps=30.0,
+                            inputs=("motion",))
+    assert _error({"targets": []}, animal) == ("constraints: this habit model takes no constraints (its generation "
+                                               "card lists none)")
+    path = tmp_path / "c.json"
+    path.write_text('{"targets": [{"joint": "right_wrist", "time": 1, "position": [0, NaN, 0]}]}')
+    with pytest.raises(UsageError, match=r"^--constraints .*c.json: holds NaN, which is no position"):
+        read_constraints(path, CARD, FRAMES)
+    path.write_text('{"targets": [')
+    with pytest.raises(UsageError, match=r"^--constraints .*c.json: not JSON"):
+        read_constraints(path, CARD, FRAMES)
+    rig = tmp_path / "two.bvh"  # a rig no joint map fits
+    rig.write_text(TWO_JOINT_BVH)
+    path.write_text(json.dumps({"keyframes": [{"time": 1, "file": "two.bvh"}]}))
+    with pytest.raises(UsageError) as e:
+        read_constraints(path, CARD, FRAMES)
+    assert "\n" not in str(e.value) and "keyframes[0].file" in str(e.value), str(e.value)
+
+
+def test_free_waypoints_are_timed_by_the_length_of_the_path():
+    control, _ = read_constraints({"waypoints": [{"position": [0, 1]}, {"position": [0, 2], "time": 1.0},
+                                                 {"position": [0, 3]}]}, CARD, FRAMES)
+    root = control.weights[0, :, 0] > 0
+    frames = root.nonzero().squeeze(1).tolist()
+    assert frames == [10, 20, 39]  # halfway to the timed one (1 m of 2), then the motion's end
+    assert control.targets[0, 10, 0, 2] == 1 and control.targets[0, 39, 0, 2] == 3
+
+
+@pytest.mark.skipif(not BVH.exists(), reason="needs ../shared's Bandai-Namco takes")
+def test_a_keyframe_from_a_bvh_frame_is_the_takes_pose_where_the_take_puts_it(tmp_path):
+    from omg.generation.read import read_source_motion
+    from omg.motion import get_representation
+    from omg.skeleton import get_skeleton
+
+    spec = {"keyframes": [{"time": 1, "file": str(BVH.resolve()), "frame": 30, "root": [0.5, 1.0]}]}
+    control, _ = read_constraints(spec, CARD, FRAMES)
+    take = read_source_motion(BVH, get_skeleton("smpl22"), 20.0, None, "take")
+    pose = get_representation("humanml3d263", "smpl22").canonicalize(take.positions)[30]
+    got = control.targets[0, 20].numpy()
+    assert np.allclose(got[0, [0, 2]], [0.5, 1.0]) and control.axes[0, 20].all()
+    assert np.allclose(got - got[0], pose - pose[0], atol=1e-5)  # the take's own pose around its root
+
+
+def _spec() -> dict:
+    return {"keyframes": [{"time": 1.0, "joints": {"left_wrist": [0.4, 1.3, 0.6], "head": [0.0, 1.6, 0.5]}}],
+            "targets": [{"joint": "right_wrist", "span": [1.5, 1.8], "position": [None, 1.7, None], "axes": "y"}],
+            "path": {"points": [[0, 0], [0.5, 1.0], [1.0, 2.0]]}}
+
+
+@pytest.mark.parametrize("sampler", ["ddim", "dpmpp", "euler"])
+def test_every_sampler_is_steered_onto_the_targets_unconstrained_sampling_misses(module, sampler):
+    control, _ = read_constraints(_spec(), CARD, FRAMES)
+    settings = SamplingSettings(steps=4, sampler=sampler, use_ema=False, seed=3)
+    free = module.representation.decode(module.sample(None, [FRAMES] * 2, settings))
+    steered = module.representation.decode(module.sample(None, [FRAMES] * 2, SamplingSettings(
+        steps=4, sampler=sampler, use_ema=False, seed=3, control=control)))
+    for row_free, row in zip(constraint_errors(free, control), constraint_errors(steered, control)):
+        assert set(row) == {"keyframes[0]", "targets[0]", "path"}
+        assert max(row.values()) < 0.01, row  # within 1 cm
+        assert min(row_free.values()) > 0.05, row_free  # which sampling alone does not come near
+
+
+def test_sampling_without_constraints_never_steers(module, monkeypatch):
+    import omg.lit.pretrain as pretrain
+
+    settings = SamplingSettings(steps=3, use_ema=False)
+    before = module.sample(None, [FRAMES], settings)
+    monkeypatch.setattr(pretrain, "steered", lambda *a, **k: pytest.fail("steered without constraints"))
+    assert torch.equal(module.sample(None, [FRAMES], settings), before)
+
+
+GENERATE = ["generate", "--unconditional", "--num_samples", "2", "--length", "2", "--steps", "3", "--no_preview"]
+
+
+def test_generate_takes_constraints_records_the_error_and_warns_of_one_it_cannot_meet(pretrain_ckpt, tmp_path,
+                                                                                        capsys):
+    from omg.cli import main
+
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(_spec()))
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--constraints", str(path), "--out", str(tmp_path / "met")])
+    assert "warning" not in capsys.readouterr().err
+    settings = json.loads((tmp_path / "met/generation.json").read_text())
+    assert settings["constraints"] == _spec()
+    for record in settings["samples"]:
+        assert max(record["control_error_m"].values()) < 0.01 and record["control_unmet"] == {}
+    joints = np.load(tmp_path / "met/sample_000.joints.npy")
+    assert abs(joints[20, 20] - [0.4, 1.3, 0.6]).max() < 0.01  # the keyframe's left wrist, as written
+    # 50 m in 1 s: generated, with a warning stating the error reached (the weight of the other constraints holds
+    # the root back, so the far waypoint stays beyond its tolerance)
+    path.write_text(json.dumps({"waypoints": [{"position": [0, 50], "time": 1.0}], "steering": {"final_iterations": 0,
+                                                                                                 "iterations": 0}}))
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--constraints", str(path), "--out", str(tmp_path / "far")])
+    err = capsys.readouterr().err
+    assert err.startswith("omg: warning: motion 0: waypoints[0] not met: ") and "cm from its target at worst" in err
+    record = json.loads((tmp_path / "far/generation.json").read_text())["samples"][0]
+    assert record["control_unmet"]["waypoints[0]"] > 40
+    # a bad file: one line, nothing written
+    path.write_text(json.dumps({"targets": [{"joint": "nose", "time": 1, "position": [0, 1, 0]}]}))
+    with pytest.raises(SystemExit) as e:
+        main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--constraints", str(path), "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(f"omg: error: --constraints {path}: targets[0].joint 'nose' is not")
+    assert err.count("\n") == 1 and not (tmp_path / "bad").exists()
+
+
+def test_the_api_takes_constraints_with_the_same_checks(pretrain_ckpt, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from omg.tools.serve import load_models
+    from omg.tools.serve.app import Limits, create_app
+
+    models = load_models([pretrain_ckpt], None, torch.device("cpu"))
+    assert models[0].card.constraints == KINDS
+    app = create_app(models, tmp_path / "results", Limits(max_batch=4, max_wait=0.05), allowed_hosts=("*",))
+    with TestClient(app) as client:
+        body = {"length": 2.0, "num_samples": 1, "steps": 3, "constraints": _spec()}
+        answer = client.post("/v1/generate", json=body)
+        assert answer.status_code == 200, answer.text
+        record = answer.json()["motions"][0]["record"]
+        assert max(record["control_error_m"].values()) < 0.01 and record["control_unmet"] == {}
+        joints = np.asarray(answer.json()["motions"][0]["joints"])
+        assert abs(joints[20, 20] - [0.4, 1.3, 0.6]).max() < 0.011
+        late = {"targets": [{"joint": "right_wrist", "time": 9, "position": [0, 1, 0]}]}
+        bad = client.post("/v1/generate", json={**body, "constraints": late})
+        assert bad.status_code == 422 and bad.json()["detail"] == ("constraints: targets[0].time 9 s is outside the "
+                                                                   "motion (0..2 s)")
+
+
+def test_bench_control_measures_the_held_out_takes_met(pretrain_ckpt, h263_shards, capsys):
+    from omg.tools.bench.control import bench_control
+
+    results = bench_control(pretrain_ckpt, str(h263_shards / "val"), takes=2, steps=3, batch_size=2, max_len=40,
+                            contacts=False)  # an untrained model plants its feet anywhere
+    free, steered = results["unconstrained"], results["constrained"]
+    assert steered["within_5cm"] > 0.95 and steered["mean_cm"] < 2 and steered["path_cm"] < 2, steered
+    assert free["mean_cm"] > 10 * steered["mean_cm"], free
+    table = capsys.readouterr().out
+    assert "| constrained |" in table and "constrained / unconstrained: foot skating" in table
