@@ -58,10 +58,14 @@ def _unset_group(name: str, module: str, doc: str, typed: list[tuple[str, Any]])
 def settings(cls: type[T], value: Any, key: str) -> T:
     """``value`` (None, a ``cls`` or a mapping of its fields) as a ``cls``; UsageError naming ``key``
     (``model.init_args.dit``) for an unknown field or a value of another kind."""
+    return value if isinstance(value, cls) else cls(**_fields_of(cls, value, key))
+
+
+def _fields_of(cls: type, value: Any, key: str) -> dict[str, Any]:
+    """The fields ``value`` (None, a dataclass or a mapping) gives a ``cls``; one line naming ``key`` for an unknown
+    field or a value of another kind."""
     if value is None:
-        return cls()
-    if isinstance(value, cls):
-        return value
+        return {}
     accepted = [f.name for f in dataclasses.fields(cls)]
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         value = settings_dict(value)
@@ -69,7 +73,7 @@ def settings(cls: type[T], value: Any, key: str) -> T:
         raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
     if unknown := [k for k in value if k not in accepted]:
         raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
-    return cls(**value)
+    return dict(value)
 
 
 def group(default: T, value: Any, key: str) -> T:
@@ -77,19 +81,9 @@ def group(default: T, value: Any, key: str) -> T:
     others ``default``'s: a family's own defaults, as ``--model.init_args.optim.lr`` keeps the rest); an unknown
     key is one line naming ``key`` and the accepted ones. For the groups whose fields all have values (``optim``,
     ``loss``), where ``settings`` reads those whose unset fields are None."""
-    cls = type(default)
-    if value is None:
-        return default
-    if isinstance(value, cls):
-        return value
-    accepted = [f.name for f in dataclasses.fields(cls)]
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        value = settings_dict(value)
-    if not isinstance(value, Mapping):
-        raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
-    if unknown := [k for k in value if k not in accepted]:
-        raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
-    return dataclasses.replace(default, **value)
+    if value is None or isinstance(value, type(default)):
+        return default if value is None else value
+    return dataclasses.replace(default, **_fields_of(type(default), value, key))
 
 
 def regroup(values: Mapping[str, Any], fields: Mapping[str, str],
