@@ -9,6 +9,8 @@ command and one Markdown file (well under 30 minutes on an H100):
    (``ddim``, 200 steps), through ``omg bench sample``;
 3. the Giant run's DeepSpeed checkpoint converted (``omg convert-ckpt``) and loaded by ``omg generate``.
 
+Each step's output is kept in ``OUT/<step>.log``.
+
 Every step is a subprocess running the ``omg`` CLI, as a user would. ``--dry_run`` (for a machine
 without a GPU) resolves each training config with ``--print_config``, builds each model on the meta
 device and prints the commands; nothing trains.
@@ -148,6 +150,8 @@ def bench_gpu(
         start = time.perf_counter()
         result = subprocess.run(cmd, capture_output=True, text=True)
         seconds = time.perf_counter() - start
+        # each step's whole output beside the table: a failed step's table row holds only its last line
+        (out / f"{name.replace(' ', '_')}.log").write_text(f"$ {shown(cmd)}\n{result.stdout}\n{result.stderr}")
         if result.returncode != 0:
             tail = result.stderr.strip().splitlines()[-1:] or ["(no output)"]
             other.append(f"| {name} | **failed** (exit {result.returncode}): {tail[0]} | {seconds:.0f} s "
