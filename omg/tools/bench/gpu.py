@@ -47,7 +47,7 @@ def commands(out: Path, train_steps: int, shards: str, python: str = sys.executa
         cmds[f"fit {flavor}"] = [*omg, "fit", "--config", config, "--trainer.devices", "1", "--trainer.num_nodes", "1",
                                  "--trainer.max_steps", str(train_steps), "--trainer.accumulate_grad_batches", "1",
                                  "--trainer.limit_val_batches", "0", "--trainer.num_sanity_val_steps", "0",
-                                 "--trainer.logger", "false", "--trainer.enable_progress_bar", "false",
+                                 "--trainer.enable_progress_bar", "false",
                                  "--trainer.default_root_dir", str(run), "--data.train", f"{shards}/train",
                                  "--data.val", f"{shards}/val", "--data.num_workers", "4", *timer]
     for sampler, steps in (("dpmpp", 20), ("ddim", 200)):
@@ -153,7 +153,9 @@ def bench_gpu(
         # each step's whole output beside the table: a failed step's table row holds only its last line
         (out / f"{name.replace(' ', '_')}.log").write_text(f"$ {shown(cmd)}\n{result.stdout}\n{result.stderr}")
         if result.returncode != 0:
-            tail = result.stderr.strip().splitlines()[-1:] or ["(no output)"]
+            # omg's one-line error where there is one (NCCL's shutdown warnings can follow it)
+            errors = [line for line in result.stderr.splitlines() if line.startswith("omg: error:")]
+            tail = errors[-1:] or result.stderr.strip().splitlines()[-1:] or ["(no output)"]
             other.append(f"| {name} | **failed** (exit {result.returncode}): {tail[0]} | {seconds:.0f} s "
                          f"| `{shown(cmd)}` |")
             continue
