@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The one-GPU acceptance run: every GPU figure docs/ marks pending, into one markdown file
+# The one-GPU acceptance run: the GPU figures of docs/results/gpu_check.md, into one markdown file
 # (runs/gpu_check/gpu_check.md). Run from the repository root on a machine with one GPU:
 #
 #   launch/gpu_check.sh                # about 10-20 minutes on an H100

@@ -1,4 +1,4 @@
-"""``omg bench gpu``: on a machine with one GPU, every GPU figure docs/ marks pending, in one
+"""``omg bench gpu``: on a machine with one GPU, the GPU figures of docs/results/gpu_check.md, in one
 command and one Markdown file (well under 30 minutes on an H100):
 
 1. Base and Giant pretraining through the real ``omg fit`` with the shipped configs
