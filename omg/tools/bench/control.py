@@ -24,6 +24,7 @@ def bench_control(
     final_iterations: NonNegativeInt | None = None,
     smooth: float | None = None,
     contacts: bool = True,
+    evaluator: str | None = None,
     seed: NonNegativeInt = 0,
     command: str = "omg bench control",
 ) -> dict:
@@ -31,7 +32,8 @@ def bench_control(
     seconds and one wrist's positions (every frame) as constraints; the checkpoint samples every take (from its
     caption when text-conditioned) with and without them at the same settings. Prints a Markdown table: control
     error at the constrained joints and frames (mean and max cm, share within 5 and 10 cm), the root path's
-    mean error, foot skating of both and of the real takes, and seconds per motion of both.
+    mean error, foot skating of both and of the real takes, seconds per motion of both, and with an evaluator
+    FID and R-precision (top 3) of both against the real takes (realism kept under control).
 
     Args:
         ckpt: an OMG checkpoint (the ControlNet, or the pretrained prior)
@@ -45,11 +47,13 @@ def bench_control(
         batch_size: motions sampled at once
         iterations, final_iterations, smooth: the steering's (``omg.lit.control.Control``; default its own)
         contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
+        evaluator: an evaluator checkpoint (as ``omg bench quality --evaluator``): adds FID and R-precision; the
+            R-precision pool is every take (at most 32)
         seed: the prompt order's and the noise's seed
         command: the command line, recorded with the results
     """
     from omg.data.datamodule import MotionDataModule
-    from omg.evaluation import prompt_set
+    from omg.evaluation import build_evaluator, check_evaluator_spec, evaluate, parse_metrics, prompt_set
     from omg.lit.checkpoint import load_module
     from omg.lit.control import Control, distances
     from omg.lit.pretrain import MotionDiffusionModule
@@ -59,6 +63,10 @@ def bench_control(
 
     module = load_module(ckpt, expect=MotionDiffusionModule).eval()
     data = MotionDataModule(val=val, max_len=max_len, clips="whole")
+    judge = None
+    if evaluator is not None:
+        judge = build_evaluator(evaluator, key="--evaluator")
+        check_evaluator_spec(judge, data.spec, key="--evaluator")
     chosen = prompt_set(data.val_clips().samples, takes, seed, data.windows)
     rep, skeleton, fps = module.representation, module.representation.skeleton, module.spec.fps
     hand = skeleton.index(wrist)
@@ -104,21 +112,46 @@ def bench_control(
                          "within_5cm": float((dist <= 5).double().mean()),
                          "within_10cm": float((dist <= 10).double().mean()), "path_cm": float(path.mean()),
                          "foot_skating": float(skating.compute()), "s_per_motion": seconds / N}
+        if judge is not None:  # the same motions, scored against the same takes
+            scores = evaluate(_replay(features), judge, chosen,
+                              parse_metrics(["fid", {"r_precision": {"pool_size": min(32, N)}}]), seed=seed,
+                              spec=data.spec)
+            results[name] |= {"fid": scores["fid"], "r_precision_top3": scores["r_precision/top3"],
+                              "real_r_precision_top3": scores.get("real/r_precision/top3", float("nan"))}
     real_skating = FootSkating(skeleton, fps)
     real_skating.update(real, mask)
     print(f"`{command}`: {N} held-out takes of {val}, {steps} {sampler} steps, keyframes every {keyframe_every:g} s, "
           f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}; real takes' "
           f"foot skating {float(real_skating.compute()):.3f}")
-    print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating | s / motion |")
-    print("|---|---|---|---|---|---|---|---|")
+    realism = " FID | R-precision top 3 |" if judge is not None else ""
+    print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating |"
+          f"{realism} s / motion |")
+    print("|---|---|---|---|---|---|---|" + "---|" * (3 if judge is not None else 1))
     for name, r in results.items():
+        scored = f" {r['fid']:.3f} | {r['r_precision_top3']:.3f} |" if judge is not None else ""
         print(f"| {name} | {r['mean_cm']:.2f} | {r['max_cm']:.2f} | {r['within_5cm']:.3f} | {r['within_10cm']:.3f} "
-              f"| {r['path_cm']:.2f} | {r['foot_skating']:.3f} | {r['s_per_motion']:.2f} |", flush=True)
+              f"| {r['path_cm']:.2f} | {r['foot_skating']:.3f} |{scored} {r['s_per_motion']:.2f} |", flush=True)
     free, steered = results["unconstrained"], results["constrained"]
     skating = steered["foot_skating"] / max(free["foot_skating"], 1e-9)
-    print(f"constrained / unconstrained: foot skating {skating:.2f}x, cost "
-          f"{steered['s_per_motion'] / free['s_per_motion']:.2f}x")
+    fid = f"FID {steered['fid'] / max(free['fid'], 1e-9):.2f}x, " if judge is not None else ""
+    real = f"; real takes' R-precision top 3 {free['real_r_precision_top3']:.3f}" if judge is not None else ""
+    print(f"constrained / unconstrained: {fid}foot skating {skating:.2f}x, cost "
+          f"{steered['s_per_motion'] / free['s_per_motion']:.2f}x{real}")
     return results
+
+
+def _replay(features):
+    """evaluate's ``generate`` handing back motions already sampled, in order: with one rank its batches are
+    contiguous slices of the prompt set, from the first."""
+    position = 0
+
+    def generate(texts, lengths, seed):
+        nonlocal position
+        rows = features[position:position + len(texts)]
+        position += len(texts)
+        return rows
+
+    return generate
 
 
 def _rows(control, rows: slice):
