@@ -350,6 +350,8 @@ def _one_line(response, status: int, words: str = "") -> str:
     ("POST", "/v1/generate", dict(content=b'{"model": "human"}', headers={"content-type": "text/plain"}), 415,
      "not 'text/plain'"),
     ("POST", "/v1/transfer", dict(json={"model": "habit", "to": "horse"}), 415, "/v1/transfer takes a multipart form"),
+    ("POST", "/v1/results/0123456789ab/character", dict(json={"file": "figure.glb"}), 415,
+     "/v1/results/0123456789ab/character takes a multipart form"),
     ("POST", "/v1/transfer", dict(content=b"garbage",
                                   headers={"content-type": "multipart/form-data; boundary=x"}), 400, ""),
     ("POST", "/v1/transfer", dict(data={"model": "habit", "to": "horse"}, files={"other": ("a.txt", b"a")}), 422,
@@ -896,6 +898,74 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
                                                                                 if not u.startswith(server.url)]
 
 
+def _glb_document(data: bytes) -> dict:
+    import pygltflib
+
+    return json.loads(pygltflib.GLTF2.load_from_bytes(data).to_json())
+
+
+def _onto(client, result: str, name: str, content: bytes, **fields):
+    return client.post(f"/v1/results/{result}/character", data=fields, files={"file": (name, content)})
+
+
+def test_a_result_goes_onto_an_uploaded_character_or_rig(client, tmp_path):
+    """``POST /v1/results/{id}/character``: each motion of the result on the uploaded character (the character
+    whole, one animation added) or BVH rig (its hierarchy), downloadable as the result's files are."""
+    from helpers import BANDAI_RIG, rig_bvh
+    from helpers.characters import write_character
+
+    result = _generate(client, model="human", prompts=["a person waves", "a person jumps"], length=1, steps=2)
+    character = write_character(tmp_path / "my figure.glb")
+    answer = client.post(f"/v1/results/{result['id']}/character", files={"file": ("my figure.glb",
+                                                                                    character.read_bytes())})
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["character"] == "my figure.glb" and [m["file"] for m in body["motions"]] == ["sample_000",
+                                                                                              "sample_001"]
+    kept = _glb_document(character.read_bytes())
+    for motion in body["motions"]:
+        assert re.fullmatch(rf"/v1/results/{result['id']}/{motion['file']}\.my_figure-[0-9a-f]{{6}}\.glb",
+                            motion["url"]), motion
+        animated = _glb_document(client.get(motion["url"]).content)
+        assert animated["meshes"] == kept["meshes"] and animated["skins"] == kept["skins"]
+        assert len(animated["animations"]) == 1 and animated["animations"][0]["name"] == motion["file"]
+    one, two = (client.get(m["url"]).content for m in body["motions"])
+    assert one != two  # each motion its own animation
+    rig = client.post(f"/v1/results/{result['id']}/character",
+                      files={"file": ("bandai.bvh", rig_bvh(BANDAI_RIG).encode())})
+    assert rig.status_code == 200, rig.text
+    text = client.get(rig.json()["motions"][0]["url"]).text
+    assert text.startswith("HIERARCHY") and "UpperArm_L" in text and "Frames: 20" in text
+
+
+@pytest.mark.parametrize("name, content, fields, status, message", [
+    ("figure.obj", b"o cube", {}, 422, "the upload 'figure.obj' is not a character or rig; give one of .bvh, .glb"),
+    ("figure.glb", b"glTF garbled", {}, 422, "figure.glb: not a readable glTF 2.0 file"),
+    ("figure.glb", b"not glTF at all", {}, 422, "figure.glb: not a readable glTF 2.0 file"),
+    ("rig.bvh", b"HIERARCHY\nROOT garbage {", {}, 422, "rig.bvh"),
+    ("figure.glb", None, {"joint_map": "../../etc"}, 422, "joint_map '../../etc': give a registered joint map's"),
+    ("figure.glb", None, {"joint_map": "bandai"}, 422, "figure.glb: joint map 'bandai' needs joints the file lacks"),
+    ("figure.glb", None, {"character": "x"}, 422, "character: Extra inputs are not permitted (the form's fields: "
+                                                 "file, joint_map)"),
+    ("figure.glb", b"x" * 2_010_000, {}, 413, "bytes allowed (--max_upload_mb)"),
+    ("figure.glb", None, {"result": "000000000000"}, 404, "no result '000000000000' on this server"),
+    ("figure.glb", None, {"result": "animal"}, 422, "human rig"),
+], ids=["not-a-rig", "garbled-glb", "no-magic", "garbled-bvh", "joint-map-path", "wrong-joint-map", "misspelt-field",
+        "too-large", "unknown-result", "animal-result"])
+def test_bad_character_uploads_are_one_readable_line(client, tmp_path, name, content, fields, status, message):
+    from helpers.characters import write_character
+
+    if content is None:
+        content = write_character(tmp_path / "figure.glb").read_bytes()
+    result = fields.pop("result", None)
+    if result in (None, "animal"):
+        result = (_generate(client, model="human", prompts=["a person waves"], length=1, steps=2) if result is None
+                  else _generate(client, model="animal", prompts=["a dog walks"], species="dog"))["id"]
+    detail = _one_line(_onto(client, result, name, content, **fields), status, message)
+    assert "omg-upload-" not in detail and "--to_rig" not in detail and str(tmp_path) not in detail
+    assert client.get("/healthz").status_code == 200
+
+
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):
     """``omg serve --to_rig character.glb``: the rig is read for the models whose skeleton it fits (the human
     ones, not the animal's), and each human motion's files link the character animated (``glb``)."""
@@ -922,5 +992,8 @@ def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_pa
             kept = json.loads(pygltflib.GLTF2().load(str(character)).to_json())
             assert len(animated.animations) == 1 and json.loads(animated.to_json())["meshes"] == kept["meshes"]
             assert client.get(result["settings"]).json()["to_rig"] == "figure.glb"
+            # the character uploaded for a result is the same code path: the same file, byte for byte
+            upload = _onto(client, result["id"], "figure.glb", character.read_bytes())
+            assert client.get(upload.json()["motions"][0]["url"]).content == client.get(files["glb"]).content
     finally:
         running.stop()
