@@ -57,6 +57,7 @@ from omg.generation.protocol import (
 from omg.generation.timeline import parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
 from omg.registry import SAMPLERS
+from omg.retarget import RIG_SUFFIXES
 from omg.skeleton import get_skeleton
 from omg.tools.generate import check_plain_text, read_prompts
 
@@ -323,7 +324,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         return {"models": [m.info() for m in models],
                 "limits": {"max_batch": limits.max_batch, "max_samples": limits.max_samples,
                            "max_prompt_chars": limits.max_prompt_chars, "max_upload_bytes": limits.max_upload_bytes,
-                           "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl}}
+                           "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl,
+                           "character_suffixes": list(RIG_SUFFIXES)}}
 
     @app.get("/v1/status", summary="what the sampler is doing (the page's progress)")
     async def status():
@@ -435,8 +437,6 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             raise _Refusal(410, f"result {result} {where}; generate it again")
         if where is None:
             raise _Refusal(404, f"no result {result!r} on this server")
-        from omg.retarget import RIG_SUFFIXES
-
         name = _upload_name(file.filename)
         suffix = Path(name).suffix.lower()
         if suffix not in RIG_SUFFIXES:
