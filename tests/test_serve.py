@@ -966,6 +966,111 @@ def test_bad_character_uploads_are_one_readable_line(client, tmp_path, name, con
     assert client.get("/healthz").status_code == 200
 
 
+def _canvas_pixels(page) -> np.ndarray:
+    """(H, W, 3) the viewer's WebGL canvas alone (no label over it), as drawn last."""
+    import base64
+
+    from PIL import Image
+
+    data = page.evaluate("document.querySelector('#viewer canvas').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data.split(",")[1]))).convert("RGB")).astype(int)
+
+
+def _coloured(pixels: np.ndarray) -> np.ndarray:
+    """(H, W) the pixels with a colour: not the white ground or the grey grid (the character's mesh here)."""
+    return pixels.max(-1) - pixels.min(-1) > 30
+
+
+def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tmp_path):
+    """The page at 1280x800: a character uploaded on the page gets the result's motions (the server's
+    /v1/results/{id}/character), and its mesh moves in the view from the file's own animation; each motion is
+    labelled with its prompt, the camera follows (or not), the results and downloads are in the viewport, and
+    the download is the character with one animation. Two screenshots at different frames are saved (and their
+    paths printed): the mesh moving."""
+    import pygltflib
+
+    from helpers.characters import write_character
+
+    character = write_character(tmp_path / "figure.glb")
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    assert page.get_attribute("#character", "accept") == ".bvh,.glb,.gltf"
+    page.set_input_files("#character", str(character))
+    page.fill("#prompts", "a person walks forward\na person waves")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 2", timeout=120_000)
+    assert re.fullmatch(r"2 motion\(s\) in [\d.]+ s; on figure\.glb in [\d.]+ s", page.locator("#status").inner_text())
+    # each motion labelled with its prompt, in the view, above its figure
+    assert page.locator("#viewer .label").all_inner_texts() == ["a person walks forward", "a person waves"]
+    view = page.locator("#viewer").bounding_box()
+    for tag in page.locator("#viewer .label").all():
+        box = tag.bounding_box()
+        assert view["x"] <= box["x"] and box["x"] + box["width"] <= view["x"] + view["width"]
+        assert view["y"] <= box["y"] < view["y"] + view["height"] / 2
+    # the results, their downloads and the status without scrolling at 1280x800
+    for element in [*page.locator(".sample").all(), *page.locator(".sample a").all(), page.locator("#status"),
+                    page.locator("#controls")]:
+        box = element.bounding_box()
+        assert box and 0 <= box["x"] and box["x"] + box["width"] <= 1280 and 0 <= box["y"], box
+        assert box["y"] + box["height"] <= 800, box
+    assert page.evaluate("document.scrollingElement.scrollHeight") <= 800
+    # the camera fixed: the mesh moves between two frames of its animation, nothing else does
+    page.click("#play")
+    page.uncheck("#follow")
+    assert page.evaluate("window.omgViewer.follow") is False
+    shots = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(200)
+        shots[frame] = (_canvas_pixels(page), page.evaluate("window.omgViewer.target"),
+                        page.evaluate("window.omgViewer.center"))
+        path = tmp_path / f"character_frame_{frame:02d}.png"
+        page.screenshot(path=path)
+        print(f"screenshot of the character at frame {frame}: {path}")
+    (before, target_before, center_before), (after, target_after, center_after) = shots[2], shots[20]
+    mesh_before, mesh_after = _coloured(before), _coloured(after)
+    assert mesh_before.sum() > 2000 and mesh_after.sum() > 2000  # the mesh is drawn (the grid is grey)
+    assert (mesh_before ^ mesh_after).sum() > 0.3 * mesh_before.sum()  # and has moved
+    assert target_before == target_after  # the camera stayed
+    assert np.abs(np.subtract(center_after, center_before)).max() > 0.01  # while the motions moved
+    # following: the camera's target keeps its place relative to the motions
+    page.check("#follow")
+    page.locator("#scrubber").fill("5")
+    page.wait_for_function("window.omgViewer.frame == 5")
+    page.wait_for_timeout(200)
+    gap = np.subtract(page.evaluate("window.omgViewer.target"), page.evaluate("window.omgViewer.center"))
+    page.locator("#scrubber").fill("25")
+    page.wait_for_function("window.omgViewer.frame == 25")
+    page.wait_for_timeout(200)
+    moved = np.subtract(page.evaluate("window.omgViewer.target"), page.evaluate("window.omgViewer.center"))
+    assert np.allclose(gap, moved, atol=1e-6) and page.evaluate("window.omgViewer.target") != target_after
+    # the download: the character whole, with one animation
+    with page.expect_download() as download:
+        page.locator(".sample a.character").first.click()
+    assert download.value.suggested_filename.endswith(".glb")
+    animated = _glb_document(httpx.get(download.value.url).content)
+    kept = json.loads(pygltflib.GLTF2().load(str(character)).to_json())
+    assert animated["meshes"] == kept["meshes"] and len(animated["animations"]) == 1
+    # a bad character is one line on the page; none: the skeletons again
+    page.set_input_files("#character", files=[{"name": "broken.glb", "mimeType": "model/gltf-binary",
+                                               "buffer": b"glTF garbled"}])
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert "broken.glb: not a readable glTF 2.0 file" in page.locator("#status").inner_text()
+    page.set_input_files("#character", files=[])
+    page.wait_for_function("window.omgViewer.characters == 0")
+    assert page.locator(".sample a.character").count() == 0
+    context.close()
+    assert not errors, errors
+
+
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):
     """``omg serve --to_rig character.glb``: the rig is read for the models whose skeleton it fits (the human
     ones, not the animal's), and each human motion's files link the character animated (``glb``)."""
