@@ -156,10 +156,13 @@ async function putOnCharacter() {
     const answer = await response.json();
     if (result !== shown) return;  // a newer result is in the view
     if (!response.ok) { setStatus(answer.detail || `error ${response.status}`, true); return; }
-    await viewer.showFiles(answer.motions.map((m) => m.url));
-    result.character = { name: answer.character, urls: answer.motions.map((m) => m.url) };
+    const urls = answer.motions.map((m) => m.url);
+    const playable = urls.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
+    if (playable) await viewer.showFiles(urls);
+    result.character = { name: answer.character, urls };
     listSamples(result);
-    setStatus(`${said}; on ${answer.character} in ${answer.seconds} s`);
+    setStatus(`${said}; on ${answer.character} in ${answer.seconds} s` +
+              (playable ? '' : ' (the view plays .glb and .bvh files: download it)'));
   } catch (e) {
     setStatus(`could not show ${file.name}: ${e}`, true);
   }
