@@ -912,7 +912,7 @@ def _onto(client, result: str, name: str, content: bytes, **fields):
     return client.post(f"/v1/results/{result}/character", data=fields, files={"file": (name, content)})
 
 
-def test_a_result_goes_onto_an_uploaded_character_or_rig(client, tmp_path):
+def test_a_result_goes_onto_an_uploaded_character_or_rig(client, server, tmp_path):
     """``POST /v1/results/{id}/character``: each motion of the result on the uploaded character (the character
     whole, one animation added) or BVH rig (its hierarchy), downloadable as the result's files are."""
     from helpers import BANDAI_RIG, rig_bvh
@@ -920,6 +920,7 @@ def test_a_result_goes_onto_an_uploaded_character_or_rig(client, tmp_path):
 
     result = _generate(client, model="human", prompts=["a person waves", "a person jumps"], length=1, steps=2)
     character = write_character(tmp_path / "my figure.glb")
+    size = server.app.state.results.kept[result["id"]][1]
     answer = client.post(f"/v1/results/{result['id']}/character", files={"file": ("my figure.glb",
                                                                                     character.read_bytes())})
     assert answer.status_code == 200, answer.text
@@ -935,6 +936,7 @@ def test_a_result_goes_onto_an_uploaded_character_or_rig(client, tmp_path):
         assert len(animated["animations"]) == 1 and animated["animations"][0]["name"] == motion["file"]
     one, two = (client.get(m["url"]).content for m in body["motions"])
     assert one != two  # each motion its own animation
+    assert server.app.state.results.kept[result["id"]][1] == size + len(one) + len(two)  # counted in the cap
     rig = client.post(f"/v1/results/{result['id']}/character",
                       files={"file": ("bandai.bvh", rig_bvh(BANDAI_RIG).encode())})
     assert rig.status_code == 200, rig.text
@@ -956,7 +958,8 @@ def test_a_result_goes_onto_an_uploaded_character_or_rig(client, tmp_path):
     ("figure.glb", None, {"result": "animal"}, 422, "human rig"),
 ], ids=["not-a-rig", "garbled-glb", "no-magic", "garbled-bvh", "joint-map-path", "wrong-joint-map", "misspelt-field",
         "too-large", "unknown-result", "animal-result"])
-def test_bad_character_uploads_are_one_readable_line(client, tmp_path, name, content, fields, status, message):
+def test_bad_character_uploads_are_one_readable_line(client, server, tmp_path, name, content, fields, status,
+                                                     message):
     from helpers.characters import write_character
 
     if content is None:
@@ -965,8 +968,10 @@ def test_bad_character_uploads_are_one_readable_line(client, tmp_path, name, con
     if result in (None, "animal"):
         result = (_generate(client, model="human", prompts=["a person waves"], length=1, steps=2) if result is None
                   else _generate(client, model="animal", prompts=["a dog walks"], species="dog"))["id"]
+    files = sorted(os.listdir(server.out / result)) if (server.out / result).is_dir() else None
     detail = _one_line(_onto(client, result, name, content, **fields), status, message)
     assert "omg-upload-" not in detail and "--to_rig" not in detail and str(tmp_path) not in detail
+    assert (sorted(os.listdir(server.out / result)) if files is not None else None) == files  # nothing left
     assert client.get("/healthz").status_code == 200
 
 
