@@ -293,6 +293,10 @@ def test_the_server_answers_while_it_samples(client, server):
     (dict(model="human", prompts=["a person walks"], steps=5000), 422, "steps must be in 1..1000"),
     (dict(model="human", prompts=["a person walks"], num_sample=2), 422, "num_sample: Extra inputs are not permitted"),
     (dict(model="human", prompt="a person walks"), 422, "prompt: Extra inputs are not permitted"),
+    (dict(model="human", timeline=[{"start": 0, "end": 1, "txt": "a person walks"}]), 422,
+     "timeline: timeline[0]: unknown key 'txt'; a segment has start, end, text"),
+    (dict(model="human", prompts=["a person walks"], constraints={"keyframes": [], "keyframe": []}), 422,
+     "constraints: unknown key 'keyframe'"),
     (dict(model="human", prompts="a person walks"), 422, "prompts: Input should be a valid list"),
     (dict(model="human", prompts=["a person\x00walks"]), 422, "prompt 1 holds the control character '\\x00'"),
     (dict(model="human", prompts=["a person\x85walks"]), 422, "prompt 1 holds the control character '\\x85'"),
@@ -350,6 +354,8 @@ def _one_line(response, status: int, words: str = "") -> str:
     ("POST", "/v1/generate", dict(content=b'{"model": "human"}', headers={"content-type": "text/plain"}), 415,
      "not 'text/plain'"),
     ("POST", "/v1/transfer", dict(json={"model": "habit", "to": "horse"}), 415, "/v1/transfer takes a multipart form"),
+    ("POST", "/v1/results/0123456789ab/character", dict(json={"file": "figure.glb"}), 415,
+     "/v1/results/0123456789ab/character takes a multipart form"),
     ("POST", "/v1/transfer", dict(content=b"garbage",
                                   headers={"content-type": "multipart/form-data; boundary=x"}), 400, ""),
     ("POST", "/v1/transfer", dict(data={"model": "habit", "to": "horse"}, files={"other": ("a.txt", b"a")}), 422,
@@ -896,6 +902,184 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
                                                                                 if not u.startswith(server.url)]
 
 
+def _glb_document(data: bytes) -> dict:
+    import pygltflib
+
+    return json.loads(pygltflib.GLTF2.load_from_bytes(data).to_json())
+
+
+def _onto(client, result: str, name: str, content: bytes, **fields):
+    return client.post(f"/v1/results/{result}/character", data=fields, files={"file": (name, content)})
+
+
+def test_a_result_goes_onto_an_uploaded_character_or_rig(client, server, tmp_path):
+    """``POST /v1/results/{id}/character``: each motion of the result on the uploaded character (the character
+    whole, one animation added) or BVH rig (its hierarchy), downloadable as the result's files are."""
+    from helpers import BANDAI_RIG, rig_bvh
+    from helpers.characters import write_character
+
+    result = _generate(client, model="human", prompts=["a person waves", "a person jumps"], length=1, steps=2)
+    character = write_character(tmp_path / "my figure.glb")
+    size = server.app.state.results.kept[result["id"]][1]
+    answer = client.post(f"/v1/results/{result['id']}/character", files={"file": ("my figure.glb",
+                                                                                    character.read_bytes())})
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["character"] == "my figure.glb" and [m["file"] for m in body["motions"]] == ["sample_000",
+                                                                                              "sample_001"]
+    kept = _glb_document(character.read_bytes())
+    for motion in body["motions"]:
+        assert re.fullmatch(rf"/v1/results/{result['id']}/{motion['file']}\.my_figure-[0-9a-f]{{6}}\.glb",
+                            motion["url"]), motion
+        animated = _glb_document(client.get(motion["url"]).content)
+        assert animated["meshes"] == kept["meshes"] and animated["skins"] == kept["skins"]
+        assert len(animated["animations"]) == 1 and animated["animations"][0]["name"] == motion["file"]
+    one, two = (client.get(m["url"]).content for m in body["motions"])
+    assert one != two  # each motion its own animation
+    assert server.app.state.results.kept[result["id"]][1] == size + len(one) + len(two)  # counted in the cap
+    rig = client.post(f"/v1/results/{result['id']}/character",
+                      files={"file": ("bandai.bvh", rig_bvh(BANDAI_RIG).encode())})
+    assert rig.status_code == 200, rig.text
+    text = client.get(rig.json()["motions"][0]["url"]).text
+    assert text.startswith("HIERARCHY") and "UpperArm_L" in text and "Frames: 20" in text
+
+
+@pytest.mark.parametrize("name, content, fields, status, message", [
+    ("figure.obj", b"o cube", {}, 422, "the upload 'figure.obj' is not a character or rig; give one of .bvh, .glb"),
+    ("figure.glb", b"glTF garbled", {}, 422, "figure.glb: not a readable glTF 2.0 file"),
+    ("figure.glb", b"not glTF at all", {}, 422, "figure.glb: not a readable glTF 2.0 file"),
+    ("rig.bvh", b"HIERARCHY\nROOT garbage {", {}, 422, "rig.bvh"),
+    ("figure.glb", None, {"joint_map": "../../etc"}, 422, "joint_map '../../etc': give a registered joint map's"),
+    ("figure.glb", None, {"joint_map": "bandai"}, 422, "figure.glb: joint map 'bandai' needs joints the file lacks"),
+    ("figure.glb", None, {"character": "x"}, 422, "character: Extra inputs are not permitted (the form's fields: "
+                                                 "file, joint_map)"),
+    ("figure.glb", b"x" * 2_010_000, {}, 413, "bytes allowed (--max_upload_mb)"),
+    ("figure.glb", None, {"result": "000000000000"}, 404, "no result '000000000000' on this server"),
+    ("figure.glb", None, {"result": "animal"}, 422, "human rig"),
+], ids=["not-a-rig", "garbled-glb", "no-magic", "garbled-bvh", "joint-map-path", "wrong-joint-map", "misspelt-field",
+        "too-large", "unknown-result", "animal-result"])
+def test_bad_character_uploads_are_one_readable_line(client, server, tmp_path, name, content, fields, status,
+                                                     message):
+    from helpers.characters import write_character
+
+    if content is None:
+        content = write_character(tmp_path / "figure.glb").read_bytes()
+    result = fields.pop("result", None)
+    if result in (None, "animal"):
+        result = (_generate(client, model="human", prompts=["a person waves"], length=1, steps=2) if result is None
+                  else _generate(client, model="animal", prompts=["a dog walks"], species="dog"))["id"]
+    files = sorted(os.listdir(server.out / result)) if (server.out / result).is_dir() else None
+    detail = _one_line(_onto(client, result, name, content, **fields), status, message)
+    assert "omg-upload-" not in detail and "--to_rig" not in detail and str(tmp_path) not in detail
+    assert (sorted(os.listdir(server.out / result)) if files is not None else None) == files  # nothing left
+    assert client.get("/healthz").status_code == 200
+
+
+def _canvas_pixels(page) -> np.ndarray:
+    """(H, W, 3) the viewer's WebGL canvas alone (no label over it), as drawn last."""
+    import base64
+
+    from PIL import Image
+
+    data = page.evaluate("document.querySelector('#viewer canvas').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data.split(",")[1]))).convert("RGB")).astype(int)
+
+
+def _coloured(pixels: np.ndarray) -> np.ndarray:
+    """(H, W) the pixels with a colour: not the white ground or the grey grid (the character's mesh here)."""
+    return pixels.max(-1) - pixels.min(-1) > 30
+
+
+def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tmp_path):
+    """The page at 1280x800: a character uploaded on the page gets the result's motions (the server's
+    /v1/results/{id}/character), and its mesh moves in the view from the file's own animation; each motion is
+    labelled with its prompt, the camera follows (or not), the results and downloads are in the viewport, and
+    the download is the character with one animation. Two screenshots at different frames are saved (and their
+    paths printed): the mesh moving."""
+    import pygltflib
+
+    from helpers.characters import write_character
+
+    character = write_character(tmp_path / "figure.glb")
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    assert page.get_attribute("#character", "accept") == ".bvh,.glb,.gltf"
+    page.set_input_files("#character", str(character))
+    page.fill("#prompts", "a person walks forward\na person waves")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 2", timeout=120_000)
+    assert re.fullmatch(r"2 motion\(s\) in [\d.]+ s; on figure\.glb in [\d.]+ s", page.locator("#status").inner_text())
+    # each motion labelled with its prompt, in the view, above its figure
+    assert page.locator("#viewer .label").all_inner_texts() == ["a person walks forward", "a person waves"]
+    view = page.locator("#viewer").bounding_box()
+    for tag in page.locator("#viewer .label").all():
+        box = tag.bounding_box()
+        assert view["x"] <= box["x"] and box["x"] + box["width"] <= view["x"] + view["width"]
+        assert view["y"] <= box["y"] < view["y"] + view["height"] / 2
+    # the results, their downloads and the status without scrolling at 1280x800
+    for element in [*page.locator(".sample").all(), *page.locator(".sample a").all(), page.locator("#status"),
+                    page.locator("#controls")]:
+        box = element.bounding_box()
+        assert box and 0 <= box["x"] and box["x"] + box["width"] <= 1280 and 0 <= box["y"], box
+        assert box["y"] + box["height"] <= 800, box
+    assert page.evaluate("document.scrollingElement.scrollHeight") <= 800
+    # the camera fixed: the mesh moves between two frames of its animation, nothing else does
+    page.click("#play")
+    page.uncheck("#follow")
+    assert page.evaluate("window.omgViewer.follow") is False
+    shots = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(200)
+        shots[frame] = (_canvas_pixels(page), page.evaluate("window.omgViewer.target"),
+                        page.evaluate("window.omgViewer.center"))
+        path = tmp_path / f"character_frame_{frame:02d}.png"
+        page.screenshot(path=path)
+        print(f"screenshot of the character at frame {frame}: {path}")
+    (before, target_before, center_before), (after, target_after, center_after) = shots[2], shots[20]
+    mesh_before, mesh_after = _coloured(before), _coloured(after)
+    assert mesh_before.sum() > 2000 and mesh_after.sum() > 2000  # the mesh is drawn (the grid is grey)
+    assert (mesh_before ^ mesh_after).sum() > 0.3 * mesh_before.sum()  # and has moved
+    assert target_before == target_after  # the camera stayed
+    assert np.abs(np.subtract(center_after, center_before)).max() > 0.01  # while the motions moved
+    # following: the camera's target keeps its place relative to the motions
+    page.check("#follow")
+    page.locator("#scrubber").fill("5")
+    page.wait_for_function("window.omgViewer.frame == 5")
+    page.wait_for_timeout(200)
+    gap = np.subtract(page.evaluate("window.omgViewer.target"), page.evaluate("window.omgViewer.center"))
+    page.locator("#scrubber").fill("25")
+    page.wait_for_function("window.omgViewer.frame == 25")
+    page.wait_for_timeout(200)
+    moved = np.subtract(page.evaluate("window.omgViewer.target"), page.evaluate("window.omgViewer.center"))
+    assert np.allclose(gap, moved, atol=1e-6) and page.evaluate("window.omgViewer.target") != target_after
+    # the download: the character whole, with one animation
+    with page.expect_download() as download:
+        page.locator(".sample a.character").first.click()
+    assert download.value.suggested_filename.endswith(".glb")
+    animated = _glb_document(httpx.get(download.value.url).content)
+    kept = json.loads(pygltflib.GLTF2().load(str(character)).to_json())
+    assert animated["meshes"] == kept["meshes"] and len(animated["animations"]) == 1
+    # a bad character is one line on the page; none: the skeletons again
+    page.set_input_files("#character", files=[{"name": "broken.glb", "mimeType": "model/gltf-binary",
+                                               "buffer": b"glTF garbled"}])
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert "broken.glb: not a readable glTF 2.0 file" in page.locator("#status").inner_text()
+    page.set_input_files("#character", files=[])
+    page.wait_for_function("window.omgViewer.characters == 0")
+    assert page.locator(".sample a.character").count() == 0
+    context.close()
+    assert not errors, errors
+
+
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):
     """``omg serve --to_rig character.glb``: the rig is read for the models whose skeleton it fits (the human
     ones, not the animal's), and each human motion's files link the character animated (``glb``)."""
@@ -922,5 +1106,8 @@ def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_pa
             kept = json.loads(pygltflib.GLTF2().load(str(character)).to_json())
             assert len(animated.animations) == 1 and json.loads(animated.to_json())["meshes"] == kept["meshes"]
             assert client.get(result["settings"]).json()["to_rig"] == "figure.glb"
+            # the character uploaded for a result is the same code path: the same file, byte for byte
+            upload = _onto(client, result["id"], "figure.glb", character.read_bytes())
+            assert client.get(upload.json()["motions"][0]["url"]).content == client.get(files["glb"]).content
     finally:
         running.stop()

@@ -11,8 +11,9 @@ call that fails is re-run job by job, so that only the request at fault fails.
 Before FastAPI reads a byte, a pure-ASGI guard (``_Guard``) checks the ``Host`` (DNS rebinding) and the
 ``Origin`` of writes (another site's page), the content type, and the body as it streams in: over its
 route's limit it is refused (413) whether chunked or not, and a body slower than ``read_timeout`` is cut
-off (408). Uploads are parsed on their own small thread pool, never on the sampling thread; results
-expire after ``result_ttl`` seconds and are capped at ``max_results_bytes`` in all, oldest dropped first.
+off (408). Uploads are parsed on their own small thread pool, never on the sampling thread (a character
+uploaded for a result's motions is read, and the motions put onto it as ``--to_rig`` writes them, there);
+results expire after ``result_ttl`` seconds and are capped at ``max_results_bytes`` in all, oldest dropped first.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ from omg.generation.protocol import (
 from omg.generation.timeline import parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
 from omg.registry import SAMPLERS
+from omg.retarget import RIG_SUFFIXES
 from omg.skeleton import get_skeleton
 from omg.tools.generate import check_plain_text, read_prompts
 
@@ -322,7 +324,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         return {"models": [m.info() for m in models],
                 "limits": {"max_batch": limits.max_batch, "max_samples": limits.max_samples,
                            "max_prompt_chars": limits.max_prompt_chars, "max_upload_bytes": limits.max_upload_bytes,
-                           "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl}}
+                           "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl,
+                           "character_suffixes": list(RIG_SUFFIXES)}}
 
     @app.get("/v1/status", summary="what the sampler is doing (the page's progress)")
     async def status():
@@ -420,6 +423,48 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         if path is None:
             return _error(404, "no such result file")
         return FileResponse(path, filename=f"{result}_{name}")
+
+    @app.post("/v1/results/{result}/character", summary="a result's motions on an uploaded character or rig, as "
+                                                      "--to_rig writes them")
+    async def character(result: str, file: UploadFile = File(..., description="a skinned glTF character (.glb, "
+                                                                              ".gltf) or a BVH rig"),
+                        joint_map: str | None = Form(None), *, http: Request):
+        fields = [name for name in inspect.signature(character).parameters if name not in ("http", "result")]
+        if unknown := sorted(set((await http.form()).keys()) - set(fields)):
+            raise UsageError(f"{unknown[0]}: Extra inputs are not permitted (the form's fields: {', '.join(fields)})")
+        where = results.folder(result) if re.fullmatch(r"[0-9a-f]{12}", result) else None
+        if isinstance(where, str):
+            raise _Refusal(410, f"result {result} {where}; generate it again")
+        if where is None:
+            raise _Refusal(404, f"no result {result!r} on this server")
+        name = _upload_name(file.filename)
+        suffix = Path(name).suffix.lower()
+        if suffix not in RIG_SUFFIXES:
+            raise UsageError(f"the upload {name!r} is not a character or rig; give one of {', '.join(RIG_SUFFIXES)}")
+        if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
+            raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
+        settings = json.loads((where / "generation.json").read_text())
+        data = await file.read(limits.max_upload_bytes + 1)
+        if len(data) > limits.max_upload_bytes:
+            raise _Refusal(413, f"the upload is larger than the {limits.max_upload_bytes} bytes allowed "
+                                "(--max_upload_mb)")
+        if parsing.n >= 4 * limits.parse_workers:
+            raise _Refusal(503, f"{parsing.n} uploads are being read; send this one again in a moment",
+                           {"Retry-After": "5"})
+        started = time.perf_counter()
+        parsing.add(1)
+        job = asyncio.wrap_future(parser.submit(_onto_character, where, settings, data, suffix, joint_map, name,
+                                                parsing))
+        try:
+            written = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
+        except asyncio.TimeoutError:
+            raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to put the motions "
+                             "onto") from None
+        results.grow(result, sum((where / f).stat().st_size for f in written.values()))
+        url = f"/v1/results/{result}"
+        return {"id": result, "character": name, "seconds": round(time.perf_counter() - started, 3),
+                "motions": [{"file": record["file"], "url": f"{url}/{written[record['file']]}"}
+                            for record in settings["samples"]]}
 
     async def _answer(model: Model, request: GenerationRequest, rows: int, extra: dict) -> JSONResponse:
         started = time.perf_counter()
@@ -589,6 +634,43 @@ def _read_upload(generator: Generator, data: bytes, suffix: str, joint_map: str 
         parsing.add(-1)
 
 
+def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, joint_map: str | None, name: str,
+                    parsing: _Count) -> dict[str, str]:
+    """A result's motions (``settings``: its ``generation.json``) on the uploaded character or rig, written
+    beside them as ``--to_rig`` writes them (``read_rig``, then ``export_motion`` onto the rig: the same
+    files, byte for byte), each named ``<motion>.<character>-<token>.<format>``; returns motion -> file name.
+    Runs on an upload thread."""
+    from omg.export import export_motion, output_format
+    from omg.retarget import read_rig
+    from omg.skeleton import get_skeleton
+
+    stem = re.sub(r"[^\w\-]+", "_", Path(name).stem)[:40].strip("_") or "character"
+    tag = f"{stem}-{secrets.token_hex(3)}"
+    try:
+        with tempfile.TemporaryDirectory(prefix="omg-upload-") as upload, \
+                tempfile.TemporaryDirectory(prefix=".character-", dir=folder) as staged:
+            path = Path(upload) / f"character{suffix}"
+            path.write_bytes(data)
+            try:
+                rig = read_rig(path, settings["skeleton"], joint_map)
+            except UsageError as e:
+                raise UsageError(str(e).replace(f"--to_rig {path}", name).replace(str(path), name)
+                                 .replace(upload, "").replace("--joint_map", "joint_map")) from None
+            except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
+                raise UsageError(f"could not read the upload {name!r} as a character: {_one_line(e)}") from None
+            format, written = output_format(None, rig.source), {}
+            for record in settings["samples"]:
+                joints = np.load(folder / f"{record['file']}.joints.npy")
+                export_motion(Path(staged) / record["file"], joints, get_skeleton(settings["skeleton"]),
+                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format)
+                written[record["file"]] = f"{record['file']}.{tag}.{format}"
+            for file, final in written.items():  # named as --to_rig names it while written: the same bytes
+                os.replace(Path(staged) / f"{file}.{format}", folder / final)
+            return written
+    finally:
+        parsing.add(-1)
+
+
 class _Count:
     """A count shared by the event loop and the upload threads."""
 
@@ -651,6 +733,14 @@ class Results:
         self.total += size
         self.prune()
 
+    def grow(self, result: str, size: int) -> None:
+        """Files of ``size`` bytes added to a kept result (a character's animation)."""
+        if result in self.kept:
+            written, before = self.kept[result]
+            self.kept[result] = (written, before + size)
+            self.total += size
+            self.prune()
+
     def prune(self) -> None:
         now = time.monotonic()
         while self.kept:
@@ -708,9 +798,9 @@ class _Guard:
       scripts) are not a page's;
     - the POST routes' content types (415);
     - the body is counted as it streams in, chunked or with a ``Content-Length``: over its route's limit
-      (the upload limit for ``/v1/transfer``, the JSON limit for the others) the request is answered 413 and its
-      connection closed, so the rest is never read; a body that has not arrived ``read_timeout`` seconds after
-      the headers is answered 408 and closed."""
+      (the upload limit for ``/v1/transfer`` and a result's ``character``, the JSON limit for the others)
+      the request is answered 413 and its connection closed, so the rest is never read; a body that has not
+      arrived ``read_timeout`` seconds after the headers is answered 408 and closed."""
 
     def __init__(self, app, limits: Limits, hosts: frozenset[str]):
         self.app, self.limits, self.hosts = app, limits, hosts
@@ -766,7 +856,7 @@ class _Guard:
             await _send_error(send, *refused[0])
 
     def _limit(self, path: str) -> tuple[int, str]:
-        if path == "/v1/transfer":  # the file and a few form fields
+        if _upload_route(path):  # the file and a few form fields
             return (self.limits.max_upload_bytes + 2**16,
                     f"{self.limits.max_upload_bytes} bytes allowed for an upload (--max_upload_mb)")
         return self.limits.max_json_bytes, f"{self.limits.max_json_bytes} bytes allowed (--max_json_kb)"
@@ -787,12 +877,17 @@ class _Guard:
                 pass
             elif path == "/v1/generate" and kind and not (kind == "application/json" or kind.endswith("+json")):
                 return 415, f"{path} takes a JSON body (content-type: application/json), not {kind!r}"
-            elif path == "/v1/transfer" and kind != "multipart/form-data":
+            elif _upload_route(path) and kind != "multipart/form-data":
                 return 415, f"{path} takes a multipart form (content-type: multipart/form-data), not {kind or 'none'!r}"
         length = headers.get("content-length", "")
         if length.isdigit() and int(length) > limit:
             return 413, f"the request's body is larger than the {what}"
         return None
+
+
+def _upload_route(path: str) -> bool:
+    """The routes that take a multipart form with a file: a motion, or a character for a result's motions."""
+    return path == "/v1/transfer" or re.fullmatch(r"/v1/results/[^/]+/character", path) is not None
 
 
 async def _send_error(send, status: int, detail: str) -> None:

@@ -1,10 +1,8 @@
-// omg serve's page: the form follows the chosen model's generation card (GET /v1/models); results play in a
-// three.js skeleton viewer (bones from the parents the server sends, so any skeleton draws).
-import * as THREE from 'three';
-import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
+// omg serve's page: the form follows the chosen model's generation card (GET /v1/models); results play in the
+// three.js viewer of static/viewer.js, on the skeleton the server sends or on a character the user uploads.
+import { COLORS, Viewer } from '/static/viewer.js';
 
 const $ = (id) => document.getElementById(id);
-const COLORS = [0x1f77b4, 0xd62728, 0x2ca02c, 0x9467bd, 0xff7f0e, 0x17becf, 0x8c564b, 0xe377c2];
 let models = [];
 let current = null;
 // read by the page's test: the frame shown, the frames drawn since the last result
@@ -16,7 +14,10 @@ function setStatus(text, error = false) { $('status').textContent = text; $('sta
 
 async function loadModels() {
   const response = await fetch('/v1/models');
-  models = (await response.json()).models;
+  const answer = await response.json();
+  models = answer.models;
+  $('character').accept = answer.limits.character_suffixes.join(',');  // the rigs this server reads
+  $('character-kinds').textContent = answer.limits.character_suffixes.join(', ');
   $('model').innerHTML = '';
   for (const m of models) $('model').add(new Option(`${m.name} (${m.card.family}, ${m.card.skeleton})`, m.name));
   onModel();
@@ -110,6 +111,7 @@ async function generate() {
     setStatus(`${result.motions.length} motion(s) in ${result.seconds} s` +
               (result.batched_motions > result.motions.length ? ` (sampled with ${result.batched_motions} others)` : ''));
     showResult(result);
+    if ($('character').files[0]) await putOnCharacter();
   } catch (e) {
     answered = true;
     setStatus(`the server did not answer: ${e}`, true);
@@ -120,66 +122,50 @@ async function generate() {
   }
 }
 
-// -- the viewer --------------------------------------------------------------------------------
-const viewer = $('viewer');
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio);
-renderer.setClearColor(0xffffff);
-viewer.append(renderer.domElement);
-const scene = new THREE.Scene();
-const camera = new THREE.PerspectiveCamera(45, 1, 0.01, 500);
-camera.position.set(0, 2.5, 6);
-const controls = new OrbitControls(camera, renderer.domElement);
-controls.target.set(0, 0.9, 0);
-scene.add(new THREE.GridHelper(40, 80, 0x999999, 0xdddddd));
-let group = new THREE.Group();
-scene.add(group);
-
-function resize() {
-  const { clientWidth: w, clientHeight: h } = viewer;
-  renderer.setSize(w, h, false);
-  camera.aspect = w / Math.max(h, 1);
-  camera.updateProjectionMatrix();
-}
-new ResizeObserver(resize).observe(viewer);
+// -- the viewer (static/viewer.js) and the results' list -------------------------------------------
+const viewer = new Viewer($('viewer'), state);
+let shown = null;  // the result in the view
 
 function showResult(result) {
-  scene.remove(group);
-  group = new THREE.Group();
-  scene.add(group);
-  const parents = result.parents;
-  const bones = parents.map((p, j) => [p, j]).filter(([p]) => p >= 0);
-  // side by side: each motion starts at its own slot, as wide as the widest skeleton
-  let size = 0.5;
-  for (const m of result.motions) {
-    for (const joint of m.joints[0]) size = Math.max(size, Math.abs(joint[1]) * 1.2, Math.abs(joint[0]) * 2);
-  }
-  state.motions = result.motions.map((m, i) => {
-    const [x0, , z0] = m.joints[0][0];
-    const offset = new THREE.Vector3((i - (result.motions.length - 1) / 2) * size * 1.5 - x0, 0, -z0);
-    const color = COLORS[i % COLORS.length];
-    const lines = new THREE.LineSegments(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color }));
-    lines.geometry.setAttribute('position', new THREE.Float32BufferAttribute(new Float32Array(bones.length * 6), 3));
-    const points = new THREE.Points(new THREE.BufferGeometry(), new THREE.PointsMaterial({ color, size: 0.04 }));
-    points.geometry.setAttribute('position', new THREE.Float32BufferAttribute(new Float32Array(parents.length * 3), 3));
-    const path = m.joints.map((f) => new THREE.Vector3(f[0][0], 0.005, f[0][2]).add(offset));
-    const trail = new THREE.Line(new THREE.BufferGeometry().setFromPoints(path),
-                                 new THREE.LineBasicMaterial({ color, transparent: true, opacity: 0.5 }));
-    for (const o of [lines, points, trail]) { o.position.copy(offset); group.add(o); }
-    trail.position.set(0, 0, 0);
-    return { ...m, lines, points };
-  });
+  shown = result;
+  viewer.show(result);
+  state.motions = result.motions;
   state.frames = Math.max(...result.motions.map((m) => m.frames));
   state.fps = result.fps;
-  state.parents = parents;
+  state.parents = result.parents;
   state.frame = 0;
   state.drawn = 0;
   state.results += 1;
   $('scrubber').max = state.frames - 1;
-  const width = size * 1.5 * result.motions.length;
-  controls.target.set(0, size / 2, 0);
-  camera.position.set(0, size * 1.5, Math.max(width, size * 3) * 1.2);
   listSamples(result);
+}
+
+// the shown result's motions on the character chosen (POST /v1/results/{id}/character): the files to download,
+// played in the view on the character's mesh; no character chosen: the skeletons again
+async function putOnCharacter() {
+  const file = $('character').files[0];
+  const result = shown;
+  if (!result) return;
+  if (!file) { result.character = null; viewer.showSkeletons(); listSamples(result); return; }
+  const form = new FormData();
+  form.append('file', file);
+  const said = $('status').textContent.split('; ')[0];
+  setStatus(`${said}; putting the motions onto ${file.name}…`);
+  try {
+    const response = await fetch(`/v1/results/${result.id}/character`, { method: 'POST', body: form });
+    const answer = await response.json();
+    if (result !== shown) return;  // a newer result is in the view
+    if (!response.ok) { setStatus(answer.detail || `error ${response.status}`, true); return; }
+    const urls = answer.motions.map((m) => m.url);
+    const playable = urls.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
+    if (playable) await viewer.showFiles(urls);
+    result.character = { name: answer.character, urls };
+    listSamples(result);
+    setStatus(`${said}; on ${answer.character} in ${answer.seconds} s` +
+              (playable ? '' : ' (the view plays .glb and .bvh files: download it)'));
+  } catch (e) {
+    setStatus(`could not show ${file.name}: ${e}`, true);
+  }
 }
 
 function listSamples(result) {
@@ -193,29 +179,20 @@ function listSamples(result) {
     div.append(title);
     for (const [kind, url] of [...Object.entries(m.files), ['settings', result.settings]]) {
       const a = document.createElement('a');
-      a.href = url; a.textContent = kind === 'settings' ? 'settings JSON' : kind === 'bvh' ? 'BVH' : `.${kind}.npy`;
+      a.href = url;
+      a.textContent = { settings: 'settings JSON', bvh: 'BVH', glb: 'glTF' }[kind] ?? `.${kind}.npy`;
+      a.setAttribute('download', '');
+      div.append(a);
+    }
+    if (result.character) {
+      const a = document.createElement('a');
+      a.href = result.character.urls[i]; a.textContent = `on ${result.character.name}`;
+      a.className = 'character';
       a.setAttribute('download', '');
       div.append(a);
     }
     $('samples').append(div);
   });
-}
-
-function pose(frame) {
-  for (const m of state.motions) {
-    const f = m.joints[Math.min(frame, m.frames - 1)];
-    const line = m.lines.geometry.attributes.position;
-    let k = 0;
-    for (const [j, joint] of f.entries()) {
-      m.points.geometry.attributes.position.setXYZ(j, ...joint);
-      const parent = state.parents[j];
-      if (parent < 0) continue;
-      line.setXYZ(k++, ...f[parent]);
-      line.setXYZ(k++, ...joint);
-    }
-    line.needsUpdate = true;
-    m.points.geometry.attributes.position.needsUpdate = true;
-  }
 }
 
 let last = performance.now();
@@ -230,18 +207,17 @@ function animate(now) {
       state.frame = Math.floor(clock);
       $('scrubber').value = state.frame;
     }
-    pose(state.frame);
     $('frame').textContent = `${state.frame + 1} / ${state.frames}`;
     state.drawn += 1;
   }
-  controls.update();
-  renderer.render(scene, camera);
+  viewer.draw(state.frame, state.playing ? clock : state.frame);
 }
 
 $('model').onchange = onModel;
+$('character').onchange = putOnCharacter;
+$('follow').onchange = () => viewer.setFollow($('follow').checked);
 $('generate').onclick = generate;
 $('play').onclick = () => { state.playing = !state.playing; $('play').textContent = state.playing ? 'Pause' : 'Play'; };
 $('scrubber').oninput = () => { state.frame = Number($('scrubber').value); clock = state.frame; };
-resize();
 requestAnimationFrame(animate);
 loadModels().catch((e) => setStatus(`could not list the models: ${e}`, true));
