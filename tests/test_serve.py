@@ -220,6 +220,63 @@ def test_transfer_an_uploaded_clip_to_another_species(client, shared_motion):
     assert client.get(result["settings"]).json()["category"] == "horse"
 
 
+HUMAN_TAKE = "human/bandai1/dataset-1_bow_normal_001.bvh"
+THREE_JOINT_RIG = (b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
+                   b"Xrotation Yrotation\n JOINT Foo\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n"
+                   b"  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 2\nFrame Time: 0.05\n"
+                   + b"0 0 0 0 0 0 0 0 0\n" * 2)  # no joint map fits it
+
+
+def test_keyframes_are_a_takes_frames_retargeted_as_a_constraints_file_reads_them(client, server, shared_motion):
+    """/v1/keyframes answers every frame of an uploaded take on the model's skeleton, the poses a constraints
+    file's keyframe ``file`` and ``frame`` resolve to (the same importers); one of them, sent back as a keyframe's
+    positions, is met."""
+    from omg.generation.control import read_constraints
+
+    take = shared_motion / HUMAN_TAKE
+    response = client.post("/v1/keyframes", data={"model": "human"}, files={"file": ("bow.bvh", take.read_bytes())})
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    poses = np.asarray(answer["poses"])
+    assert answer["frames"] == len(poses) > 30 and poses.shape[1:] == (22, 3) and answer["fps"] == 20
+    assert answer["joints"][0] == "pelvis" and answer["source"] == "bow.bvh"
+    card = server.models["human"].card
+    control, _ = read_constraints({"keyframes": [{"time": 0.5, "file": str(take), "frame": 30}]}, card, 20)
+    np.testing.assert_allclose(poses[30], control.targets[0, 10].numpy(), atol=1e-4)
+    result = _generate(client, model="human", prompts=["a person bows"], length=1, steps=2,
+                       constraints={"keyframes": [{"time": 0.5, "positions": answer["poses"][30]}]})
+    assert set(result["motions"][0]["record"]["control_error_m"]) == {"keyframes[0]"}
+
+
+@pytest.mark.parametrize("name, content, fields, status, message", [
+    ("bow.bvh", None, {"model": "animal"}, 422, "model 'animal' takes no keyframes; its card lists no constraints"),
+    ("bow.bvh", None, {"model": "nope"}, 404, "unknown model 'nope'"),
+    ("bow.exe", b"MZ", {}, 422, "the upload 'bow.exe' is not a motion file"),
+    ("bow.bvh", b"HIERARCHY\nROOT garbage {", {}, 422, "bow.bvh"),
+    ("rig.bvh", "rig", {}, 422, "no registered map fits"),
+    ("poses.npy", "npy", {}, 422, "poses.npy: a .npy keyframe holds smpl22 joint positions (T, 22, 3), got shape "
+                                  "(4, 5)"),
+    ("big.bvh", b"x" * 2_010_000, {}, 413, "bytes allowed"),
+    ("bow.bvh", None, {"joint_map": "../x"}, 422, "joint_map '../x': give a registered joint map's name"),
+    ("bow.bvh", None, {"frame": "3"}, 422, "frame: Extra inputs are not permitted (the form's fields: file, model, "
+                                           "joint_map)"),
+], ids=["no-keyframes", "unknown-model", "not-motion", "garbled", "unfit-rig", "npy-shape", "too-large",
+        "joint-map-path", "misspelt-field"])
+def test_bad_keyframe_uploads_are_one_line(client, shared_motion, name, content, fields, status, message):
+    if content is None:
+        content = (shared_motion / HUMAN_TAKE).read_bytes()
+    elif content == "rig":
+        content = THREE_JOINT_RIG
+    elif content == "npy":
+        buffer = io.BytesIO()
+        np.save(buffer, np.zeros((4, 5), np.float32))
+        content = buffer.getvalue()
+    response = client.post("/v1/keyframes", data={"model": "human", **fields}, files={"file": (name, content)})
+    detail = _one_line(response, status, message)
+    assert "omg-upload-" not in detail and "/tmp" not in detail  # no server path leaks
+    _one_line(client.post("/v1/keyframes", json={"model": "human"}), 415, "/v1/keyframes takes a multipart form")
+
+
 # -- batching -------------------------------------------------------------------------------
 
 
@@ -389,10 +446,7 @@ def test_bad_uploads_are_one_readable_line(client, shared_motion, name, content,
     if content is None:
         content = _bvh(shared_motion)
     elif content == "rig":  # a rig of three joints: no joint map fits it
-        content = (b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
-                   b"Xrotation Yrotation\n JOINT Foo\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n"
-                   b"  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 2\nFrame Time: 0.05\n"
-                   + b"0 0 0 0 0 0 0 0 0\n" * 2)
+        content = THREE_JOINT_RIG
     response = client.post("/v1/transfer", data={"model": "habit", **fields}, files={"file": (name, content)})
     assert response.status_code == status, response.text
     detail = response.json()["detail"]
