@@ -950,6 +950,106 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
                                                                                 if not u.startswith(server.url)]
 
 
+def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, browser, shared_motion):
+    """The Control panel: a path clicked on the ground grid, a keyframe from a frame of an uploaded BVH (retargeted
+    by the server, /v1/keyframes), a timeline of two rows; the request holds them in the documented format, the
+    result shows each motion's control error and the constraints beside it; a model whose card takes none shows
+    the panel disabled with why."""
+    from omg.generation.control import read_constraints
+    from omg.generation.timeline import parse_timeline
+
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    errors, sent = [], []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("request", lambda r: sent.append(r.post_data_json) if r.url.endswith("/v1/generate") else None)
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "animal")
+    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    assert "animal (omgpt) takes no constraints and no timeline" in page.locator("#control-why").inner_text()
+    page.select_option("#model", "human")
+    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    # the path: three clicks on the ground in front of the origin, a drag between them adds none
+    page.click("#path-draw")
+    box = page.locator("#viewer canvas").bounding_box()
+    for fx, fy in ((0.5, 0.75), (0.6, 0.8), (0.7, 0.9)):
+        page.mouse.click(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
+    page.mouse.move(box["x"] + 100, box["y"] + 600)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 160, box["y"] + 640, steps=4)
+    page.mouse.up()
+    path = page.evaluate("window.omgControl.state.path")
+    assert len(path) == 3 and all(len(p) == 2 and 0 < p[1] < 6 for p in path), path  # +Z: towards the camera
+    assert path[1][0] > path[0][0] and path[2][0] > path[1][0]  # clicks to the right: +X on screen
+    page.click("#path-undo")
+    page.click("#path-draw")
+    page.mouse.click(box["x"] + 0.7 * box["width"], box["y"] + 0.9 * box["height"])  # drawing is off
+    assert len(page.evaluate("window.omgControl.state.path")) == 2
+    page.click("#path-draw")
+    page.mouse.click(box["x"] + 0.7 * box["width"], box["y"] + 0.9 * box["height"])
+    path = page.evaluate("window.omgControl.state.path")
+    assert len(path) == 3 and page.evaluate("window.omgControl.markers().editing")["path"] == 1
+    # the keyframe: a frame of a real take, retargeted by the server
+    take = (shared_motion / HUMAN_TAKE).read_bytes()
+    page.set_input_files("#keyframe-file", files=[{"name": "bow.bvh", "mimeType": "text/plain", "buffer": take}])
+    page.wait_for_function("window.omgControl.state.take !== null")
+    assert "bow.bvh: " in page.locator("#keyframe-info").inner_text()
+    page.fill("#keyframe-frame", "30")
+    page.fill("#keyframe-time", "1.5")
+    page.click("#keyframe-add")
+    assert "at 1.5 s: bow.bvh frame 30" in page.locator("#keyframe-list").inner_text()
+    # the timeline: two rows; the prompts box is not sent
+    page.fill("#prompts", "a person dances")
+    for start, end, text in ((0, 1, "a person walks forward"), (1, 2, "a person bows")):
+        page.click("#timeline-add")
+        row = page.locator("#timeline-rows .segment").last
+        row.locator(".segment-start").fill(str(start))
+        row.locator(".segment-end").fill(str(end))
+        row.locator(".segment-text").fill(text)
+    page.fill("#steps", "2")
+    page.fill("#num_samples", "2")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1", timeout=60_000)
+    body = sent[-1]
+    assert body["prompts"] == [] and "length" not in body
+    assert body["timeline"] == [{"start": 0, "end": 1, "text": "a person walks forward"},
+                                {"start": 1, "end": 2, "text": "a person bows"}]
+    assert set(body["constraints"]) == {"path", "keyframes"}
+    assert body["constraints"]["path"] == {"points": [[0, 0], *path]}
+    expected = httpx.post(server.url + "/v1/keyframes", data={"model": "human"},
+                          files={"file": ("bow.bvh", take)}).json()["poses"][30]
+    assert body["constraints"]["keyframes"] == [{"time": 1.5, "positions": expected}]
+    card = server.models["human"].card
+    parse_timeline(body["timeline"])  # the documented formats, as the CLI reads them
+    read_constraints(body["constraints"], card, 40)
+    # each motion's control error, and the constraints drawn beside each of the two motions
+    records = page.evaluate("window.omgViewer.motions.map((m) => m.record)")
+    for entry, record in zip(page.locator(".sample").all(), records, strict=True):
+        text = entry.locator(".control-error").inner_text()
+        shown = re.fullmatch(r"control error: keyframes\[0\] (\d+\.\d) cm( \(not met\))?, path (\d+\.\d) cm"
+                             r"( \(not met\))?", text)
+        assert shown, text
+        errors_m = record["control_error_m"]
+        assert abs(float(shown[1]) - 100 * errors_m["keyframes[0]"]) <= 0.051
+        assert abs(float(shown[3]) - 100 * errors_m["path"]) <= 0.051
+        assert bool(shown[2]) == ("keyframes[0]" in record["control_unmet"])
+    markers = page.evaluate("window.omgControl.markers().result")
+    assert markers == {"path": 2, "waypoint": 6, "keyframe": 44, "keyframe-bones": 2}, markers
+    assert not errors, errors
+    # waypoints instead of a dense path, and a bad timeline is one line on the page
+    page.select_option("#path-kind", "waypoints")
+    page.locator("#timeline-rows .segment").last.locator(".segment-start").fill("1.5")
+    page.locator("#timeline-rows .segment").first.locator(".segment-end").fill("1.2")
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert "a gap between timeline[0] (ends at 1.2 s) and timeline[1] (starts at 1.5 s)" in \
+        page.locator("#status").inner_text()
+    assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
+    page.close()
+    assert errors == ["Failed to load resource: the server responded with a status of 422 (Unprocessable Entity)"]
+
+
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):
     """``omg serve --to_rig character.glb``: the rig is read for the models whose skeleton it fits (the human
     ones, not the animal's), and each human motion's files link the character animated (``glb``)."""

@@ -2,6 +2,7 @@
 // three.js skeleton viewer (bones from the parents the server sends, so any skeleton draws).
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
+import { createControl } from '/static/control.js';
 
 const $ = (id) => document.getElementById(id);
 const COLORS = [0x1f77b4, 0xd62728, 0x2ca02c, 0x9467bd, 0xff7f0e, 0x17becf, 0x8c564b, 0xe377c2];
@@ -54,6 +55,7 @@ function onModel() {
   const inputs = c.inputs.map((i) => (c.needs.includes(i) ? `${i} (needed)` : i)).join(', ');
   $('card').textContent = `${c.family}: ${c.skeleton} at ${c.fps} fps, ${(c.min_frames / c.fps).toFixed(1)}–` +
     `${(c.max_frames / c.fps).toFixed(0)} s; takes ${inputs}`;
+  control.onModel(current);
 }
 
 function number(id) { const v = $(id).value.trim(); return v === '' ? null : Number(v); }
@@ -61,12 +63,13 @@ function number(id) { const v = $(id).value.trim(); return v === '' ? null : Num
 async function generate() {
   const c = current.card;
   const unconditional = c.inputs.includes('unconditional') && (!c.inputs.includes('text') || $('unconditional').checked);
-  const lines = unconditional || !c.inputs.includes('text') ? [] : $('prompts').value.split('\n');
+  const timeline = !unconditional && control.hasTimeline();  // its segments' texts are the prompts
+  const lines = unconditional || timeline || !c.inputs.includes('text') ? [] : $('prompts').value.split('\n');
   const prompts = lines.map((p) => p.trim()).filter(Boolean);  // blank lines only separate prompts
   const species = c.inputs.includes('species') ? $('species').value.trim() || null : null;
   const file = c.inputs.includes('motion') ? $('upload').files[0] : undefined;
   // an empty box is not a request for unconditional motion: that is the switch's (the API refuses an empty prompt)
-  if (c.inputs.includes('text') && !unconditional && !file && !prompts.length) {
+  if (c.inputs.includes('text') && !unconditional && !file && !timeline && !prompts.length) {
     setStatus(`write a prompt (one per line)${c.inputs.includes('unconditional') ? ', or tick unconditional' : ''}`,
               true);
     return;
@@ -87,6 +90,7 @@ async function generate() {
     if (c.samplers.length) { body.sampler = $('sampler').value; body.steps = number('steps'); }
     if (c.guidance !== null) body.guidance = number('guidance');
     if (species) body.species = species;
+    control.apply(body, timeline);
     request = fetch('/v1/generate', { method: 'POST', headers: { 'content-type': 'application/json' },
                                       body: JSON.stringify(body) });
   }
@@ -134,6 +138,8 @@ controls.target.set(0, 0.9, 0);
 scene.add(new THREE.GridHelper(40, 80, 0x999999, 0xdddddd));
 let group = new THREE.Group();
 scene.add(group);
+const control = createControl({ scene, camera, canvas: renderer.domElement, $ });
+window.omgControl = control.debug;
 
 function resize() {
   const { clientWidth: w, clientHeight: h } = viewer;
@@ -167,7 +173,7 @@ function showResult(result) {
                                  new THREE.LineBasicMaterial({ color, transparent: true, opacity: 0.5 }));
     for (const o of [lines, points, trail]) { o.position.copy(offset); group.add(o); }
     trail.position.set(0, 0, 0);
-    return { ...m, lines, points };
+    return { ...m, lines, points, offset };
   });
   state.frames = Math.max(...result.motions.map((m) => m.frames));
   state.fps = result.fps;
@@ -180,6 +186,7 @@ function showResult(result) {
   controls.target.set(0, size / 2, 0);
   camera.position.set(0, size * 1.5, Math.max(width, size * 3) * 1.2);
   listSamples(result);
+  control.showResult(result, state.motions, group);
 }
 
 function listSamples(result) {
