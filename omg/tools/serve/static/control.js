@@ -31,7 +31,8 @@ function sphere(position, radius, color, kind) {
 }
 
 function groundLine(points, color, kind) {  // points: [[x, z], ...] drawn just above the grid
-  const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints(points.map(([x, z]) => new THREE.Vector3(x, 0.01, z))),
+  const vertices = points.map(([x, z]) => new THREE.Vector3(x, 0.01, z));
+  const line = new THREE.Line(new THREE.BufferGeometry().setFromPoints(vertices),
                               new THREE.LineBasicMaterial({ color }));
   line.userData.control = kind;
   return line;
@@ -39,7 +40,9 @@ function groundLine(points, color, kind) {  // points: [[x, z], ...] drawn just 
 
 function bones(pose, parents, color, kind) {
   const segments = [];
-  parents.forEach((p, j) => { if (p >= 0) segments.push(new THREE.Vector3(...pose[p]), new THREE.Vector3(...pose[j])); });
+  parents.forEach((p, j) => {
+    if (p >= 0) segments.push(new THREE.Vector3(...pose[p]), new THREE.Vector3(...pose[j]));
+  });
   const lines = new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(segments),
                                        new THREE.LineBasicMaterial({ color, transparent: true, opacity: 0.6 }));
   lines.userData.control = kind;
@@ -59,7 +62,9 @@ function constraintObjects(constraints, parents, color) {
   for (const k of constraints.keyframes || []) {
     const pose = k.positions || Object.values(k.joints || {});
     for (const p of pose) out.push(sphere(p, 0.025, color, 'keyframe'));
-    if (k.positions && parents.length === k.positions.length) out.push(bones(k.positions, parents, color, 'keyframe-bones'));
+    if (k.positions && parents.length === k.positions.length) {
+      out.push(bones(k.positions, parents, color, 'keyframe-bones'));
+    }
   }
   for (const t of constraints.targets || []) {
     if ((t.axes || 'xyz').length === 3) out.push(sphere(t.position, 0.03, color, 'target'));
@@ -82,7 +87,8 @@ export function createControl({ scene, camera, canvas, $ }) {
   }, 'path-draw');
   const pathBox = element('fieldset', { id: 'path-box' }, [
     element('legend', { textContent: 'Root path' }),
-    element('div', { className: 'note', textContent: 'click points on the ground grid; the motion starts at the origin' }),
+    element('div', { className: 'note',
+                     textContent: 'click points on the ground grid; the motion starts at the origin' }),
     draw, element('label', {}, ['Timing ', pathKind]),
     element('div', { className: 'buttons' }, [
       button('Undo', () => { state.path.pop(); redraw(); }, 'path-undo'),
@@ -195,6 +201,7 @@ export function createControl({ scene, camera, canvas, $ }) {
   // -- what is drawn while editing --------------------------------------------------------------------------
   function redraw() {
     editing.clear();
+    editing.visible = true;  // hidden while a result shows what it was generated with
     const constraints = current();
     if (constraints) for (const o of constraintObjects(constraints, state.model?.parents || [], EDIT)) editing.add(o);
     if (state.take) {  // the frame being chosen
@@ -233,15 +240,19 @@ export function createControl({ scene, camera, canvas, $ }) {
       if (skeletonChanged) { state.keyframes = []; state.take = null; takeFile.value = ''; takeInfo.textContent = ''; }
       pathKind.innerHTML = '';
       for (const k of ['path', 'waypoints']) if (c.constraints.includes(k)) pathKind.add(new Option(k, k));
-      if (pathKind.options.length) { pathKind.value = c.constraints.includes(state.pathKind) ? state.pathKind : pathKind.options[0].value; }
+      if (pathKind.options.length) {
+        pathKind.value = c.constraints.includes(state.pathKind) ? state.pathKind : pathKind.options[0].value;
+      }
       state.pathKind = pathKind.value;
       pathBox.disabled = !pathKind.options.length;
       keyBox.disabled = !c.constraints.includes('keyframes');
       timeBox.disabled = !c.timeline.includes('timeline');
       const none = pathBox.disabled && keyBox.disabled && timeBox.disabled;
       panel.classList.toggle('disabled', none);
+      const takes = [c.constraints.length ? `constraints (${c.constraints.join(', ')})` : 'no constraints',
+                     c.timeline.length ? `a timeline (${c.timeline.join(', ')})` : 'no timeline'];
       why.textContent = none ? `${model.name} (${c.family}) takes no constraints and no timeline: its generation card ` +
-        'lists none' : `this model takes ${[...c.constraints, ...c.timeline.map((t) => `a ${t}`)].join(', ')}`;
+        'lists none' : `this model takes ${takes.join(' and ')}`;
       redraw();
     },
     hasTimeline() { return !timeBox.disabled && state.timeline.length > 0; },
@@ -262,6 +273,7 @@ export function createControl({ scene, camera, canvas, $ }) {
     showResult(result, motions, group) {
       const constrained = result.motions.some((m) => m.record.control_error_m);
       if (!constrained || !state.sent) return;
+      editing.visible = false;  // the result's own markers show the same constraints, beside each motion
       motions.forEach((m, i) => {
         for (const o of constraintObjects(state.sent, result.parents, MARK)) {
           o.position.add(m.offset);
