@@ -256,12 +256,13 @@ def test_keyframes_are_a_takes_frames_retargeted_as_a_constraints_file_reads_the
     ("rig.bvh", "rig", {}, 422, "no registered map fits"),
     ("poses.npy", "npy", {}, 422, "poses.npy: a .npy keyframe holds smpl22 joint positions (T, 22, 3), got shape "
                                   "(4, 5)"),
-    ("big.bvh", b"x" * 2_010_000, {}, 413, "bytes allowed"),
+    ("big.bvh", b"x" * 2_100_000, {}, 413, "2000000 bytes allowed for an upload (--max_upload_mb)"),
+    ("big.bvh", b"x" * 2_010_000, {}, 413, "larger than the 2000000 bytes allowed (--max_upload_mb)"),  # the file's
     ("bow.bvh", None, {"joint_map": "../x"}, 422, "joint_map '../x': give a registered joint map's name"),
     ("bow.bvh", None, {"frame": "3"}, 422, "frame: Extra inputs are not permitted (the form's fields: file, model, "
                                            "joint_map)"),
-], ids=["no-keyframes", "unknown-model", "not-motion", "garbled", "unfit-rig", "npy-shape", "too-large",
-        "joint-map-path", "misspelt-field"])
+], ids=["no-keyframes", "unknown-model", "not-motion", "garbled", "unfit-rig", "npy-shape", "body-too-large",
+        "file-too-large", "joint-map-path", "misspelt-field"])
 def test_bad_keyframe_uploads_are_one_line(client, shared_motion, name, content, fields, status, message):
     if content is None:
         content = (shared_motion / HUMAN_TAKE).read_bytes()
