@@ -220,6 +220,64 @@ def test_transfer_an_uploaded_clip_to_another_species(client, shared_motion):
     assert client.get(result["settings"]).json()["category"] == "horse"
 
 
+HUMAN_TAKE = "human/bandai1/dataset-1_bow_normal_001.bvh"
+THREE_JOINT_RIG = (b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
+                   b"Xrotation Yrotation\n JOINT Foo\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n"
+                   b"  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 2\nFrame Time: 0.05\n"
+                   + b"0 0 0 0 0 0 0 0 0\n" * 2)  # no joint map fits it
+
+
+def test_keyframes_are_a_takes_frames_retargeted_as_a_constraints_file_reads_them(client, server, shared_motion):
+    """/v1/keyframes answers every frame of an uploaded take on the model's skeleton, the poses a constraints
+    file's keyframe ``file`` and ``frame`` resolve to (the same importers); one of them, sent back as a keyframe's
+    positions, is met."""
+    from omg.generation.control import read_constraints
+
+    take = shared_motion / HUMAN_TAKE
+    response = client.post("/v1/keyframes", data={"model": "human"}, files={"file": ("bow.bvh", take.read_bytes())})
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    poses = np.asarray(answer["poses"])
+    assert answer["frames"] == len(poses) > 30 and poses.shape[1:] == (22, 3) and answer["fps"] == 20
+    assert answer["joints"][0] == "pelvis" and answer["source"] == "bow.bvh"
+    card = server.models["human"].card
+    control, _ = read_constraints({"keyframes": [{"time": 0.5, "file": str(take), "frame": 30}]}, card, 20)
+    np.testing.assert_allclose(poses[30], control.targets[0, 10].numpy(), atol=1e-4)
+    result = _generate(client, model="human", prompts=["a person bows"], length=1, steps=2,
+                       constraints={"keyframes": [{"time": 0.5, "positions": answer["poses"][30]}]})
+    assert set(result["motions"][0]["record"]["control_error_m"]) == {"keyframes[0]"}
+
+
+@pytest.mark.parametrize("name, content, fields, status, message", [
+    ("bow.bvh", None, {"model": "animal"}, 422, "model 'animal' takes no keyframes; its card lists no constraints"),
+    ("bow.bvh", None, {"model": "nope"}, 404, "unknown model 'nope'"),
+    ("bow.exe", b"MZ", {}, 422, "the upload 'bow.exe' is not a motion file"),
+    ("bow.bvh", b"HIERARCHY\nROOT garbage {", {}, 422, "bow.bvh"),
+    ("rig.bvh", "rig", {}, 422, "no registered map fits"),
+    ("poses.npy", "npy", {}, 422, "poses.npy: a .npy keyframe holds smpl22 joint positions (T, 22, 3), got shape "
+                                  "(4, 5)"),
+    ("big.bvh", b"x" * 2_100_000, {}, 413, "2000000 bytes allowed for an upload (--max_upload_mb)"),
+    ("big.bvh", b"x" * 2_010_000, {}, 413, "larger than the 2000000 bytes allowed (--max_upload_mb)"),  # the file's
+    ("bow.bvh", None, {"joint_map": "../x"}, 422, "joint_map '../x': give a registered joint map's name"),
+    ("bow.bvh", None, {"frame": "3"}, 422, "frame: Extra inputs are not permitted (the form's fields: file, model, "
+                                           "joint_map)"),
+], ids=["no-keyframes", "unknown-model", "not-motion", "garbled", "unfit-rig", "npy-shape", "body-too-large",
+        "file-too-large", "joint-map-path", "misspelt-field"])
+def test_bad_keyframe_uploads_are_one_line(client, shared_motion, name, content, fields, status, message):
+    if content is None:
+        content = (shared_motion / HUMAN_TAKE).read_bytes()
+    elif content == "rig":
+        content = THREE_JOINT_RIG
+    elif content == "npy":
+        buffer = io.BytesIO()
+        np.save(buffer, np.zeros((4, 5), np.float32))
+        content = buffer.getvalue()
+    response = client.post("/v1/keyframes", data={"model": "human", **fields}, files={"file": (name, content)})
+    detail = _one_line(response, status, message)
+    assert "omg-upload-" not in detail and "/tmp" not in detail  # no server path leaks
+    _one_line(client.post("/v1/keyframes", json={"model": "human"}), 415, "/v1/keyframes takes a multipart form")
+
+
 # -- batching -------------------------------------------------------------------------------
 
 
@@ -395,10 +453,7 @@ def test_bad_uploads_are_one_readable_line(client, shared_motion, name, content,
     if content is None:
         content = _bvh(shared_motion)
     elif content == "rig":  # a rig of three joints: no joint map fits it
-        content = (b"HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation "
-                   b"Xrotation Yrotation\n JOINT Foo\n {\n  OFFSET 0 1 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n"
-                   b"  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 2\nFrame Time: 0.05\n"
-                   + b"0 0 0 0 0 0 0 0 0\n" * 2)
+        content = THREE_JOINT_RIG
     response = client.post("/v1/transfer", data={"model": "habit", **fields}, files={"file": (name, content)})
     assert response.status_code == status, response.text
     detail = response.json()["detail"]
@@ -1078,6 +1133,106 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     assert page.locator(".sample a.character").count() == 0
     context.close()
     assert not errors, errors
+
+
+def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, browser, shared_motion):
+    """The Control panel: a path clicked on the ground grid, a keyframe from a frame of an uploaded BVH (retargeted
+    by the server, /v1/keyframes), a timeline of two rows; the request holds them in the documented format, the
+    result shows each motion's control error and the constraints beside it; a model whose card takes none shows
+    the panel disabled with why."""
+    from omg.generation.control import read_constraints
+    from omg.generation.timeline import parse_timeline
+
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    errors, sent = [], []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("request", lambda r: sent.append(r.post_data_json) if r.url.endswith("/v1/generate") else None)
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "animal")
+    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    assert "animal (omgpt) takes no constraints and no timeline" in page.locator("#control-why").inner_text()
+    page.select_option("#model", "human")
+    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    # the path: three clicks on the ground in front of the origin, a drag between them adds none
+    page.click("#path-draw")
+    box = page.locator("#viewer canvas").bounding_box()
+    for fx, fy in ((0.5, 0.75), (0.6, 0.8), (0.7, 0.9)):
+        page.mouse.click(box["x"] + fx * box["width"], box["y"] + fy * box["height"])
+    page.mouse.move(box["x"] + 100, box["y"] + 600)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 160, box["y"] + 640, steps=4)
+    page.mouse.up()
+    path = page.evaluate("window.omgControl.state.path")
+    assert len(path) == 3 and all(len(p) == 2 and 0 < p[1] < 6 for p in path), path  # +Z: towards the camera
+    assert path[1][0] > path[0][0] and path[2][0] > path[1][0]  # clicks to the right: +X on screen
+    page.click("#path-undo")
+    page.click("#path-draw")
+    page.mouse.click(box["x"] + 0.7 * box["width"], box["y"] + 0.9 * box["height"])  # drawing is off
+    assert len(page.evaluate("window.omgControl.state.path")) == 2
+    page.click("#path-draw")
+    page.mouse.click(box["x"] + 0.7 * box["width"], box["y"] + 0.9 * box["height"])
+    path = page.evaluate("window.omgControl.state.path")
+    assert len(path) == 3 and page.evaluate("window.omgControl.markers().editing")["path"] == 1
+    # the keyframe: a frame of a real take, retargeted by the server
+    take = (shared_motion / HUMAN_TAKE).read_bytes()
+    page.set_input_files("#keyframe-file", files=[{"name": "bow.bvh", "mimeType": "text/plain", "buffer": take}])
+    page.wait_for_function("window.omgControl.state.take !== null")
+    assert "bow.bvh: " in page.locator("#keyframe-info").inner_text()
+    page.fill("#keyframe-frame", "30")
+    page.fill("#keyframe-time", "1.5")
+    page.click("#keyframe-add")
+    assert "at 1.5 s: bow.bvh frame 30" in page.locator("#keyframe-list").inner_text()
+    # the timeline: two rows; the prompts box is not sent
+    page.fill("#prompts", "a person dances")
+    for start, end, text in ((0, 1, "a person walks forward"), (1, 2, "a person bows")):
+        page.click("#timeline-add")
+        row = page.locator("#timeline-rows .segment").last
+        row.locator(".segment-start").fill(str(start))
+        row.locator(".segment-end").fill(str(end))
+        row.locator(".segment-text").fill(text)
+    page.fill("#steps", "2")
+    page.fill("#num_samples", "2")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1", timeout=60_000)
+    body = sent[-1]
+    assert body["prompts"] == [] and "length" not in body
+    assert body["timeline"] == [{"start": 0, "end": 1, "text": "a person walks forward"},
+                                {"start": 1, "end": 2, "text": "a person bows"}]
+    assert set(body["constraints"]) == {"path", "keyframes"}
+    assert body["constraints"]["path"] == {"points": [[0, 0], *path]}
+    expected = httpx.post(server.url + "/v1/keyframes", data={"model": "human"},
+                          files={"file": ("bow.bvh", take)}).json()["poses"][30]
+    assert body["constraints"]["keyframes"] == [{"time": 1.5, "positions": expected}]
+    card = server.models["human"].card
+    parse_timeline(body["timeline"])  # the documented formats, as the CLI reads them
+    read_constraints(body["constraints"], card, 40)
+    # each motion's control error, and the constraints drawn beside each of the two motions
+    records = page.evaluate("window.omgViewer.motions.map((m) => m.record)")
+    for entry, record in zip(page.locator(".sample").all(), records, strict=True):
+        text = entry.locator(".control-error").inner_text()
+        shown = re.fullmatch(r"control error: keyframes\[0\] (\d+\.\d) cm( \(not met\))?, path (\d+\.\d) cm"
+                             r"( \(not met\))?", text)
+        assert shown, text
+        errors_m = record["control_error_m"]
+        assert abs(float(shown[1]) - 100 * errors_m["keyframes[0]"]) <= 0.051
+        assert abs(float(shown[3]) - 100 * errors_m["path"]) <= 0.051
+        assert bool(shown[2]) == ("keyframes[0]" in record["control_unmet"])
+    markers = page.evaluate("window.omgControl.markers().result")
+    assert markers == {"path": 2, "waypoint": 6, "keyframe": 44, "keyframe-bones": 2}, markers
+    assert not errors, errors
+    # waypoints instead of a dense path, and a bad timeline is one line on the page
+    page.select_option("#path-kind", "waypoints")
+    page.locator("#timeline-rows .segment").last.locator(".segment-start").fill("1.5")
+    page.locator("#timeline-rows .segment").first.locator(".segment-end").fill("1.2")
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert "a gap between timeline[0] (ends at 1.2 s) and timeline[1] (starts at 1.5 s)" in \
+        page.locator("#status").inner_text()
+    assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
+    page.close()
+    assert errors == ["Failed to load resource: the server responded with a status of 422 (Unprocessable Entity)"]
 
 
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):

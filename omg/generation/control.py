@@ -214,9 +214,6 @@ class _Builder:
         its first frame in the model's world (root above the origin, facing +Z)."""
         if not self.allow_files:
             raise UsageError(f"{self.what}: {where}.file: a request names no file; give joints or positions")
-        from omg.generation.read import read_source_motion
-        from omg.motion import Clip, get_representation
-
         name = item["file"]
         if not isinstance(name, str) or not name:
             raise UsageError(f"{self.what}: {where}.file must be a path")
@@ -225,26 +222,16 @@ class _Builder:
         if joint_map is not None and not isinstance(joint_map, str):
             raise UsageError(f"{self.what}: {where}.joint_map must be a joint map's name or YAML file")
         try:
-            take = read_source_motion(path, self.skeleton, self.card.fps, joint_map, f"{self.what}: {where}.file")
+            poses = take_poses(path, self.card, joint_map, f"{self.what}: {where}.file")
         except UsageError as e:  # a rig no joint map fits: said of this keyframe
             message = str(e)
             raise UsageError(message if message.startswith(self.what) else f"{self.what}: {where}.file: {message}"
                              ) from None
-        positions = take.positions if isinstance(take, Clip) else take
-        J = self.skeleton.num_joints
-        if positions.ndim != 3 or positions.shape[1:] != (J, 3):
-            raise UsageError(f"{self.what}: {where}.file {path}: a .npy keyframe holds {self.skeleton.name} joint "
-                             f"positions (T, {J}, 3), got shape {positions.shape}")
         index = item.get("frame", 0)
-        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(positions):
-            raise UsageError(f"{self.what}: {where}.frame must be a frame of the take (0..{len(positions) - 1}), "
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(poses):
+            raise UsageError(f"{self.what}: {where}.frame must be a frame of the take (0..{len(poses) - 1}), "
                              f"got {index!r}")
-        representation = get_representation(self.card.representation, self.skeleton)
-        if hasattr(representation, "canonicalize") and len(positions) >= 2:
-            placed = representation.canonicalize(positions)  # the frame the features describe (HumanML3D's)
-        else:
-            placed = positions - positions[:1, :1] * np.array([1.0, 0.0, 1.0])
-        return np.asarray(placed[index], np.float32)
+        return poses[index]
 
     def add_targets(self, value: Any) -> None:
         for where, item in self.items(value, "targets"):
@@ -346,6 +333,30 @@ class _Builder:
                        tolerance=tensor(self.tolerance), groups=tensor(self.groups), names=tuple(self.names),
                        contacts=tensor(self.contacts), own_contacts=self.own_contacts, facing=tensor(self.facing_),
                        **steering)
+
+
+def take_poses(path: Path, card: GenerationCard, joint_map: str | None, what: str) -> np.ndarray:
+    """(T, J, 3) every frame of a take (BVH, ASF/AMC, DeepMimic, or a ``.npy`` of the model's joints) retargeted
+    onto ``card``'s skeleton at its fps by the importers, placed as the take places it relative to its first frame
+    in the model's world (root above the origin, facing +Z): the poses a keyframe's ``file`` and ``frame`` pick
+    from (``omg serve``'s ``/v1/keyframes`` too). ``what`` names the file in the one-line errors."""
+    from omg.generation.read import read_source_motion
+    from omg.motion import Clip, get_representation
+
+    skeleton = get_skeleton(card.skeleton)
+    take = read_source_motion(path, skeleton, card.fps, joint_map, what)
+    positions = take.positions if isinstance(take, Clip) else take
+    J = skeleton.num_joints
+    if positions.ndim != 3 or positions.shape[1:] != (J, 3) or len(positions) < 1:
+        where = f"{what} {path}" if what else str(path)
+        raise UsageError(f"{where}: a .npy keyframe holds {skeleton.name} joint positions (T, {J}, 3), got shape "
+                         f"{positions.shape}")
+    representation = get_representation(card.representation, skeleton)
+    if hasattr(representation, "canonicalize") and len(positions) >= 2:
+        placed = representation.canonicalize(positions)  # the frame the features describe (HumanML3D's)
+    else:
+        placed = positions - positions[:1, :1] * np.array([1.0, 0.0, 1.0])
+    return np.asarray(placed, np.float32)
 
 
 def unmet(errors: dict[str, float], control: Control) -> dict[str, float]:

@@ -30,6 +30,7 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field, replace
@@ -64,6 +65,7 @@ from omg.tools.generate import check_plain_text, read_prompts
 log = logging.getLogger("omg.serve")
 STATIC = Path(__file__).parent / "static"
 UPLOAD_SUFFIXES = (".bvh", ".npy", ".json", ".txt", ".amc", ".asf")
+UPLOAD_ROUTES = ("/v1/transfer", "/v1/keyframes")  # multipart, with the upload's size limit
 EXAMPLES = {"text": ["a person walks forward and waves", "a person jumps in place twice", "a person kicks with the "
                      "right leg"],
             "species": ["a dog runs and jumps over a log", "a horse trots in a circle", "a cat sneaks forward"]}
@@ -315,6 +317,25 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         # uvicorn closes the connection after an exception: the client must not send its next request on it
         return _error(500, f"the server failed: {scrub(_one_line(e))}", {"connection": "close"})
 
+    async def _parse(file: UploadFile, name: str, suffix: str, read: Callable[[Path], Any]) -> Any:
+        """The upload read by ``read`` from a temporary file, on the upload threads (never the sampling thread: a
+        slow parse holds no one's generation); after parse_timeout the request is answered, and the parse ends on
+        its own thread. Every field of the request is checked before this."""
+        data = await file.read(limits.max_upload_bytes + 1)
+        if len(data) > limits.max_upload_bytes:
+            raise _Refusal(413, f"the upload is larger than the {limits.max_upload_bytes} bytes allowed "
+                                "(--max_upload_mb)")
+        if parsing.n >= 4 * limits.parse_workers:  # bounded: a burst of uploads waits no longer than this
+            raise _Refusal(503, f"{parsing.n} uploads are being read; send this one again in a moment",
+                           {"Retry-After": "5"})
+        parsing.add(1)
+        job = asyncio.wrap_future(parser.submit(_read_upload, read, data, suffix, name, parsing))
+        try:
+            return await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
+        except asyncio.TimeoutError:
+            raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to read; send a "
+                             "shorter clip") from None
+
     @app.get("/healthz", summary="the server answers")
     async def healthz():
         return {"status": "ok", "models": len(by_name), "queued": batcher.queue.qsize(), "sampling": batcher.busy}
@@ -382,36 +403,45 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         # every field is checked before the upload is read
         if num_samples > limits.max_samples:
             raise UsageError(f"{num_samples} motions asked for; at most {limits.max_samples} per request")
-        suffix = Path(name).suffix.lower()
-        if suffix not in UPLOAD_SUFFIXES:
-            raise UsageError(f"the upload {name!r} is not a motion file; give one of {', '.join(UPLOAD_SUFFIXES)}")
+        suffix = _upload_suffix(name)
         if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
             raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
         if to is not None:
             _text(to, "to", limits)
         prompt_list = _prompts(prompts, limits)
-        data = await file.read(limits.max_upload_bytes + 1)
-        if len(data) > limits.max_upload_bytes:
-            raise _Refusal(413, f"the upload is larger than the {limits.max_upload_bytes} bytes allowed "
-                                "(--max_upload_mb)")
-        if parsing.n >= 4 * limits.parse_workers:  # bounded: a burst of uploads waits no longer than this
-            raise _Refusal(503, f"{parsing.n} uploads are being read; send this one again in a moment",
-                           {"Retry-After": "5"})
-        # parsed on the upload threads, never the sampling thread: a slow parse holds no one's generation;
-        # after parse_timeout the request is answered, and the parse ends on its own thread
-        parsing.add(1)
-        job = asyncio.wrap_future(parser.submit(_read_upload, chosen.generator, data, suffix, joint_map, name, parsing))
-        try:
-            source = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
-        except asyncio.TimeoutError:
-            raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to read; send a "
-                             "shorter clip") from None
+        source = await _parse(file, name, suffix, lambda path: chosen.generator.read_source(path, joint_map))
         # the source sets the length where the card says so; else as long as the source allows
         request = GenerationRequest(prompts=prompt_list or None, frames=card.max_frames,
                                     num_samples=1 if card.deterministic_source else num_samples, seed=seed,
                                     species=to, source=source, batch_size=limits.max_batch)
         _check(card, request, chosen, None)
         return await _answer(chosen, request, request.num_samples * max(len(prompt_list), 1), {"source": name})
+
+    @app.post("/v1/keyframes", summary="every frame of an uploaded take retargeted onto a model's skeleton: the "
+                                       "poses a keyframe's positions are taken from (the page's control panel)")
+    async def keyframes(file: UploadFile = File(..., description="a BVH, ASF/AMC, DeepMimic or .npy take"),
+                        model: str | None = Form(None), joint_map: str | None = Form(None), *, http: Request):
+        fields = [name for name in inspect.signature(keyframes).parameters if name != "http"]
+        if unknown := sorted(set((await http.form()).keys()) - set(fields)):
+            raise UsageError(f"{unknown[0]}: Extra inputs are not permitted (the form's fields: {', '.join(fields)})")
+        chosen = _model(by_name, models, model)
+        card = chosen.card
+        if "keyframes" not in card.constraints:
+            raise UsageError(f"model {chosen.name!r} takes no keyframes; its card lists "
+                             f"{', '.join(card.constraints) or 'no constraints'}")
+        name = _upload_name(file.filename)
+        suffix = _upload_suffix(name)
+        if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
+            raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
+        from omg.generation.control import take_poses
+
+        # the importers a constraints file's keyframe "file" is read by, placed in the model's world as there
+        poses = await _parse(file, name, suffix, lambda path: take_poses(path, card, joint_map, ""))
+        if not np.isfinite(poses).all():
+            raise UsageError(f"the upload {name!r} retargets to NaN or inf positions; give another take")
+        return {"model": chosen.name, "source": name, "fps": card.fps, "frames": len(poses),
+                "skeleton": card.skeleton, "joints": list(get_skeleton(card.skeleton).names),
+                "poses": np.round(poses.astype(np.float64), 4).tolist()}
 
     @app.get("/v1/results/{result}/{name}", summary="a file of a result (BVH, .joints.npy, .features.npy, the "
                                                     "settings JSON)")
@@ -617,15 +647,21 @@ def _upload_name(filename: str | None) -> str:
     return name if len(name) <= 100 else name[:97] + "..."
 
 
-def _read_upload(generator: Generator, data: bytes, suffix: str, joint_map: str | None, name: str,
-                 parsing: _Count) -> Any:
-    """The upload as the model's source motion, read from a temporary file (on an upload thread)."""
+def _upload_suffix(name: str) -> str:
+    suffix = Path(name).suffix.lower()
+    if suffix not in UPLOAD_SUFFIXES:
+        raise UsageError(f"the upload {name!r} is not a motion file; give one of {', '.join(UPLOAD_SUFFIXES)}")
+    return suffix
+
+
+def _read_upload(read: Callable[[Path], Any], data: bytes, suffix: str, name: str, parsing: _Count) -> Any:
+    """The upload read by ``read`` from a temporary file (on an upload thread)."""
     try:
         with tempfile.TemporaryDirectory(prefix="omg-upload-") as folder:
             path = Path(folder) / f"upload{suffix}"
             path.write_bytes(data)
             try:
-                return generator.read_source(path, joint_map)
+                return read(path)
             except UsageError as e:
                 raise UsageError(str(e).replace(str(path), name).replace(folder, "")) from None
             except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
@@ -798,9 +834,9 @@ class _Guard:
       scripts) are not a page's;
     - the POST routes' content types (415);
     - the body is counted as it streams in, chunked or with a ``Content-Length``: over its route's limit
-      (the upload limit for ``/v1/transfer`` and a result's ``character``, the JSON limit for the others)
-      the request is answered 413 and its connection closed, so the rest is never read; a body that has not
-      arrived ``read_timeout`` seconds after the headers is answered 408 and closed."""
+      (the upload limit for ``/v1/transfer``, ``/v1/keyframes`` and a result's ``character``, the JSON limit for
+      the others) the request is answered 413 and its connection closed, so the rest is never read; a body that has
+      not arrived ``read_timeout`` seconds after the headers is answered 408 and closed."""
 
     def __init__(self, app, limits: Limits, hosts: frozenset[str]):
         self.app, self.limits, self.hosts = app, limits, hosts
@@ -886,8 +922,9 @@ class _Guard:
 
 
 def _upload_route(path: str) -> bool:
-    """The routes that take a multipart form with a file: a motion, or a character for a result's motions."""
-    return path == "/v1/transfer" or re.fullmatch(r"/v1/results/[^/]+/character", path) is not None
+    """The routes that take a multipart form with a file: a motion (UPLOAD_ROUTES), or a character for a result's
+    motions."""
+    return path in UPLOAD_ROUTES or re.fullmatch(r"/v1/results/[^/]+/character", path) is not None
 
 
 async def _send_error(send, status: int, detail: str) -> None:

@@ -1,6 +1,7 @@
 // omg serve's page: the form follows the chosen model's generation card (GET /v1/models); results play in the
 // three.js viewer of static/viewer.js, on the skeleton the server sends or on a character the user uploads.
 import { COLORS, Viewer } from '/static/viewer.js';
+import { createControl } from '/static/control.js';
 
 const $ = (id) => document.getElementById(id);
 let models = [];
@@ -55,6 +56,7 @@ function onModel() {
   const inputs = c.inputs.map((i) => (c.needs.includes(i) ? `${i} (needed)` : i)).join(', ');
   $('card').textContent = `${c.family}: ${c.skeleton} at ${c.fps} fps, ${(c.min_frames / c.fps).toFixed(1)}–` +
     `${(c.max_frames / c.fps).toFixed(0)} s; takes ${inputs}`;
+  control.onModel(current);
 }
 
 function number(id) { const v = $(id).value.trim(); return v === '' ? null : Number(v); }
@@ -62,12 +64,13 @@ function number(id) { const v = $(id).value.trim(); return v === '' ? null : Num
 async function generate() {
   const c = current.card;
   const unconditional = c.inputs.includes('unconditional') && (!c.inputs.includes('text') || $('unconditional').checked);
-  const lines = unconditional || !c.inputs.includes('text') ? [] : $('prompts').value.split('\n');
+  const timeline = !unconditional && control.hasTimeline();  // its segments' texts are the prompts
+  const lines = unconditional || timeline || !c.inputs.includes('text') ? [] : $('prompts').value.split('\n');
   const prompts = lines.map((p) => p.trim()).filter(Boolean);  // blank lines only separate prompts
   const species = c.inputs.includes('species') ? $('species').value.trim() || null : null;
   const file = c.inputs.includes('motion') ? $('upload').files[0] : undefined;
   // an empty box is not a request for unconditional motion: that is the switch's (the API refuses an empty prompt)
-  if (c.inputs.includes('text') && !unconditional && !file && !prompts.length) {
+  if (c.inputs.includes('text') && !unconditional && !file && !timeline && !prompts.length) {
     setStatus(`write a prompt (one per line)${c.inputs.includes('unconditional') ? ', or tick unconditional' : ''}`,
               true);
     return;
@@ -88,6 +91,7 @@ async function generate() {
     if (c.samplers.length) { body.sampler = $('sampler').value; body.steps = number('steps'); }
     if (c.guidance !== null) body.guidance = number('guidance');
     if (species) body.species = species;
+    control.apply(body, timeline);
     request = fetch('/v1/generate', { method: 'POST', headers: { 'content-type': 'application/json' },
                                       body: JSON.stringify(body) });
   }
@@ -124,6 +128,9 @@ async function generate() {
 
 // -- the viewer (static/viewer.js) and the results' list -------------------------------------------
 const viewer = new Viewer($('viewer'), state);
+// the control panel draws in the viewer's scene; clicks reach the label layer on top of the canvas
+const control = createControl({ scene: viewer.scene, camera: viewer.camera, canvas: viewer.labels.domElement, $ });
+window.omgControl = control.debug;
 let shown = null;  // the result in the view
 
 function showResult(result) {
@@ -138,6 +145,7 @@ function showResult(result) {
   state.results += 1;
   $('scrubber').max = state.frames - 1;
   listSamples(result);
+  control.showResult(result, result.motions.map((m, i) => ({ ...m, offset: viewer.slots[i] })), viewer.group);
 }
 
 // the shown result's motions on the character chosen (POST /v1/results/{id}/character): the files to download,
