@@ -19,7 +19,6 @@ from typing import Any, Literal, TextIO
 
 import torch
 
-from omg.callbacks.progress import duration
 from omg.errors import UsageError
 from omg.export import output_format
 from omg.files import check_output_dir, read_text
@@ -288,6 +287,9 @@ class ProgressLine:
     def text(self, p: Progress) -> str:
         """``motions 1-4 of 8: step 37 of 200, 3s elapsed, about 40s left`` while a batch samples,
         ``motions 1-4 of 8 made in 200 steps, 12s elapsed, about 12s left`` when it is made."""
+        # fit's formatting; imported here, where the model (and lightning) is loaded, not by every omg generate
+        from omg.callbacks.progress import duration
+
         if p.finished:
             head = f"{p.motions} made" + (f" in {p.steps} steps" if p.steps else "")
         else:
