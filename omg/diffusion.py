@@ -18,6 +18,9 @@ from torch import Tensor
 from omg.errors import UsageError
 
 Denoiser = Callable[[Tensor, Tensor], Tensor]  # (x_t (B, T, D), t (B,)) -> x̂0 (B, T, D)
+# (steps done, steps): called by a sampler after each of its steps, with host integers only, so that watching a
+# run (a progress line, the server's status) draws no random number, calls no model and waits on no device
+StepProgress = Callable[[int, int], None]
 
 LOSS_WEIGHTINGS = ("uniform", "min_snr")
 
@@ -111,7 +114,7 @@ class Diffusion:
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
         mask: Tensor | None = None,
-        progress: bool = False,
+        progress: StepProgress | None = None,
         noise: Tensor | None = None,
     ) -> Tensor:
         """DDIM (Song et al. 2021) from x_{T-1} ~ N(0, I) to x̂0 over ``steps`` evenly spaced t.
@@ -119,7 +122,8 @@ class Diffusion:
         eta=0 is deterministic given the initial noise; eta=1 is DDPM-like ancestral sampling.
         mask (B, T) bool keeps padded frames at zero; ``denoise`` should close over the same mask
         (e.g. ``lambda x, t: model(x, t, mask)``). ``noise``: x_{T-1} itself (e.g. drawn per row from
-        its own seed) instead of a draw from ``generator``. Returns (shape) in ``dtype``.
+        its own seed) instead of a draw from ``generator``. ``progress`` hears (step, steps) after each step.
+        Returns (shape) in ``dtype``.
         """
         if not 1 <= steps <= self.num_timesteps:
             raise UsageError(f"steps must be in 1..{self.num_timesteps}, got {steps}")
@@ -137,11 +141,7 @@ class Diffusion:
         ts = ts.tolist()
         a = self.alphas_cumprod
         schedule = list(zip(ts, ts[1:] + [-1]))  # (t, t_prev); t_prev = -1 means ᾱ = 1
-        if progress:
-            from tqdm.auto import tqdm
-
-            schedule = tqdm(schedule, desc="ddim")
-        for t, t_prev in schedule:
+        for step, (t, t_prev) in enumerate(schedule, start=1):
             a_t = a[t].item()
             a_prev = a[t_prev].item() if t_prev >= 0 else 1.0
             x0_hat = denoise(x, torch.full((shape[0],), t, device=x.device, dtype=torch.long))
@@ -153,5 +153,7 @@ class Diffusion:
                 x = x + sigma * z
             if keep is not None:
                 x = x * keep
+            if progress is not None:
+                progress(step, steps)
         return x
 

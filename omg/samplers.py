@@ -1,7 +1,8 @@
 """Samplers of an x0-predicting diffusion model, registered by name in ``omg.registry.SAMPLERS``.
 
 Every sampler has one signature: ``sampler(diffusion, denoise, shape, *, steps, generator, device,
-dtype, mask) -> x̂0 (shape)`` (and ``noise=``: x_T given instead of drawn, when a caller seeds each row),
+dtype, mask) -> x̂0 (shape)`` (and ``noise=``: x_T given instead of drawn, when a caller seeds each row;
+``progress=``: a ``StepProgress`` that hears (step, steps) after each step, passed only when a caller watches),
 with ``denoise(x_t, t) -> x̂0`` the model (guidance included) and
 ``mask`` (B, T) keeping padded frames at zero. ``ddim`` is omg's own (``Diffusion.ddim_sample``,
 the sampler OMG reports with, 200 steps); the others are the ``diffusers`` schedulers set up with
@@ -24,7 +25,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from omg.diffusion import Denoiser, Diffusion
+from omg.diffusion import Denoiser, Diffusion, StepProgress
 from omg.errors import UsageError
 from omg.registry import SAMPLERS
 
@@ -34,10 +35,10 @@ Sampler = Callable[..., Tensor]
 @SAMPLERS.register("ddim")
 def ddim(diffusion: Diffusion, denoise: Denoiser, shape: tuple[int, ...], *, steps: int,
          generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None,
-         noise: Tensor | None = None) -> Tensor:
+         noise: Tensor | None = None, progress: StepProgress | None = None) -> Tensor:
     """DDIM, deterministic (η = 0): omg's and OMG's reference sampler."""
     return diffusion.ddim_sample(denoise, shape, steps=steps, generator=generator, device=device, dtype=dtype,
-                                 mask=mask, noise=noise)
+                                 mask=mask, noise=noise, progress=progress)
 
 
 def diffusers_betas(diffusion: Diffusion) -> list[float]:
@@ -47,7 +48,8 @@ def diffusers_betas(diffusion: Diffusion) -> list[float]:
 
 
 def _scheduler_loop(scheduler, diffusion: Diffusion, denoise: Denoiser, shape, steps: int, generator, device,
-                    dtype: torch.dtype, mask: Tensor | None, noise: Tensor | None = None) -> Tensor:
+                    dtype: torch.dtype, mask: Tensor | None, noise: Tensor | None = None,
+                    progress: StepProgress | None = None) -> Tensor:
     """The diffusers loop: scale the input to the model's x_t, let the scheduler step on x̂0."""
     if not 1 <= steps <= diffusion.num_timesteps:
         raise UsageError(f"steps must be in 1..{diffusion.num_timesteps}, got {steps}")
@@ -62,12 +64,14 @@ def _scheduler_loop(scheduler, diffusion: Diffusion, denoise: Denoiser, shape, s
         noise = torch.randn(shape, generator=generator, device=device, dtype=dtype)  # the same x_T as ddim
     noise = noise.to(device=device, dtype=dtype)
     x = noise * scheduler.init_noise_sigma
-    for t in scheduler.timesteps:
+    for step, t in enumerate(scheduler.timesteps, start=1):
         if keep is not None:
             x = x * keep
         x_t = scheduler.scale_model_input(x, t).to(dtype)  # the VP x_t the model was trained on
         x0 = denoise(x_t, t.to(device).expand(shape[0]))
         x = scheduler.step(x0, t, x).prev_sample.to(dtype)  # deterministic ODE steps: no noise drawn
+        if progress is not None:
+            progress(step, steps)
     return x if keep is None else x * keep
 
 
@@ -85,9 +89,9 @@ def _make(kind: str, diffusion: Diffusion):
 def _diffusers_sampler(kind: str, doc: str) -> Sampler:
     def sample(diffusion: Diffusion, denoise: Denoiser, shape: tuple[int, ...], *, steps: int,
                generator: torch.Generator | None, device, dtype: torch.dtype, mask: Tensor | None,
-               noise: Tensor | None = None) -> Tensor:
+               noise: Tensor | None = None, progress: StepProgress | None = None) -> Tensor:
         return _scheduler_loop(_make(kind, diffusion), diffusion, denoise, shape, steps, generator, device, dtype,
-                               mask, noise)
+                               mask, noise, progress)
 
     sample.__name__, sample.__doc__ = kind, doc
     return sample

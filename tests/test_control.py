@@ -176,6 +176,17 @@ def test_every_sampler_is_steered_onto_the_targets_unconstrained_sampling_misses
         assert min(row_free.values()) > 0.05, row_free  # which sampling alone does not come near
 
 
+def test_steered_sampling_reports_the_samplers_steps_and_the_same_motion(module):
+    """Steering re-solves every estimate (its own iterations, no sampler step): the sampler reports its 4 steps,
+    and watching it changes no number."""
+    control, _ = read_constraints(_spec(), CARD, FRAMES)
+    settings = SamplingSettings(steps=4, use_ema=False, seed=3, control=control)
+    heard = []
+    watched = module.sample(None, [FRAMES], settings, progress=lambda *step: heard.append(step))
+    assert heard == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert torch.equal(watched, module.sample(None, [FRAMES], settings))
+
+
 def test_sampling_without_constraints_never_steers(module, monkeypatch):
     import omg.lit.pretrain as pretrain
 
@@ -207,8 +218,10 @@ def test_generate_takes_constraints_records_the_error_and_warns_of_one_it_cannot
     path.write_text(json.dumps({"waypoints": [{"position": [0, 50], "time": 1.0}], "steering": {"final_iterations": 0,
                                                                                                  "iterations": 0}}))
     main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--constraints", str(path), "--out", str(tmp_path / "far")])
-    err = capsys.readouterr().err
-    assert err.startswith("omg: warning: motion 0: waypoints[0] not met: ") and "cm from its target at worst" in err
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("motions 1-2 of 2 made in 3 steps, ")  # the progress line, then the warnings
+    assert err[1].startswith("omg: warning: motion 0: waypoints[0] not met: ")
+    assert err[1].endswith("cm from its target at worst")
     record = json.loads((tmp_path / "far/generation.json").read_text())["samples"][0]
     assert record["control_unmet"]["waypoints[0]"] > 40
     # a bad file: one line, nothing written

@@ -191,3 +191,110 @@ def test_a_prior_checkpoint_is_refused_by_a_family_without_one(pretrain_ckpt, tm
     err = capsys.readouterr().err
     assert e.value.code == 2 and err == f"omg: error: --prior_ckpt: {pretrain_ckpt} (PretrainModule) takes no prior " \
                                          "checkpoint\n"
+
+
+# -- progress -------------------------------------------------------------------------------
+
+
+def test_generate_reports_each_batch_and_its_steps_and_samples_as_unwatched(pretrain_ckpt):
+    from dataclasses import replace
+
+    from omg.generation.progress import Progress
+    from omg.generation.protocol import GenerationRequest
+    from omg.lit.checkpoint import load_module
+
+    generator = generator_for(load_module(pretrain_ckpt))
+    heard = []
+    request = GenerationRequest(prompts=None, frames=10, num_samples=3, steps=2, batch_size=2, seed=5)
+    watched = generator.generate(replace(request, progress=heard.append))
+    assert heard == [Progress(0, 2, 3, 0, 2), Progress(0, 2, 3, 1, 2), Progress(0, 2, 3, 2, 2),
+                     Progress(0, 2, 3, 2, 2, finished=True),
+                     Progress(2, 1, 3, 0, 2), Progress(2, 1, 3, 1, 2), Progress(2, 1, 3, 2, 2),
+                     Progress(2, 1, 3, 2, 2, finished=True)]
+    assert [p.done for p in heard[3::4]] == [2, 3] and heard[0].motions == "motions 1-2 of 3"
+    for a, b in zip(watched, generator.generate(request)):
+        assert np.array_equal(a.features, b.features)
+
+
+def test_the_clock_times_what_is_left_at_the_measured_seconds_per_step():
+    from omg.generation.progress import Progress, ProgressClock
+
+    now = [0.0]
+    clock = ProgressClock(seconds_per_step=0.5, clock=lambda: now[0])
+    assert clock.time_left() is None and clock.steps_left() is None  # nothing reported yet
+    now[0] = 1.0
+    clock(Progress(0, 2, 3, 0, 4))  # 4 steps of this batch and 4 of the last (one motion) left
+    assert clock.steps_left() == 8 and clock.time_left() == 4.0  # at an earlier call's 0.5 s a step
+    now[0] = 3.0
+    clock(Progress(0, 2, 3, 1, 4))
+    assert clock.seconds_per_step == 2.0 and clock.time_left() == 14.0  # 7 steps at this call's own rate
+    now[0] = 4.0
+    assert clock.time_left() == 13.0 and clock.elapsed() == 4.0  # a second since the step
+    now[0] = 9.0
+    clock(Progress(0, 2, 3, 4, 4))
+    clock(Progress(0, 2, 3, 4, 4, finished=True))
+    now[0] = 10.0
+    clock(Progress(2, 1, 3, 0, 4))  # the next batch: the previous one's rate until its first step
+    assert clock.steps_left() == 4 and clock.time_left() == 4 * 2.0
+    now[0] = 10.5
+    clock(Progress(2, 1, 3, 1, 4))
+    assert clock.seconds_per_step == 0.5 and clock.time_left() == 1.5
+    # a family without sampler steps: each motion is one step
+    bare = ProgressClock(clock=lambda: now[0])
+    bare(Progress(0, 1, 3))
+    assert bare.time_left() is None  # no rate known yet
+    now[0] = 13.5
+    bare(Progress(0, 1, 3, finished=True))
+    assert bare.steps_left() == 2 and bare.time_left() == 6.0
+
+
+def test_a_terminal_gets_one_line_redrawn_in_place():
+    import io
+
+    from omg.generation.progress import Progress
+    from omg.tools.generate import ProgressLine
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    now, stream = [0.0], Terminal()
+    line = ProgressLine(stream, clock=lambda: now[0])
+    assert line.live
+    line(Progress(0, 2, 3, 0, 100))
+    for step in range(1, 7):  # a step each 0.04 s: drawn each 0.1 s or more, at steps 3 and 6
+        now[0] = 0.04 * step
+        line(Progress(0, 2, 3, step, 100))
+    now[0] = 70.0
+    line(Progress(0, 2, 3, 100, 100, finished=True))  # a batch's end and start are always drawn
+    made = "motions 1-2 of 3 made in 100 steps, 1m10s elapsed, about 4s left"
+    line(Progress(2, 1, 3, 0, 100))
+    line.close()
+    assert stream.getvalue().split("\r")[1:] == [
+        "motions 1-2 of 3: step 0 of 100, 0s elapsed",
+        "motions 1-2 of 3: step 3 of 100, 0s elapsed, about 8s left",  # 197 steps left at 0.04 s
+        "motions 1-2 of 3: step 6 of 100, 0s elapsed, about 8s left",
+        made,
+        "motion 3 of 3: step 0 of 100, 1m10s elapsed, about 4s left".ljust(len(made)) + "\n"]  # covers the longer
+    assert "\r" not in (plain := io.StringIO()).getvalue() and not ProgressLine(plain).live
+
+
+def test_generate_writes_a_line_per_batch_when_redirected_and_none_with_no_progress(pretrain_ckpt, tmp_path, capsys):
+    import re
+
+    from omg.cli import main
+
+    run = ["generate", "--unconditional", "--num_samples", "3", "--batch_size", "2", "--length", "0.5", "--steps", "3",
+           "--no_preview", "--ckpt", str(pretrain_ckpt)]
+    capsys.readouterr()
+    main([*run, "--out", str(tmp_path / "a")])
+    out, err = capsys.readouterr()
+    assert out == f"wrote 3 motions of 10 frames (0.5 s at 20 fps) to {tmp_path / 'a'}\n"  # stdout: the result alone
+    lines = err.splitlines()
+    assert len(lines) == 2 and "\r" not in err, err
+    assert re.fullmatch(r"motions 1-2 of 3 made in 3 steps, \w+ elapsed, about \w+ left", lines[0]), lines
+    assert re.fullmatch(r"motion 3 of 3 made in 3 steps, \w+ elapsed", lines[1]), lines
+    main([*run, "--no_progress", "--out", str(tmp_path / "b")])
+    assert capsys.readouterr().err == ""
+    for name in ("sample_000.features.npy", "sample_002.features.npy"):  # watched or not, the same motions
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()

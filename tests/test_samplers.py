@@ -103,3 +103,26 @@ def test_diffusers_loop_never_looks_its_step_up_on_the_device(diffusion, name, m
     for cls in (diffusers.DPMSolverMultistepScheduler, diffusers.EulerDiscreteScheduler):
         monkeypatch.setattr(cls, "index_for_timestep", refuse)
     assert torch.isfinite(run(name, diffusion, gaussian_denoiser(diffusion), steps=8)).all()
+
+
+@pytest.mark.parametrize("name", SAMPLERS.names())
+def test_every_sampler_reports_each_step_once_in_order_and_samples_the_same(diffusion, name):
+    """The progress hook hears (step, steps) after each step, the last one (steps, steps), and watching changes
+    nothing: no random number drawn, no model call added, the same sample to the bit."""
+    denoise = gaussian_denoiser(diffusion)
+    calls, heard = [], []
+
+    def counted(x, t):
+        calls.append(len(heard))  # the steps reported before this model call
+        return denoise(x, t)
+
+    mask = torch.arange(8)[None] < torch.tensor([[8], [5], [2]])
+    sampler = SAMPLERS.get(name)
+    gen, alone = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    watched = sampler(diffusion, counted, (3, 8, 4), steps=7, generator=gen, device="cpu", dtype=torch.float64,
+                      mask=mask, progress=lambda step, steps: heard.append((step, steps)))
+    assert heard == [(step, 7) for step in range(1, 8)]
+    assert calls == list(range(7))  # one model call per step, each step reported once it is taken
+    unwatched = sampler(diffusion, denoise, (3, 8, 4), steps=7, generator=alone, device="cpu", dtype=torch.float64,
+                        mask=mask)
+    assert torch.equal(watched, unwatched) and torch.equal(gen.get_state(), alone.get_state())

@@ -329,7 +329,40 @@ def test_the_server_answers_while_it_samples(client, server):
         started = time.perf_counter()
         assert client.get("/healthz").status_code == 200
         assert time.perf_counter() - started < 1.0 and not slow.done()
+        # the status shows the batch in flight: the sampler's step of its steps, the time left by the server's clock
+        seen = []
+        while not slow.done() and len(seen) < 3:
+            if (progress := client.get("/v1/status").json()["progress"]) and progress["step"] > 0:
+                seen.append(progress)
+            time.sleep(0.05)
         assert slow.result()["motions"]
+    assert len(seen) == 3, seen
+    for p in seen:
+        assert (p["rows"], p["steps"], p["done"], p["motions"]) == (1, 150, 0, 1) and 0 < p["step"] <= 150, p
+        assert p["elapsed_s"] > 0 and p["eta_s"] >= 0, p
+    assert [p["step"] for p in seen] == sorted(p["step"] for p in seen)
+    # nothing in flight: no progress; the model's seconds per step kept for the next call's first estimate
+    assert client.get("/v1/status").json()["progress"] is None
+    assert server.app.state.batcher.seconds_per_step["human"] > 0
+
+
+def test_the_families_without_sampler_steps_report_each_motion(server, shared_motion, tmp_path):
+    """OmniMotionGPT reports each motion, with the steps of the second model making its human motion; habit
+    transfer each motion alone."""
+    from omg.generation.progress import Progress
+    from omg.generation.protocol import GenerationRequest
+
+    animal, heard = server.models["animal"], []
+    animal.generator.generate(GenerationRequest(prompts=["a dog walks"], frames=20, num_samples=2, steps=2,
+                                                source_module=animal.source_module, progress=heard.append))
+    assert heard == [p for k in (0, 1) for p in (Progress(k, 1, 2, 0, 2), Progress(k, 1, 2, 1, 2),
+                                                  Progress(k, 1, 2, 2, 2), Progress(k, 1, 2, 2, 2, finished=True))]
+    habit, heard = server.models["habit"].generator, []
+    (tmp_path / "dog.bvh").write_bytes(_bvh(shared_motion))
+    habit.generate(GenerationRequest(prompts=None, frames=64, num_samples=2, species="horse",
+                                     source=habit.read_source(tmp_path / "dog.bvh"), progress=heard.append))
+    assert heard == [Progress(0, 1, 2), Progress(0, 1, 2, finished=True), Progress(1, 1, 2),
+                     Progress(1, 1, 2, finished=True)]
 
 
 # -- bad requests ---------------------------------------------------------------------------
@@ -909,9 +942,15 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     assert not [u for u in requests if u.endswith("/v1/generate")]
     page.fill("#prompts", "a person walks forward\na person waves")
     page.fill("#length", "1.5")
-    page.fill("#steps", "3")
+    page.fill("#steps", "150")  # long enough for a poll of the status to land on a step
+    page.evaluate("""() => { const status = document.querySelector('#status'); window.shown = [];
+        new MutationObserver(() => window.shown.push(status.textContent))
+            .observe(status, {childList: true, characterData: true, subtree: true}); }""")
     page.click("#generate")
     page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.drawn > 5", timeout=60_000)
+    # the progress: the sampler's step and the time left by the server's clock (not the seconds elapsed)
+    shown = page.evaluate("window.shown")
+    assert any(re.fullmatch(r"sampling… step ([1-9]\d*) of 150, about \d+ s left", text) for text in shown), shown
     assert page.locator(".sample").count() == 2
     page.wait_for_timeout(400)  # a progress poll in flight does not overwrite the answer
     assert page.locator("#status").inner_text().startswith("2 motion(s) in ")

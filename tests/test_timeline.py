@@ -248,6 +248,21 @@ def test_sampling_a_timeline_is_one_motion_and_without_one_the_plain_path(contro
         controlnet.sample([WALK], [frames], SamplingSettings(steps=1, timeline=two))
 
 
+def test_a_timeline_is_sampled_step_by_step_as_every_sampler_reports_it(controlnet):
+    """The blended denoiser runs the K texts in one model call a step: each registered sampler still reports its
+    own steps, in order, ending at ``steps``, and watching it changes no number."""
+    from omg.registry import SAMPLERS
+
+    frames = 40
+    two = resolve_timeline([Segment(0, 1, WALK), Segment(1, 2, WAVE)], [], frames, FPS, controlnet.representation)
+    for sampler in SAMPLERS.names():
+        settings = SamplingSettings(steps=3, sampler=sampler, use_ema=False, timeline=two, stance_root=0.5, seed=2)
+        heard = []
+        watched = controlnet.sample(None, [frames, frames], settings, progress=lambda *step: heard.append(step))
+        assert heard == [(1, 3), (2, 3), (3, 3)], sampler
+        assert torch.equal(watched, controlnet.sample(None, [frames, frames], settings)), sampler
+
+
 def test_omg_generate_follows_a_timeline_file(controlnet_ckpt, tmp_path):
     from omg.cli import main
     from omg.generation.registry import generator_for

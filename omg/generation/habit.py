@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.generation.progress import Batch
 from omg.generation.protocol import (
     MAX_SECONDS,
     GeneratedMotion,
@@ -142,6 +143,7 @@ class HabitGenerator(ModuleGenerator):
                if condition["retrieved"] else f"{condition['category']}'s habits")
         motions = []
         for repeat in range(request.num_samples):
+            watch = Batch(request.progress, repeat, 1, request.num_samples)  # one motion a batch, no sampler steps
             seed = request.seed + repeat
             torch.manual_seed(seed)
             if prior is not None:
@@ -158,6 +160,7 @@ class HabitGenerator(ModuleGenerator):
                 companions=[("source", source_joints.astype(np.float32), vq.spec.skeleton,
                              f"source: {source['name']}")],
                 record={"repeat": repeat, "seed": seed}))
+            watch.finish()
         return motions
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:

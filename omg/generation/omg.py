@@ -10,6 +10,7 @@ import numpy as np
 
 from omg.errors import UsageError
 from omg.generation.control import KINDS, unmet
+from omg.generation.progress import Batch
 from omg.generation.protocol import (
     MAX_SECONDS,
     GeneratedMotion,
@@ -71,8 +72,9 @@ class OmgGenerator(ModuleGenerator):
             batch_seed = request.seed + start
             seeds = None if request.row_seeds is None else request.row_seeds[start : start + len(batch)]
             texts = [p for p, _ in batch] if request.prompts else None  # None: the unconditional motion prior
-            features = m.sample(texts, [request.frames] * len(batch),
-                                replace(sampling, seed=batch_seed, seeds=seeds))  # (n, T, D)
+            watch = Batch(request.progress, start, len(batch), len(jobs), steps)
+            features = m.sample(texts, [request.frames] * len(batch), replace(sampling, seed=batch_seed, seeds=seeds),
+                                progress=watch.solver)  # (n, T, D)
             joints = m.representation.decode(features.float())  # (n, T, J, 3)
             reached = None if request.control is None else constraint_errors(joints, request.control.to(joints.device))
             for i, (prompt, k) in enumerate(batch):
@@ -84,6 +86,7 @@ class OmgGenerator(ModuleGenerator):
                 motions.append(GeneratedMotion(
                     features=features[i].float().cpu().numpy(), joints=joints[i].cpu().numpy().astype(np.float32),
                     title=prompt or untitled, record=record))
+            watch.finish()
         return motions
 
     def generation_settings(self, request: GenerationRequest) -> dict[str, Any]:

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from omg.errors import UsageError
+from omg.generation.progress import Batch
 from omg.generation.protocol import MAX_SECONDS, GeneratedMotion, GenerationCard, GenerationRequest, ModuleGenerator
 from omg.generation.read import read_human_motion
 from omg.generation.registry import register_generator
@@ -63,12 +64,16 @@ class OmniMotionGenerator(ModuleGenerator):
         for index, (prompt, name, k) in enumerate(jobs):
             lengths = torch.tensor([frames])
             person = to_person(prompt, names)
+            # one motion a batch; the steps are the second model's, sampling the human motion
+            watch = Batch(request.progress, index, 1, len(jobs), human_sampling.steps if request.source is None and
+                          request.source_module is not None else 0)
             if request.source is not None:
                 human = torch.from_numpy(request.source[0][:frames])[None]
                 human_offsets = torch.from_numpy(request.source[1])[None]
             elif request.source_module is not None:
                 human, human_offsets = generate_human(request.source_module.module, [person], lengths, m.spec.fps,
-                                                      replace(human_sampling, seed=request.seed + index))
+                                                      replace(human_sampling, seed=request.seed + index),
+                                                      progress=watch.solver)
             else:
                 human, human_offsets = human_source_of(m).human_motion([person], lengths.to(m.device),
                                                                        SamplingSettings(seed=request.seed + index))
@@ -85,6 +90,7 @@ class OmniMotionGenerator(ModuleGenerator):
                 companions=[("{stem}.human", human_joints.astype(np.float32), HUMAN_SKELETON, None)],
                 record={"prompt": prompt, "animal": name, "human_prompt": person, "repeat": k,
                         "animal_prompt": about_animal(prompt, name, names)}))
+            watch.finish()
         return motions
 
     def _frames_and_repeats(self, request: GenerationRequest) -> tuple[int, int]:

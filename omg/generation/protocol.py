@@ -19,6 +19,7 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 
 from omg.errors import UsageError
+from omg.generation.progress import ProgressReport
 
 Input = Literal["text", "unconditional", "motion", "species"]
 MAX_SECONDS = 60.0  # the longest motion one generation call makes
@@ -70,7 +71,7 @@ class GenerationRequest:
 
     ``source``: a motion already read by the module's ``read_source``; ``source_module``: a
     generative module that makes the source motion from each prompt. ``steps``/``sampler``/
-    ``guidance`` are None for the family's defaults."""
+    ``guidance`` are None for the family's defaults. ``progress`` hears how far the call is."""
 
     prompts: list[str] | None
     frames: int
@@ -94,6 +95,9 @@ class GenerationRequest:
     timeline: Any = None
     # spatial constraints resolved for one motion of ``frames`` (omg.lit.control.Control), where the card takes them
     control: Any = None
+    # who watches the call (``omg.generation.progress``): each batch's start, sampler steps and end; the motions are
+    # those of an unwatched call
+    progress: ProgressReport | None = None
 
 
 @dataclass

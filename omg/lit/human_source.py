@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from omg.diffusion import StepProgress
 from omg.errors import UsageError
 from omg.lit.omgpt import HUMAN_SKELETON, OmniMotionModule
 from omg.lit.sampling import Sampler, SamplingSettings
@@ -239,7 +240,7 @@ class OmniMotionSampler:
 
 
 def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, fps: float,
-                   settings: SamplingSettings) -> tuple[Tensor, Tensor]:
+                   settings: SamplingSettings, progress: StepProgress | None = None) -> tuple[Tensor, Tensor]:
     """OMG's text-to-motion for prompts about "a person" -> smpl22 maa (B, T, 138) and offsets (B, 22, 3)
     at ``fps`` (the OmniMotionGPT model's rate; ``lengths`` count its frames), sampled with the settings'
     steps, sampler, guidance and seed on the weights as loaded.
@@ -247,7 +248,8 @@ def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, 
     ``generator``: an OMG ControlNet module (its ``Sampler``); its features (humanml3d263) are decoded to joint
     positions and turned into rotations by IK. A generator at another rate makes the same durations
     at its own rate, resampled to ``fps`` (linear in time, as the importers resample), so that the
-    animal moves at the speed the human did."""
+    animal moves at the speed the human did. ``progress`` hears the generator's sampler steps (passed to its
+    ``sample`` only when given)."""
     from omg.data.sources.amass import resample
 
     if generator.spec.skeleton != HUMAN_SKELETON:
@@ -258,8 +260,10 @@ def generate_human(generator: Sampler, prompts: Sequence[str], lengths: Tensor, 
     source_fps = generator.spec.fps
     lengths = torch.as_tensor(lengths).cpu()
     source_lengths = [max(2, round((n - 1) * source_fps / fps) + 1) for n in lengths.tolist()]
+    watched = {} if progress is None else {"progress": progress}
     features = generator.sample(list(prompts), source_lengths, SamplingSettings(
-        steps=settings.steps, sampler=settings.sampler, guidance=settings.guidance, seed=settings.seed, use_ema=False))
+        steps=settings.steps, sampler=settings.sampler, guidance=settings.guidance, seed=settings.seed, use_ema=False),
+        **watched)
     joints = generator.representation.decode(features.float()).cpu().numpy()  # (B, T', 22, 3)
     T = int(lengths.max())
     motion = torch.zeros(len(prompts), T, (get_skeleton(HUMAN_SKELETON).num_joints + 1) * 6)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from omg.diffusion import Denoiser, Diffusion
+from omg.diffusion import Denoiser, Diffusion, StepProgress
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
 from omg.lit.control import Control, steered
@@ -211,7 +211,7 @@ class MotionDiffusionModule(OmgModule):
     # -- sampling ------------------------------------------------------------------------
     @torch.no_grad()
     def sample(self, texts: Sequence[str] | None, lengths: Tensor | Sequence[int],
-               settings: SamplingSettings | None = None) -> Tensor:
+               settings: SamplingSettings | None = None, *, progress: StepProgress | None = None) -> Tensor:
         """Samples, one per length: un-normalised features (B, max(lengths), D) with each motion
         generated at its own length (frames beyond it are padding, to be ignored); the ``Sampler``
         protocol (``omg.lit.sampling``).
@@ -229,6 +229,7 @@ class MotionDiffusionModule(OmgModule):
         foot (``stance_denoiser``); ``control`` then steers it towards joint targets (``omg.lit.control``), on
         the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
         stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``).
+        ``progress`` (a watcher of this call, not a setting) hears the solver's (step, steps) after each step.
         """
         settings = settings or SamplingSettings()
         if texts is not None and not self.text_conditional:
@@ -261,6 +262,8 @@ class MotionDiffusionModule(OmgModule):
                 denoise = self.control_denoiser(denoise, mask, settings.control, settings.steps)
             shape = (*mask.shape, self.config.input_dim)
             given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
+            if progress is not None:  # passed only when watched: a plugin sampler need not take it
+                given["progress"] = progress
             x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
                        dtype=dtype, mask=mask, **given)
         return self.denormalize(x)

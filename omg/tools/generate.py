@@ -9,16 +9,20 @@ in metres, Y up, and ``sample_NNN.bvh`` (rotations solved by IK on the model's s
 
 from __future__ import annotations
 
+import math
 import sys
+import time
 import unicodedata
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TextIO
 
 import torch
 
 from omg.errors import UsageError
 from omg.export import output_format
 from omg.files import check_output_dir, read_text
+from omg.generation.progress import Progress, ProgressClock
 from omg.generation.protocol import MAX_SECONDS, GenerationRequest, check_request, parse_options
 from omg.generation.write import MAX_PREVIEW, check_finite_motions, output_files, write_generation
 from omg.registry import SAMPLERS
@@ -48,6 +52,7 @@ def generate(
     ema: bool = True,
     preview: bool = True,
     preview_count: PositiveInt = MAX_PREVIEW,
+    progress: bool = True,
     clean_contacts: bool = False,
     stance_root: ClosedUnitInterval | None = None,
     option: list[str] | None = None,
@@ -91,6 +96,8 @@ def generate(
         ema: use the EMA of the weights (--no_ema: the trained weights)
         preview: write preview.gif
         preview_count: motions shown side by side in preview.gif
+        progress: show sampling progress on stderr: in a terminal a live line (the motions in the sampler, its
+            step, the time elapsed and left), otherwise one line per batch of motions made (--no_progress: none)
         clean_contacts: pin planted feet in the BVH files (removes foot skating)
         stance_root: OMG checkpoints of humanml3d263 motion: step the root by the stance foot at every
             sampling step, this much in [0, 1] (default: the checkpoint's; removes foot sliding while sampling)
@@ -135,7 +142,8 @@ def generate(
     settings = run_generation(
         ckpt, prompts=read_prompts(prompts or [], prompts_file), unconditional=unconditional, timeline=spans,
         num_samples=num_samples, length=length, steps=steps, sampler=sampler, guidance=guidance, seed=seed,
-        batch_size=batch_size, ema=ema, preview=preview, preview_count=preview_count, clean_contacts=clean_contacts,
+        batch_size=batch_size, ema=ema, preview=preview, preview_count=preview_count, progress=progress,
+        clean_contacts=clean_contacts,
         options=([f"stance_root={stance_root}"] if stance_root is not None else []) + list(option or []),
         to_rig=to_rig, joint_map=joint_map, format=format, device=device, autocast=autocast, compile=compile,
         animal=animal, from_motion=from_motion, from_motion_joint_map=from_motion_joint_map, human_ckpt=human_ckpt,
@@ -149,7 +157,7 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
                    timeline: Any = None,
                    num_samples: int = 1, length: float | None = None, steps: int | None = None,
                    sampler: str | None = None, guidance: float | None = None, seed: int = 0, batch_size: int = 32,
-                   ema: bool = True, preview: bool = True, preview_count: int = MAX_PREVIEW,
+                   ema: bool = True, preview: bool = True, preview_count: int = MAX_PREVIEW, progress: bool = False,
                    clean_contacts: bool = False, options: list[str] | dict[str, Any] = (), to_rig: Path | None = None,
                    joint_map: str | None = None, format: str | None = None, device: str | None = None,
                    autocast: str | None = None, compile: bool = False, animal: str | None = None,
@@ -163,7 +171,8 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     (``omg.generation.write``) writing them. ``options``: ``--option KEY=VALUE`` pairs, or the family options
     already typed (an alias's own flags); ``length`` None: the source motion's (a transfer); ``names``,
     ``settings_file``, ``extra_files`` and ``extra_settings``: an alias's file names and what its settings add;
-    ``timeline``: a read ``omg.generation.timeline.TimelineFile``, instead of prompts."""
+    ``timeline``: a read ``omg.generation.timeline.TimelineFile``, instead of prompts; ``progress``: a
+    ``ProgressLine`` on stderr while the motions are made."""
     from omg.generation.registry import generator_for
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import PretrainModule
@@ -219,7 +228,12 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
         request.source = generator.read_source(from_motion, from_motion_joint_map)
     rig = read_rig(to_rig, card.skeleton, joint_map) if to_rig is not None else None  # checked before sampling
     generator = generator.to(device)
-    motions = generator.generate(request)
+    request.progress = ProgressLine(sys.stderr) if progress else None
+    try:
+        motions = generator.generate(request)
+    finally:  # an error or Ctrl-C starts on a line of its own
+        if request.progress is not None:
+            request.progress.close()
     check_finite_motions(motions, ckpt, f" or --guidance {guidance:g} too large" if prompts and guidance is not None
                          else "")
     for i, motion in enumerate(motions):  # a constraint that cannot be met is generated, never silently
@@ -240,6 +254,57 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
                      joint_map=joint_map, format=format, clean_contacts=clean_contacts, preview=preview,
                      preview_count=preview_count)
     return settings
+
+
+class ProgressLine:
+    """``omg generate``'s progress on ``stream`` (stderr: stdout keeps its one line of results), a
+    ``ProgressReport``: in a terminal one line redrawn in place (the motions in the sampler, its step, the time
+    elapsed and about how long is left, from the seconds per step measured: ``ProgressClock``); in a log file or a
+    pipe, which would receive a redrawn line only at the end, one line per batch of motions made with the same
+    facts."""
+
+    redraw_s = 0.1  # the live line is drawn at most this often, and at each batch's start and end
+
+    def __init__(self, stream: TextIO, live: bool | None = None, clock: Callable[[], float] = time.perf_counter):
+        self.stream = stream
+        self.live = stream.isatty() if live is None else live
+        self.clock = ProgressClock(clock=clock)
+        self._drawn = -math.inf  # when the live line was last drawn
+        self._width = 0  # its length then: a shorter line covers it with spaces
+
+    def __call__(self, progress: Progress) -> None:
+        self.clock(progress)
+        if self.live:
+            now = self.clock.clock()
+            if progress.finished or progress.step == 0 or now - self._drawn >= self.redraw_s:
+                text = self.text(progress)
+                self.stream.write("\r" + text.ljust(self._width))
+                self.stream.flush()
+                self._drawn, self._width = now, len(text)
+        elif progress.finished:
+            print(self.text(progress), file=self.stream, flush=True)
+
+    def text(self, p: Progress) -> str:
+        """``motions 1-4 of 8: step 37 of 200, 3s elapsed, about 40s left`` while a batch samples,
+        ``motions 1-4 of 8 made in 200 steps, 12s elapsed, about 12s left`` when it is made."""
+        # fit's formatting; imported here, where the model (and lightning) is loaded, not by every omg generate
+        from omg.callbacks.progress import duration
+
+        if p.finished:
+            head = f"{p.motions} made" + (f" in {p.steps} steps" if p.steps else "")
+        else:
+            head = p.motions + (f": step {p.step} of {p.steps}" if p.steps else "")
+        parts = [head, f"{duration(self.clock.elapsed())} elapsed"]
+        left = self.clock.time_left()
+        if p.done < p.total and left is not None:
+            parts.append(f"about {duration(left)} left")
+        return ", ".join(parts)
+
+    def close(self) -> None:
+        """Ends the live line, so that what follows starts on a line of its own."""
+        if self.live and self._drawn > -math.inf:
+            self.stream.write("\n")
+            self.stream.flush()
 
 
 def load_prior(prior_ckpt: Path, ckpt: Path, module) -> Any:

@@ -47,6 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException
 
 from omg.errors import UsageError
+from omg.generation.progress import ProgressClock
 from omg.generation.protocol import (
     GeneratedMotion,
     GenerationCard,
@@ -125,6 +126,8 @@ class Batcher:
     worker: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="omg-sample"))
     busy: int = 0  # motions being sampled now
     calls: int = 0  # sampling calls made (the page and the tests read how requests were batched)
+    clock: ProgressClock | None = None  # the call in flight's progress, timed here
+    seconds_per_step: dict[str, float] = field(default_factory=dict)  # per model, measured in its latest call
 
     async def submit(self, model: Model, request: GenerationRequest, rows: int) -> tuple[list[GeneratedMotion], int]:
         job = Job(model, request, asyncio.get_running_loop().create_future(), rows)
@@ -160,15 +163,31 @@ class Batcher:
     async def _call(self, group: list[Job]) -> None:
         """One ``generate`` call answering ``group`` (raises what the call raised, answering none)."""
         self.busy = sum(j.rows for j in group)
+        name = group[0].model.name
+        # before the call's first step, its time left is at the seconds per step of the model's previous call
+        self.clock = clock = ProgressClock(self.seconds_per_step.get(name))
         try:
             results = await asyncio.get_running_loop().run_in_executor(self.worker, _sample, group,
-                                                                       self.limits.max_batch)
+                                                                       self.limits.max_batch, clock)
             self.calls += 1
             for job, motions in zip(group, results):
                 if not job.future.done():
                     job.future.set_result((motions, self.busy))
         finally:
-            self.busy = 0
+            self.busy, self.clock = 0, None
+            if clock.seconds_per_step is not None:
+                self.seconds_per_step[name] = clock.seconds_per_step
+
+    def progress(self) -> dict[str, Any] | None:
+        """The batch in flight (None: none): its ``rows`` motions, its sampler's ``step`` of ``steps`` (0: a family
+        without them), the call's motions made (``done``) of its ``motions``, and its ``elapsed_s`` and ``eta_s``
+        (None until a rate is known) by this server's clock."""
+        clock = self.clock
+        if clock is None or (p := clock.latest) is None:
+            return None
+        left = clock.time_left()
+        return {"rows": p.rows, "step": p.step, "steps": p.steps, "done": p.done, "motions": p.total,
+                "elapsed_s": round(clock.elapsed(), 3), "eta_s": None if left is None else round(left, 3)}
 
 
 def _fail(job: Job, e: Exception) -> None:
@@ -205,11 +224,11 @@ def _groups(jobs: list[Job], max_batch: int) -> list[list[Job]]:
     return groups
 
 
-def _sample(group: list[Job], max_batch: int) -> list[list[GeneratedMotion]]:
+def _sample(group: list[Job], max_batch: int, progress: ProgressClock) -> list[list[GeneratedMotion]]:
     """One ``generate`` call for a group of compatible jobs (their motions concatenated, each with its own
-    seed), or the lone job's own call."""
+    seed), or the lone job's own call; ``progress`` hears how far it is."""
     if len(group) == 1 and _key(group[0]) is None:
-        return [group[0].model.generator.generate(group[0].request)]
+        return [group[0].model.generator.generate(replace(group[0].request, progress=progress))]
     first = group[0].request
     prompts, seeds, repeats = [], [], []
     for job in group:
@@ -220,7 +239,7 @@ def _sample(group: list[Job], max_batch: int) -> list[list[GeneratedMotion]]:
             repeats.append(k)
     merged = replace(first, prompts=prompts if first.prompts else None,
                      num_samples=1 if first.prompts else len(prompts), seed=seeds[0], row_seeds=seeds,
-                     batch_size=max_batch)
+                     batch_size=max_batch, progress=progress)
     motions = group[0].model.generator.generate(merged)
     for motion, k in zip(motions, repeats):
         motion.record["repeat"] = k
@@ -351,7 +370,7 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     @app.get("/v1/status", summary="what the sampler is doing (the page's progress)")
     async def status():
         return {"queued": batcher.queue.qsize(), "sampling": batcher.busy, "calls": batcher.calls,
-                "parsing": parsing.n}
+                "parsing": parsing.n, "progress": batcher.progress()}
 
     @app.post("/v1/generate", summary="motions from prompts (or none, for an unconditional model)")
     async def generate(body: GenerateBody):

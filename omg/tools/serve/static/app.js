@@ -96,15 +96,14 @@ async function generate() {
                                       body: JSON.stringify(body) });
   }
   $('generate').disabled = true;
+  $('progress').removeAttribute('value');  // indeterminate until the sampler reports a step
   show('progress', true);
-  const started = performance.now();
   let answered = false;  // a status poll still on its way must not overwrite the answer
-  const poll = setInterval(async () => {  // progress: how long, and what the sampler is busy with
+  const poll = setInterval(async () => {  // progress: the sampler's step and the time left, by the server's clock
     try {
       const s = await (await fetch('/v1/status')).json();
       if (answered) return;
-      const secs = ((performance.now() - started) / 1000).toFixed(1);
-      setStatus(`sampling… ${secs} s (${s.sampling} motions in the sampler, ${s.queued} requests queued)`);
+      setStatus(progressText(s));
     } catch (e) { /* the answer comes anyway */ }
   }, 250);
   try {
@@ -124,6 +123,19 @@ async function generate() {
     show('progress', false);
     $('generate').disabled = false;
   }
+}
+
+// "step 37 of 200, about 12 s left" (or "motion 2 of 4" for a model without sampler steps) from GET /v1/status
+function progressText(s) {
+  const p = s.progress;
+  const queued = s.queued ? ` (${s.queued} requests queued)` : '';
+  if (!p) return `waiting for the sampler…${queued}`;
+  if (p.steps) { $('progress').max = p.steps; $('progress').value = p.step; }
+  else { $('progress').max = p.motions; $('progress').value = p.done; }
+  const at = p.steps ? `step ${p.step} of ${p.steps}` : `motion ${Math.min(p.done + 1, p.motions)} of ${p.motions}`;
+  const t = Math.ceil(p.eta_s ?? 0);
+  const left = p.eta_s === null ? '' : `, about ${t < 60 ? `${t} s` : `${Math.floor(t / 60)} min ${t % 60} s`} left`;
+  return `sampling… ${at}${left}${queued}`;
 }
 
 // -- the viewer (static/viewer.js) and the results' list -------------------------------------------
