@@ -50,11 +50,16 @@ class FbxCharacter:
 
 def available() -> bool:
     """Whether Blender's Python module is installed (without importing it)."""
-    return importlib.util.find_spec("bpy") is not None
+    try:
+        return importlib.util.find_spec("bpy") is not None
+    except ValueError:  # a module entry set to None: an import of it would fail
+        return False
 
 
-def _check(path: Path, what: str) -> str:
-    """``where`` of the messages; one line for a path that is no binary FBX omg can give Blender, or no bpy."""
+def check_file(path: str | Path, what: str = "--to_rig") -> str:
+    """``where`` of the messages; one line for a path that is no binary FBX omg can give Blender, or no bpy
+    (before a command loads anything, Blender included)."""
+    path = Path(path)
     where = f"{what} {path}" if what else str(path)
     if (problem := file_problem(path)) is not None:
         raise UsageError(f"{where}: {problem}")
@@ -103,7 +108,7 @@ def read_character(path: str | Path, what: str = "--to_rig"):
     from omg.io.rig import RigMotion
 
     path = Path(path)
-    where = _check(path, what)
+    where = check_file(path, what)
     out = _run({"op": "read", "path": str(path.resolve())}, {}, where)
     rest = np.asarray(out["rest"], dtype=np.float64).reshape(-1, 3)  # (J, 3) world, metres, Y up
     parents = [int(p) for p in out["parents"]]
@@ -244,9 +249,8 @@ def _child_write(request: dict, turns: np.ndarray, places: np.ndarray) -> dict:
     A bone's pose matrix in the armature's space is P = [R^-1 G R B | W^-1 x] (G: the joint's world turn,
     R: the armature-to-world rotation, B: the bone's rest matrix, W: armature-to-world, x: the joint's
     place); Blender's own relation P = P_parent (B_parent^-1 B) basis gives each bone's keyed basis."""
-    from mathutils import Matrix
-
     bpy, arm = _child_import(request["path"])
+    from mathutils import Matrix  # Blender's, once bpy is imported
     if arm.name != request["armature"]:
         raise _Refused(f"its armature is {arm.name!r} now, not {request['armature']!r} as read")
     bones = {b.name: b for b in _bone_order(arm)}

@@ -1,15 +1,17 @@
 """FBX characters the tests make with Blender itself, and what Blender reads back from the files omg writes.
 
 Run as a script under the Python that has ``bpy`` (``python tests/helpers/blender_scenes.py build|probe
-REQUEST.json``), in a child process as omg runs Blender, so that the test process never loads Blender:
+REQUESTS.json``: a list of calls), in a child process as omg runs Blender, so that the test process never
+loads Blender (``blender``: the same from a test):
 
-- ``build``: the figure of ``helpers.characters`` (Mixamo's names, a box of mesh around each bone, weights
-  as in the glTF figure) as an armature with a skinned mesh, written as FBX; ``unit`` in metres per file unit
-  (0.01: centimetres, the scene's unit scale, as Mixamo's files), ``z_up``: the file's axes Blender's own
-  (Z up, -Y forward) instead of FBX's Y up, ``pose`` "A": the arms 45 degrees down;
-- ``probe``: a written file (.fbx or .glb) opened in an empty scene: its actions (name, frame range), and at
-  every frame of the armature's action its bones' heads and the evaluated (skinned) mesh's vertices, in
-  the world, metres, Y up (Blender's Z-up world turned as its glTF exporter turns it); an .npz beside.
+- ``build``: the figure of ``helpers.characters`` (Mixamo's names; ``boxes``: a box of mesh around each
+  bone, weights as in the glTF figure) as an armature with a skinned mesh, written as FBX; ``unit`` in
+  metres per file unit (0.01: centimetres, the scene's unit scale, as Mixamo's files), ``z_up``: the
+  file's axes Blender's own (Z up, -Y forward) instead of FBX's Y up, ``pose`` "A": the arms 45 degrees down;
+- ``probe``: a written file (.fbx or .glb) opened in an empty scene at ``fps``: its actions (name, frame
+  range), the skinned meshes' vertices at rest, and at every frame of the armature's action its bones'
+  heads and the evaluated (skinned) meshes' vertices, in the world, metres, Y up (Blender's Z-up world
+  turned as its glTF exporter turns it): an .npz, and a .json beside it.
 """
 
 from __future__ import annotations
@@ -31,14 +33,52 @@ def _empty_scene():
     return bpy
 
 
-def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> None:
-    sys.path.insert(0, str(HERE.parent))
-    from helpers.characters import HALF_WIDTH, figure_rest
+def _characters():
+    """The glTF figure's module alone (the helpers package would load torch into Blender's child)."""
+    import importlib.util
 
+    spec = importlib.util.spec_from_file_location("characters", HERE / "characters.py")
+    characters = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(characters)
+    return characters
+
+
+def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], list[list[int]]]:
+    """The figure's mesh: a box around each bone (parent joint -> joint), 8 vertices a bone in joint order, the
+    4 at the parent end bound to the parent, the 4 at the far end half and half; the soles of the foot's
+    boxes on the ground. Each box a little wider than the one before, so that no two vertices share a place
+    at rest (a reader that splits or reorders vertices, as glTF's does, is matched back by place).
+    Returns (V, 3) rest positions (metres, Y up), each vertex's (joint, weight) list, and the quads."""
+    characters = _characters()
+    names, parents, rest = characters.figure_rest(pose)
+    vertices, groups, faces = [], [], []
+    for j in range(1, len(names)):
+        p = parents[j]
+        a, b = rest[p], rest[j]
+        axis = (b - a) / np.linalg.norm(b - a)
+        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        up = np.cross(axis, side)
+        half = characters.HALF_WIDTH * (1.0 + 0.02 * j)
+        foot = names[j].endswith(("ToeBase", "Toe_End"))
+        base = len(vertices)
+        for end, point in enumerate((a, b)):
+            for u, v in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+                q = point + half * (u * side + v * up)
+                if foot and q[1] < point[1]:
+                    q[1] = 0.0
+                vertices.append(q)
+                groups.append([(p, 1.0)] if end == 0 else [(p, 0.5), (j, 0.5)])
+        for quad in [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]:
+            faces.append([base + k for k in quad])
+    return np.array(vertices), groups, faces
+
+
+def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> None:
     bpy = _empty_scene()
     scene = bpy.context.scene
     scene.unit_settings.scale_length = unit  # one Blender unit is ``unit`` metres: the file's numbers in that unit
-    names, parents, rest_yup = figure_rest(pose)
+    names, parents, rest_yup = _characters().figure_rest(pose)
     rest = (rest_yup @ Y_UP) / unit  # (J, 3) Blender's world (Y_UP's inverse is its transpose), file units
     J = len(names)
     arm_data = bpy.data.armatures.new("Armature")
@@ -57,30 +97,9 @@ def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> 
             bone.parent = bones[parents[j]]
         bones.append(bone)
     bpy.ops.object.mode_set(mode="OBJECT")
-    # the mesh: a box around each bone (parent joint -> joint) as the glTF figure's, soles of the foot's boxes on
-    # the ground; the vertices at the parent end bound to the parent, those at the far end half and half
-    vertices, faces, groups = [], [], []
-    corners = [(a, b) for a in (-1, 1) for b in (-1, 1)]
-    for j in range(1, J):
-        p = parents[j]
-        a, b = rest_yup[p], rest_yup[j]
-        axis = (b - a) / np.linalg.norm(b - a)
-        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
-        side /= np.linalg.norm(side)
-        up = np.cross(axis, side)
-        foot = names[j].endswith(("ToeBase", "Toe_End"))
-        base = len(vertices)
-        for end, point in enumerate((a, b)):
-            for u, v in corners:
-                q = point + HALF_WIDTH * (u * side + v * up)
-                if foot and q[1] < point[1]:
-                    q[1] = 0.0
-                vertices.append((q @ Y_UP) / unit)
-                groups.append([(p, 1.0)] if end == 0 else [(p, 0.5), (j, 0.5)])
-        for quad in [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]:
-            faces.append([base + k for k in quad])
+    vertices, groups, faces = boxes(pose)
     mesh = bpy.data.meshes.new("body")
-    mesh.from_pydata([v.tolist() for v in vertices], [], faces)
+    mesh.from_pydata(((vertices @ Y_UP) / unit).tolist(), [], faces)
     body = bpy.data.objects.new("body", mesh)
     scene.collection.objects.link(body)
     material = bpy.data.materials.new("skin")
@@ -97,24 +116,22 @@ def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> 
                              **axes)
 
 
-def probe(path: str, out: str) -> None:
+def probe(path: str, out: str, fps: float) -> None:
     bpy = _empty_scene()
+    scene = bpy.context.scene
+    scene.render.fps = round(fps)  # glTF keys times in seconds: its importer keys frames at the scene's rate
     if path.lower().endswith(".fbx"):
         bpy.ops.import_scene.fbx(filepath=path)
     else:
         bpy.ops.import_scene.gltf(filepath=path)
-    scene = bpy.context.scene
     arm = next(o for o in scene.objects if o.type == "ARMATURE")
-    meshes = [o for o in scene.objects if o.type == "MESH"]
+    meshes = [o for o in scene.objects if o.type == "MESH" and any(m.type == "ARMATURE" for m in o.modifiers)]
     action = arm.animation_data.action if arm.animation_data else None
     actions = [{"name": a.name, "range": list(a.frame_range)} for a in bpy.data.actions]
     first, last = (int(round(x)) for x in action.frame_range)
     names = [b.name for b in arm.data.bones]
-    heads, skinned = [], []
-    for f in range(first, last + 1):
-        scene.frame_set(f)
-        world = np.array(arm.matrix_world)
-        heads.append([(world @ np.append(np.array(b.head), 1.0))[:3] @ Y_UP.T for b in arm.pose.bones])
+
+    def vertices() -> np.ndarray:
         graph = bpy.context.evaluated_depsgraph_get()
         points = []
         for o in meshes:
@@ -125,14 +142,35 @@ def probe(path: str, out: str) -> None:
             mw = np.array(evaluated.matrix_world)
             points.append((co.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]) @ Y_UP.T)
             evaluated.to_mesh_clear()
-        skinned.append(np.concatenate(points))
-    np.savez(out, heads=np.array(heads), skinned=np.array(skinned))
+        return np.concatenate(points)
+
+    arm.data.pose_position = "REST"
+    rest = vertices()
+    arm.data.pose_position = "POSE"
+    heads, skinned = [], []
+    for f in range(first, last + 1):
+        scene.frame_set(f)
+        world = np.array(arm.matrix_world)
+        heads.append([(world @ np.append(np.array(b.head), 1.0))[:3] @ Y_UP.T for b in arm.pose.bones])
+        skinned.append(vertices())
+    np.savez(out, heads=np.array(heads), skinned=np.array(skinned), rest=rest)
     Path(out).with_suffix(".json").write_text(json.dumps({
         "actions": actions, "action": action.name, "frames": [first, last], "names": names,
         "fps": scene.render.fps / scene.render.fps_base, "meshes": [o.name for o in meshes],
         "vertices": [len(o.data.vertices) for o in meshes]}))
 
 
-if __name__ == "__main__":
-    request = json.loads(Path(sys.argv[2]).read_text())
-    {"build": build, "probe": probe}[sys.argv[1]](**request)
+if __name__ == "__main__":  # REQUEST.json: a list of keyword arguments, one call each
+    for request in json.loads(Path(sys.argv[2]).read_text()):
+        {"build": build, "probe": probe}[sys.argv[1]](**request)
+
+
+def blender(what: str, requests: list[dict], folder: Path) -> None:
+    """``build`` or ``probe`` each of ``requests`` in one child Python (one Blender start for them all)."""
+    import os
+    import subprocess
+
+    (folder / f"{what}.json").write_text(json.dumps(requests))
+    run = subprocess.run([sys.executable, __file__, what, str(folder / f"{what}.json")], capture_output=True,
+                         text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(HERE.parent.parent)})
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
