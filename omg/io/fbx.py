@@ -295,6 +295,7 @@ def _child_write(request: dict, turns: np.ndarray, places: np.ndarray) -> dict:
             for i in range(3):
                 keys(f'pose.bones["{bpy.utils.escape_identifier(n)}"].location', i, n, location[:, i])
     scene = bpy.context.scene
+    scene.name = request["name"]  # the FBX take's name (Blender names it after the scene)
     fps = request["fps"]
     scene.render.fps = max(1, round(fps))
     scene.render.fps_base = scene.render.fps / fps
