@@ -25,11 +25,15 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from omg.errors import UsageError
 from omg.files import atomic_path, file_problem, read_head
+
+if TYPE_CHECKING:  # the child imports this module too: it loads neither torch nor the rest of omg
+    from omg.io.rig import RigMotion
 
 FBX_MAX_BYTES = 512 * 2**20  # a character's file: its meshes and embedded textures
 BINARY_MAGIC = b"Kaydara FBX Binary  \x00"  # Blender reads binary FBX only (7.1 and later)
@@ -100,7 +104,7 @@ def _run(request: dict, arrays: dict[str, np.ndarray], where: str) -> dict:
     return out
 
 
-def read_character(path: str | Path, what: str = "--to_rig"):
+def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
     """A skinned FBX character as a rig: its armature's bones (one tree; named as in the file, Mixamo's
     ``mixamorig:`` kept), their heads in the rest pose in the world (metres, Y up); the ``FbxCharacter``
     rides along for the writer. Conventions are ``RigMotion``'s: rest rotations the identity, offsets in
@@ -120,7 +124,7 @@ def read_character(path: str | Path, what: str = "--to_rig"):
                      source=str(path), character=character)  # fmt: skip
 
 
-def write_character(path: str | Path, motion) -> Path:
+def write_character(path: str | Path, motion: RigMotion) -> Path:
     """The FBX character of ``motion`` (``read_character``'s) with the motion added, written atomically as
     ``path``'s suffix says: ``.fbx`` (Blender's FBX exporter: one take, a key on every frame) or ``.glb``
     (Blender's glTF exporter: one animation, sampled on every frame).
