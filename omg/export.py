@@ -16,8 +16,11 @@ import numpy as np
 import torch
 
 from omg import kinematics
+from omg.errors import UsageError
 from omg.io.bvh import write_bvh, write_rig_bvh
 from omg.io.contacts import clean_foot_contacts
+from omg.io.fbx import FbxCharacter
+from omg.io.fbx import write_character as write_fbx_character
 from omg.io.gltf import write_glb
 from omg.io.rig import RigMotion
 from omg.kinematics import clip_offsets
@@ -46,14 +49,32 @@ def positions_to_rotations(
     return local.float().numpy(), pos[:, 0].float().numpy(), off.float().numpy()
 
 
-FORMATS = ("bvh", "glb")
+FORMATS = ("bvh", "glb", "fbx")
 
 
 def output_format(format: str | None, to_rig: str | Path | None) -> str:
-    """``--format`` as given; by default glb onto a glTF character (the character itself, animated), else bvh."""
+    """``--format`` as given; by default the character's own onto a character (glb onto a glTF one, fbx onto
+    an FBX one: the character itself, animated), else bvh. fbx is an FBX character's only (Blender writes it)."""
+    suffix = Path(to_rig).suffix.lower() if to_rig is not None else None
+    if format == "fbx" and suffix != ".fbx":
+        raise UsageError("--format fbx writes an FBX character with the motion added; give --to_rig CHARACTER.fbx "
+                         "(motions on a skeleton, a BVH rig or a glTF character are written as bvh or glb)")
     if format is not None:
         return format
-    return "glb" if to_rig is not None and Path(to_rig).suffix.lower() in (".glb", ".gltf") else "bvh"
+    return {".glb": "glb", ".gltf": "glb", ".fbx": "fbx"}.get(suffix, "bvh")
+
+
+def write_on_rig(path: str | Path, motion: RigMotion, format: str) -> Path:
+    """A motion on a user's rig (``omg.retarget.onto_rig``'s) as ``format``: bvh the rig's hierarchy; glb a glTF
+    character whole with the animation added (``omg.io.gltf``); fbx or glb an FBX character with it added
+    (``omg.io.fbx``, through Blender); glb a BVH rig's joints with a skin."""
+    if format == "bvh":
+        return write_rig_bvh(path, motion)
+    if isinstance(motion.character, FbxCharacter):
+        return write_fbx_character(Path(path), motion)
+    if format == "fbx":
+        raise UsageError(f"{path}: only an FBX character is written as fbx; {motion.source or motion.name} is none")
+    return write_glb(path, motion)
 
 
 def model_motion(skeleton: Skeleton, rotations: np.ndarray, root: np.ndarray, offsets: np.ndarray, fps: float,
@@ -81,17 +102,18 @@ def export_motion(
     format: str = "bvh",
     rotations: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> dict:
-    """Write ``<stem>.bvh`` (or ``<stem>.glb`` with ``format="glb"``) and, with ``preview``, ``<stem>.gif``;
-    returns what was written. ``clean_contacts`` pins planted feet first (``omg.io.contacts``).
+    """Write ``<stem>.bvh`` (or ``<stem>.glb`` with ``format="glb"``, ``<stem>.fbx`` onto an FBX character) and,
+    with ``preview``, ``<stem>.gif``; returns what was written. ``clean_contacts`` pins planted feet first
+    (``omg.io.contacts``).
 
     ``rotations`` = (local quaternions (T, J, 4), root (T, 3), offsets (J, 3)) a model made: written as they
     are on the model skeleton (an IK round trip would change each bone's twist); without them, or with
     ``clean_contacts`` or a ``rig`` (both work from the positions), rotations are solved by IK.
 
-    With ``rig`` (``omg.retarget.read_rig``'s: a BVH rig or a glTF character) the motion is written onto
+    With ``rig`` (``omg.retarget.read_rig``'s: a BVH rig, a glTF or an FBX character) the motion is written onto
     that rig (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
     channels and unit (``order`` and ``scale`` are the model skeleton's BVH settings and do not apply), as
-    glb a character whole with the animation added (``omg.io.gltf.write_glb``); the preview draws the rig's
+    glb or fbx a character whole with the animation added (``write_on_rig``); the preview draws the rig's
     bones.
     """
     from omg.io.render import render_gif
@@ -106,8 +128,8 @@ def export_motion(
 
         motion = onto_rig(positions, skel, rig, fps, joint_map)
         motion = replace(motion, name=stem.name)
-        report = {format: str(write_rig_bvh(target, motion) if format == "bvh" else write_glb(target, motion)),
-                  "frames": len(positions), "rig": rig.source or rig.name}  # fmt: skip
+        report = {format: str(write_on_rig(target, motion, format)), "frames": len(positions),
+                  "rig": rig.source or rig.name}
         drawn, drawn_skel = [motion.positions()], motion.skeleton()
     else:
         given = rotations is not None and not clean_contacts

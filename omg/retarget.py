@@ -36,7 +36,7 @@ is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slo
 and the motion is resampled to the requested fps before anything else.
 
 The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
-file or a skinned glTF character read by ``read_rig``), with the same maps (detected from the rig's
+file, or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
 names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
 rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
 scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
@@ -552,7 +552,7 @@ def _foot_points(rig: RigMotion, feet: list[int]) -> list[int]:
 
 
 def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
-    """Metres the rig's lowest foot point stands above its ground when planted: on a glTF character its
+    """Metres the rig's lowest foot point stands above its ground when planted: on a character (glTF, FBX) its
     height above the mesh's sole at rest (toe joints sit inside the shoe), on a BVH rig with a clip its
     median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
     else 0; a clearance over a tenth of the leg is no foot's, and 0 is taken."""
@@ -581,7 +581,7 @@ def onto_rig(
     up: str | None = None,
     clean_contacts: bool = True,
 ) -> RigMotion:
-    """A motion of a model skeleton on a user's rig (read with ``read_rig``: a BVH file or a glTF character):
+    """A motion of a model skeleton on a user's rig (read with ``read_rig``: a BVH file, a glTF or FBX character):
     the rig's hierarchy, names, channels, unit, rest pose and bone lengths (and character), its animation
     replaced.
 
@@ -722,12 +722,13 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     }  # fmt: skip
 
 
-RIG_SUFFIXES = (".bvh", ".glb", ".gltf")
+RIG_SUFFIXES = (".bvh", ".glb", ".gltf", ".fbx")
 
 
 def read_rig_file(path: str | Path, what: str = "--to_rig") -> RigMotion:
-    """A user's rig: a BVH file's hierarchy, or a skinned glTF character (``omg.io.gltf.read_character``,
-    which the glTF writer animates whole); a regular file of bounded size (no FIFO or /dev/zero)."""
+    """A user's rig: a BVH file's hierarchy, a skinned glTF character (``omg.io.gltf.read_character``,
+    which the glTF writer animates whole) or an FBX character (``omg.io.fbx.read_character``, read and
+    written by Blender); a regular file of bounded size (no FIFO or /dev/zero)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".bvh":
         from omg.io.bvh import read_bvh
@@ -737,12 +738,16 @@ def read_rig_file(path: str | Path, what: str = "--to_rig") -> RigMotion:
         from omg.io.gltf import read_character
 
         return read_character(path, what=what)
-    raise UsageError(f"{what} {path}: the rig must be a .bvh file (its HIERARCHY is the rig) or a skinned glTF "
-                     "character (.glb, .gltf)")
+    if suffix == ".fbx":
+        from omg.io.fbx import read_character as read_fbx
+
+        return read_fbx(path, what=what)
+    raise UsageError(f"{what} {path}: the rig must be a .bvh file (its HIERARCHY is the rig), a skinned glTF "
+                     "character (.glb, .gltf) or an FBX character (.fbx)")
 
 
 def read_rig(path: str | Path, skeleton: str | Skeleton, joint_map: str | Path | JointMap | None = None) -> RigMotion:
-    """The rig of a BVH file or glTF character for ``onto_rig``, checked against ``skeleton`` before any
+    """The rig of a BVH file or a glTF or FBX character for ``onto_rig``, checked against ``skeleton`` before any
     work is done: a rig no map fits, one of the other kind (a dog rig for a human motion) or one without
     a rest pose is one UsageError."""
     rig = read_rig_file(path)

@@ -60,11 +60,13 @@ def export(
         out: write the files into this folder (default: beside each input)
         clean_contacts: pin planted feet (removes foot skating) before IK
         to_rig: write the motions onto this rig: a BVH file's (its hierarchy, names, channels, unit, rest pose),
-            or a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept)
+            a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept), or an FBX
+            character (.fbx, read and written by Blender: pip install 'omg[fbx]')
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected
             from its joint names, as on import)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
-            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
+        format: bvh, glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a character, the
+            character with the animation added) or fbx (onto an FBX character, the character with the
+            animation added); default: glb with a .glb/.gltf --to_rig, fbx with an .fbx one, else bvh
 
     Returns:
         What was written per input (``export_motion``'s reports).
@@ -77,7 +79,8 @@ def export(
         get_skeleton(skeleton)
     out = check_output_dir(out) if out else None
     if joint_map is not None and to_rig is None:
-        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf, "
+                         ".fbx) with it")
     format = output_format(format, to_rig)
     rigs: dict = {}  # skeleton name -> the rig, read and checked once before anything is written
     jobs = []  # every file is read and checked before anything is written

@@ -104,10 +104,12 @@ def generate(
         option: a family option of the checkpoint's generation card as KEY=VALUE, repeatable (e.g. habit
             transfer's temperature=0.8, quantizer=nearest, species_file=FILE; OMG's stance_root=0.5)
         to_rig: write each motion onto this rig: a BVH file's (its hierarchy, names, channels, unit, rest pose),
-            or a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept)
+            a skinned glTF character (.glb, .gltf: the character, its mesh and materials kept), or an FBX
+            character (.fbx, read and written by Blender: pip install 'omg[fbx]')
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
-            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
+        format: bvh, glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a character, the
+            character with the animation added) or fbx (onto an FBX character, the character with the
+            animation added); default: glb with a .glb/.gltf --to_rig, fbx with an .fbx one, else bvh
         device: cpu, cuda, cuda:N or mps (default: cuda when available, else cpu)
         autocast: run the network under autocast in this dtype (bf16 on recent GPUs; the sampler's
             update stays in float32)
@@ -188,8 +190,13 @@ def run_generation(ckpt: Path, *, prompts: list[str], out: Path, command: str, u
     if sampler is not None:
         SAMPLERS.get(sampler)  # an unknown name is one line before anything is loaded
     if joint_map is not None and to_rig is None:
-        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf, "
+                         ".fbx) with it")
     format = output_format(format, to_rig)
+    if to_rig is not None and Path(to_rig).suffix.lower() == ".fbx":  # no Blender: one line before the model loads
+        from omg.io.fbx import check_file
+
+        check_file(to_rig)
     if from_motion is not None and human_ckpt is not None:
         raise UsageError("give --from_motion (a human motion file) or --human_ckpt (a ControlNet checkpoint), not both")
     if from_motion_joint_map is not None and from_motion is None:

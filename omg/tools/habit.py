@@ -60,11 +60,12 @@ def transfer(
         quantizer: soft or nearest (default: the checkpoint's)
         preview: write preview.gif (source and transfer side by side)
         to_rig: write the transfer onto this quadruped rig: a BVH file's (its hierarchy, names, channels, unit),
-            or a skinned glTF character (.glb, .gltf)
+            a skinned glTF character (.glb, .gltf) or an FBX character (.fbx: pip install 'omg[fbx]')
         to_rig_joint_map: the --to_rig rig's joint map (a registered name or a YAML file; default: detected;
             --joint_map is the source's)
-        format: bvh, or glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a glTF character,
-            the character with the animation added); default: glb with a .glb/.gltf --to_rig, else bvh
+        format: bvh, glb (glTF 2.0 binary: joint nodes, a skin and the animation; onto a character, the
+            character with the animation added) or fbx (onto an FBX character, the character with the
+            animation added); default: glb with a .glb/.gltf --to_rig, fbx with an .fbx one, else bvh
         out: output folder (created; files in it are overwritten)
         command: the command line, recorded in transfer.json
 

@@ -14,7 +14,8 @@ def joint_map(rig: Path, target: Literal["smpl22", "smal35"] | None = None, out:
 
     Args:
         rig: the rig: a BVH file (its HIERARCHY's joint names are what the map names) or a skinned glTF
-            character (.glb, .gltf: its skin's joint nodes' names)
+            character (.glb, .gltf: its skin's joint nodes' names) or an FBX character (.fbx: its armature's
+            bones' names, read by Blender: pip install 'omg[fbx]')
         target: the model skeleton to map onto: smpl22 (humans) or smal35 (quadrupeds); default: that of
             the registered map closest to the rig
         out: the YAML file to write (default: print it)

@@ -123,8 +123,9 @@ def serve(
             a web page cannot reach the server by rebinding its DNS name to it
         out: folder the results are written to (default: a temporary folder removed at exit)
         to_rig: write each result's motions onto this rig as well, for the models whose skeleton it fits: a BVH
-            file's (sample_NNN.bvh on the rig) or a skinned glTF character (.glb, .gltf: sample_NNN.glb, the
-            character with the animation added), linked from each motion's files
+            file's (sample_NNN.bvh on the rig), a skinned glTF character (.glb, .gltf: sample_NNN.glb, the
+            character with the animation added) or an FBX character (.fbx: sample_NNN.fbx, the same, written
+            by Blender: pip install 'omg[fbx]'), linked from each motion's files
         joint_map: the rig's joint map for --to_rig (a registered name or a YAML file; default: detected)
         command: the command line (unused; kept for the command's record)
     """
@@ -141,7 +142,8 @@ def serve(
         out = check_output_dir(out, "--out")
     device = resolve_device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     if joint_map is not None and to_rig is None:
-        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf) with it")
+        raise UsageError("--joint_map names the map of the --to_rig rig; give --to_rig RIG (.bvh, .glb, .gltf, "
+                         ".fbx) with it")
     models = load_models(ckpt, human_ckpt, device, ema)
     rigs = model_rigs(models, to_rig, joint_map)
     temporary = out is None

@@ -278,7 +278,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     is removed at shutdown under ``remove_out`` (uvicorn re-raises SIGTERM after it: no later code runs).
     ``allowed_hosts``: the names a request's ``Host`` may give (``*``: any). ``rigs``: per model skeleton, the
     ``--to_rig`` rig (``omg.retarget.read_rig``) its motions are also written onto, with ``joint_map``: a
-    BVH rig's ``.bvh``, a glTF character's ``.glb`` (the character animated), in place of the skeleton's BVH."""
+    BVH rig's ``.bvh``, a glTF character's ``.glb``, an FBX character's ``.fbx`` (the character animated), in
+    place of the skeleton's BVH."""
     from omg.export import output_format
 
     limits = limits or Limits()
@@ -558,7 +559,7 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             "motions": [{"title": m.title, "record": record, "frames": len(m.joints),
                          "joints": np.round(np.asarray(m.joints, np.float64), 4).tolist(),
                          "files": {kind: f"{url}/{record['file']}{ext}" for kind, ext in
-                                   (("bvh", ".bvh"), ("glb", ".glb"), ("joints", ".joints.npy"),
+                                   (("bvh", ".bvh"), ("glb", ".glb"), ("fbx", ".fbx"), ("joints", ".joints.npy"),
                                                      ("features", ".features.npy"))
                                    if f"{record['file']}{ext}" in files}}
                         for m, record in zip(motions, settings["samples"])]})
