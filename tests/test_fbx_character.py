@@ -47,7 +47,8 @@ def written(tmp_path_factory) -> dict:
     (a tiny untrained checkpoint, 1 s) onto the T-pose figure as .fbx, and a real walk (``omg export``) onto
     the A-pose centimetre Z-up figure as .fbx and onto the T-pose figure as .glb."""
     if not available():
-        pytest.skip("Blender's Python module (bpy) is not installed: pip install 'omg[fbx]' (.ci/run installs it)")
+        pytest.skip("Blender's Python module (bpy) is not installed: pip install 'omg[fbx]', or point "
+                    "OMG_BLENDER_PYTHON at a Python that has it (.ci/run installs one)")
     found = sorted((SHARED_MOTION / "human/bandai2").glob(WALK.format("*").split("/")[-1]))
     if not found:
         pytest.skip(f"real motion data not found at {SHARED_MOTION} (the shared/ folder beside the checkout)")
@@ -199,6 +200,7 @@ def test_without_blender_an_fbx_is_one_line_saying_how_to_install_it(tmp_path, c
     no binary FBX (an ASCII FBX, which Blender does not read) says so before Blender is asked; --format fbx
     is an FBX character's only."""
     monkeypatch.setitem(sys.modules, "bpy", None)  # what an import of a module that is not installed finds
+    monkeypatch.delenv("OMG_BLENDER_PYTHON", raising=False)  # nor a Python of Blender's own
     character = tmp_path / "character.fbx"
     character.write_bytes(BINARY_MAGIC + b"\x1a\x00" + b"\0" * 64)
     (tmp_path / "ascii.fbx").write_text("; FBX 7.4.0 project file\nFBXHeaderExtension:  {\n}\n")

@@ -37,7 +37,11 @@ if TYPE_CHECKING:  # the child imports this module too: it loads neither torch n
 
 FBX_MAX_BYTES = 512 * 2**20  # a character's file: its meshes and embedded textures
 BINARY_MAGIC = b"Kaydara FBX Binary  \x00"  # Blender reads binary FBX only (7.1 and later)
-INSTALL = "pip install 'omg[fbx]' (Blender's Python module, bpy, for Python 3.11)"
+# a Python that has bpy, when omg's own has none: bpy pins numpy<2 and one CPython (3.11), so it may live in a
+# venv of its own; the child needs only bpy, numpy and this module
+BLENDER_PYTHON = "OMG_BLENDER_PYTHON"
+INSTALL = ("pip install 'omg[fbx]' (Blender's Python module, bpy, for Python 3.11), or point OMG_BLENDER_PYTHON "
+           "at a Python 3.11 that has it")
 CHILD_TIMEOUT = 900.0  # s: a read or a write of a large character by Blender
 MOVING = 1e-7  # a bone whose location varies more than this (its own units) gets location keys
 Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # Blender's world (Z up) -> Y up
@@ -52,8 +56,16 @@ class FbxCharacter:
     sole: float | None  # m: the height of the skinned meshes' lowest point in the rest pose (None: no mesh)
 
 
+def blender_python() -> str:
+    """The interpreter Blender's child runs in: ``OMG_BLENDER_PYTHON``, else this one."""
+    return os.environ.get(BLENDER_PYTHON) or sys.executable
+
+
 def available() -> bool:
-    """Whether Blender's Python module is installed (without importing it)."""
+    """Whether Blender's Python module is installed (without importing it): in this interpreter, or the one
+    ``OMG_BLENDER_PYTHON`` names (whose bpy the child's own import then checks)."""
+    if os.environ.get(BLENDER_PYTHON):
+        return Path(os.environ[BLENDER_PYTHON]).is_file()
     try:
         return importlib.util.find_spec("bpy") is not None
     except ValueError:  # a module entry set to None: an import of it would fail
@@ -89,7 +101,7 @@ def _run(request: dict, arrays: dict[str, np.ndarray], where: str) -> dict:
         root = str(Path(__file__).resolve().parents[2])  # the omg this module is, first on the child's path
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
         try:
-            run = subprocess.run([sys.executable, "-m", "omg.io.fbx", str(folder)], capture_output=True, text=True,
+            run = subprocess.run([blender_python(), "-m", "omg.io.fbx", str(folder)], capture_output=True, text=True,
                                  errors="replace", env=env, timeout=CHILD_TIMEOUT)
         except subprocess.TimeoutExpired:
             raise UsageError(f"{where}: Blender took more than {CHILD_TIMEOUT:g} s") from None

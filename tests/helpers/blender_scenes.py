@@ -171,6 +171,8 @@ def blender(what: str, requests: list[dict], folder: Path) -> None:
     import subprocess
 
     (folder / f"{what}.json").write_text(json.dumps(requests))
-    run = subprocess.run([sys.executable, __file__, what, str(folder / f"{what}.json")], capture_output=True,
+    from omg.io.fbx import blender_python
+
+    run = subprocess.run([blender_python(), __file__, what, str(folder / f"{what}.json")], capture_output=True,
                          text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(HERE.parent.parent)})
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
