@@ -176,6 +176,26 @@ def test_every_sampler_is_steered_onto_the_targets_unconstrained_sampling_misses
         assert min(row_free.values()) > 0.05, row_free  # which sampling alone does not come near
 
 
+def test_a_planted_foot_stays_still_while_the_root_walks_a_path(module):
+    """The left foot planted for half a second while the path walks on: held at one place in the world in the
+    same solve as the path (a step residual, coupling each frame to the next, left it sliding: 1.9 cm a frame
+    at its worst here, the skating threshold is 2.5), the path met all the same."""
+    feet = {"left_ankle": 7, "left_foot": 10}
+    spec = {"path": {"points": [[0, 0], [0, 2]]},
+            "contacts": [{"joint": name, "span": [0.5, 1.0]} for name in feet]}
+    control, _ = read_constraints(spec, CARD, FRAMES)
+    settings = SamplingSettings(steps=4, use_ema=False, seed=3, control=control)
+    joints = module.representation.decode(module.sample(None, [FRAMES] * 2, settings))
+    planted = joints[:, 10:21, list(feet.values())]  # (2, 11, 2, 3) frames 0.5 s to 1.0 s
+    assert (planted - planted.mean(1, keepdim=True)).norm(dim=-1).max() < 0.003  # within 3 mm of one place
+    for row in constraint_errors(joints, control):
+        assert row["path"] < 0.01, row
+    free = module.representation.decode(module.sample(None, [FRAMES] * 2, SamplingSettings(
+        steps=4, use_ema=False, seed=3, control=read_constraints({"path": spec["path"]}, CARD, FRAMES)[0])))
+    slid = free[:, 10:21, list(feet.values())]
+    assert (slid - slid.mean(1, keepdim=True)).norm(dim=-1).max() > 0.1  # the path alone slides it
+
+
 def test_sampling_without_constraints_never_steers(module, monkeypatch):
     import omg.lit.pretrain as pretrain
 
