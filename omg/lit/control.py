@@ -309,14 +309,12 @@ def steered(denoise: Denoiser, control: Control, representation: Representation,
     # the last share of the schedule, and at least the last of ``steps`` evenly spaced steps (a few-step solver's
     # last noise level is T / steps, above a tenth of T)
     final = max(control.final_share * num_timesteps, num_timesteps / steps + 1)
-    import os
-    early = replace(control, contacts=None, own_contacts=False) if os.environ.get("HOLD_LATE") else control
 
     def steered_denoise(x: Tensor, t: Tensor) -> Tensor:
         x0 = denoise(x, t)
         if float(t.max()) < final:  # the estimates that become the sample: met exactly, each frame on its own
             return steer(x0, replace(control, smooth=0.0), representation, std, mean, mask, control.final_iterations)
-        return steer(x0, early, representation, std, mean, mask, control.iterations)
+        return steer(x0, control, representation, std, mean, mask, control.iterations)
 
     return steered_denoise
 
