@@ -133,6 +133,14 @@ def test_a_card_without_constraints_refuses_them_and_a_file_is_read_with_its_row
     assert "\n" not in str(e.value) and "keyframes[0].file" in str(e.value), str(e.value)
 
 
+def test_the_models_own_contacts_need_contact_channels():
+    quatvel = GenerationCard(family="omg", skeleton="smpl22", representation="quatvel", fps=20.0,
+                             inputs=("unconditional",), constraints=KINDS)
+    assert _error({"contacts": "model"}, quatvel) == ('constraints: contacts: "model" needs contact channels, which '
+                                                      "representation quatvel has none of: give the feet's spans")
+    assert read_constraints({"contacts": "model"}, CARD, FRAMES, allow_files=False)[0].own_contacts
+
+
 def test_free_waypoints_are_timed_by_the_length_of_the_path():
     control, _ = read_constraints({"waypoints": [{"position": [0, 1]}, {"position": [0, 2], "time": 1.0},
                                                  {"position": [0, 3]}]}, CARD, FRAMES)

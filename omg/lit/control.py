@@ -14,10 +14,12 @@ for the least change in the features' own spread; a few iterations per estimate,
 whose last is the sample). On all but the last estimates the change is smoothed over time by a Gaussian of
 ``smooth`` frames, the realism term: a target at one frame bends its neighbourhood instead of one frame's pose,
 and the network, which denoises the steered estimate at the next step, carries the unconstrained joints and
-frames along as its prior would; the last estimates are met exactly, frame by frame. Features a target states
-outright (humanml3d263's root height) are written in (``Representation.inpaint``). Why x̂0 and not x_t: every
-registered sampler steps on x̂0 (``omg.samplers``), so one wrapper serves them all, and the estimate is in the
-space the targets are stated in after one decode, without a backward pass through the network.
+frames along as its prior would; the last estimates are met exactly, frame by frame. Planted feet are residuals
+of the same solve: each planted frame's foot against one place per stretch of planted frames (``held_feet``).
+Features a target states outright (humanml3d263's root height) are written in (``Representation.inpaint``).
+Why x̂0 and not x_t: every registered sampler steps on x̂0 (``omg.samplers``), so one wrapper serves them all,
+and the estimate is in the space the targets are stated in after one decode, without a backward pass through
+the network.
 """
 
 from __future__ import annotations
