@@ -133,6 +133,14 @@ def test_a_card_without_constraints_refuses_them_and_a_file_is_read_with_its_row
     assert "\n" not in str(e.value) and "keyframes[0].file" in str(e.value), str(e.value)
 
 
+def test_the_models_own_contacts_need_contact_channels():
+    quatvel = GenerationCard(family="omg", skeleton="smpl22", representation="quatvel", fps=20.0,
+                             inputs=("unconditional",), constraints=KINDS)
+    assert _error({"contacts": "model"}, quatvel) == ('constraints: contacts: "model" needs contact channels, which '
+                                                      "representation quatvel has none of: give the feet's spans")
+    assert read_constraints({"contacts": "model"}, CARD, FRAMES, allow_files=False)[0].own_contacts
+
+
 def test_free_waypoints_are_timed_by_the_length_of_the_path():
     control, _ = read_constraints({"waypoints": [{"position": [0, 1]}, {"position": [0, 2], "time": 1.0},
                                                  {"position": [0, 3]}]}, CARD, FRAMES)
@@ -185,6 +193,26 @@ def test_steered_sampling_reports_the_samplers_steps_and_the_same_motion(module)
     watched = module.sample(None, [FRAMES], settings, progress=lambda *step: heard.append(step))
     assert heard == [(1, 4), (2, 4), (3, 4), (4, 4)]
     assert torch.equal(watched, module.sample(None, [FRAMES], settings))
+
+
+def test_a_planted_foot_stays_still_while_the_root_walks_a_path(module):
+    """The left foot planted for half a second while the path walks on: held at one place in the world in the
+    same solve as the path (a step residual, coupling each frame to the next, left it sliding 23 cm with the
+    root here, 14 cm from one place at worst), the path met all the same."""
+    feet = {"left_ankle": 7, "left_foot": 10}
+    spec = {"path": {"points": [[0, 0], [0, 2]]},
+            "contacts": [{"joint": name, "span": [0.5, 1.0]} for name in feet]}
+    control, _ = read_constraints(spec, CARD, FRAMES)
+    settings = SamplingSettings(steps=4, use_ema=False, seed=3, control=control)
+    joints = module.representation.decode(module.sample(None, [FRAMES] * 2, settings))
+    planted = joints[:, 10:21, list(feet.values())]  # (2, 11, 2, 3) frames 0.5 s to 1.0 s
+    assert (planted - planted.mean(1, keepdim=True)).norm(dim=-1).max() < 0.003  # within 3 mm of one place
+    for row in constraint_errors(joints, control):
+        assert row["path"] < 0.01, row
+    free = module.representation.decode(module.sample(None, [FRAMES] * 2, SamplingSettings(
+        steps=4, use_ema=False, seed=3, control=read_constraints({"path": spec["path"]}, CARD, FRAMES)[0])))
+    slid = free[:, 10:21, list(feet.values())]
+    assert (slid - slid.mean(1, keepdim=True)).norm(dim=-1).max() > 0.1  # the path alone slides it
 
 
 def test_sampling_without_constraints_never_steers(module, monkeypatch):

@@ -306,6 +306,12 @@ class _Builder:
 
     def add_contacts(self, value: Any) -> None:
         if value == "model":
+            from omg.motion import get_representation
+
+            representation = get_representation(self.card.representation, self.skeleton)
+            if representation.foot_contacts(torch.zeros(1, 1, representation.dim)) is None:
+                raise UsageError(f"{self.what}: contacts: \"model\" needs contact channels, which representation "
+                                 f"{representation.name} has none of: give the feet's spans")
             self.own_contacts = True
             return
         feet = self.skeleton.feet
