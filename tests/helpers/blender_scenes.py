@@ -43,14 +43,25 @@ def _characters():
     return characters
 
 
-def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], list[list[int]]]:
+def figure_of(pose: str = "T") -> dict:
+    """The glTF figure's skeleton in ``pose`` as plain data (names, parents, rest heads in metres Y up, the boxes'
+    half width), made by the caller's Python: Blender's child gets it in its request, needing no package of the
+    tests' (Blender's Python may be a venv of its own with bpy and numpy alone)."""
+    characters = _characters()
+    names, parents, rest = characters.figure_rest(pose)
+    return {"names": list(names), "parents": [int(p) for p in parents], "rest": np.asarray(rest).tolist(),
+            "half_width": characters.HALF_WIDTH}
+
+
+def boxes(pose: str = "T", figure: dict | None = None) -> tuple[np.ndarray, list[list[tuple[int, float]]],
+                                                                 list[list[int]]]:
     """The figure's mesh: a box around each bone (parent joint -> joint), 8 vertices a bone in joint order, the
     4 at the parent end bound to the parent, the 4 at the far end half and half; the soles of the foot's
     boxes on the ground. Each box a little wider than the one before, so that no two vertices share a place
     at rest (a reader that splits or reorders vertices, as glTF's does, is matched back by place).
     Returns (V, 3) rest positions (metres, Y up), each vertex's (joint, weight) list, and the quads."""
-    characters = _characters()
-    names, parents, rest = characters.figure_rest(pose)
+    figure = figure or figure_of(pose)
+    names, parents, rest = figure["names"], figure["parents"], np.asarray(figure["rest"])
     vertices, groups, faces = [], [], []
     for j in range(1, len(names)):
         p = parents[j]
@@ -59,7 +70,7 @@ def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], l
         side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
         side /= np.linalg.norm(side)
         up = np.cross(axis, side)
-        half = characters.HALF_WIDTH * (1.0 + 0.02 * j)
+        half = figure["half_width"] * (1.0 + 0.02 * j)
         foot = names[j].endswith(("ToeBase", "Toe_End"))
         base = len(vertices)
         for end, point in enumerate((a, b)):
@@ -74,11 +85,11 @@ def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], l
     return np.array(vertices), groups, faces
 
 
-def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> None:
+def build(path: str, figure: dict, unit: float = 1.0, z_up: bool = False) -> None:
     bpy = _empty_scene()
     scene = bpy.context.scene
     scene.unit_settings.scale_length = unit  # one Blender unit is ``unit`` metres: the file's numbers in that unit
-    names, parents, rest_yup = _characters().figure_rest(pose)
+    names, parents, rest_yup = figure["names"], figure["parents"], np.asarray(figure["rest"])
     rest = (rest_yup @ Y_UP) / unit  # (J, 3) Blender's world (Y_UP's inverse is its transpose), file units
     J = len(names)
     arm_data = bpy.data.armatures.new("Armature")
@@ -97,7 +108,7 @@ def build(path: str, pose: str = "T", unit: float = 1.0, z_up: bool = False) -> 
             bone.parent = bones[parents[j]]
         bones.append(bone)
     bpy.ops.object.mode_set(mode="OBJECT")
-    vertices, groups, faces = boxes(pose)
+    vertices, groups, faces = boxes(figure=figure)
     mesh = bpy.data.meshes.new("body")
     mesh.from_pydata(((vertices @ Y_UP) / unit).tolist(), [], faces)
     body = bpy.data.objects.new("body", mesh)
@@ -170,6 +181,9 @@ def blender(what: str, requests: list[dict], folder: Path) -> None:
     import os
     import subprocess
 
+    if what == "build":  # the figure made here: the child needs no test package
+        requests = [{**{k: v for k, v in r.items() if k != "pose"}, "figure": figure_of(r.get("pose", "T"))}
+                    for r in requests]
     (folder / f"{what}.json").write_text(json.dumps(requests))
     from omg.io.fbx import blender_python
 
