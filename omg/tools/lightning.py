@@ -15,6 +15,7 @@ metrics.csv, so a second run never overwrites the first. To log to Weights & Bia
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import re
 import sys
@@ -224,20 +225,27 @@ def _fields(group: Any) -> Any:
     return group.as_dict() if isinstance(group, Namespace) else group
 
 
-def grouped_settings() -> dict[str, str]:
-    """The settings of omg's modules that live in a group now, by their older flat name: ``{lr: optim,
-    vel_weight: loss, ...}`` (``OmgModule.value_groups``)."""
-    return {key: group for name in omg.lit.__all__ for key, group in getattr(omg.lit, name).grouped_fields().items()}
+def grouped_settings(cls: type | None = None) -> dict[str, str]:
+    """The settings of the model class ``cls`` that live in a group now, by their older flat name: ``{lr: optim,
+    vel_weight: loss, ...}`` (``OmgModule.grouped_fields``). Where the class is not known, those of every omg
+    module but the names that one of them takes as its own parameter (HabitVQModule's ``codebook.ema_decay`` is
+    every other module's weight EMA, ``ema_decay``)."""
+    if cls is not None:
+        return cls.grouped_fields() if callable(getattr(cls, "grouped_fields", None)) else {}
+    modules = [getattr(omg.lit, name) for name in omg.lit.__all__]
+    own = {name for module in modules for name in inspect.signature(module.__init__).parameters}
+    return {key: group for module in modules for key, group in module.grouped_fields().items() if key not in own}
 
 
 def _warn_regrouped(key: str, group: str) -> None:
     rank_zero_warn(f"model.init_args.{key} is read as model.init_args.{group}.{key}, where it is set now")
 
 
-def regroup_args(args: list[str]) -> list[str]:
-    """``args`` with each older flat module setting (``--model.init_args.lr 1e-3``, ``--model.lr=1e-3``) given as
-    its group's field (``--model.init_args.optim.lr``), with one warning line naming the new key."""
-    keys, out = grouped_settings(), []
+def regroup_args(args: list[str], cls: type | None = None) -> list[str]:
+    """``args`` with each older flat module setting (``--model.init_args.lr 1e-3``, ``--model.lr=1e-3``) of the
+    model class ``cls`` given as its group's field (``--model.init_args.optim.lr``), with one warning line naming
+    the new key."""
+    keys, out = grouped_settings(cls), []
     for i, arg in enumerate(args):
         if arg == "--":
             return out + args[i:]
@@ -250,10 +258,11 @@ def regroup_args(args: list[str]) -> list[str]:
     return out
 
 
-def regroup_init_args(init_args: dict[str, Any]) -> dict[str, Any]:
-    """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) moved into its group
-    (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both name a field."""
-    out, moved = regroup(init_args, grouped_settings())
+def regroup_init_args(init_args: dict[str, Any], cls: type | None = None) -> dict[str, Any]:
+    """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) of the model class ``cls``
+    moved into its group (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both
+    name a field."""
+    out, moved = regroup(init_args, grouped_settings(cls))
     for key, group in moved:
         _warn_regrouped(key, group)
     return out
@@ -269,7 +278,8 @@ def _load_config(text: str) -> Any:
     if isinstance(value, dict) and str(value.get("class_path")).rpartition(".")[2] in omg.lit.__all__:
         model = value  # a --model file
     if isinstance(model, dict) and isinstance(model.get("init_args"), dict):
-        model["init_args"] = regroup_init_args(model["init_args"])
+        cls = LightningSettings.model_class([("model", model, False)])
+        model["init_args"] = regroup_init_args(model["init_args"], cls)
     return value
 
 
@@ -291,7 +301,6 @@ class LightningSettings(Settings):
 
     @staticmethod
     def parameter_type(cls: Any, name: str) -> Any:
-        import inspect
         import typing
 
         for klass in getattr(cls, "__mro__", [cls]):
@@ -448,7 +457,7 @@ class OmgLightningCLI(LightningCLI):
     def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
         from jsonargparse import ArgumentError
 
-        from omg.tools.args import explain, locate, underscore_options
+        from omg.tools.args import explain, given_settings, locate, underscore_options
 
         try:
             keys = list(parser.get_defaults().keys())
@@ -456,7 +465,8 @@ class OmgLightningCLI(LightningCLI):
             keys = []
         options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
         settings = LightningSettings(self.command, options, self.method_arguments)
-        args = regroup_args(underscore_options(list(args), options))
+        args = underscore_options(list(args), options)
+        args = regroup_args(args, settings.model_class(given_settings(args, settings)))
         self.args = args  # parsed again without defaults under --ckpt_path (``given_model_args``)
         try:
             self.config = parser.parse_args(args)
