@@ -37,8 +37,8 @@ from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.paired import CompanionData, PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
-from omg.settings import regroup, set_fields
-from omg.tools.args import Settings
+from omg.settings import closest, regroup, set_fields, unknown_key_line
+from omg.tools.args import ExactOptions, Settings, unknown_option_line
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"  # after errors that name no key
@@ -352,14 +352,15 @@ class LightningSettings(Settings):
         return key
 
     def settings_group(self, key: str, given: list[tuple[str, Any, bool]]) -> tuple[type, str] | None:
-        """(the typed settings group, the field) a nested model key names (``model.init_args.dit.n_layers``:
-        ``DiTOverrides``, ``n_layers``); None for any other key."""
+        """(the typed settings group, the field) a nested model or data key names (``model.init_args.dit.n_layers``:
+        ``DiTOverrides``, ``n_layers``; ``data.human.train``: ``CompanionData``, ``train``); None for any other key."""
         import dataclasses
         import typing
 
         root, _, rest = key.partition(".")
         name, _, field = rest.removeprefix("init_args.").partition(".")
-        if root != "model" or not field or "." in field or (cls := self.model_class(given)) is None:
+        cls = self.model_class(given) if root == "model" else PairedDataModule if root == "data" else None
+        if not field or "." in field or cls is None:
             return None
         hint = self.parameter_type(cls, name)
         group = next((t for t in (*typing.get_args(hint), hint) if isinstance(t, type) and dataclasses.is_dataclass(t)),
@@ -375,7 +376,29 @@ class LightningSettings(Settings):
         accepted = [f.name for f in dataclasses.fields(group)]
         if field in accepted:
             return None
-        return f"{self.name_of(key)}: unknown key {field!r}; accepted keys: {', '.join(accepted)}"
+        name = self.name_of(key)
+        return unknown_key_line(name, name.rpartition(".")[0], field, accepted)
+
+    def unknown_option(self, key: str, given: list[tuple[str, Any, bool]]) -> str | None:
+        """``Settings.unknown_option``; a model's keys are its class's arguments (``model.init_args.NAME``, or
+        ``model.NAME``), a typed group's fields being ``unknown_key``'s to judge."""
+        root, _, rest = key.partition(".")
+        if root != "model" or not rest:
+            return super().unknown_option(key, given)
+        rest = rest.removeprefix("init_args.")
+        name = rest.partition(".")[0]
+        cls = self.model_class(given)
+        if cls is None or name in ("class_path", "init_args", "dict_kwargs", "help"):
+            return None
+        try:
+            params = [p.name for p in inspect.signature(cls).parameters.values()
+                      if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        except (TypeError, ValueError):  # a signature that cannot be read: jsonargparse judges the key
+            return None
+        if name in params:
+            return None
+        near = closest(name, params)  # the argument meant, the rest of the key as given (``los.vel_weight``)
+        return unknown_option_line(self.name_of(key), f"model.init_args.{near}{rest[len(name):]}" if near else None)
 
     def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
         import typing
@@ -404,6 +427,11 @@ class LightningSettings(Settings):
         return self.parameter_type(cls, rest)
 
 
+class OmgLightningParser(ExactOptions, LightningArgumentParser):
+    """LightningCLI's parser taking each option only as spelled in full (``ExactOptions``): also the parsers
+    jsonargparse builds below it, for the model's class and the callbacks'."""
+
+
 class OmgLightningCLI(LightningCLI):
     """``omg fit|validate|test|predict ARGS``: LightningCLI without its own subcommands (``run=False``),
     the command's Trainer-method arguments (``--ckpt_path``, ...) added as LightningCLI adds them, and
@@ -429,6 +457,7 @@ class OmgLightningCLI(LightningCLI):
             datamodule_class=PairedDataModule,
             parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc,
                            "parser_mode": CONFIG_MODE},
+            parser_class=OmgLightningParser,
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
             args=args,
