@@ -479,7 +479,9 @@ def rebuild_module(cls: type[L.LightningModule], ckpt: dict[str, Any], src: Path
     """``build_module`` from the checkpoint's hyper-parameters (``checkpoint_hparams``), then its fit-time state
     restored (a ``restore_fit_state(ckpt)`` method: what the module filled in from its data, which shapes
     buffers the weights then fill), so that the weights can be checked against it."""
-    module = build_module(cls, checkpoint_hparams(cls, ckpt["hyper_parameters"], ckpt["state_dict"]), src, device)
+    # the locations dropped first: never read, also where an older checkpoint holds one both flat and grouped
+    hparams = checkpoint_hparams(cls, inert_hparams(cls, ckpt["hyper_parameters"]), ckpt["state_dict"])
+    module = build_module(cls, hparams, src, device)
     if callable(restore := getattr(module, "restore_fit_state", None)):
         restore(ckpt)
     return module
