@@ -134,6 +134,20 @@ class CodebookSettings:
     ema_decay: float = 0.99
 
 
+@dataclass(frozen=True)
+class SpeciesText:
+    """The categories' text condition: ``species_file``, a YAML of extra or overriding species descriptions
+    (``omg.text.habit``), read when the module is first built; ``descriptions`` and ``category_embeddings`` (their
+    sentence embeddings), filled in then and kept in the checkpoint, so that no text file or encoder is needed to
+    transfer to a known category. Never written by hand but ``species_file``."""
+
+    species_file: str | None = None
+    descriptions: dict[str, str] | None = None
+    # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
+    # minutes to parse under `omg test --ckpt_path`
+    category_embeddings: list | None = None
+
+
 class HabitVQModule(OmgModule):
     """The motion VQ-VAE conditioned on each category's habit latent and text embedding; in the default
     ``habit_order`` it first pretrains the per-category habit encoders under their flow priors.
@@ -160,10 +174,9 @@ class HabitVQModule(OmgModule):
             (``HabitLossWeights``).
         text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
             (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
-        species_file: a YAML of extra or overriding species descriptions (omg.text.habit).
-        descriptions, category_embeddings: filled in when the module is first built (the descriptions
-            and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
-            needed to transfer to a known category).
+        species: ``species_file`` (a YAML of extra or overriding species descriptions), and the ``descriptions``
+            and their sentence embeddings ``category_embeddings`` filled in when the module is first built
+            (``SpeciesText``).
         optim: AdamW lr until ``lr_switch`` of the VQ-VAE's steps, then ``lr_after`` (the habit pretraining
             runs at ``lr``); weight_decay, betas and a linear warm-up over warmup_steps (``StepOptimSettings``).
         spec: the data's representation (quatvel), skeleton, fps and stats; linked by ``omg fit``.
@@ -174,7 +187,8 @@ class HabitVQModule(OmgModule):
     # what the weights and codebook were made with (code_reset names the paper's row); quantizer and
     # temperature (how codes are drawn), habit_fraction, the loss weights and the optimizer are the run's
     architecture_hparams = ("categories", "order.habit_order", "flavor", "habit", "codebook.code_reset",
-                            "condition_decoder", "text_encoder", "descriptions", "category_embeddings", "spec")
+                            "condition_decoder", "text_encoder", "species.descriptions", "species.category_embeddings",
+                            "spec")
     settings_groups = {"habit": HabitOverrides, "text_encoder_args": TextEncoderArgs}
 
     def __init__(
@@ -188,11 +202,7 @@ class HabitVQModule(OmgModule):
         loss: HabitLossWeights = HabitLossWeights(),
         text_encoder: str = "minilm",
         text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
-        species_file: str | None = None,
-        descriptions: dict[str, str] | None = None,
-        # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
-        # minutes to parse under `omg test --ckpt_path` (it is filled in, never written by hand)
-        category_embeddings: list | None = None,
+        species: SpeciesText = SpeciesText(),
         optim: StepOptimSettings = StepOptimSettings(lr=2e-4, betas=(0.9, 0.99)),
         spec: DataSpec | dict | None = None,
     ):
@@ -200,6 +210,7 @@ class HabitVQModule(OmgModule):
         if not categories or len(set(categories)) != len(categories):
             raise UsageError(f"model.categories must list distinct category names, got {categories!r}")
         order, codebook = self.value_group("order", order), self.value_group("codebook", codebook)
+        species = self.value_group("species", species)
         self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
         self.save_hyperparameters()
         self.spec = DataSpec.coerce(spec)
@@ -208,11 +219,13 @@ class HabitVQModule(OmgModule):
                              "(build them with --representation quatvel)")
         self.categories = list(categories)
         self.habit_order, self.habit_fraction = order.habit_order, order.habit_fraction
+        descriptions, category_embeddings = species.descriptions, species.category_embeddings
         if category_embeddings is None:  # first build: describe and embed the categories once
             descriptions, category_embeddings = embed_categories(self.categories, text_encoder,
                                                                  text_encoder_kwargs(text_encoder_args),
-                                                                 species_file)
-            self.hparams["descriptions"], self.hparams["category_embeddings"] = descriptions, category_embeddings
+                                                                 species.species_file)
+            self.hparams["species"] = {**self.hparams["species"], "descriptions": descriptions,
+                                       "category_embeddings": category_embeddings}
         if len(category_embeddings) != len(self.categories):
             raise UsageError(f"{len(category_embeddings)} category embeddings for {len(self.categories)} categories")
         self.descriptions = dict(descriptions or {})
