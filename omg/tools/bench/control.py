@@ -95,7 +95,7 @@ def bench_control(
         seconds, motions = 0.0, []
         for start in range(0, N, batch_size):
             rows = slice(start, min(start + batch_size, N))
-            part = None if given is None else _rows(given, rows)
+            part = None if given is None else _rows(given, rows, int(chosen.lengths[rows].max()))
             began = time.perf_counter()
             motion = module.sample(None if texts is None else list(texts[rows]), chosen.lengths[rows],
                                    SamplingSettings(steps=steps, sampler=sampler, seed=seed + start, use_ema=False,
@@ -154,9 +154,14 @@ def _replay(features):
     return generate
 
 
-def _rows(control, rows: slice):
-    """The ``Control`` of some motions of a batch of per-motion controls."""
+def _rows(control, rows: slice, frames: int):
+    """The ``Control`` of some motions of a batch of per-motion controls, over their first ``frames`` frames (a
+    batch is sampled at its own longest take's length)."""
     from dataclasses import replace
 
-    return replace(control, targets=control.targets[rows], axes=control.axes[rows], weights=control.weights[rows],
-                   tolerance=control.tolerance[rows], groups=control.groups[rows])
+    def cut(x):
+        return None if x is None else x[rows, :frames]
+
+    return replace(control, targets=cut(control.targets), axes=cut(control.axes), weights=cut(control.weights),
+                   tolerance=cut(control.tolerance), groups=cut(control.groups), contacts=cut(control.contacts),
+                   facing=cut(control.facing))
