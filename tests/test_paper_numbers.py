@@ -224,9 +224,9 @@ def test_omg_samples_with_200_ddim_steps_by_default():
     assert generator.generation_card().default_steps == 200, "OMG Sec. 4.1: 200 DDIM steps"
     runs, sample = [], module.sample
 
-    def recorded(texts, lengths, settings):  # the real sampler, its steps and sampler noted
+    def recorded(texts, lengths, settings, **watch):  # the real sampler, its steps and sampler noted
         runs.append((settings.steps, settings.sampler))
-        return sample(texts, lengths, settings)
+        return sample(texts, lengths, settings, **watch)
 
     module.sample = recorded
     request = GenerationRequest(prompts=None, frames=2)

@@ -366,7 +366,7 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                 "limits": {"max_batch": limits.max_batch, "max_samples": limits.max_samples,
                            "max_prompt_chars": limits.max_prompt_chars, "max_upload_bytes": limits.max_upload_bytes,
                            "max_json_bytes": limits.max_json_bytes, "result_ttl_s": limits.result_ttl,
-                           "character_suffixes": list(RIG_SUFFIXES)}}
+                           "character_suffixes": character_suffixes()}}
 
     @app.get("/v1/status", summary="what the sampler is doing (the page's progress)")
     async def status():
@@ -939,6 +939,13 @@ class _Guard:
         if length.isdigit() and int(length) > limit:
             return 413, f"the request's body is larger than the {what}"
         return None
+
+
+def character_suffixes() -> list[str]:
+    """The character and rig files this server reads: FBX only where Blender's module is there."""
+    from omg.io.fbx import available
+
+    return [s for s in RIG_SUFFIXES if s != ".fbx" or available()]
 
 
 def _upload_route(path: str) -> bool:
