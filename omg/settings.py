@@ -18,9 +18,10 @@ configs written before the groups hold them.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import inspect
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 from omg.errors import UsageError
@@ -72,8 +73,27 @@ def _fields_of(cls: type, value: Any, key: str) -> dict[str, Any]:
     if not isinstance(value, Mapping):
         raise UsageError(f"{key} must be a mapping of {', '.join(accepted)}; got {type(value).__name__} {value!r}")
     if unknown := [k for k in value if k not in accepted]:
-        raise UsageError(f"{key}: unknown key {unknown[0]!r}; accepted keys: {', '.join(accepted)}")
+        raise UsageError(unknown_key_line(key, key, unknown[0], accepted))
     return dict(value)
+
+
+def unknown_key_line(where: str, group: str, field: str, accepted: list[str]) -> str:
+    """The one line, headed ``where``, for ``field``, no key of the group ``group`` (``model.init_args.loss``)
+    whose keys are ``accepted``: it names them, and the closest first where one is near (``vel``: ``vel_weight``)."""
+    near = closest(field, accepted)
+    if near is None:
+        return f"{where}: unknown key {field!r}; accepted keys: {', '.join(accepted)}"
+    return f"{where}: unknown key {field!r}; did you mean {group}.{near}? (accepted keys: {', '.join(accepted)})"
+
+
+def closest(name: str, candidates: Iterable[str]) -> str | None:
+    """The candidate nearest ``name``, None where none is near. Of those that begin with ``name`` (what argparse
+    would take an abbreviation for) the nearest; else the nearest of all whose similarity (difflib's ratio) is
+    0.6 at least, which a misspelling reaches and an unrelated word does not."""
+    candidates = sorted(set(candidates))
+    extending = [c for c in candidates if c.startswith(name)]
+    found = difflib.get_close_matches(name, extending or candidates, n=1, cutoff=0.0 if extending else 0.6)
+    return found[0] if found else None
 
 
 def group(default: T, value: Any, key: str) -> T:
@@ -134,4 +154,5 @@ def _plain(value: Any) -> Any:
     return value
 
 
-__all__ = ["arguments", "check_range", "group", "overrides", "regroup", "set_fields", "settings", "settings_dict"]
+__all__ = ["arguments", "check_range", "closest", "group", "overrides", "regroup", "set_fields", "settings",
+           "settings_dict", "unknown_key_line"]

@@ -346,8 +346,8 @@ ROWS = [
     ("test-evaluator-other-kind", ["test", "--config", "{eval_animal}", "--trainer.default_root_dir", "{out}",
                                    "--model.init_args.pretrained", "{pre}", "--model.init_args.text_encoder", "hash",
                                    "--model.init_args.moc", "{{d_c: 16, num_experts: 2}}"]),
-    ("fit-habit-order-banana", [*FIT_HABIT, "--model.init_args.habit_order", "banana"]),
-    ("fit-habit-fraction-one", [*FIT_HABIT, "--model.init_args.habit_fraction", "1"]),
+    ("fit-habit-order-banana", [*FIT_HABIT, "--model.init_args.order.habit_order", "banana"]),
+    ("fit-habit-fraction-one", [*FIT_HABIT, "--model.init_args.order.habit_fraction", "1"]),
     ("fit-mirror-prob-above-one", [*FIT_DATA, "--data.mirror_prob", "1.5"]),
     ("fit-mirror-prob-nan", [*FIT_DATA, "--data.mirror_prob", "nan"]),
     ("fit-progress-every-neg", [*FIT_DATA, "--progress_every=-1"]),
@@ -616,9 +616,10 @@ SAYS = {
                                 "max_len=120",
     "fit-val-other-representation": f"data.train ({MINI_SHARDS}) and data.val ({ANIMAL_VAL}) {SPECS_DIFFER}",
     "test-evaluator-other-kind": f"the data and EvalCallback.evaluator {SPECS_DIFFER}",
-    "fit-habit-order-banana": "model.habit_order must be one of flow_prior, kl_then_flows (flow_prior: the paper's",
-    "fit-habit-fraction-one": "model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
-                              "encoders), got 1.0",
+    "fit-habit-order-banana": "model.order.habit_order must be one of flow_prior, kl_then_flows (flow_prior: the "
+                              "paper's",
+    "fit-habit-fraction-one": "model.order.habit_fraction must be in (0, 1) (the share of the run that pretrains the "
+                              "habit encoders), got 1.0",
     "fit-mirror-prob-above-one": "data.mirror_prob is a probability in [0, 1], got 1.5",
     "fit-mirror-prob-nan": "data.mirror_prob: expected a number, got 'nan'",
     "fit-progress-every-neg": "progress_every: expected an integer >= 0, got '-1'",

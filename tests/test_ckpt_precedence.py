@@ -78,7 +78,7 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
     maa = MotionDataModule(str(MINI / "animal_maa/train"), batch_size=2, num_workers=0).spec
     save(EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1, "d_model": 32, "embed_dim": 32},
                          r_precision_pool=4, spec=maa, optim={"warmup_steps": 7}), "evaluator")
-    save(tiny_module(maa, retrieval_top_k=3, retrieval_draw="uniform", retrieval_temperature=0.5,
+    save(tiny_module(maa, source={"retrieval_top_k": 3, "retrieval_draw": "uniform", "retrieval_temperature": 0.5},
                      loss={"cons_weight": 0.3}),
          "omgpt")
     quatvel = MotionDataModule(str(MINI / "animal_quatvel/train"), batch_size=2, num_workers=0).spec
@@ -127,13 +127,13 @@ CASES = {
                   {"pool": 6, "weight_decay": 0.5, "warmup_steps": 7}),
     # configs/omgpt_eval.yaml's retrieval: the similarity draw among the 32 nearest clips at T = 0.1
     "omgpt": ("test", "OmniMotionModule", "maa",
-              {"retrieval_top_k": 32, "retrieval_draw": "similarity", "retrieval_temperature": 0.1},
-              {"retrieval_temperature": 0.2},
+              {"source": {"retrieval_top_k": 32, "retrieval_draw": "similarity", "retrieval_temperature": 0.1}},
+              {"source.retrieval_temperature": 0.2},
               lambda m: {"top_k": m.retrieval_top_k, "draw": m.retrieval_draw, "temperature": m.retrieval_temperature,
                          "cons_weight": m.weights["cons"]},
               {"top_k": 32, "draw": "similarity", "temperature": 0.2, "cons_weight": 0.3}),
     "habit_vq": ("test", "HabitVQModule", "quatvel",
-                 {"categories": CATEGORIES, "loss": {"alpha": 0.6}, "quantizer": "nearest"},
+                 {"categories": CATEGORIES, "loss": {"alpha": 0.6}, "codebook": {"quantizer": "nearest"}},
                  {"loss.beta": 0.05},
                  lambda m: {"alpha": m.loss.alpha, "beta": m.loss.beta, "kl_weight": m.loss.kl_weight,
                             "quantizer": m.vqvae.quantizer.mode},

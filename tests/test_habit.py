@@ -160,7 +160,7 @@ def test_species_descriptions_name_no_family():
 # ----------------------------------------------------------------------------- mini fit
 
 
-TINY_FIT = dict(flavor="tiny", temperature=0.1, condition_decoder=True,
+TINY_FIT = dict(flavor="tiny", codebook={"temperature": 0.1}, condition_decoder=True,
                 optim={"lr": 3e-3, "lr_after": 3e-4, "lr_switch": 0.8})
 
 
@@ -172,8 +172,8 @@ def habit_run(tmp_path_factory):
     from omg.lit.habit import HabitPriorModule, HabitVQModule
 
     out = tmp_path_factory.mktemp("habit")
-    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, habit_order="kl_then_flows", **TINY_FIT, spec=spec),
-                       out / "vq", 250)
+    earlier = {"habit_order": "kl_then_flows"}
+    vq, vq_path = _fit(lambda spec: HabitVQModule(CATEGORIES, order=earlier, **TINY_FIT, spec=spec), out / "vq", 250)
     prior, prior_path = _fit(HabitPriorModule(str(vq_path), optim={"lr": 3e-3}), out / "prior", 60)
     evaluator, _ = _fit(lambda spec: EvaluatorModule(flavor="mini", evaluator={"n_layers": 1, "d_model": 64,
                                                                                 "embed_dim": 64},
@@ -664,7 +664,7 @@ def test_omg_test_evaluates_the_default_order_with_its_own_flows(habit_run, habi
     assert all(np.isfinite(v["mean"]) for v in rows["EMA-reset"].values()) and "cross_category_fid" in rows["EMA-reset"]
     with pytest.raises(SystemExit) as e:
         main(["test", "--config", vqvae, "--config", overlay, "--ckpt_path", str(habit_run["vq_path"]), tiny,
-              "--model.init_args.habit_order=kl_then_flows"])  # as it was trained (the config's flow_prior is refused)
+              "--model.init_args.order.habit_order=kl_then_flows"])  # as trained (the config's flow_prior is refused)
     err = capsys.readouterr().err
     assert e.value.code == 2 and "holds no flow priors" in err and "habit_prior.yaml" in err
     assert len(err.strip().splitlines()) == 1
@@ -678,8 +678,9 @@ def test_checkpoints_from_before_the_training_order_option_load_in_the_earlier_o
     from omg.lit.habit import HabitPriorModule, HabitVQModule
 
     spec = MotionDataModule(str(QUATVEL / "train"), verify_shards=False).spec
-    old = HabitVQModule(CATEGORIES, habit_order="kl_then_flows", flavor="tiny", text_encoder="hash", spec=spec)
-    hparams = {k: v for k, v in old.hparams.items() if k not in ("habit_order", "habit_fraction", "flow_weight")}
+    old = HabitVQModule(CATEGORIES, order={"habit_order": "kl_then_flows"}, flavor="tiny", text_encoder="hash",
+                        spec=spec)
+    hparams = {k: v for k, v in old.hparams.items() if k != "order"}
     torch.save({"state_dict": old.state_dict(), "hyper_parameters": hparams,
                 "module_class": "omg.lit.habit.HabitVQModule"}, tmp_path / "vq.ckpt")
     vq = load_module(tmp_path / "vq.ckpt", default_class=HabitVQModule)
@@ -710,7 +711,8 @@ def test_the_default_order_under_ddp_asks_for_unused_parameters(tmp_path):
     try:
         for find_unused, order, refused in ((False, "flow_prior", True), (False, "kl_then_flows", False),
                                             (True, "flow_prior", False)):
-            module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", text_encoder="hash", spec=spec)
+            module = HabitVQModule(CATEGORIES, order={"habit_order": order}, flavor="tiny", text_encoder="hash",
+                                   spec=spec)
             module.trainer = L.Trainer(accelerator="cpu", devices=1, logger=False)
             module.trainer.strategy.model = DistributedDataParallel(module, find_unused_parameters=find_unused)
             if refused:

@@ -103,8 +103,8 @@ def test_the_animalml3d_config_trains_the_habit_model_on_animalml3d_layout_shard
     ckpt = run / "checkpoints" / "last.ckpt"
     hparams = torch.load(ckpt, map_location="cpu", weights_only=True)["hyper_parameters"]
     assert hparams["categories"] == yaml.safe_load(CONFIG.read_text())["model"]["init_args"]["categories"]
-    assert hparams["descriptions"]["milk cow"] == SpeciesBook.load().description("cow")  # a dairy cow
-    assert hparams["habit_order"] == "flow_prior"
+    assert hparams["species"]["descriptions"]["milk cow"] == SpeciesBook.load().description("cow")  # a dairy cow
+    assert hparams["order"]["habit_order"] == "flow_prior"
     source = tmp_path / "fox.npy"
     np.save(source, np.asarray(next(c for c in clips if c["meta"]["category"] == "fox")["motion"], np.float32))
     main(["transfer", str(source), "--to", "milk cow", "--ckpt", str(ckpt), "--no_preview", "--out",

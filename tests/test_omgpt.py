@@ -117,6 +117,7 @@ def test_module_defaults_are_the_paper_and_the_variant_is_its_config():
     in and out, absolute root translation, D_t unshifted, retrieval as the evaluation protocol draws (32 nearest
     clips by similarity at 0.1). omg's variant is its config: configs/omgpt_variant.yaml and configs/mini/omgpt.yaml
     turn the three switches on, and configs/omgpt.yaml says the paper's values rather than inheriting them."""
+    import dataclasses
     import inspect
 
     import yaml
@@ -124,9 +125,9 @@ def test_module_defaults_are_the_paper_and_the_variant_is_its_config():
     from omg.lit.omgpt import OmniMotionModule
 
     defaults = {k: p.default for k, p in inspect.signature(OmniMotionModule).parameters.items()}
-    assert {k: defaults[k] for k in ("standardize", "human_source", "retrieval_top_k", "retrieval_draw",
-                                     "retrieval_temperature", "retrieval_bank")} == {
-        "standardize": False, "human_source": "retrieval", "retrieval_top_k": 32, "retrieval_draw": "similarity",
+    assert defaults["standardize"] is False
+    assert dataclasses.asdict(defaults["source"]) == {
+        "human_source": "retrieval", "retrieval_top_k": 32, "retrieval_draw": "similarity",
         "retrieval_temperature": 0.1, "retrieval_bank": None}
     paper = OmniMotionConfig()
     assert (paper.latent_shift, paper.root_velocity) == (False, False)
@@ -382,13 +383,13 @@ def small_eval(tmp_path_factory):
 def test_evaluation_starts_from_generated_human_motion_by_default():
     """The paper's tables start from human motion sampled from a generative model (Fig. 2c): both evaluation
     configs name an OMG ControlNet checkpoint, the one docs/families/ trains (mini: the quick start's), as
-    model.init_args.human_source; retrieval is the named overlay, whose bank is never the prompts' split."""
+    model.init_args.source.human_source; retrieval is the named overlay, whose bank is never the prompts' split."""
     from helpers.configs import parse
 
     mini, full = parse(REPO / "configs/mini/omgpt_eval.yaml"), parse(REPO / "configs/omgpt_eval.yaml")
     for evaluation, generator in ((mini, "mini/controlnet.yaml"), (full, "controlnet_base.yaml")):
         root = parse(REPO / "configs" / generator).trainer.default_root_dir
-        assert evaluation.model.init_args.human_source == f"{root}/checkpoints/last.ckpt"
+        assert evaluation.model.init_args.source.human_source == f"{root}/checkpoints/last.ckpt"
     assert all(c.init_args.steps == 20 for c in mini.trainer.callbacks if "steps" in c.init_args)
     for overlay, evaluation in (("mini/omgpt_eval_retrieval.yaml", mini), ("omgpt_eval_retrieval.yaml", full)):
         args = parse(REPO / "configs" / overlay).model.init_args
@@ -409,7 +410,7 @@ def test_retrieval_never_starts_a_generation_from_the_prompts_own_clip(omgpt_ckp
     both = "[shards/mini/human_maa/train, shards/mini/human_maa/val]"
     _cli("test", "--config", str(path), "--config", str(overlay), "--ckpt_path", str(omgpt_ckpt),
          "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={tmp_path / 'eval'}",
-         f"--model.init_args.retrieval_bank={both}")
+         f"--model.init_args.source.retrieval_bank={both}")
     capsys.readouterr()
     run = next((tmp_path / "eval").glob("version_*"))
     settings = json.loads((run / "eval_ood.json").read_text())["settings"]
@@ -419,13 +420,13 @@ def test_retrieval_never_starts_a_generation_from_the_prompts_own_clip(omgpt_ckp
     assert settings["generations"] == 2 * (8 + 2 * 3) and settings["from_prompt_clip"] == 0
 
     for extra, message in (
-        (["--model.init_args.retrieval_bank=null"],
+        (["--model.init_args.source.retrieval_bank=null"],
          "omg: error: OODEvalCallback: every clip retrieval draws from (the human validation clips kept in the "
-         "checkpoint) is captioned by one of the prompts; set model.init_args.retrieval_bank"),
-        (["--model.init_args.retrieval_bank=shards/mini/animal_maa/val"],
-         "omg: error: model.init_args.retrieval_bank: the checkpoint's human data and its shards differ:"),
-        ([f"--model.init_args.human_source={tmp_path}/missing.ckpt"],
-         f"omg: error: model.init_args.human_source: no OMG ControlNet checkpoint at {tmp_path}/missing.ckpt"),
+         "checkpoint) is captioned by one of the prompts; set model.init_args.source.retrieval_bank"),
+        (["--model.init_args.source.retrieval_bank=shards/mini/animal_maa/val"],
+         "omg: error: model.init_args.source.retrieval_bank: the checkpoint's human data and its shards differ:"),
+        ([f"--model.init_args.source.human_source={tmp_path}/missing.ckpt"],
+         f"omg: error: model.init_args.source.human_source: no OMG ControlNet checkpoint at {tmp_path}/missing.ckpt"),
     ):
         with pytest.raises(SystemExit) as exit_:
             _cli("test", "--config", str(path), "--config", str(overlay), "--ckpt_path", str(omgpt_ckpt),
@@ -442,7 +443,7 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tiny_controlnet, smal
 
     path, evaluator_path = small_eval
     _cli("test", "--config", str(path), "--ckpt_path", str(omgpt_ckpt), "--trainer.enable_progress_bar=false",
-         f"--trainer.default_root_dir={tmp_path / 'eval'}", f"--model.init_args.human_source={tiny_controlnet}")
+         f"--trainer.default_root_dir={tmp_path / 'eval'}", f"--model.init_args.source.human_source={tiny_controlnet}")
     printed = capsys.readouterr().out
     assert "OOD prompts" in printed and "| fid_ood |" in printed and "| r_precision/top1 |" in printed
     run = next((tmp_path / "eval").glob("version_*"))
@@ -465,7 +466,7 @@ def test_omg_test_prints_the_id_and_ood_tables(omgpt_ckpt, tiny_controlnet, smal
                                                              "init_args": {"checkpoint": str(omgpt_ckpt)}}})
     (tmp_path / "self_eval.yaml").write_text(yaml.safe_dump(overlay))
     _cli("test", "--config", str(path), "--config", str(tmp_path / "self_eval.yaml"), "--ckpt_path", str(omgpt_ckpt),
-         "--trainer.enable_progress_bar=false", f"--model.init_args.human_source={tiny_controlnet}")
+         "--trainer.enable_progress_bar=false", f"--model.init_args.source.human_source={tiny_controlnet}")
     run = next((tmp_path / "self_eval").glob("version_*"))
     for report in ("eval.json", "eval_ood.json"):
         assert json.loads((run / report).read_text())["settings"]["evaluator"] == "OmniMotionSelfEvaluator"
@@ -484,7 +485,7 @@ def test_sigterm_during_the_evaluation_ends_it_in_one_line(omgpt_ckpt, tiny_cont
     with pytest.raises(SystemExit) as stop:
         _cli("test", "--config", str(tmp_path / "eval.yaml"), "--ckpt_path", str(omgpt_ckpt),
              "--trainer.enable_progress_bar=false", f"--trainer.default_root_dir={tmp_path / 'eval'}",
-             f"--model.init_args.human_source={tiny_controlnet}")
+             f"--model.init_args.source.human_source={tiny_controlnet}")
     err = capsys.readouterr().err
     assert stop.value.code == 143, err[-2000:]
     assert [ln for ln in err.splitlines() if ln.startswith("omg:") and "interrupted" in ln] == [

@@ -49,7 +49,7 @@ def test_paper_eval_config_holds_the_papers_numbers():
         assert evaluator["class_path"] == "omg.lit.evaluator.OmniMotionSelfEvaluator"
         assert evaluator["init_args"]["unit"] is name.endswith("_unit")  # the paper's raw scale, and omg's unit one
     model = cfg.model.init_args
-    assert (model.retrieval_draw, model.retrieval_top_k) == ("similarity", 32)
+    assert (model.source.retrieval_draw, model.source.retrieval_top_k) == ("similarity", 32)
 
 
 def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
@@ -59,7 +59,7 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
     distinct = {}
     # the 10 mini validation clips hold one that waves with the left hand: a soft temperature spreads the draw
     for draw, k in (("uniform", 3), ("similarity", 10)):
-        module = _module(retrieval_draw=draw, retrieval_top_k=k, retrieval_temperature=1.0)
+        module = _module(source={"retrieval_draw": draw, "retrieval_top_k": k, "retrieval_temperature": 1.0})
         lengths = torch.full((repeats,), 40)
         humans, person = human_source_of(module), [prompt.replace("a dog", "a person")] * repeats
         human, _ = humans.retrieve(person, lengths, seed=0)
@@ -76,8 +76,8 @@ def test_repeated_generations_of_a_prompt_differ_beyond_three_human_clips():
             animals = OmniMotionSampler(module).sample([prompt] * repeats, lengths, SamplingSettings(seed=0))
             assert len(torch.unique(animals.flatten(1), dim=0)) > 3  # and so do the animals made from them
     assert distinct["uniform"] <= 3 < distinct["similarity"], distinct
-    with pytest.raises(Exception, match="retrieval_draw uniform or similarity"):
-        _module(retrieval_draw="nearest")
+    with pytest.raises(Exception, match="model.source.retrieval_draw must be uniform or similarity, got 'nearest'"):
+        _module(source={"retrieval_draw": "nearest"})
 
 
 def test_self_evaluation_reports_both_scales(omgpt_ckpt):
@@ -143,7 +143,7 @@ def test_an_exclusion_applies_to_the_next_draw_of_a_source_that_has_drawn():
     source (one per module: the callbacks sampling a module share its exclusions)."""
     from omg.lit.sampling import sampler_of
 
-    module = _module(retrieval_top_k=1)
+    module = _module(source={"retrieval_top_k": 1})
     humans, lengths, prompt = human_source_of(module), torch.tensor([40]), ["a person waves with the left hand."]
     nearest, _ = humans.retrieve(prompt, lengths, seed=0)
     drawn = humans.retrieved[0]

@@ -72,7 +72,7 @@ def test_habit_stage1_loss_is_the_papers_mix(quatvel, order):
     order adds kl_weight · KL(q || N(0, I))."""
     assert all(HABIT_MIX[g].items() <= _group_defaults(HabitVQModule, g).items() for g in HABIT_MIX)
     torch.manual_seed(0)
-    module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", spec=quatvel.spec).eval()
+    module = HabitVQModule(CATEGORIES, order={"habit_order": order}, flavor="tiny", spec=quatvel.spec).eval()
     batch = next(iter(quatvel.train_dataloader()))
     out, recon, _ = module.losses(batch)
     v = module.num_joints * 4  # quatvel: 35 quaternions, then the joint velocities
@@ -102,7 +102,7 @@ class _LearningRates(L.Callback):
 ])
 def test_habit_learning_rate_steps_from_2e4_to_1e5_for_the_second_half(quatvel, tmp_path, order, steps, expected):
     torch.manual_seed(0)
-    module = HabitVQModule(CATEGORIES, habit_order=order, flavor="tiny", spec=quatvel.spec)
+    module = HabitVQModule(CATEGORIES, order={"habit_order": order}, flavor="tiny", spec=quatvel.spec)
     rates = _LearningRates()
     trainer = L.Trainer(accelerator="cpu", max_steps=steps, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path),
@@ -131,12 +131,14 @@ def test_habit_configs_have_the_papers_numbers():
     cfg = parse(REPO / "configs/habit_vqvae.yaml")
     args = cfg.model.init_args
     assert {g: {k: args[g][k] for k in HABIT_MIX[g]} for g in HABIT_MIX} == HABIT_MIX
-    assert (args.quantizer, args.code_reset, args.condition_decoder, args.ema_decay) == ("soft", True, False, 0.99)
+    codebook = args.codebook
+    assert (codebook.quantizer, codebook.code_reset, args.condition_decoder, codebook.ema_decay) == ("soft", True,
+                                                                                                     False, 0.99)
     # the paper's order: each category's habit encoder pretrained under its flow prior, then the VQ-VAE's
     # 200K iterations on the pretrained encoders
-    assert args.habit_order == _defaults(HabitVQModule)["habit_order"] == "flow_prior"
-    assert parse(REPO / "configs/mini/habit_vqvae.yaml").model.init_args.habit_order == "flow_prior"  # the mini too
-    assert cfg.trainer.max_steps - int(args.habit_fraction * cfg.trainer.max_steps) == 200000
+    assert args.order.habit_order == _defaults(HabitVQModule)["order"].habit_order == "flow_prior"
+    assert parse(REPO / "configs/mini/habit_vqvae.yaml").model.init_args.order.habit_order == "flow_prior"  # the mini
+    assert cfg.trainer.max_steps - int(args.order.habit_fraction * cfg.trainer.max_steps) == 200000
     assert cfg.data.batch_size == 32 and cfg.data.max_len == cfg.data.min_len == 64
     base = HabitConfig.from_name(args.flavor)
     assert (base.num_codes, base.down_t, base.dilation_growth, base.width) == (512, 2, 3, 512)

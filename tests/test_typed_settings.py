@@ -120,10 +120,13 @@ def test_older_flat_keys_are_read_into_their_groups_with_one_warning_each(capsys
                                  "model.init_args.optim.lr only (model.init_args.lr is its older name)\n")
 
 
+VALUE_GROUPS = ("optim", "loss", "order", "codebook", "source", "species")
+
+
 def _flat(hparams: dict) -> dict:
-    """Hyper-parameters as omg wrote them before the groups: optim's and loss's fields at the top level."""
-    flat = {k: v for k, v in hparams.items() if k not in ("optim", "loss")}
-    for group in ("optim", "loss"):
+    """Hyper-parameters as omg wrote them before the groups: the value groups' fields at the top level."""
+    flat = {k: v for k, v in hparams.items() if k not in VALUE_GROUPS}
+    for group in VALUE_GROUPS:
         flat.update(hparams.get(group) or {})
     return flat
 
@@ -137,7 +140,9 @@ def test_a_checkpoint_with_flat_hyper_parameters_loads_into_the_groups(tmp_path)
 
     quatvel = MotionDataModule(str(MINI / "animal_quatvel/train"), batch_size=2, num_workers=0).spec
     vq = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=quatvel,
-                       loss={"alpha": 0.4, "flow_weight": 0.2}, optim={"lr": 3e-3, "lr_switch": 0.7})
+                       loss={"alpha": 0.4, "flow_weight": 0.2}, optim={"lr": 3e-3, "lr_switch": 0.7},
+                       order={"habit_order": "kl_then_flows", "habit_fraction": 0.3},
+                       codebook={"quantizer": "nearest", "temperature": 0.5, "code_reset": False, "ema_decay": 0.9})
     assert vq.hparams["optim"] == {"lr": 3e-3, "weight_decay": 0.0, "betas": [0.9, 0.99], "warmup_steps": 0,
                                    "lr_after": 1e-5, "lr_switch": 0.7}
 
@@ -152,8 +157,148 @@ def test_a_checkpoint_with_flat_hyper_parameters_loads_into_the_groups(tmp_path)
     loaded = load_module(old_vq)
     assert loaded.optim == vq.optim and loaded.loss == vq.loss
     assert loaded.hparams["optim"] == vq.hparams["optim"] and "lr" not in loaded.hparams
+    assert loaded.hparams["codebook"] == vq.hparams["codebook"] and loaded.hparams["order"] == vq.hparams["order"]
+    assert loaded.hparams["species"] == vq.hparams["species"] and torch.equal(loaded.category_text, vq.category_text)
+    q = loaded.vqvae.quantizer
+    assert (q.mode, q.temperature, q.code_reset, q.decay) == ("nearest", 0.5, False, 0.9)
+    assert (loaded.habit_order, loaded.habit_fraction, loaded.flows) == ("kl_then_flows", 0.3, None)
 
     prior = HabitPriorModule(save(vq, dict(vq.hparams), "vq_new.ckpt"), optim={"warmup_steps": 3})
     hparams = {**_flat(dict(prior.hparams)), "vq": _flat(prior.hparams["vq"])}
     loaded = load_module(save(prior, hparams, "prior.ckpt"))
     assert loaded.optim == prior.optim and loaded.vq.optim == vq.optim and loaded.vq.loss == vq.loss
+    assert loaded.vq.hparams["codebook"] == vq.hparams["codebook"] and loaded.vq.habit_order == "kl_then_flows"
+
+
+ABBREVIATED = "unknown option (options are never abbreviated); did you mean"
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    # LightningCLI's own parser
+    (["fit", "--config", "{pretrain}", "--trainer.max_st", "3", "--print_config"],
+     f"--trainer.max_st: {ABBREVIATED} --trainer.max_steps?"),
+    # the parser jsonargparse builds for the model's class, with or without init_args
+    (["fit", "--config", "{pretrain}", "--model.init_args.ema", "0.5", "--print_config"],
+     f"--model.init_args.ema: {ABBREVIATED} --model.init_args.ema_decay?"),
+    (["fit", "--config", "{pretrain}", "--model.ema", "0.5", "--print_config"],
+     f"--model.init_args.ema: {ABBREVIATED} --model.init_args.ema_decay?"),
+    # a nested group's key: the typo of the issue, which set loss.vel_weight without a word
+    (["fit", "--config", "{pretrain}", "--model.init_args.loss.vel", "3", "--print_config"],
+     "model.init_args.loss.vel: unknown key 'vel'; did you mean model.init_args.loss.vel_weight? (accepted keys: "
+     "vel_weight, foot_weight)"),
+    (["fit", "--config", "{omgpt}", "--data.human.trai", "x", "--print_config"],
+     "data.human.trai: unknown key 'trai'; did you mean data.human.train?"),
+    # a tool's parser, and a tool's subcommand's
+    (["generate", "--num_samp", "3", "a dog jumps", "--print_config"], f"--num_samp: {ABBREVIATED} --num_samples?"),
+    (["shards", "inspect", "--batch", "3", "shards/mini/animal_maa/val", "--print_config"],
+     f"--batch: {ABBREVIATED} --batch_size?"),
+])
+def test_an_abbreviated_option_is_refused_in_one_line_naming_the_key_meant(capsys, args, message):
+    """argparse takes an unambiguous prefix of a long option for it, so ``--model.init_args.loss.vel 3`` set
+    ``loss.vel_weight`` and ``--trainer.max_st`` ``max_steps`` silently. Every omg parser refuses it: LightningCLI's,
+    those jsonargparse builds below it (the model's class, a typed group), a tool's and a subcommand's; the line
+    names the option given and the closest real key."""
+    configs = {"pretrain": str(REPO / "configs/mini/pretrain.yaml"), "omgpt": str(REPO / "configs/mini/omgpt.yaml")}
+    code, out, err = _run(capsys, *[arg.format(**configs) for arg in args])
+    assert code == 2 and err.count("\n") == 1 and not out, err
+    assert err.startswith(f"omg: error: {message}"), err
+
+
+def test_full_keys_and_their_dashed_spellings_still_work(capsys):
+    """The keys spelled in full, and the dashed spellings of the earlier CLI (docs/guide/reliability.md:
+    ``--num-samples``, ``--trainer.max-steps``, ``--model.init-args.ema-decay``), are taken as before."""
+    code, out, _ = _run(capsys, "fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), "--trainer.max-steps", "3",
+                        "--model.init-args.ema-decay", "0.5", "--model.init_args.loss.vel_weight", "7",
+                        "--data.human.train", "x", "--print_config")
+    assert code == 0
+    printed = yaml.safe_load(out)
+    assert printed["trainer"]["max_steps"] == 3 and printed["model"]["init_args"]["ema_decay"] == 0.5
+    assert printed["model"]["init_args"]["loss"]["vel_weight"] == 7.0 and printed["data"]["human"]["train"] == "x"
+    code, out, _ = _run(capsys, "generate", "--num-samples", "2", "a dog jumps", "--print_config")
+    assert code == 0 and yaml.safe_load(out)["num_samples"] == 2
+
+
+def test_constructors_take_about_a_dozen_parameters():
+    """Each LightningModule of omg.lit takes its settings in groups: at most 13 constructor parameters (OmniMotionGPT
+    had 17, the habit VQ-VAE 18)."""
+    import inspect
+
+    import omg.lit
+
+    counts = {name: len(inspect.signature(getattr(omg.lit, name)).parameters) for name in omg.lit.__all__}
+    assert max(counts.values()) <= 13, counts
+
+
+def test_older_flat_keys_of_the_new_groups_are_read_for_their_model_class_only(capsys, tmp_path):
+    """OmniMotionGPT's human-source settings and the habit VQ-VAE's order and codebook settings, flat on the command
+    line or in a config, are read into ``source``, ``order`` and ``codebook`` with one warning each; the habit
+    codebook's ``ema_decay`` is read so for the habit VQ-VAE only (every other module's ``ema_decay`` is its
+    weight EMA's, its own parameter)."""
+    with pytest.warns(UserWarning) as record:
+        code, out, _ = _run(capsys, "fit", "--config", str(REPO / "configs/mini/omgpt.yaml"),
+                            "--model.init_args.retrieval_top_k", "5", "--model.human_source=retrieval",
+                            "--print_config")
+    assert code == 0
+    source = yaml.safe_load(out)["model"]["init_args"]["source"]
+    assert (source["retrieval_top_k"], source["human_source"]) == (5, "retrieval")
+    warned = {str(w.message) for w in record}
+    assert "model.init_args.retrieval_top_k is read as model.init_args.source.retrieval_top_k, where it is set now" \
+        in warned
+
+    old = yaml.safe_load((REPO / "configs/mini/habit_vqvae.yaml").read_text())
+    init_args = old["model"]["init_args"]
+    init_args.update(init_args.pop("order"))
+    init_args.update(init_args.pop("codebook"), ema_decay=0.9)
+    path = tmp_path / "old.yaml"
+    path.write_text(yaml.safe_dump(old))
+    with pytest.warns(UserWarning) as record:
+        code, out, _ = _run(capsys, "fit", "--config", str(path), "--model.init_args.quantizer", "nearest",
+                            "--print_config")
+    assert code == 0
+    printed = yaml.safe_load(out)["model"]["init_args"]
+    assert printed["codebook"] == {"quantizer": "nearest", "temperature": 0.1, "code_reset": True, "ema_decay": 0.9}
+    assert printed["order"] == {"habit_order": "flow_prior", "habit_fraction": 0.2}
+    warned = {str(w.message) for w in record}
+    for key, group in [("habit_order", "order"), ("quantizer", "codebook"), ("ema_decay", "codebook")]:
+        assert f"model.init_args.{key} is read as model.init_args.{group}.{key}, where it is set now" in warned
+
+    code, out, _ = _run(capsys, "fit", "--config", str(REPO / "configs/mini/pretrain.yaml"),
+                        "--model.init_args.ema_decay", "0.5", "--print_config")
+    assert code == 0 and yaml.safe_load(out)["model"]["init_args"]["ema_decay"] == 0.5
+
+
+def test_a_python_caller_passing_an_older_flat_keyword_gets_one_line_naming_its_group():
+    from omg.lit.habit import HabitVQModule
+    from omg.lit.omgpt import OmniMotionModule
+
+    for cls, key, value, group in [(OmniMotionModule, "retrieval_top_k", 3, "source"),
+                                   (HabitVQModule, "code_reset", False, "codebook"),
+                                   (HabitVQModule, "habit_order", "kl_then_flows", "order"),
+                                   (HabitVQModule, "lr", 1e-3, "optim")]:
+        with pytest.raises(TypeError) as e:
+            cls(**{key: value})
+        assert str(e.value) == (f"{cls.__name__}() takes {key} in its {group} group now: pass "
+                                f"{group}={{{key!r}: {value!r}}} (model.init_args.{group}.{key})")
+
+
+def test_the_architecture_fields_of_a_group_come_from_the_checkpoint_and_locations_never():
+    """Under --ckpt_path a value group's architecture field (``codebook.code_reset``: the paper's row the codebook
+    was trained as) is the checkpoint's, a run that says otherwise refused in one line; its other fields (how codes
+    are drawn) are the run's. A group's location fields (``source.human_source``, ``source.retrieval_bank``) are
+    never read from a checkpoint, grouped or flat as older checkpoints hold them."""
+    from omg.lit.checkpoint import inert_hparams, run_hparams
+    from omg.lit.habit import HabitVQModule
+    from omg.lit.omgpt import OmniMotionModule
+
+    saved = {"codebook": {"quantizer": "soft", "temperature": 0.1, "code_reset": True, "ema_decay": 0.99}}
+    taken = run_hparams(HabitVQModule, saved, {"codebook": {"quantizer": "nearest", "code_reset": True}}, "vq.ckpt")
+    assert taken == {"codebook": {"temperature": 0.1, "ema_decay": 0.99}}
+    with pytest.raises(UsageError) as e:
+        run_hparams(HabitVQModule, saved, {"codebook": {"code_reset": False}}, "vq.ckpt")
+    assert str(e.value).startswith("--model.init_args.codebook.code_reset: the checkpoint vq.ckpt was trained with "
+                                   "true; this run's config says false")
+
+    grouped = {"source": {"human_source": "pipe:touch x", "retrieval_top_k": 3, "retrieval_bank": "s3://bank"}}
+    assert inert_hparams(OmniMotionModule, grouped) == {"source": {"retrieval_top_k": 3}}
+    flat = {"human_source": "pipe:touch x", "retrieval_bank": "s3://bank", "retrieval_top_k": 3}
+    assert inert_hparams(OmniMotionModule, flat) == {"retrieval_top_k": 3}

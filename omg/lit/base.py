@@ -136,6 +136,16 @@ class OmgModule(L.LightningModule):
     ema: EMA | None = None
     optim: OptimSettings
 
+    def __new__(cls, *args: Any, **kwargs: Any):
+        # a Python caller's older flat keyword (``lr=``, ``retrieval_top_k=``): one line naming its group, where
+        # Python's own TypeError would name only the keyword
+        params = inspect.signature(cls.__init__).parameters
+        for key, group_name in cls.grouped_fields().items():
+            if key in kwargs and key not in params:
+                raise TypeError(f"{cls.__name__}() takes {key} in its {group_name} group now: pass "
+                                f"{group_name}={{{key!r}: {kwargs[key]!r}}} (model.init_args.{group_name}.{key})")
+        return super().__new__(cls)
+
     @classmethod
     def value_groups(cls) -> dict[str, Any]:
         """The constructor's groups whose every field has a value (``optim``, ``loss``): name -> its default."""

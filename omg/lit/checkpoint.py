@@ -360,7 +360,15 @@ def inert_hparams(cls: type, hparams: dict[str, Any]) -> dict[str, Any]:
     loading it never opens what its file names (a ``pipe:`` location would start a process), and
     self-contained, so it loads on a machine where those locations do not exist."""
     drop = set(getattr(cls, "location_hparams", ()))
-    return {k: v for k, v in hparams.items() if k not in drop}
+    grouped = cls.grouped_fields() if callable(getattr(cls, "grouped_fields", None)) else {}
+    out = {k: v for k, v in hparams.items() if k not in drop}
+    for name in drop:  # a group's field (``source.human_source``), also as older checkpoints hold it flat
+        group, _, field = name.partition(".")
+        if field and isinstance(out.get(group), dict):
+            out[group] = {k: v for k, v in out[group].items() if k != field}
+        if field and grouped.get(field) == group:
+            out.pop(field, None)
+    return out
 
 
 def _plain(value: Any) -> Any:
@@ -409,8 +417,15 @@ def run_hparams(cls: type | None, hparams: dict[str, Any], given: dict[str, Any]
     values the module fills in) leaves it to the checkpoint. A value group (``OmgModule.value_groups``: ``optim``,
     ``loss``) is read field by field: the fields the run gives are the run's, the others the checkpoint's."""
     architecture = set(getattr(cls, "architecture_hparams", ()))
-    for key in sorted(architecture & set(given) & set(hparams)):
-        if given[key] is not None and (found := _contradiction(hparams[key], given[key], key)):
+    for name in sorted(architecture):  # a hyper-parameter, or a field of a value group (``codebook.code_reset``)
+        key, _, field = name.partition(".")
+        if key not in given or key not in hparams:
+            continue
+        trained, says = hparams[key], given[key]
+        if field:
+            trained = trained.get(field) if isinstance(trained, dict) else None
+            says = says.get(field) if isinstance(says, dict) else None
+        if says is not None and (found := _contradiction(trained, says, name)):
             name, trained, says = found
             raise UsageError(f"--model.init_args.{name}: the checkpoint {src} was trained with {trained}; this run's "
                              f"config says {says} (what shapes the weights comes from the checkpoint: leave it out, "
@@ -464,7 +479,9 @@ def rebuild_module(cls: type[L.LightningModule], ckpt: dict[str, Any], src: Path
     """``build_module`` from the checkpoint's hyper-parameters (``checkpoint_hparams``), then its fit-time state
     restored (a ``restore_fit_state(ckpt)`` method: what the module filled in from its data, which shapes
     buffers the weights then fill), so that the weights can be checked against it."""
-    module = build_module(cls, checkpoint_hparams(cls, ckpt["hyper_parameters"], ckpt["state_dict"]), src, device)
+    # the locations dropped first: never read, also where an older checkpoint holds one both flat and grouped
+    hparams = checkpoint_hparams(cls, inert_hparams(cls, ckpt["hyper_parameters"]), ckpt["state_dict"])
+    module = build_module(cls, hparams, src, device)
     if callable(restore := getattr(module, "restore_fit_state", None)):
         restore(ckpt)
     return module

@@ -99,25 +99,72 @@ class HabitLossWeights:
         check_weights(self)
 
 
+@dataclass(frozen=True)
+class HabitOrderSettings:
+    """In which order the habit encoders, their flow priors and the VQ-VAE train (``HabitVQModule``):
+    ``habit_order`` ``flow_prior`` (the paper's: the first ``habit_fraction`` of the run's steps pretrains the
+    encoders under their flows) or ``kl_then_flows`` (omg's earlier order: KL to N(0, I), the flows fitted after by
+    ``HabitPriorModule``)."""
+
+    habit_order: str = "flow_prior"
+    habit_fraction: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.habit_order not in HABIT_ORDERS:
+            raise UsageError(f"model.order.habit_order must be one of {', '.join(HABIT_ORDERS)} (flow_prior: the "
+                             "paper's encoders pretrained under their flows; kl_then_flows: KL to N(0, I), flows "
+                             f"fitted after), got {self.habit_order!r}")
+        if not 0 < self.habit_fraction < 1:
+            raise UsageError("model.order.habit_fraction must be in (0, 1) (the share of the run that pretrains the "
+                             f"habit encoders), got {self.habit_fraction}")
+
+
+@dataclass(frozen=True)
+class CodebookSettings:
+    """How the VQ-VAE's codebook assigns and keeps its codes (``omg.models.habit.Quantizer``, which checks them):
+    ``quantizer`` ``soft`` (an index sampled from the softmax over squared distances at ``temperature``, the
+    paper's) or ``nearest``; ``code_reset``: dead codes restart at encoder outputs ("EMA-reset", the paper's best
+    row), False: "EMA"; ``ema_decay``: the decay of the codebook's moving averages. Its size and width are the
+    architecture's (``habit.num_codes``, ``habit.code_dim``), the commitment weight a loss weight
+    (``loss.beta``)."""
+
+    quantizer: str = "soft"
+    temperature: float = 1.0
+    code_reset: bool = True
+    ema_decay: float = 0.99
+
+
+@dataclass(frozen=True)
+class SpeciesText:
+    """The categories' text condition: ``species_file``, a YAML of extra or overriding species descriptions
+    (``omg.text.habit``), read when the module is first built; ``descriptions`` and ``category_embeddings`` (their
+    sentence embeddings), filled in then and kept in the checkpoint, so that no text file or encoder is needed to
+    transfer to a known category. Never written by hand but ``species_file``."""
+
+    species_file: str | None = None
+    descriptions: dict[str, str] | None = None
+    # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
+    # minutes to parse under `omg test --ckpt_path`
+    category_embeddings: list | None = None
+
+
 class HabitVQModule(OmgModule):
     """The motion VQ-VAE conditioned on each category's habit latent and text embedding; in the default
     ``habit_order`` it first pretrains the per-category habit encoders under their flow priors.
 
     Args:
         categories: the known categories (species names of the training clips' ``category``).
-        habit_order: ``flow_prior`` (default, the paper's): the first ``habit_fraction`` of the run trains
-            the habit encoders with their flow priors (KL(q || p_flow) + the habit statistics), the rest
+        order: ``habit_order`` ``flow_prior`` (default, the paper's): the first ``habit_fraction`` of the run
+            trains the habit encoders with their flow priors (KL(q || p_flow) + the habit statistics), the rest
             the VQ-VAE on the frozen encoders, without a KL term; the checkpoint holds the flows.
             ``kl_then_flows`` (omg's earlier order): the encoders train inside the VQ-VAE with
             ``kl_weight`` · KL(q || N(0, I)) from the first step, and ``HabitPriorModule`` (stage 2) fits
-            the flows afterwards.
-        habit_fraction: the share of the run's steps that pretrains the encoders and flows (``flow_prior``).
+            the flows afterwards (``HabitOrderSettings``).
         flavor: model size preset (``base``: the paper's T2M-GPT sizes; ``mini``, ``tiny`` for CPU runs).
         habit: HabitConfig fields to override in the flavor's (``HabitOverrides``).
-        quantizer: ``soft`` (softmax sampling at ``temperature``, the paper's) or ``nearest``.
-        temperature: softmax temperature of soft sampling, on squared distances of the latents.
-        code_reset: restart dead codes at encoder outputs ("EMA-reset"); False: "EMA".
-        ema_decay: decay of the codebook's moving averages.
+        codebook: ``quantizer`` (``soft``: softmax sampling at ``temperature``, the paper's; or ``nearest``),
+            ``code_reset`` (restart dead codes at encoder outputs, "EMA-reset"; False: "EMA") and ``ema_decay``
+            (of the codebook's moving averages) (``CodebookSettings``).
         condition_decoder: also give the decoder the habit latent and text embedding. Off by default:
             the paper gives them to the encoder only. A named deviation (the mini config uses it):
             with the decoder conditioned too, the codes need not carry the category, which lets a
@@ -127,10 +174,9 @@ class HabitVQModule(OmgModule):
             (``HabitLossWeights``).
         text_encoder, text_encoder_args: the registered encoder that embeds the category descriptions
             (``minilm``, offline; the paper's ``bge-base-en-v1.5``, with ``text_encoder_args: {model_dir: DIR}``).
-        species_file: a YAML of extra or overriding species descriptions (omg.text.habit).
-        descriptions, category_embeddings: filled in when the module is first built (the descriptions
-            and their sentence embeddings, kept in the checkpoint, so that no text file or encoder is
-            needed to transfer to a known category).
+        species: ``species_file`` (a YAML of extra or overriding species descriptions), and the ``descriptions``
+            and their sentence embeddings ``category_embeddings`` filled in when the module is first built
+            (``SpeciesText``).
         optim: AdamW lr until ``lr_switch`` of the VQ-VAE's steps, then ``lr_after`` (the habit pretraining
             runs at ``lr``); weight_decay, betas and a linear warm-up over warmup_steps (``StepOptimSettings``).
         spec: the data's representation (quatvel), skeleton, fps and stats; linked by ``omg fit``.
@@ -139,44 +185,32 @@ class HabitVQModule(OmgModule):
     clip_sampling = "windows"  # fixed-length crops: data.min_len = data.max_len
     frozen_prefixes = ()
     # what the weights and codebook were made with (code_reset names the paper's row); quantizer and
-    # temperature (how codes are drawn), the loss weights and the optimizer are the run's
-    architecture_hparams = ("categories", "habit_order", "flavor", "habit", "code_reset", "condition_decoder",
-                            "text_encoder", "descriptions", "category_embeddings", "spec")
+    # temperature (how codes are drawn), habit_fraction, the loss weights and the optimizer are the run's
+    architecture_hparams = ("categories", "order.habit_order", "flavor", "habit", "codebook.code_reset",
+                            "condition_decoder", "text_encoder", "species.descriptions", "species.category_embeddings",
+                            "spec")
     settings_groups = {"habit": HabitOverrides, "text_encoder_args": TextEncoderArgs}
 
     def __init__(
         self,
         categories: list[str],
-        habit_order: str = "flow_prior",
-        habit_fraction: float = 0.2,
+        order: HabitOrderSettings = HabitOrderSettings(),
         flavor: str = "base",
         habit: HabitOverrides | None = HabitOverrides(),
-        quantizer: str = "soft",
-        temperature: float = 1.0,
-        code_reset: bool = True,
-        ema_decay: float = 0.99,
+        codebook: CodebookSettings = CodebookSettings(),
         condition_decoder: bool = False,
         loss: HabitLossWeights = HabitLossWeights(),
         text_encoder: str = "minilm",
         text_encoder_args: TextEncoderArgs | None = TextEncoderArgs(),
-        species_file: str | None = None,
-        descriptions: dict[str, str] | None = None,
-        # a plain list: jsonargparse checks each number of a list[list[float]], and a checkpoint's 7 x 384 took
-        # minutes to parse under `omg test --ckpt_path` (it is filled in, never written by hand)
-        category_embeddings: list | None = None,
+        species: SpeciesText = SpeciesText(),
         optim: StepOptimSettings = StepOptimSettings(lr=2e-4, betas=(0.9, 0.99)),
         spec: DataSpec | dict | None = None,
     ):
         super().__init__()
         if not categories or len(set(categories)) != len(categories):
             raise UsageError(f"model.categories must list distinct category names, got {categories!r}")
-        if habit_order not in HABIT_ORDERS:
-            raise UsageError(f"model.habit_order must be one of {', '.join(HABIT_ORDERS)} (flow_prior: the paper's "
-                             f"encoders pretrained under their flows; kl_then_flows: KL to N(0, I), flows fitted "
-                             f"after), got {habit_order!r}")
-        if not 0 < habit_fraction < 1:
-            raise UsageError("model.habit_fraction must be in (0, 1) (the share of the run that pretrains the habit "
-                             f"encoders), got {habit_fraction}")
+        order, codebook = self.value_group("order", order), self.value_group("codebook", codebook)
+        species = self.value_group("species", species)
         self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
         self.save_hyperparameters()
         self.spec = DataSpec.coerce(spec)
@@ -184,12 +218,14 @@ class HabitVQModule(OmgModule):
             raise UsageError(f"habit transfer trains on quatvel shards, got {self.spec.representation!r} "
                              "(build them with --representation quatvel)")
         self.categories = list(categories)
-        self.habit_order, self.habit_fraction = habit_order, habit_fraction
+        self.habit_order, self.habit_fraction = order.habit_order, order.habit_fraction
+        descriptions, category_embeddings = species.descriptions, species.category_embeddings
         if category_embeddings is None:  # first build: describe and embed the categories once
             descriptions, category_embeddings = embed_categories(self.categories, text_encoder,
                                                                  text_encoder_kwargs(text_encoder_args),
-                                                                 species_file)
-            self.hparams["descriptions"], self.hparams["category_embeddings"] = descriptions, category_embeddings
+                                                                 species.species_file)
+            self.hparams["species"] = {**self.hparams["species"], "descriptions": descriptions,
+                                       "category_embeddings": category_embeddings}
         if len(category_embeddings) != len(self.categories):
             raise UsageError(f"{len(category_embeddings)} category embeddings for {len(self.categories)} categories")
         self.descriptions = dict(descriptions or {})
@@ -198,11 +234,12 @@ class HabitVQModule(OmgModule):
         D = self.spec.feature_dim
         self.representation = get_representation("quatvel", get_skeleton(self.spec.skeleton))
         self.num_joints = self.representation.skeleton.num_joints
-        quant = Quantizer(self.config.num_codes, self.config.code_dim, quantizer, temperature, ema_decay, code_reset)
+        quant = Quantizer(self.config.num_codes, self.config.code_dim, codebook.quantizer, codebook.temperature,
+                          codebook.ema_decay, codebook.code_reset)
         self.vqvae = MotionVQVAE(D, self.category_text.shape[1], self.config, quant, condition_decoder)
         self.habit_encoders = CategoryHabitEncoders(D, len(self.categories), self.config)
         self.flows: CategoryFlows | None = None
-        if habit_order == "flow_prior":  # pretrained with the encoders, kept in the checkpoint for transfer
+        if order.habit_order == "flow_prior":  # pretrained with the encoders, kept in the checkpoint for transfer
             self.flows = CategoryFlows(len(self.categories), self.config)
             self.habit_stats = HabitStatsDecoder(self.num_joints * 4 - 4, self.config)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
@@ -223,8 +260,9 @@ class HabitVQModule(OmgModule):
         written before ``habit_order`` existed holds no flows and was trained in omg's earlier order; its
         optimizer settings and loss weights as ``OmgModule.checkpoint_hparams`` reads them."""
         hparams = super().checkpoint_hparams(hparams, state)
-        if "habit_order" not in hparams and not any(k.startswith("flows.") for k in state):
-            return {**hparams, "habit_order": "kl_then_flows"}
+        order = hparams.get("order")
+        if not (isinstance(order, dict) and "habit_order" in order) and not any(k.startswith("flows.") for k in state):
+            return {**hparams, "order": {**(order or {}), "habit_order": "kl_then_flows"}}
         return hparams
 
     # -- categories and features -------------------------------------------------------
@@ -291,7 +329,7 @@ class HabitVQModule(OmgModule):
         wrapped = self.trainer.strategy.model  # DDP has wrapped the module by now (Trainer._run: setup, then this hook)
         if (self.habit_order == "flow_prior" and isinstance(wrapped, DistributedDataParallel)
                 and not wrapped.find_unused_parameters):
-            raise UsageError("model.habit_order flow_prior trains one part of the model in each phase (the habit "
+            raise UsageError("model.order.habit_order flow_prior trains one part of the model in each phase (the habit "
                              "encoders and flows, then the VQ-VAE), which DDP must be told: set trainer.strategy "
                              "ddp_find_unused_parameters_true")
 
@@ -501,9 +539,7 @@ class HabitPriorModule(OmgModule):
     def vq_hparams(vq: Any) -> Any:
         """A checkpoint's ``vq`` as ``HabitVQModule`` reads it: a prior written before ``habit_order`` existed fitted
         a VQ-VAE of omg's earlier order; one written before the VQ-VAE's settings were grouped holds them flat."""
-        if not isinstance(vq, dict):
-            return vq
-        return HabitVQModule.checkpoint_hparams({"habit_order": "kl_then_flows", **vq}, {})
+        return HabitVQModule.checkpoint_hparams(vq, {}) if isinstance(vq, dict) else vq
 
     @classmethod
     def checkpoint_hparams(cls, hparams: dict[str, Any], state: dict[str, Tensor]) -> dict[str, Any]:

@@ -76,7 +76,7 @@ class HumanSource:
             try:
                 self._generator = (source, load_module(source, expect=ControlNetModule))
             except UsageError as e:
-                raise UsageError(f"model.init_args.human_source: {e}") from None
+                raise UsageError(f"model.init_args.source.human_source: {e}") from None
         generator = self._generator[1]
         if generator.device != m.device:
             generator.to(m.device)
@@ -87,8 +87,8 @@ class HumanSource:
         starts: a generator that is not there would otherwise fail at its first prompt)."""
         source = str(self.module.human_source)
         if source != "retrieval" and "://" not in source and not Path(source).exists():
-            raise UsageError(f"model.init_args.human_source: no OMG ControlNet checkpoint at {source} (train one, "
-                             "e.g. `omg fit --config configs/mini/controlnet.yaml`, or set it to retrieval)")
+            raise UsageError(f"model.init_args.source.human_source: no OMG ControlNet checkpoint at {source} (train "
+                             "one, e.g. `omg fit --config configs/mini/controlnet.yaml`, or set it to retrieval)")
 
     def clips(self, motion: bool = True) -> list[dict]:
         """The human clips retrieval may draw from, exclusions not applied: ``{"motion" (T, 138) un-normalised,
@@ -105,7 +105,7 @@ class HumanSource:
             raise UsageError("this OmniMotionGPT checkpoint holds no human clips to retrieve from (trained without "
                              "captioned clips in human_data.val, or before checkpoints kept them): give the human "
                              "motion with --from_motion or --human_ckpt, or human shards as "
-                             "model.init_args.retrieval_bank")
+                             "model.init_args.source.retrieval_bank")
         if not motion:
             return [{"texts": list(t)} for t in bank["captions"]]
         clips = m.human_bank_motion.cpu().split(list(bank["lengths"]))
@@ -131,8 +131,8 @@ class HumanSource:
     def _nothing_left(self) -> str:
         where = self.module.retrieval_bank or "the human validation clips kept in the checkpoint"
         return (f"every clip retrieval draws from ({where}) is captioned by one of the prompts; set "
-                "model.init_args.retrieval_bank to human shards of another split (e.g. the human training set) or "
-                "model.init_args.human_source to an OMG ControlNet checkpoint")
+                "model.init_args.source.retrieval_bank to human shards of another split (e.g. the human training set) "
+                "or model.init_args.source.human_source to an OMG ControlNet checkpoint")
 
     def _caption_bank(self) -> dict:
         """The clips retrieval draws from, exclusions applied, and their captions' unit features: built again when
@@ -285,7 +285,7 @@ def read_retrieval_bank(location: str | list, human_spec: DataSpec, max_frames: 
     "texts"}``, cut to ``max_frames``; smpl22 maa at the checkpoint's human rate."""
     from omg.data.datamodule import MotionDataModule
 
-    key = "model.init_args.retrieval_bank"
+    key = "model.init_args.source.retrieval_bank"
     try:
         data = MotionDataModule(val=location, max_len=max_frames, min_len=2, clips="whole", num_workers=0)
         human_spec.check_compatible(data.spec, "the checkpoint's human data", "its shards")

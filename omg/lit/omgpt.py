@@ -23,6 +23,7 @@ evaluation calls are ``omg.lit.human_source``'s.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -78,6 +79,40 @@ class OmniMotionLossWeights:
         check_weights(self)
 
 
+@dataclass(frozen=True)
+class HumanSourceSettings:
+    """Where sampling takes human motion when none is given (``omg.lit.human_source.HumanSource``).
+
+    ``human_source``: ``retrieval`` (a human clip whose caption is near the prompt made about "a person", drawn
+    among the ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet checkpoint (omg's own
+    text-to-motion, from the prompt made about "a person"; the paper's tables start from human motion "sampled
+    from generative models", Fig. 2c, and configs/omgpt_eval.yaml names one). ``retrieval_draw``: ``uniform``
+    (each of the top k equally likely: with k = 3, repeated generations of a prompt come from 3 human clips at
+    most) or ``similarity`` (clip i with probability softmax(similarity_i / ``retrieval_temperature``), so a
+    large k lets repeated generations differ while near captions stay likelier); the defaults are the evaluation
+    protocol's, 32 clips by similarity at 0.1. The paper generates human motion with a text-to-motion model;
+    retrieval is omg's stand-in. ``retrieval_bank``: human shards (smpl22 maa, captioned) that retrieval draws
+    from instead of the validation clips kept in the checkpoint: an evaluation's bank must not be the split
+    whose captions are its prompts (``OODEvalCallback`` also drops every clip captioned by a prompt,
+    ``omg.lit.human_source.HumanSource.exclude``). ``human_source`` and ``retrieval_bank`` name files, so a
+    checkpoint's are never used (``OmniMotionModule.location_hparams``): a loaded checkpoint retrieves from its
+    own clips unless the config (or ``--human_ckpt``) names another source."""
+
+    human_source: str = "retrieval"
+    retrieval_top_k: int = 32
+    retrieval_draw: str = "similarity"
+    retrieval_temperature: float = 0.1
+    retrieval_bank: str | list | None = None
+
+    def __post_init__(self) -> None:
+        check_range("model.source.retrieval_top_k", self.retrieval_top_k,
+                    isinstance(self.retrieval_top_k, int) and self.retrieval_top_k >= 1, "an integer >= 1")
+        check_range("model.source.retrieval_draw", self.retrieval_draw,
+                    self.retrieval_draw in ("uniform", "similarity"), "uniform or similarity")
+        check_range("model.source.retrieval_temperature", self.retrieval_temperature,
+                    0 < self.retrieval_temperature < math.inf, "a finite number > 0")
+
+
 class OmniMotionModule(OmgModule):
     """OmniMotionGPT's two autoencoders, text heads and losses.
 
@@ -107,24 +142,9 @@ class OmniMotionModule(OmgModule):
             (configs/omgpt_variant.yaml, configs/mini/omgpt.yaml) turns it on. It moves the balance
             the paper's weights were set for: reconstruction is then in std units while L_ee
             (end-effector velocity, x100) and the translation loss stay in metres per frame.
-        human_source: where sampling takes human motion when none is given: ``retrieval`` (a
-            human clip whose caption is near the prompt made about "a person", drawn among the
-            ``retrieval_top_k`` nearest clips with the sampling seed) or an OMG ControlNet
-            checkpoint (omg's own text-to-motion, from the prompt made about "a person"; the
-            paper's tables start from human motion "sampled from generative models", Fig. 2c, and
-            configs/omgpt_eval.yaml names one). A file, so not taken from a checkpoint: a loaded
-            checkpoint retrieves unless the config (or ``--human_ckpt``) names one.
-        retrieval_top_k, retrieval_draw, retrieval_temperature: how retrieval draws among the top k
-            (default: the evaluation protocol's, 32 clips by similarity at 0.1): ``uniform`` (each
-            equally likely: with k = 3, repeated generations of a prompt come from 3 human clips at
-            most) or ``similarity`` (clip i with probability softmax(similarity_i /
-            retrieval_temperature), so a large k lets repeated generations differ while near
-            captions stay likelier). The paper generates human motion with a text-to-motion model;
-            retrieval is omg's stand-in.
-        retrieval_bank: human shards (smpl22 maa, captioned) that retrieval draws from instead of
-            the validation clips kept in the checkpoint: an evaluation's bank must not be the split
-            whose captions are its prompts (``OODEvalCallback`` also drops every clip captioned by
-            a prompt, ``omg.lit.human_source.HumanSource.exclude``). A location, so not taken from a checkpoint.
+        source: where sampling takes human motion when none is given: ``human_source`` (``retrieval`` or an
+            OMG ControlNet checkpoint), how retrieval draws (``retrieval_top_k``, ``retrieval_draw``,
+            ``retrieval_temperature``) and from which shards (``retrieval_bank``) (``HumanSourceSettings``).
         spec: the animal data's spec (``omg fit`` links it from ``data``).
 
     Fit-time state, filled from the data when training starts and kept in checkpoints beside the
@@ -137,14 +157,14 @@ class OmniMotionModule(OmgModule):
     without its human shards).
 
     A checkpoint is self-contained: everything inference needs (both specs, the animals' offsets,
-    the retrieval clips) is inside it, and what its ``human_data`` and ``human_source`` name
-    (locations, ``location_hparams``) is never opened when it loads.
+    the retrieval clips) is inside it, and what its ``human_data``, ``source.human_source`` and
+    ``source.retrieval_bank`` name (locations, ``location_hparams``) is never opened when it loads.
     """
 
     clip_sampling = "whole"  # a caption describes its whole clip
     frozen_prefixes = ("text_encoder.",)
-    location_hparams = ("human_data", "human_source", "retrieval_bank")
-    # what the weights were trained with or on; the retrieval, loss and optimizer settings are the run's
+    location_hparams = ("human_data", "source.human_source", "source.retrieval_bank")
+    # what the weights were trained with or on; the human source, loss and optimizer settings are the run's
     architecture_hparams = ("flavor", "config", "text_encoder", "text_feature", "standardize", "std_floor", "spec")
     fit_state_keys = ("animals", "human_spec", "human_bank")  # checkpoint["fit_state"]; older: hyper-parameters
     settings_groups = {"config": OmniMotionOverrides, "text_encoder_args": TextEncoderArgs,
@@ -163,22 +183,18 @@ class OmniMotionModule(OmgModule):
         loss: OmniMotionLossWeights = OmniMotionLossWeights(),
         standardize: bool = False,
         std_floor: float = 0.05,
-        human_source: str = "retrieval",
-        retrieval_top_k: int = 32,
-        retrieval_draw: str = "similarity",
-        retrieval_temperature: float = 0.1,
-        retrieval_bank: str | list | None = None,
+        source: HumanSourceSettings = HumanSourceSettings(),
         spec: DataSpec | dict | None = None,
     ):
         super().__init__()
         self.optim, self.loss = self.value_group("optim", optim), self.value_group("loss", loss)
         if not 0 <= ema_decay < 1:
             raise UsageError(f"model.ema_decay must be in [0, 1) (0: no EMA), got {ema_decay!r}")
-        if retrieval_top_k < 1 or retrieval_draw not in ("uniform", "similarity") or retrieval_temperature <= 0:
-            raise UsageError("model.retrieval_top_k must be >= 1, model.retrieval_draw uniform or similarity and "
-                             f"model.retrieval_temperature > 0; got {retrieval_top_k}, {retrieval_draw!r}, "
-                             f"{retrieval_temperature}")
-        self.retrieval_draw, self.retrieval_temperature = retrieval_draw, retrieval_temperature
+        source = self.value_group("source", source)
+        # the module's own attributes, which ``HumanSource`` reads at each draw (an evaluation may set them)
+        self.human_source, self.retrieval_bank = source.human_source, source.retrieval_bank or None
+        self.retrieval_top_k, self.retrieval_draw = source.retrieval_top_k, source.retrieval_draw
+        self.retrieval_temperature = source.retrieval_temperature
         if text_feature not in ("projected", "eot"):
             raise UsageError(f"model.text_feature must be projected or eot, got {text_feature!r}")
         self.text_feature = text_feature
@@ -195,8 +211,6 @@ class OmniMotionModule(OmgModule):
         self.animal_table: dict[str, list] | None = None  # the same offsets as found (kept as they were saved)
         self.human_spec: DataSpec | None = None
         self.human_bank: dict[str, list] | None = None
-        self.human_source, self.retrieval_top_k = human_source, retrieval_top_k
-        self.retrieval_bank = retrieval_bank or None
         self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
         self.config = OmniMotionConfig.from_name(flavor, **set_fields(OmniMotionOverrides, config,
                                                                       "model.init_args.config"))

@@ -28,13 +28,14 @@ import shlex
 import types
 import typing
 from pathlib import Path, PurePath
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 from jsonargparse import ActionConfigFile, ActionYesNo, ArgumentParser, Namespace
 from jsonargparse.typing import ClosedUnitInterval, NonNegativeInt, PositiveInt, restricted_number_type
 
 from omg.errors import UsageError
 from omg.files import read_text
+from omg.settings import closest
 
 # -- numbers ----------------------------------------------------------------------------------
 WANTED: dict[type, str] = {PositiveInt: "an integer >= 1", NonNegativeInt: "an integer >= 0"}  # type -> its wording
@@ -57,7 +58,7 @@ WANTED[ClosedUnitInterval] = "a number in [0, 1]"  # jsonargparse's
 
 __all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeInt", "PositiveFiniteFloat", "PositiveInt",
            "Seed", "number_type", "function_parser", "run", "run_subcommands", "explain", "Settings", "locate",
-           "check_config_files", "underscore_options", "repeated"]
+           "check_config_files", "underscore_options", "repeated", "ExactOptions"]
 
 
 # -- errors -----------------------------------------------------------------------------------
@@ -73,13 +74,14 @@ __all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeInt", "P
 class Settings:
     """The keys a parser takes and their types: ``types`` (key -> type hint), ``flags`` (options
     that take no value, ``--preview`` / ``--no_preview``), ``options`` (every long option, for
-    ``underscore_options``)."""
+    ``underscore_options`` and ``unknown_option``)."""
 
     def __init__(self, types: dict[str, Any] | None = None, flags: set[str] | None = None,
                  options: set[str] | None = None):
         self.types = dict(types or {})
         self.flags = set(flags or ())
         self.options = set(options or ()) | {f"--{key}" for key in self.types} | self.flags
+        self.known: set[str] | None = None  # the options an unknown option is told from; None: ``options``
 
     def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
         """The type hint to check ``value`` of ``key`` against (``given``: all the user's settings,
@@ -94,6 +96,38 @@ class Settings:
         """The error line for a ``key`` this parser does not take where it can tell (a typed settings
         group's unknown field); None otherwise."""
         return None
+
+    def unknown_option(self, key: str, given: list[tuple[str, Any, bool]]) -> str | None:
+        """The error line for an option ``--key`` of the command line that is none of ``options`` (nor extends one,
+        ``--trainer.logger.init_args.name`` extending ``--trainer.logger``) and has a near one: it names both
+        (``--num_samp``: ``--num_samples``, which argparse would have taken it for). None otherwise: jsonargparse's
+        own message says the rest."""
+        known = {option[2:] for option in (self.options if self.known is None else self.known)
+                 if option.startswith("--")}
+        key = key.removesuffix("+")  # jsonargparse's ``--list+=ITEM``
+        if not known or key in known or key == "help" or key.endswith(".help"):
+            return None
+        if any(key.startswith(f"{option}.") for option in known):
+            return None
+        return unknown_option_line(self.name_of(key), nearest_key(key, known))
+
+
+def nearest_key(key: str, known: Iterable[str]) -> str | None:
+    """The key of ``known`` nearest the dotted ``key``, among those under the same parent (``trainer.max_st``:
+    the ``trainer.*`` keys, by their last part) where there are any: a shared parent is no likeness."""
+    parent, _, leaf = key.rpartition(".")
+    siblings = {k.rpartition(".")[2]: k for k in known if k.rpartition(".")[0] == parent}
+    if not siblings:
+        return closest(key, known)
+    near = closest(leaf, siblings)
+    return siblings[near] if near is not None else None
+
+
+def unknown_option_line(key: str, near: str | None) -> str | None:
+    """``--key: unknown option; did you mean --near?`` (None without a near option)."""
+    if near is None:
+        return None
+    return f"--{key}: unknown option (options are never abbreviated); did you mean --{near}?"
 
 
 def _config_settings(text_or_path: str, loader: Callable[[str], Any]) -> list[tuple[str, Any, bool]]:
@@ -178,7 +212,10 @@ def locate(argv: list[str], settings: Settings) -> tuple[str, Any, Any, BaseExce
     its own; None when each passes alone (the error is another one: an unknown key, a missing
     argument, a value that fails only with the others)."""
     given = given_settings(argv, settings)
-    for key, value, _ in given:  # first: an unknown key inside a mapping fails the mapping's type too
+    for key, value, from_command_line in given:  # first: an option no parser takes, spelled in part or misspelt
+        if from_command_line and (unknown := settings.unknown_option(key, given)) is not None:
+            return settings.name_of(key), None, value, UsageError(unknown)
+    for key, value, _ in given:  # then: an unknown key inside a mapping fails the mapping's type too
         if (unknown := settings.unknown_key(key, given)) is not None:
             return settings.name_of(key), None, value, UsageError(unknown)
     for key, value, from_command_line in given:
@@ -216,7 +253,19 @@ def underscore_options(argv: list[str], known: set[str]) -> list[str]:
     return out
 
 
-class OmgArgumentParser(ArgumentParser):
+class ExactOptions:
+    """A parser that takes each option only as spelled in full. argparse takes an unambiguous prefix of a long
+    option for it (``allow_abbrev``), so that ``--model.init_args.loss.vel 3`` would set ``loss.vel_weight`` without
+    a word; here it is an unknown option (``Settings.unknown_option`` names the one meant). jsonargparse builds the
+    parsers of a class's arguments (``--model.init_args.*``) and of subcommands as ``type(parser)``, so every
+    parser below a parser of this class is one too."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        kwargs["allow_abbrev"] = False
+        super().__init__(*args, **kwargs)
+
+
+class OmgArgumentParser(ExactOptions, ArgumentParser):
     """The tools' jsonargparse parser; ``function_parser`` gives it its ``settings``."""
 
     settings: Settings = Settings()
@@ -482,6 +531,8 @@ def run_subcommands(prog: str, description: str, commands: dict[str, tuple[Calla
     chosen = subparsers.get(argv[0])
     settings = Settings(chosen.settings.types, chosen.settings.flags) if chosen else Settings()
     settings.options = options
+    if chosen is not None:  # what an unknown option is checked against: the chosen command's own
+        settings.known = chosen.settings.options
     config = parse(parser, argv, help_prog=f"{prog} {argv[0]}" if chosen else prog, settings=settings)
     name = config.subcommand
     return call(commands[name][0], config[name], " ".join([prog, shlex.join(argv)]))

@@ -15,6 +15,7 @@ metrics.csv, so a second run never overwrites the first. To log to Weights & Bia
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import re
 import sys
@@ -36,8 +37,8 @@ from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.paired import CompanionData, PairedDataModule
 from omg.errors import UsageError
 from omg.files import check_output_dir
-from omg.settings import regroup, set_fields
-from omg.tools.args import Settings
+from omg.settings import closest, regroup, set_fields, unknown_key_line
+from omg.tools.args import ExactOptions, Settings, unknown_option_line
 
 SPECIAL_CKPT_PATHS = ("last", "best", "hpc")  # resolved by Lightning at run time
 FIT_HINT = "see the valid keys with `omg fit --config FILE --print_config`"  # after errors that name no key
@@ -224,20 +225,27 @@ def _fields(group: Any) -> Any:
     return group.as_dict() if isinstance(group, Namespace) else group
 
 
-def grouped_settings() -> dict[str, str]:
-    """The settings of omg's modules that live in a group now, by their older flat name: ``{lr: optim,
-    vel_weight: loss, ...}`` (``OmgModule.value_groups``)."""
-    return {key: group for name in omg.lit.__all__ for key, group in getattr(omg.lit, name).grouped_fields().items()}
+def grouped_settings(cls: type | None = None) -> dict[str, str]:
+    """The settings of the model class ``cls`` that live in a group now, by their older flat name: ``{lr: optim,
+    vel_weight: loss, ...}`` (``OmgModule.grouped_fields``). Where the class is not known, those of every omg
+    module but the names that one of them takes as its own parameter (HabitVQModule's ``codebook.ema_decay`` is
+    every other module's weight EMA, ``ema_decay``)."""
+    if cls is not None:
+        return cls.grouped_fields() if callable(getattr(cls, "grouped_fields", None)) else {}
+    modules = [getattr(omg.lit, name) for name in omg.lit.__all__]
+    own = {name for module in modules for name in inspect.signature(module.__init__).parameters}
+    return {key: group for module in modules for key, group in module.grouped_fields().items() if key not in own}
 
 
 def _warn_regrouped(key: str, group: str) -> None:
     rank_zero_warn(f"model.init_args.{key} is read as model.init_args.{group}.{key}, where it is set now")
 
 
-def regroup_args(args: list[str]) -> list[str]:
-    """``args`` with each older flat module setting (``--model.init_args.lr 1e-3``, ``--model.lr=1e-3``) given as
-    its group's field (``--model.init_args.optim.lr``), with one warning line naming the new key."""
-    keys, out = grouped_settings(), []
+def regroup_args(args: list[str], cls: type | None = None) -> list[str]:
+    """``args`` with each older flat module setting (``--model.init_args.lr 1e-3``, ``--model.lr=1e-3``) of the
+    model class ``cls`` given as its group's field (``--model.init_args.optim.lr``), with one warning line naming
+    the new key."""
+    keys, out = grouped_settings(cls), []
     for i, arg in enumerate(args):
         if arg == "--":
             return out + args[i:]
@@ -250,10 +258,11 @@ def regroup_args(args: list[str]) -> list[str]:
     return out
 
 
-def regroup_init_args(init_args: dict[str, Any]) -> dict[str, Any]:
-    """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) moved into its group
-    (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both name a field."""
-    out, moved = regroup(init_args, grouped_settings())
+def regroup_init_args(init_args: dict[str, Any], cls: type | None = None) -> dict[str, Any]:
+    """A config's ``model.init_args`` with each older flat module setting (``lr: 1e-3``) of the model class ``cls``
+    moved into its group (``optim: {lr: 1e-3}``), with one warning line naming the new key; one line where both
+    name a field."""
+    out, moved = regroup(init_args, grouped_settings(cls))
     for key, group in moved:
         _warn_regrouped(key, group)
     return out
@@ -269,7 +278,8 @@ def _load_config(text: str) -> Any:
     if isinstance(value, dict) and str(value.get("class_path")).rpartition(".")[2] in omg.lit.__all__:
         model = value  # a --model file
     if isinstance(model, dict) and isinstance(model.get("init_args"), dict):
-        model["init_args"] = regroup_init_args(model["init_args"])
+        cls = LightningSettings.model_class([("model", model, False)])
+        model["init_args"] = regroup_init_args(model["init_args"], cls)
     return value
 
 
@@ -291,7 +301,6 @@ class LightningSettings(Settings):
 
     @staticmethod
     def parameter_type(cls: Any, name: str) -> Any:
-        import inspect
         import typing
 
         for klass in getattr(cls, "__mro__", [cls]):
@@ -343,14 +352,15 @@ class LightningSettings(Settings):
         return key
 
     def settings_group(self, key: str, given: list[tuple[str, Any, bool]]) -> tuple[type, str] | None:
-        """(the typed settings group, the field) a nested model key names (``model.init_args.dit.n_layers``:
-        ``DiTOverrides``, ``n_layers``); None for any other key."""
+        """(the typed settings group, the field) a nested model or data key names (``model.init_args.dit.n_layers``:
+        ``DiTOverrides``, ``n_layers``; ``data.human.train``: ``CompanionData``, ``train``); None for any other key."""
         import dataclasses
         import typing
 
         root, _, rest = key.partition(".")
         name, _, field = rest.removeprefix("init_args.").partition(".")
-        if root != "model" or not field or "." in field or (cls := self.model_class(given)) is None:
+        cls = self.model_class(given) if root == "model" else PairedDataModule if root == "data" else None
+        if not field or "." in field or cls is None:
             return None
         hint = self.parameter_type(cls, name)
         group = next((t for t in (*typing.get_args(hint), hint) if isinstance(t, type) and dataclasses.is_dataclass(t)),
@@ -366,7 +376,29 @@ class LightningSettings(Settings):
         accepted = [f.name for f in dataclasses.fields(group)]
         if field in accepted:
             return None
-        return f"{self.name_of(key)}: unknown key {field!r}; accepted keys: {', '.join(accepted)}"
+        name = self.name_of(key)
+        return unknown_key_line(name, name.rpartition(".")[0], field, accepted)
+
+    def unknown_option(self, key: str, given: list[tuple[str, Any, bool]]) -> str | None:
+        """``Settings.unknown_option``; a model's keys are its class's arguments (``model.init_args.NAME``, or
+        ``model.NAME``), a typed group's fields being ``unknown_key``'s to judge."""
+        root, _, rest = key.partition(".")
+        if root != "model" or not rest:
+            return super().unknown_option(key, given)
+        rest = rest.removeprefix("init_args.")
+        name = rest.partition(".")[0]
+        cls = self.model_class(given)
+        if cls is None or name in ("class_path", "init_args", "dict_kwargs", "help"):
+            return None
+        try:
+            params = [p.name for p in inspect.signature(cls).parameters.values()
+                      if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        except (TypeError, ValueError):  # a signature that cannot be read: jsonargparse judges the key
+            return None
+        if name in params:
+            return None
+        near = closest(name, params)  # the argument meant, the rest of the key as given (``los.vel_weight``)
+        return unknown_option_line(self.name_of(key), f"model.init_args.{near}{rest[len(name):]}" if near else None)
 
     def type_of(self, key: str, given: list[tuple[str, Any, bool]], value: Any = None) -> Any:
         import typing
@@ -395,6 +427,11 @@ class LightningSettings(Settings):
         return self.parameter_type(cls, rest)
 
 
+class OmgLightningParser(ExactOptions, LightningArgumentParser):
+    """LightningCLI's parser taking each option only as spelled in full (``ExactOptions``): also the parsers
+    jsonargparse builds below it, for the model's class and the callbacks'."""
+
+
 class OmgLightningCLI(LightningCLI):
     """``omg fit|validate|test|predict ARGS``: LightningCLI without its own subcommands (``run=False``),
     the command's Trainer-method arguments (``--ckpt_path``, ...) added as LightningCLI adds them, and
@@ -420,6 +457,7 @@ class OmgLightningCLI(LightningCLI):
             datamodule_class=PairedDataModule,
             parser_kwargs={"exit_on_error": False, "prog": f"omg {command}", "description": doc,
                            "parser_mode": CONFIG_MODE},
+            parser_class=OmgLightningParser,
             save_config_callback=SaveRunConfig,
             save_config_kwargs={"overwrite": True},  # only a run without a logger shares its directory
             args=args,
@@ -448,7 +486,7 @@ class OmgLightningCLI(LightningCLI):
     def parse_arguments(self, parser: LightningArgumentParser, args: list[str]) -> None:
         from jsonargparse import ArgumentError
 
-        from omg.tools.args import explain, locate, underscore_options
+        from omg.tools.args import explain, given_settings, locate, underscore_options
 
         try:
             keys = list(parser.get_defaults().keys())
@@ -456,7 +494,8 @@ class OmgLightningCLI(LightningCLI):
             keys = []
         options = {"--config", "--print_config", "-c"} | {f"--{key}" for key in keys}
         settings = LightningSettings(self.command, options, self.method_arguments)
-        args = regroup_args(underscore_options(list(args), options))
+        args = underscore_options(list(args), options)
+        args = regroup_args(args, settings.model_class(given_settings(args, settings)))
         self.args = args  # parsed again without defaults under --ckpt_path (``given_model_args``)
         try:
             self.config = parser.parse_args(args)
