@@ -602,8 +602,8 @@ SAYS = {
     "fit-optim-lr-zero": "model.optim.lr must be a finite number > 0, got 0.0",
     "fit-optim-unknown-key": "model.init_args.optim.learning_rate: unknown key 'learning_rate'; accepted keys: lr, "
                              "weight_decay, betas, warmup_steps",
-    "fit-loss-unknown-key": "model.init_args.loss.velocity_weight: unknown key 'velocity_weight'; accepted keys: "
-                            "vel_weight, foot_weight",
+    "fit-loss-unknown-key": "model.init_args.loss.velocity_weight: unknown key 'velocity_weight'; did you mean "
+                            "model.init_args.loss.vel_weight? (accepted keys: vel_weight, foot_weight",
     "fit-optim-old-and-new-key": "model.init_args.lr and model.init_args.optim.lr are both set: keep "
                                  "model.init_args.optim.lr only (model.init_args.lr is its older name)",
     "fit-dit-unknown-key": "model.init_args.dit.dpeth: unknown key 'dpeth'; accepted keys: n_layers, d_model, ",

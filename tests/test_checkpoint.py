@@ -306,4 +306,5 @@ def test_settings_groups_load_from_the_plain_mappings_of_earlier_checkpoints(tra
                 "pytorch-lightning_version": L.__version__, "module_class": class_path(ControlNetModule)}, old)
     with pytest.raises(UsageError) as e:
         load_module(old, expect=ControlNetModule)
-    assert "\n" not in str(e.value) and "model.init_args.moc: unknown key 'd_cc'; accepted keys: d_c, " in str(e.value)
+    said = "model.init_args.moc: unknown key 'd_cc'; did you mean model.init_args.moc.d_c? (accepted keys: d_c, "
+    assert "\n" not in str(e.value) and said in str(e.value)

@@ -392,11 +392,11 @@ def test_evaluation_starts_from_generated_human_motion_by_default():
         assert evaluation.model.init_args.source.human_source == f"{root}/checkpoints/last.ckpt"
     assert all(c.init_args.steps == 20 for c in mini.trainer.callbacks if "steps" in c.init_args)
     for overlay, evaluation in (("mini/omgpt_eval_retrieval.yaml", mini), ("omgpt_eval_retrieval.yaml", full)):
-        args = parse(REPO / "configs" / overlay).model.init_args
+        source = parse(REPO / "configs" / overlay).model.init_args.source
         prompts = {c.init_args.prompts for c in evaluation.trainer.callbacks
                    if c.class_path.endswith("OODEvalCallback")}
-        assert args.human_source == "retrieval" and args.retrieval_bank.endswith("/train")
-        assert prompts and args.retrieval_bank not in prompts
+        assert source.human_source == "retrieval" and source.retrieval_bank.endswith("/train")
+        assert prompts and source.retrieval_bank not in prompts
 
 
 def test_retrieval_never_starts_a_generation_from_the_prompts_own_clip(omgpt_ckpt, small_eval, tmp_path, capsys):

@@ -218,6 +218,22 @@ def test_full_keys_and_their_dashed_spellings_still_work(capsys):
     assert code == 0 and yaml.safe_load(out)["num_samples"] == 2
 
 
+@pytest.mark.parametrize("spelling", [["--model.init_args.source.retrieval_bank=null"],
+                                      ["--model.init_args.source.retrieval_bank", "null"],
+                                      ["--model.init_args.source.retrieval_bank=~"]])
+def test_a_null_group_field_on_the_command_line_is_none_and_keeps_the_groups_other_fields(capsys, spelling):
+    """A command line's null for one field of a group that a config sets is None (jsonargparse alone reads it as
+    the string 'None' inside a subclass's init_args), the group's other fields as the config says."""
+    configs = ["--config", str(REPO / "configs/mini/omgpt_eval.yaml"),
+               "--config", str(REPO / "configs/mini/omgpt_eval_retrieval.yaml")]
+    code, out, _ = _run(capsys, "test", *configs, *spelling, "--print_config")
+    assert code == 0
+    source = yaml.safe_load(out)["model"]["init_args"]["source"]
+    assert source["retrieval_bank"] is None
+    assert (source["human_source"], source["retrieval_top_k"], source["retrieval_draw"]) == ("retrieval", 32,
+                                                                                             "similarity")
+
+
 def test_constructors_take_about_a_dozen_parameters():
     """Each LightningModule of omg.lit takes its settings in groups: at most 13 constructor parameters (OmniMotionGPT
     had 17, the habit VQ-VAE 18)."""

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import json
 import os
 import re
 import sys
@@ -255,6 +256,34 @@ def regroup_args(args: list[str], cls: type | None = None) -> list[str]:
             _warn_regrouped(key, keys[key])
             arg = f"--model.init_args.{keys[key]}.{key}{sep}{value}"
         out.append(arg)
+    return null_group_fields(out, cls)
+
+
+YAML_NULLS = ("null", "Null", "NULL", "~")
+
+
+def null_group_fields(args: list[str], cls: type | None) -> list[str]:
+    """``args`` with each group field of the model class ``cls`` set to null on the command line
+    (``--model.init_args.source.retrieval_bank=null``) given as a mapping of the group
+    (``--model.init_args.source={"retrieval_bank": null}``, which keeps the group's other fields). jsonargparse
+    reads a null for a dotted field of a dataclass inside a subclass's ``init_args`` as the string ``'None'``."""
+    groups = set(cls.value_groups()) | set(cls.settings_groups) if callable(getattr(cls, "value_groups", None)) else ()
+    out, i = [], 0
+    while i < len(args):
+        arg = args[i]
+        if arg == "--":
+            return out + args[i:]
+        name, sep, value = arg.partition("=")
+        if not sep and i + 1 < len(args):
+            value = args[i + 1]
+        group_name, _, field = name.removeprefix("--model.init_args.").partition(".")
+        if (name.startswith("--model.init_args.") and group_name in groups and field and "." not in field
+                and value in YAML_NULLS):
+            out.append(f"--model.init_args.{group_name}={json.dumps({field: None})}")
+            i += 1 if sep else 2
+            continue
+        out.append(arg)
+        i += 1
     return out
 
 
