@@ -171,13 +171,25 @@ def probe(path: str, out: str, fps: float) -> None:
         "vertices": [len(o.data.vertices) for o in meshes]}))
 
 
+def convert(path: str, out: str) -> None:
+    """A glTF character made elsewhere, as FBX: Blender's glTF importer, then its FBX exporter (the armature,
+    the skinned mesh and its materials; no animation)."""
+    bpy = _empty_scene()
+    bpy.ops.import_scene.gltf(filepath=path)
+    for o in bpy.context.scene.objects:
+        if o.animation_data:  # the file's own animation stays in the glTF: the FBX is the character at rest
+            o.animation_data_clear()
+    bpy.ops.export_scene.fbx(filepath=out, add_leaf_bones=False, bake_anim=False)
+
+
 if __name__ == "__main__":  # REQUEST.json: a list of keyword arguments, one call each
     for request in json.loads(Path(sys.argv[2]).read_text()):
-        {"build": build, "probe": probe}[sys.argv[1]](**request)
+        {"build": build, "probe": probe, "convert": convert}[sys.argv[1]](**request)
 
 
 def blender(what: str, requests: list[dict], folder: Path) -> None:
-    """``build`` or ``probe`` each of ``requests`` in one child Python (one Blender start for them all)."""
+    """``build``, ``probe`` or ``convert`` each of ``requests`` in one child Python (one Blender start for them
+    all)."""
     import os
     import subprocess
 
