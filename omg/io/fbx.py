@@ -54,6 +54,9 @@ class FbxCharacter:
     path: str  # the file, absolute
     armature: str  # the armature object's name in Blender's scene
     sole: float | None  # m: the height of the skinned meshes' lowest point in the rest pose (None: no mesh)
+    # the skinned meshes' vertices in the rest pose's lower quarter, world, metres, Y up (V, 3), and the bone each
+    # follows most (V,): ``omg.io.gltf.Character.ground``'s
+    ground: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def blender_python() -> str:
@@ -130,7 +133,11 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
     parents = [int(p) for p in out["parents"]]
     offsets = rest - np.concatenate([np.zeros((1, 3)), rest[parents[1:]]])
     J = len(parents)
-    character = FbxCharacter(path=str(path.resolve()), armature=out["armature"], sole=out["sole"])
+    ground = None
+    if out.get("ground"):
+        rows = np.asarray(out["ground"], dtype=np.float64).reshape(-1, 4)  # x, y, z, bone
+        ground = (rows[:, :3], rows[:, 3].astype(int))
+    character = FbxCharacter(path=str(path.resolve()), armature=out["armature"], sole=out["sole"], ground=ground)
     return RigMotion(name=path.stem, names=list(out["names"]), parents=parents, offsets=offsets, fps=30.0,
                      rotations=np.tile([1.0, 0.0, 0.0, 0.0], (1, J, 1)), translations=offsets[None].copy(),
                      source=str(path), character=character)  # fmt: skip
@@ -234,7 +241,7 @@ def _child_read(path: str) -> dict:
     # the skinned meshes as they deform in the rest pose: their lowest point is the character's ground
     arm.data.pose_position = "REST"
     graph = bpy.context.evaluated_depsgraph_get()
-    lows = []
+    lows, ground = [], []
     for o in bpy.context.scene.objects:
         if o.type != "MESH" or not any(m.type == "ARMATURE" and m.object == arm for m in o.modifiers):
             continue
@@ -243,11 +250,24 @@ def _child_read(path: str) -> dict:
         co = np.zeros(3 * len(mesh.vertices))
         mesh.vertices.foreach_get("co", co)
         evaluated.to_mesh_clear()
-        if len(co):
-            m = np.array(evaluated.matrix_world)
-            lows.append(float(((co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]) @ Y_UP.T)[:, 1].min()))
+        if not len(co):
+            continue
+        m = np.array(evaluated.matrix_world)
+        points = (co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]) @ Y_UP.T  # (V, 3)
+        lows.append(float(points[:, 1].min()))
+        if len(points) != len(o.data.vertices):  # a modifier made other vertices: their groups are not these
+            continue
+        groups = [index.get(g.name, -1) for g in o.vertex_groups]
+        for v, p in zip(o.data.vertices, points):  # each vertex with the bone whose group weighs most on it
+            best = max(((g.weight, -groups[g.group]) for g in v.groups if groups[g.group] >= 0), default=None)
+            if best is not None:  # of bones weighing alike, the first (a parent before its child), as glTF's
+                ground.append([*p.tolist(), -best[1]])
+    if ground:  # the lower quarter: feet stand on it
+        rows = np.array(ground)
+        low, high = rows[:, 1].min(), rows[:, 1].max()
+        ground = rows[rows[:, 1] <= low + 0.25 * (high - low)].tolist()
     return {"armature": arm.name, "names": [b.name for b in bones], "rest": rest, "sole": min(lows) if lows else None,
-            "parents": [-1] + [index[b.parent.name] for b in bones[1:]]}
+            "parents": [-1] + [index[b.parent.name] for b in bones[1:]], "ground": ground}
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:

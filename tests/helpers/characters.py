@@ -60,6 +60,40 @@ def figure_rest(pose: str = "T") -> tuple[list[str], list[int], np.ndarray]:
     return names, parents, rest
 
 
+CORNERS = ((-1, -1), (-1, 1), (1, -1), (1, 1))  # a box's four corners around each end of its bone: (side, up)
+QUADS = ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))  # a box's faces
+
+
+def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], list[list[int]]]:
+    """The figure's mesh, the one both the glTF characters and Blender's FBX ones are made with: a box around
+    each bone (parent joint -> joint), 8 vertices a bone in joint order, the 4 at the parent end bound to the
+    parent, the 4 at the far end half and half; the soles of the foot's boxes on the ground. Each box a little
+    wider than the one before, so that no two vertices share a place at rest (a reader that splits or reorders
+    vertices, as glTF's does, is matched back by place).
+    Returns (V, 3) rest positions (metres, Y up), each vertex's (joint, weight) list, and the quads."""
+    names, parents, rest = figure_rest(pose)
+    vertices, groups, faces = [], [], []
+    for j in range(1, len(names)):
+        p = parents[j]
+        a, b = rest[p], rest[j]
+        axis = (b - a) / np.linalg.norm(b - a)
+        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        up = np.cross(axis, side)
+        half = HALF_WIDTH * (1.0 + 0.02 * j)
+        foot = names[j].endswith(("ToeBase", "Toe_End"))  # the bones of the foot: their soles on the ground
+        base = len(vertices)
+        for end, point in enumerate((a, b)):
+            for u, v in CORNERS:
+                q = point + half * (u * side + v * up)
+                if foot and q[1] < point[1]:
+                    q[1] = 0.0
+                vertices.append(q)
+                groups.append([(p, 1.0)] if end == 0 else [(p, 0.5), (j, 0.5)])
+        faces += [[base + k for k in quad] for quad in QUADS]
+    return np.array(vertices), groups, faces
+
+
 def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool = False,
                     turned: bool = False, posed: bool = False) -> Path:
     """A skinned character at ``path`` (.glb, or .gltf with its buffer as a data URI).
@@ -115,35 +149,12 @@ def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool =
                            ("LeftForeArm", Rotation.from_euler("z", 40, degrees=True))):
             node = gltf.nodes[names.index(M + name) + 1]
             node.rotation = (turn * Rotation.from_quat(node.rotation or [0, 0, 0, 1])).as_quat().tolist()
-    # the mesh: a box around each bone (parent joint -> joint), bound to the parent joint; the feet's boxes
-    # reach down to the ground; the vertices at a bone's far end are shared half and half with that joint
-    positions, joints, weights, uvs, indices = [], [], [], [], []
-    corners = np.array([(a, b) for a in (-1, 1) for b in (-1, 1)], dtype=np.float64)
-    for j in range(1, J):
-        p = parents[j]
-        a, b = rest[p], rest[j]
-        axis = (b - a) / np.linalg.norm(b - a)
-        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
-        side /= np.linalg.norm(side)
-        up = np.cross(axis, side)
-        foot = names[j].endswith(("ToeBase", "Toe_End"))  # the bones of the foot: their soles on the ground
-        base = len(positions)
-        for end, point in enumerate((a, b)):
-            for u, v in corners:
-                q = point + HALF_WIDTH * (u * side + v * up)
-                if foot and q[1] < point[1]:
-                    q[1] = 0.0
-                positions.append(q)
-                uvs.append((0.5 + 0.5 * u, float(end)))
-                if end == 0:
-                    joints.append((p, 0, 0, 0))
-                    weights.append((1.0, 0.0, 0.0, 0.0))
-                else:
-                    joints.append((p, j, 0, 0))
-                    weights.append((0.5, 0.5, 0.0, 0.0))
-        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-        for q0, q1, q2, q3 in quads:
-            indices += [base + q0, base + q1, base + q2, base + q0, base + q2, base + q3]
+    # the mesh: ``boxes``, each corner's texture coordinates across the box (u) and along the bone (v)
+    positions, groups, quads = boxes(pose)
+    joints = [[j for j, _ in g] + [0] * (4 - len(g)) for g in groups]
+    weights = [[w for _, w in g] + [0.0] * (4 - len(g)) for g in groups]
+    uvs = [(0.5 + 0.5 * u, float(end)) for _ in range(J - 1) for end in (0, 1) for u, _ in CORNERS]
+    indices = [q for q0, q1, q2, q3 in quads for q in (q0, q1, q2, q0, q2, q3)]
     attributes = gl.Attributes(
         POSITION=accessor(np.array(positions, np.float32), "VEC3", gl.FLOAT, gl.ARRAY_BUFFER, minmax=True),
         TEXCOORD_0=accessor(np.array(uvs, np.float32), "VEC2", gl.FLOAT, gl.ARRAY_BUFFER),
