@@ -1180,6 +1180,64 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     assert not errors, errors
 
 
+@pytest.fixture(scope="session")
+def fbx_figure(tmp_path_factory) -> Path:
+    """The tests' box figure (``helpers.characters``) as an FBX character, made by Blender (one start for the
+    session); skips without Blender's Python module."""
+    from helpers.blender_scenes import blender
+    from omg.io.fbx import available
+
+    if not available():
+        pytest.skip("Blender's Python module (bpy) is not installed: pip install 'omg[fbx]', or point "
+                    "OMG_BLENDER_PYTHON at a Python that has it (.ci/run installs one)")
+    root = tmp_path_factory.mktemp("fbx_figure")
+    blender("build", [{"path": str(root / "figure.fbx")}], root)
+    return root / "figure.fbx"
+
+
+def test_the_page_plays_the_motions_on_an_uploaded_fbx_character(server, browser, fbx_figure, tmp_path):
+    """An FBX character chosen on the page: the server writes each motion onto it as .fbx (the download) and,
+    from the same Blender run, as .glb (Blender's glTF exporter), which the view plays: the mesh moves between
+    two screenshots at different frames (their paths printed); the download is the FBX."""
+    from omg.io.fbx import BINARY_MAGIC
+
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    assert ".fbx" in page.get_attribute("#character", "accept").split(",")
+    page.set_input_files("#character", str(fbx_figure))
+    page.fill("#prompts", "a person walks forward")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 1", timeout=240_000)
+    assert re.fullmatch(r"1 motion\(s\) in [\d.]+ s; on figure\.fbx in [\d.]+ s", page.locator("#status").inner_text())
+    page.click("#play")
+    page.uncheck("#follow")
+    meshes = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(200)
+        meshes[frame] = _canvas_pixels(page)
+        path = tmp_path / f"fbx_character_frame_{frame:02d}.png"
+        page.screenshot(path=path)
+        print(f"screenshot of the FBX character at frame {frame}: {path}")
+    # the camera fixed, what changed between the frames is the character: its mesh (Blender's grey material) moved
+    changed = np.abs(meshes[2] - meshes[20]).max(-1) > 40
+    assert changed.sum() > 1000, changed.sum()
+    with page.expect_download() as download:
+        page.locator(".sample a.character").first.click()
+    assert download.value.suggested_filename.endswith(".fbx")
+    assert httpx.get(download.value.url).content.startswith(BINARY_MAGIC)
+    context.close()
+    assert not errors, errors
+
+
 def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, browser, shared_motion):
     """The Control panel: a path clicked on the ground grid, a keyframe from a frame of an uploaded BVH (retargeted
     by the server, /v1/keyframes), a timeline of two rows; the request holds them in the documented format, the
@@ -1311,3 +1369,41 @@ def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_pa
             assert client.get(upload.json()["motions"][0]["url"]).content == client.get(files["glb"]).content
     finally:
         running.stop()
+def test_omg_serve_to_rig_an_fbx_character_writes_each_motion_on_it(serve_ckpts, fbx_figure, tmp_path):
+    """``omg serve --to_rig character.fbx``: each human motion is written onto the FBX character (``fbx`` in its
+    files), which Blender opens with one action over the motion's frames, the mesh moving with the bones; an
+    uploaded FBX for a result answers its .fbx to download and the .glb the page plays."""
+    from helpers.blender_scenes import blender
+    from omg.io.fbx import BINARY_MAGIC
+    from omg.tools.serve import load_models, model_rigs
+    from omg.tools.serve.app import Limits, create_app
+
+    models = load_models([serve_ckpts["human"]], None, torch.device("cpu"))
+    rigs = model_rigs(models, fbx_figure, None)
+    assert set(rigs) == {"smpl22"}
+    running = ThreadServer(create_app(models, tmp_path / "out", Limits(parse_timeout=300.0), rigs=rigs))
+    try:
+        with httpx.Client(base_url=running.url, timeout=300) as client:
+            result = _generate(client, model="human", prompts=["a person waves"], length=1, steps=2)
+            files = result["motions"][0]["files"]
+            assert set(files) == {"fbx", "joints", "features"}
+            (tmp_path / "served.fbx").write_bytes(client.get(files["fbx"]).content)
+            assert client.get(result["settings"]).json()["to_rig"] == "figure.fbx"
+            upload = _onto(client, result["id"], "figure.fbx", fbx_figure.read_bytes())
+            assert upload.status_code == 200, upload.text
+            motion = upload.json()["motions"][0]
+            assert motion["url"].endswith(".fbx") and motion["view"].endswith(".glb")
+            assert client.get(motion["url"]).content.startswith(BINARY_MAGIC)
+            assert len(_glb_document(client.get(motion["view"]).content)["animations"]) == 1
+    finally:
+        running.stop()
+    blender("probe", [{"path": str(tmp_path / "served.fbx"), "out": str(tmp_path / "served.npz"), "fps": 20}],
+            tmp_path)
+    probe = json.loads((tmp_path / "served.json").read_text())
+    with np.load(tmp_path / "served.npz") as arrays:
+        heads, skinned = arrays["heads"], arrays["skinned"]
+    assert len(probe["actions"]) == 1 and len(heads) == result["motions"][0]["frames"]
+    assert np.linalg.norm(heads[-1] - heads[0], axis=-1).max() > 0.02  # the bones move
+    assert np.linalg.norm(skinned[-1] - skinned[0], axis=-1).max() > 0.02  # and the mesh with them
+
+

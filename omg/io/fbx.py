@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -143,10 +144,11 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
                      source=str(path), character=character)  # fmt: skip
 
 
-def write_character(path: str | Path, motion: RigMotion) -> Path:
+def write_character(path: str | Path, motion: RigMotion, also: str | Path | None = None) -> Path:
     """The FBX character of ``motion`` (``read_character``'s) with the motion added, written atomically as
     ``path``'s suffix says: ``.fbx`` (Blender's FBX exporter: one take, a key on every frame) or ``.glb``
-    (Blender's glTF exporter: one animation, sampled on every frame).
+    (Blender's glTF exporter: one animation, sampled on every frame); ``also``, a second file the same way from
+    the same keys (the ``.glb`` beside an ``.fbx`` that a page plays), in the same Blender run.
 
     Each bone is posed so that its head is where the motion puts its joint and its orientation is its rest
     orientation turned by the joint's world rotation: the bones keep their lengths and the mesh, skinned to
@@ -158,9 +160,10 @@ def write_character(path: str | Path, motion: RigMotion) -> Path:
     where = f"{path} (onto {ch.path})"
     rotations = torch.from_numpy(np.asarray(motion.rotations, dtype=np.float64))
     turns = motion.skeleton().global_rotations(rotations).numpy()  # (T, J, 4) world rotations from rest, Y up
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, (atomic_path(Path(also)) if also is not None else nullcontext()) as second:
+        outs = [str(tmp.resolve())] + ([str(second.resolve())] if second is not None else [])
         _run({"op": "write", "path": ch.path, "armature": ch.armature, "names": list(motion.names),
-              "fps": float(motion.fps), "name": motion.name, "out": str(tmp.resolve())},
+              "fps": float(motion.fps), "name": motion.name, "out": outs},
              {"turns": turns, "places": motion.positions()}, where)
     return path
 
@@ -336,19 +339,19 @@ def _child_write(request: dict, turns: np.ndarray, places: np.ndarray) -> dict:
     scene.render.fps = max(1, round(fps))
     scene.render.fps_base = scene.render.fps / fps
     scene.frame_start, scene.frame_end = 0, T - 1
-    out = request["out"]
-    if out.lower().endswith(".fbx"):
-        done = bpy.ops.export_scene.fbx(
-            filepath=out, add_leaf_bones=False, bake_anim=True, bake_anim_use_all_bones=True,
-            bake_anim_use_nla_strips=False, bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
-            bake_anim_step=1.0, bake_anim_simplify_factor=0.0, path_mode="COPY", embed_textures=True)
-    else:
-        done = bpy.ops.export_scene.gltf(
-            filepath=out, export_format="GLB", export_animations=True, export_animation_mode="ACTIVE_ACTIONS",
-            export_force_sampling=True, export_optimize_animation_size=False, export_def_bones=False,
-            export_anim_single_armature=True, export_skins=True, export_yup=True)
-    if "FINISHED" not in done:
-        raise _Refused(f"Blender could not export {out}")
+    for out in request["out"]:  # the file, and the one written beside it from the same keys
+        if out.lower().endswith(".fbx"):
+            done = bpy.ops.export_scene.fbx(
+                filepath=out, add_leaf_bones=False, bake_anim=True, bake_anim_use_all_bones=True,
+                bake_anim_use_nla_strips=False, bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
+                bake_anim_step=1.0, bake_anim_simplify_factor=0.0, path_mode="COPY", embed_textures=True)
+        else:
+            done = bpy.ops.export_scene.gltf(
+                filepath=out, export_format="GLB", export_animations=True, export_animation_mode="ACTIVE_ACTIONS",
+                export_force_sampling=True, export_optimize_animation_size=False, export_def_bones=False,
+                export_anim_single_armature=True, export_skins=True, export_yup=True)
+        if "FINISHED" not in done:
+            raise _Refused(f"Blender could not export {out}")
     return {"frames": T}
 
 

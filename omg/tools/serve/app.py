@@ -477,7 +477,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     @app.post("/v1/results/{result}/character", summary="a result's motions on an uploaded character or rig, as "
                                                       "--to_rig writes them")
     async def character(result: str, file: UploadFile = File(..., description="a skinned glTF character (.glb, "
-                                                                              ".gltf) or a BVH rig"),
+                                                                              ".gltf), an FBX character (.fbx, "
+                                                                              "with Blender's module) or a BVH rig"),
                         joint_map: str | None = Form(None), *, http: Request):
         fields = [name for name in inspect.signature(character).parameters if name not in ("http", "result")]
         if unknown := sorted(set((await http.form()).keys()) - set(fields)):
@@ -510,11 +511,11 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         except asyncio.TimeoutError:
             raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to put the motions "
                              "onto") from None
-        results.grow(result, sum((where / f).stat().st_size for f in written.values()))
+        results.grow(result, sum((where / f).stat().st_size for files in written.values() for f in files))
         url = f"/v1/results/{result}"
         return {"id": result, "character": name, "seconds": round(time.perf_counter() - started, 3),
-                "motions": [{"file": record["file"], "url": f"{url}/{written[record['file']]}"}
-                            for record in settings["samples"]]}
+                "motions": [{"file": record["file"], "url": f"{url}/{written[record['file']][0]}",
+                             "view": f"{url}/{written[record['file']][-1]}"} for record in settings["samples"]]}
 
     async def _answer(model: Model, request: GenerationRequest, rows: int, extra: dict) -> JSONResponse:
         started = time.perf_counter()
@@ -694,8 +695,9 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
                     parsing: _Count) -> dict[str, str]:
     """A result's motions (``settings``: its ``generation.json``) on the uploaded character or rig, written
     beside them as ``--to_rig`` writes them (``read_rig``, then ``export_motion`` onto the rig: the same
-    files, byte for byte), each named ``<motion>.<character>-<token>.<format>``; returns motion -> file name.
-    Runs on an upload thread."""
+    files, byte for byte), each named ``<motion>.<character>-<token>.<format>``, an FBX character's with its
+    ``.glb`` beside it (Blender's glTF exporter, from the same keys: what the page plays); returns motion ->
+    [the file, the .glb to view where it is another]. Runs on an upload thread."""
     from omg.export import export_motion, output_format
     from omg.retarget import read_rig
     from omg.skeleton import get_skeleton
@@ -715,13 +717,15 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
             except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
                 raise UsageError(f"could not read the upload {name!r} as a character: {_one_line(e)}") from None
             format, written = output_format(None, rig.source), {}
+            view = format == "fbx"  # the page's viewer plays glTF: an FBX character's motions come as .glb too
             for record in settings["samples"]:
                 joints = np.load(folder / f"{record['file']}.joints.npy")
                 export_motion(Path(staged) / record["file"], joints, get_skeleton(settings["skeleton"]),
-                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format)
-                written[record["file"]] = f"{record['file']}.{tag}.{format}"
-            for file, final in written.items():  # named as --to_rig names it while written: the same bytes
-                os.replace(Path(staged) / f"{file}.{format}", folder / final)
+                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format, view=view)
+                written[record["file"]] = [f"{record['file']}.{tag}.{kind}" for kind in (format, "glb")[: 1 + view]]
+            for file, finals in written.items():  # named as --to_rig names it while written: the same bytes
+                for final in finals:
+                    os.replace(Path(staged) / f"{file}.{final.rsplit('.', 1)[1]}", folder / final)
             return written
     finally:
         parsing.add(-1)

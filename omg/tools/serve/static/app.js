@@ -176,9 +176,10 @@ async function putOnCharacter() {
     const answer = await response.json();
     if (result !== shown) return;  // a newer result is in the view
     if (!response.ok) { setStatus(answer.detail || `error ${response.status}`, true); return; }
-    const urls = answer.motions.map((m) => m.url);
-    const playable = urls.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
-    if (playable) await viewer.showFiles(urls);
+    const urls = answer.motions.map((m) => m.url);  // the downloads: the character's own format
+    const views = answer.motions.map((m) => m.view);  // what the view plays (an FBX character's .glb)
+    const playable = views.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
+    if (playable) await viewer.showFiles(views);
     result.character = { name: answer.character, urls };
     listSamples(result);
     setStatus(`${said}; on ${answer.character} in ${answer.seconds} s` +
