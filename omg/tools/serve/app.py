@@ -479,7 +479,11 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     async def character(result: str, file: UploadFile = File(..., description="a skinned glTF character (.glb, "
                                                                               ".gltf), an FBX character (.fbx, "
                                                                               "with Blender's module) or a BVH rig"),
-                        joint_map: str | None = Form(None), *, http: Request):
+                        joint_map: str | None = Form(None),
+                        joint_map_file: UploadFile | None = File(None, description="the character's joint map (YAML, "
+                                                                 "omg joint-map's scaffold finished) where no "
+                                                                 "registered map fits its names"),
+                        *, http: Request):
         fields = [name for name in inspect.signature(character).parameters if name not in ("http", "result")]
         if unknown := sorted(set((await http.form()).keys()) - set(fields)):
             raise UsageError(f"{unknown[0]}: Extra inputs are not permitted (the form's fields: {', '.join(fields)})")
@@ -494,6 +498,13 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             raise UsageError(f"the upload {name!r} is not a character or rig; give one of {', '.join(RIG_SUFFIXES)}")
         if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
             raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
+        map_text = None
+        if joint_map_file is not None:
+            if joint_map is not None:
+                raise UsageError("give joint_map (a registered map's name) or joint_map_file (a YAML map), not both")
+            map_text = (_upload_name(joint_map_file.filename), await joint_map_file.read(limits.max_json_bytes + 1))
+            if len(map_text[1]) > limits.max_json_bytes:
+                raise _Refusal(413, f"the joint map is larger than the {limits.max_json_bytes} bytes allowed")
         settings = json.loads((where / "generation.json").read_text())
         data = await file.read(limits.max_upload_bytes + 1)
         if len(data) > limits.max_upload_bytes:
@@ -504,8 +515,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                            {"Retry-After": "5"})
         started = time.perf_counter()
         parsing.add(1)
-        job = asyncio.wrap_future(parser.submit(_onto_character, where, settings, data, suffix, joint_map, name,
-                                                parsing))
+        job = asyncio.wrap_future(parser.submit(_onto_character, where, settings, data, suffix, map_text or joint_map,
+                                                name, parsing))
         try:
             written = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
         except asyncio.TimeoutError:
@@ -691,15 +702,16 @@ def _read_upload(read: Callable[[Path], Any], data: bytes, suffix: str, name: st
         parsing.add(-1)
 
 
-def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, joint_map: str | None, name: str,
-                    parsing: _Count) -> dict[str, str]:
+def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, joint_map: str | tuple[str, bytes] | None,
+                    name: str, parsing: _Count) -> dict[str, list[str]]:
     """A result's motions (``settings``: its ``generation.json``) on the uploaded character or rig, written
     beside them as ``--to_rig`` writes them (``read_rig``, then ``export_motion`` onto the rig: the same
     files, byte for byte), each named ``<motion>.<character>-<token>.<format>``, an FBX character's with its
     ``.glb`` beside it (Blender's glTF exporter, from the same keys: what the page plays); returns motion ->
-    [the file, the .glb to view where it is another]. Runs on an upload thread."""
+    [the file, the .glb to view where it is another]. ``joint_map``: a registered map's name, or an uploaded
+    YAML map as (its file name, its bytes). Runs on an upload thread."""
     from omg.export import export_motion, output_format
-    from omg.retarget import read_rig
+    from omg.retarget import load_joint_map, read_rig
     from omg.skeleton import get_skeleton
 
     stem = re.sub(r"[^\w\-]+", "_", Path(name).stem)[:40].strip("_") or "character"
@@ -709,6 +721,13 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
                 tempfile.TemporaryDirectory(prefix=".character-", dir=folder) as staged:
             path = Path(upload) / f"character{suffix}"
             path.write_bytes(data)
+            if isinstance(joint_map, tuple):  # an uploaded map: read as --joint_map FILE reads one
+                map_name, map_path = joint_map[0], Path(upload) / "joint_map.yaml"
+                map_path.write_bytes(joint_map[1])
+                try:
+                    joint_map = load_joint_map(map_path)
+                except UsageError as e:
+                    raise UsageError(str(e).replace(str(map_path), map_name)) from None
             try:
                 rig = read_rig(path, settings["skeleton"], joint_map)
             except UsageError as e:
