@@ -30,6 +30,7 @@ from omg.kinematics import ground_contacts
 from omg.retarget import onto_rig, read_rig, retarget
 from omg.skeleton import get_skeleton
 
+pytestmark = pytest.mark.xdist_group("outside")  # the tests share the `written` and `as_fbx` fixtures' runs
 DATA = REPO / "tests/data/characters"
 FIGURE = DATA / "RiggedFigure.gltf"
 MAP = DATA / "RiggedFigure.joints.yaml"
