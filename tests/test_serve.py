@@ -1125,7 +1125,7 @@ def test_the_page_plays_the_motions_on_an_outside_character_with_its_joint_map(s
     for frame in (2, 20):
         page.locator("#scrubber").fill(str(frame))
         page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
-        page.wait_for_timeout(200)
+        page.wait_for_timeout(500)  # a loaded machine draws late
         shots[frame] = _canvas_pixels(page), page.evaluate("window.omgViewer.center")
         path = tmp_path / f"outside_character_frame_{frame:02d}.png"
         page.screenshot(path=path)
