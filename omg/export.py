@@ -64,14 +64,15 @@ def output_format(format: str | None, to_rig: str | Path | None) -> str:
     return {".glb": "glb", ".gltf": "glb", ".fbx": "fbx"}.get(suffix, "bvh")
 
 
-def write_on_rig(path: str | Path, motion: RigMotion, format: str) -> Path:
+def write_on_rig(path: str | Path, motion: RigMotion, format: str, also: str | Path | None = None) -> Path:
     """A motion on a user's rig (``omg.retarget.onto_rig``'s) as ``format``: bvh the rig's hierarchy; glb a glTF
     character whole with the animation added (``omg.io.gltf``); fbx or glb an FBX character with it added
-    (``omg.io.fbx``, through Blender); glb a BVH rig's joints with a skin."""
+    (``omg.io.fbx``, through Blender; ``also``: a second file from the same Blender run, the ``.glb`` of an
+    ``.fbx``); glb a BVH rig's joints with a skin."""
     if format == "bvh":
         return write_rig_bvh(path, motion)
     if isinstance(motion.character, FbxCharacter):
-        return write_fbx_character(Path(path), motion)
+        return write_fbx_character(Path(path), motion, also)
     if format == "fbx":
         raise UsageError(f"{path}: only an FBX character is written as fbx; {motion.source or motion.name} is none")
     return write_glb(path, motion)
@@ -101,6 +102,7 @@ def export_motion(
     joint_map=None,
     format: str = "bvh",
     rotations: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    view: bool = False,
 ) -> dict:
     """Write ``<stem>.bvh`` (or ``<stem>.glb`` with ``format="glb"``, ``<stem>.fbx`` onto an FBX character) and,
     with ``preview``, ``<stem>.gif``; returns what was written. ``clean_contacts`` pins planted feet first
@@ -114,7 +116,8 @@ def export_motion(
     that rig (``omg.retarget.onto_rig``, with ``joint_map`` or the one its names fit): its hierarchy, names,
     channels and unit (``order`` and ``scale`` are the model skeleton's BVH settings and do not apply), as
     glb or fbx a character whole with the animation added (``write_on_rig``); the preview draws the rig's
-    bones.
+    bones. ``view`` onto an FBX character written as fbx: ``<stem>.glb`` of it too (what a page's glTF viewer
+    plays), from the same Blender run.
     """
     from omg.io.render import render_gif
 
@@ -128,8 +131,9 @@ def export_motion(
 
         motion = onto_rig(positions, skel, rig, fps, joint_map)
         motion = replace(motion, name=stem.name)
-        report = {format: str(write_on_rig(target, motion, format)), "frames": len(positions),
-                  "rig": rig.source or rig.name}
+        glb = stem.with_name(f"{stem.name}.glb") if view and format == "fbx" else None
+        report = {format: str(write_on_rig(target, motion, format, glb)), "frames": len(positions),
+                  "rig": rig.source or rig.name, **({"glb": str(glb)} if glb is not None else {})}
         drawn, drawn_skel = [motion.positions()], motion.skeleton()
     else:
         given = rotations is not None and not clean_contacts

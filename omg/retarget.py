@@ -40,7 +40,9 @@ file, or a skinned glTF or FBX character, read by ``read_rig``), with the same m
 names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
 rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
 scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
-(``omg.io.contacts``). ``rig_round_trip`` measures
+(``omg.io.contacts``); a character (its bind pose a stance on its mesh's soles) keeps its feet's slope
+(``_stance_pitches``) and stands each planted foot's sole on the floor frame by frame (``_feet``,
+``_foot_levels``). ``rig_round_trip`` measures
 import + export on a rig's own clip (``omg bench rig``).
 """
 
@@ -170,6 +172,9 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
     return jmap
 
 
+# a character's ground under its planted feet's soles: this quantile of their level, the lowest foot's each frame, so
+# that most go up onto it (a knee bends) and few down (a straight knee cannot)
+STANCE_GROUND = 0.8
 TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
 SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
 
@@ -551,15 +556,74 @@ def _foot_points(rig: RigMotion, feet: list[int]) -> list[int]:
     return sorted(below) + [rig.num_joints + k for k, (p, _) in enumerate(rig.end_sites) if p in below]
 
 
-def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
-    """Metres the rig's lowest foot point stands above its ground when planted: on a character (glTF, FBX) its
-    height above the mesh's sole at rest (toe joints sit inside the shoe), on a BVH rig with a clip its
-    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
-    else 0; a clearance over a tenth of the leg is no foot's, and 0 is taken."""
+@dataclass(frozen=True)
+class _Foot:
+    """One foot of the model (SMPL's ankle and toe, SMAL's paw) on the rig: what of the rig stands on the ground."""
+
+    group: int  # its group in ``omg.io.contacts.foot_groups``
+    points: list[int]  # columns of ``positions_with_end_sites``: the rig's foot joints, those below, their end sites
+    carriers: list[int]  # a character's sole: the joint each of its mesh points follows
+    offsets: torch.Tensor  # (K, 3) each mesh point from its joint at rest
+    raised: torch.Tensor  # (P + K,) each point's height at rest above the mesh's sole (0 on a rig without a stance)
+
+
+def _feet(rig: RigMotion, skel: Skeleton, plan: _Plan, up_axis: torch.Tensor) -> list[_Foot]:
+    """The rig's feet, one per group of the model's foot joints (``omg.io.contacts.foot_groups``) it maps.
+
+    A character (glTF, FBX: its bind pose stands on its mesh's sole) stands on its mesh: the foot's joints, those
+    below and their end sites, and the skinned mesh's low vertices that follow them (``Character.ground``: the
+    heel behind the ankle, the toes past the last joint), each raised by its height above the sole at rest, so
+    that a foot rolling onto its heel or its toes touches the ground with whichever is lowest, as a shoe does.
+    A BVH rig's rest pose is a layout of bones, not a stance: its foot points stand on the ground as they are."""
+    from omg.io.contacts import foot_groups
+
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))
     sole = getattr(rig.character, "sole", None)
-    if sole is not None:
-        clearance = float((torch.from_numpy(rig.rest_positions(end_sites=True))[points] @ up_axis).min()) - sole
-    elif len(rig) > 2:
+    ground = getattr(rig.character, "ground", None) if sole is not None else None
+    feet = []
+    for g, group in enumerate(foot_groups(skel)):
+        mapped = [plan.source[f] for f in group if f in plan.source]
+        if not mapped:
+            continue
+        points = _foot_points(rig, mapped)
+        joints = [p for p in points if p < rig.num_joints]
+        carriers, offsets = [], torch.zeros(0, 3, dtype=torch.float64)
+        if ground is not None:
+            mine = np.isin(ground[1], joints)
+            carriers = ground[1][mine].tolist()
+            offsets = torch.from_numpy(ground[0][mine]) - rest[carriers]
+        if sole is None:
+            raised = torch.zeros(len(points) + len(carriers), dtype=torch.float64)
+        else:
+            raised = torch.cat([rest[points], rest[carriers] + offsets]) @ up_axis - sole
+        feet.append(_Foot(g, points, carriers, offsets, raised))
+    return feet
+
+
+def _foot_levels(motion: RigMotion, feet: list[_Foot], up_axis: torch.Tensor) -> torch.Tensor:
+    """(T, F) the level of each foot's sole along ``up_axis``: the lowest of its points less its height at rest
+    above the sole (``_feet``); on a rig without a stance, its lowest point."""
+    x = torch.from_numpy(motion.positions_with_end_sites())  # (T, S, 3)
+    turns = None
+    levels = []
+    for foot in feet:
+        heights = x[:, foot.points] @ up_axis  # (T, P)
+        if foot.carriers:
+            if turns is None:  # (T, J, 4): rest rotations are the identity
+                turns = motion.skeleton().global_rotations(torch.from_numpy(motion.rotations))
+            c = foot.carriers
+            mesh = x[:, c] + quat_apply(turns[:, c], foot.offsets.expand(len(x), -1, -1))  # (T, K, 3)
+            heights = torch.cat([heights, mesh @ up_axis], 1)
+        levels.append((heights - foot.raised).min(1).values)
+    return torch.stack(levels, 1)
+
+
+def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
+    """Metres the rig's lowest foot point stands above its ground when planted: on a BVH rig with a clip its
+    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
+    else 0 (a character's feet stand on its mesh's sole: ``_feet``); a clearance over a tenth of the leg is no
+    foot's, and 0 is taken."""
+    if getattr(rig.character, "sole", None) is None and len(rig) > 2:
         at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
         yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
         yup[..., 1] = at
@@ -570,6 +634,61 @@ def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: fl
     else:
         clearance = 0.0
     return clearance if 0.0 <= clearance <= 0.1 * leg else 0.0
+
+
+def _slope(d: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
+    """(..., 3) -> (...,) radians a direction points down from the horizontal plane of ``up``."""
+    return torch.asin((-(d @ up) / d.norm(dim=-1).clamp_min(1e-12)).clamp(-1.0, 1.0))
+
+
+def _stance_pitches(rig: RigMotion, skel: Skeleton, plan: _Plan, pos: torch.Tensor, fps: float,
+                    up_axis: torch.Tensor) -> dict[tuple[int, int], float]:
+    """Per foot of a character, (ankle, toe) model joints -> radians its foot must pitch down more than the
+    model's: the character's slope of that bone at rest less the model's on its flat-footed frames (both
+    joints planted; the template's without one).
+
+    A character's bind pose stands on its soles, so its foot bone's slope at rest is its flat foot's: where the
+    model's foot is flat the character's is, whichever way the two skeletons place ankle and toe on the foot
+    (a figure whose toe joint sits under its ankle has a steep bone, the model's a shallow one, and the same
+    direction would tip its sole 40 degrees). A BVH rig's rest pose is a layout of bones, not a stance: its
+    feet follow the model's bones as its other limbs do (a clip's round trip comes back as it went)."""
+    from omg.io.contacts import foot_groups
+
+    if getattr(rig.character, "sole", None) is None:
+        return {}
+    rest = torch.from_numpy(rig.rest_positions(end_sites=True))
+    contact = ground_contacts(pos, skel.feet, fps) if len(pos) > 1 else torch.zeros(len(pos), len(skel.feet)) > 0
+    feet = list(skel.feet)
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    out = {}
+    for group in foot_groups(skel):
+        if len(group) < 2 or any(j not in plan.source for j in group[:2]):
+            continue
+        ankle, toe = group[:2]
+        flat = contact[:, [feet.index(ankle), feet.index(toe)]].all(1)
+        model = _slope(pos[:, toe] - pos[:, ankle], up)  # (T,)
+        template = _slope(torch.from_numpy(skel.rest_offsets[toe].astype(np.float64)), up)
+        character = _slope(rest[plan.source[toe]] - rest[plan.source[ankle]], up_axis)
+        out[(ankle, toe)] = float(character - (model[flat].median() if flat.any() else template))
+    return out
+
+
+def _pitched(targets: torch.Tensor, pitches: dict[tuple[int, int], float]) -> torch.Tensor:
+    """(T, J, 3) Y-up model joint places with each foot's toe turned about its ankle, in the vertical plane of
+    the bone, down by its pitch (``_stance_pitches``); the bone keeps its length and heading."""
+    if not pitches:
+        return targets
+    out = targets.clone()
+    for (ankle, toe), pitch in pitches.items():
+        d = targets[:, toe] - targets[:, ankle]  # (T, 3)
+        flat = d * torch.tensor([1.0, 0.0, 1.0], dtype=d.dtype)
+        heading = F.normalize(flat, dim=-1)
+        slope = torch.atan2(-d[:, 1], flat.norm(dim=-1)) + pitch
+        turned = d.norm(dim=-1, keepdim=True) * (torch.cos(slope)[:, None] * heading
+                                                 - torch.sin(slope)[:, None] * torch.tensor([0.0, 1.0, 0.0]))
+        vertical = flat.norm(dim=-1) < 1e-9  # a foot pointing straight down has no heading: it stays
+        out[:, toe] = torch.where(vertical[:, None], targets[:, toe], targets[:, ankle] + turned)
+    return out
 
 
 def onto_rig(
@@ -592,9 +711,11 @@ def onto_rig(
     path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
     from its own frames as on import; ``up`` names it), on the rig's ground: where the model's feet are
     planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
-    planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places.
+    planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places;
+    a character's planted feet are also put with their soles on the floor on each frame, and its feet in the
+    air kept above it. A character's foot bones keep their own slope at stance (``_stance_pitches``).
     """
-    from omg.io.contacts import clean_foot_contacts
+    from omg.io.contacts import clean_foot_contacts, foot_groups
 
     skel = get_skeleton(skeleton)
     pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
@@ -629,6 +750,7 @@ def onto_rig(
     aims = _aims(rig, aim_of)
     frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, aim_of)
     T = len(pos)
+    up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
@@ -645,25 +767,39 @@ def onto_rig(
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
 
-    local, top, at = solve(pos * scale)
-    # the ground: in the frames where the model's feet are planted, the rig's lowest foot point stands at its
-    # own clearance at rest, on the floor of the rig's frame (its up axis); the scaled path alone leaves the
-    # feet where the model's ankle height, scaled, puts them, off the rig's by the difference of the two
-    points = _foot_points(rig, [plan.source[f] for f in skel.feet if f in plan.source])
-    up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
-    lowest = (torch.from_numpy(placed(local, top, at).positions_with_end_sites())[:, points] @ up_axis).min(1).values
+    local, top, at = solve(_pitched(pos * scale, _stance_pitches(rig, skel, plan, pos, float(fps), up_axis)))
+    # the ground: in the frames where the model's feet are planted, the rig's lowest foot stands at its own
+    # clearance, on the floor of the rig's frame (its up axis): a character's sole (its mesh, ``_feet``), a BVH
+    # rig's lowest foot point as high as on its own planted frames; the scaled path alone leaves the feet where
+    # the model's ankle height, scaled, puts them, off the rig's by the difference of the two
+    feet = _feet(rig, skel, plan, up_axis)
+    lowest = _foot_levels(placed(local, top, at), feet, up_axis).min(1).values  # (T,)
     contact = ground_contacts(pos, skel.feet, float(fps)).any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
-    ground = lowest[contact].median() if contact.any() else torch.quantile(lowest, 0.02)
-    clearance = _clearance(rig, points, up_axis, rig_leg)
+    stance = getattr(rig.character, "sole", None) is not None and clean_contacts and T > 1
+    if not contact.any():
+        ground = torch.quantile(lowest, 0.02)
+    elif stance:  # its planted feet go onto the sole below: a leg bends up to any, but may not stretch down
+        ground = torch.quantile(lowest[contact], STANCE_GROUND)
+    else:
+        ground = lowest[contact].median()
+    clearance = _clearance(rig, sorted({p for f in feet for p in f.points}), up_axis, rig_leg)
     out = placed(local, top, at - (ground - clearance) * up_axis)
     if clean_contacts and T > 1:
         # the rig's own places of the model joints, Y up: its feet are what must stay planted
         on_rig = _proxy(plan, skel, torch.from_numpy(out.positions_with_end_sites()))
         on_rig = quat_apply(turn.expand(T, skel.num_joints, 4), on_rig)
         filled = torch.where(torch.isnan(on_rig), on_rig[:, :1].expand_as(on_rig), on_rig)
+        # a character's planted foot on its sole, frame by frame: one ground for the clip leaves its roll from heel
+        # to toes (the model's foot is not the character's) a centimetre or more off; the clean-up carries the
+        # rise with its pin, and the leg bends or stretches to it. A BVH rig's feet go as the model's: its clip
+        # comes back as it went
+        rise = None
+        if stance:
+            rise = np.zeros((T, len(foot_groups(skel))))  # (T, G) a foot the rig lacks stays where it is
+            rise[:, [f.group for f in feet]] = (clearance - _foot_levels(out, feet, up_axis)).numpy()
         # retargeting's contact rule (slow and low), not the clean-up's looser one for generated feet: a
         # slowly walking dog's feet are not planted
-        cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED)
+        cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED, rise=rise)
         cleaned = torch.from_numpy(cleaned).double()
         out = placed(*solve(torch.where(torch.isnan(on_rig), on_rig, cleaned)))
     return out

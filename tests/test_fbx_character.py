@@ -24,8 +24,8 @@ import torch
 import yaml
 
 from helpers import REPO, SHARED_MOTION, TINY_DIT
-from helpers.blender_scenes import blender, boxes
-from helpers.characters import figure_rest, write_character
+from helpers.blender_scenes import blender
+from helpers.characters import boxes, figure_rest, write_character
 from omg.cli import main
 from omg.io.bvh import read_bvh
 from omg.io.fbx import BINARY_MAGIC, available
@@ -37,8 +37,6 @@ pytestmark = pytest.mark.xdist_group("fbx")  # the tests share the `written` fix
 WALK = "human/bandai2/dataset-2_walk-turn-left_normal_{}.bvh"
 CHARACTERS = {"t_pose_m": {}, "a_pose_cm_z_up": {"pose": "A", "unit": 0.01, "z_up": True}}
 VALIDATOR = os.environ.get("OMG_GLTF_VALIDATOR", str(REPO / ".ci/node/node_modules"))
-FEET = ("Foot", "ToeBase", "Toe_End")  # the figure's foot joints: what stands on the ground
-CLEARANCE = 0.03  # m: the figure's lowest foot joints (its toes) above its soles at rest
 
 
 @pytest.fixture(scope="module")
@@ -128,11 +126,8 @@ def test_a_walk_on_the_centimetre_z_up_character_keeps_bones_and_feet_on_the_gro
     """A real walk on the A-pose figure in centimetres, Z up (.fbx) and on the T-pose figure in metres, Y up
     (.glb): the bones are where ``onto_rig`` puts the same figure's joints read from a glTF character (one
     retargeting for both formats; units, axes and exporter change nothing), the mesh follows them, bone
-    lengths kept, and where the model's feet are planted the lowest foot joint is at the figure's own
-    clearance at rest (its toes 3 cm above its soles): measured 0.21 cm off at the median, 1.7 cm at the
-    95th percentile and 2.1 cm at most, in the walk's heel-to-toe roll, where the figure's foot follows the
-    model's, whose ankle and toe sit otherwise (the retarget's, the same on a glTF character); the soles on
-    the ground (0.25 cm median, 2.0 cm at most)."""
+    lengths kept, and where the model's feet are planted the mesh's soles are on the ground within 1 cm on every
+    frame, heel or toes (the retarget's, the same on a glTF character); no foot goes through the floor."""
     walk = written["walk"]
     for key, options in (("walk_a", CHARACTERS["a_pose_cm_z_up"]), ("walk_t", CHARACTERS["t_pose_m"])):
         probe = written["probes"][key]
@@ -143,14 +138,12 @@ def test_a_walk_on_the_centimetre_z_up_character_keeps_bones_and_feet_on_the_gro
         order, _ = _figure(probe, pose)
         expected = onto_rig(walk, "smpl22", gltf, 20).positions()  # (T, J, 3) in the figure's order
         assert np.abs(probe["heads"][:, order] - expected).max() < 1e-4, key
-        names = figure_rest(pose)[0]
         planted = ground_contacts(torch.from_numpy(walk).double(), get_skeleton("smpl22").feet, 20).numpy().any(1)
         assert planted.sum() > 20
-        feet = [probe["names"].index(n) for n in names if n.endswith(FEET)]
-        off = np.abs(probe["heads"][:, feet, 1].min(1)[planted] - CLEARANCE) * 100  # cm
-        assert np.median(off) < 0.5 and np.percentile(off, 95) < 2.0 and off.max() < 2.5, (key, off)
-        sole = np.abs(probe["skinned"][..., 1].min(1)[planted]) * 100
-        assert np.median(sole) < 0.5 and sole.max() < 2.5, (key, sole)
+        low = probe["skinned"][..., 1].min(1) * 100  # (T,) cm
+        sole = np.abs(low[planted])
+        assert np.median(sole) < 0.1 and sole.max() < 1.0, (key, np.round(np.sort(sole)[-5:], 2))
+        assert low.min() > -1.0, (key, low.min())
 
 
 def test_the_glb_of_an_fbx_character_opens_in_blender_and_passes_the_validator(written):

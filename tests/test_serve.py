@@ -1049,7 +1049,7 @@ def test_a_result_goes_onto_an_uploaded_character_or_rig(client, server, tmp_pat
     ("figure.glb", None, {"joint_map": "../../etc"}, 422, "joint_map '../../etc': give a registered joint map's"),
     ("figure.glb", None, {"joint_map": "bandai"}, 422, "figure.glb: joint map 'bandai' needs joints the file lacks"),
     ("figure.glb", None, {"character": "x"}, 422, "character: Extra inputs are not permitted (the form's fields: "
-                                                 "file, joint_map)"),
+                                                 "file, joint_map, joint_map_file)"),
     ("figure.glb", b"x" * 2_010_000, {}, 413, "bytes allowed (--max_upload_mb)"),
     ("figure.glb", None, {"result": "000000000000"}, 404, "no result '000000000000' on this server"),
     ("figure.glb", None, {"result": "animal"}, 422, "human rig"),
@@ -1070,6 +1070,77 @@ def test_bad_character_uploads_are_one_readable_line(client, server, tmp_path, n
     assert "omg-upload-" not in detail and "--to_rig" not in detail and str(tmp_path) not in detail
     assert (sorted(os.listdir(server.out / result)) if files is not None else None) == files  # nothing left
     assert client.get("/healthz").status_code == 200
+
+
+OUTSIDE = REPO / "tests/data/characters"  # Khronos' Rigged Figure, whose names no registered map fits, and its map
+
+
+def test_an_outside_character_goes_onto_a_result_with_its_uploaded_joint_map(client, server):
+    """A character whose names no registered map fits, uploaded with its YAML joint map (``joint_map_file``):
+    the motions go onto it (the sample with its own animation and the one added); without the map, or with one
+    left TODO, or with a registered map's name too, one readable line."""
+    figure = (OUTSIDE / "RiggedFigure.gltf").read_bytes()
+    joint_map = (OUTSIDE / "RiggedFigure.joints.yaml").read_bytes()
+    result = _generate(client, model="human", prompts=["a person waves"], length=1, steps=2)
+    url = f"/v1/results/{result['id']}/character"
+    _one_line(_onto(client, result["id"], "RiggedFigure.gltf", figure), 422,
+              "RiggedFigure.gltf: cannot map the rig onto smpl22 (no registered map fits)")
+    answer = client.post(url, files=[("file", ("RiggedFigure.gltf", figure)),
+                                     ("joint_map_file", ("figure.yaml", joint_map))])
+    assert answer.status_code == 200, answer.text
+    motion = answer.json()["motions"][0]
+    assert motion["url"] == motion["view"] and motion["url"].endswith(".glb")
+    animated = _glb_document(client.get(motion["url"]).content)
+    assert len(animated["animations"]) == 2 and animated["animations"][-1]["name"] == "sample_000"
+    left = joint_map.replace(b"left_hip:       leg_joint_L_1", b"left_hip:       TODO")
+    line = _one_line(client.post(url, files=[("file", ("RiggedFigure.gltf", figure)),
+                                             ("joint_map_file", ("figure.yaml", left))]), 422, "left_hip is TODO")
+    assert line.startswith("joint map figure.yaml: ") and "omg-upload-" not in line
+    _one_line(client.post(url, data={"joint_map": "mixamo"}, files=[("file", ("RiggedFigure.gltf", figure)),
+                                                                    ("joint_map_file", ("figure.yaml", joint_map))]),
+              422, "not both")
+
+
+def test_the_page_plays_the_motions_on_an_outside_character_with_its_joint_map(server, browser, tmp_path):
+    """Khronos' Rigged Figure chosen on the page with its joint map (the two files at once): the motion goes onto
+    it and its mesh moves in the view between two screenshots (their paths printed), played from the animation
+    omg added, not the sample's own (its first); the download is the character as .glb."""
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    page.set_input_files("#character", [str(OUTSIDE / "RiggedFigure.gltf"), str(OUTSIDE / "RiggedFigure.joints.yaml")])
+    page.fill("#prompts", "a person walks forward")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 1", timeout=120_000)
+    assert "on RiggedFigure.gltf in" in page.locator("#status").inner_text()
+    page.click("#play")
+    page.uncheck("#follow")
+    shots = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(500)  # a loaded machine draws late
+        shots[frame] = _canvas_pixels(page), page.evaluate("window.omgViewer.center")
+        path = tmp_path / f"outside_character_frame_{frame:02d}.png"
+        page.screenshot(path=path)
+        print(f"screenshot of Khronos' Rigged Figure at frame {frame}: {path}")
+    # the camera fixed, what changed between the frames is the character: its mesh moved, and its root with the
+    # motion (the sample's own animation keeps its root in place)
+    changed = np.abs(shots[2][0] - shots[20][0]).max(-1) > 40
+    assert changed.sum() > 1000, changed.sum()
+    assert np.abs(np.subtract(shots[20][1], shots[2][1])).max() > 0.01
+    with page.expect_download() as download:
+        page.locator(".sample a.character").first.click()
+    assert download.value.suggested_filename.endswith(".glb")
+    assert len(_glb_document(httpx.get(download.value.url).content)["animations"]) == 2
+    context.close()
+    assert not errors, errors
 
 
 def _canvas_pixels(page) -> np.ndarray:
@@ -1108,7 +1179,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     # the kinds this server reads (.fbx too where Blender's module is there)
     from omg.tools.serve.app import character_suffixes
 
-    assert page.get_attribute("#character", "accept") == ",".join(character_suffixes())
+    assert page.get_attribute("#character", "accept") == ",".join([*character_suffixes(), ".yaml", ".yml"])
     page.set_input_files("#character", str(character))
     page.fill("#prompts", "a person walks forward\na person waves")
     page.fill("#length", "1.5")
@@ -1176,6 +1247,64 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     page.set_input_files("#character", files=[])
     page.wait_for_function("window.omgViewer.characters == 0")
     assert page.locator(".sample a.character").count() == 0
+    context.close()
+    assert not errors, errors
+
+
+@pytest.fixture(scope="session")
+def fbx_figure(tmp_path_factory) -> Path:
+    """The tests' box figure (``helpers.characters``) as an FBX character, made by Blender (one start for the
+    session); skips without Blender's Python module."""
+    from helpers.blender_scenes import blender
+    from omg.io.fbx import available
+
+    if not available():
+        pytest.skip("Blender's Python module (bpy) is not installed: pip install 'omg[fbx]', or point "
+                    "OMG_BLENDER_PYTHON at a Python that has it (.ci/run installs one)")
+    root = tmp_path_factory.mktemp("fbx_figure")
+    blender("build", [{"path": str(root / "figure.fbx")}], root)
+    return root / "figure.fbx"
+
+
+def test_the_page_plays_the_motions_on_an_uploaded_fbx_character(server, browser, fbx_figure, tmp_path):
+    """An FBX character chosen on the page: the server writes each motion onto it as .fbx (the download) and,
+    from the same Blender run, as .glb (Blender's glTF exporter), which the view plays: the mesh moves between
+    two screenshots at different frames (their paths printed); the download is the FBX."""
+    from omg.io.fbx import BINARY_MAGIC
+
+    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    page.select_option("#model", "human")
+    assert ".fbx" in page.get_attribute("#character", "accept").split(",")
+    page.set_input_files("#character", str(fbx_figure))
+    page.fill("#prompts", "a person walks forward")
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 1", timeout=240_000)
+    assert re.fullmatch(r"1 motion\(s\) in [\d.]+ s; on figure\.fbx in [\d.]+ s", page.locator("#status").inner_text())
+    page.click("#play")
+    page.uncheck("#follow")
+    meshes = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(200)
+        meshes[frame] = _canvas_pixels(page)
+        path = tmp_path / f"fbx_character_frame_{frame:02d}.png"
+        page.screenshot(path=path)
+        print(f"screenshot of the FBX character at frame {frame}: {path}")
+    # the camera fixed, what changed between the frames is the character: its mesh (Blender's grey material) moved
+    changed = np.abs(meshes[2] - meshes[20]).max(-1) > 40
+    assert changed.sum() > 1000, changed.sum()
+    with page.expect_download() as download:
+        page.locator(".sample a.character").first.click()
+    assert download.value.suggested_filename.endswith(".fbx")
+    assert httpx.get(download.value.url).content.startswith(BINARY_MAGIC)
     context.close()
     assert not errors, errors
 
@@ -1311,3 +1440,41 @@ def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_pa
             assert client.get(upload.json()["motions"][0]["url"]).content == client.get(files["glb"]).content
     finally:
         running.stop()
+def test_omg_serve_to_rig_an_fbx_character_writes_each_motion_on_it(serve_ckpts, fbx_figure, tmp_path):
+    """``omg serve --to_rig character.fbx``: each human motion is written onto the FBX character (``fbx`` in its
+    files), which Blender opens with one action over the motion's frames, the mesh moving with the bones; an
+    uploaded FBX for a result answers its .fbx to download and the .glb the page plays."""
+    from helpers.blender_scenes import blender
+    from omg.io.fbx import BINARY_MAGIC
+    from omg.tools.serve import load_models, model_rigs
+    from omg.tools.serve.app import Limits, create_app
+
+    models = load_models([serve_ckpts["human"]], None, torch.device("cpu"))
+    rigs = model_rigs(models, fbx_figure, None)
+    assert set(rigs) == {"smpl22"}
+    running = ThreadServer(create_app(models, tmp_path / "out", Limits(parse_timeout=300.0), rigs=rigs))
+    try:
+        with httpx.Client(base_url=running.url, timeout=300) as client:
+            result = _generate(client, model="human", prompts=["a person waves"], length=1, steps=2)
+            files = result["motions"][0]["files"]
+            assert set(files) == {"fbx", "joints", "features"}
+            (tmp_path / "served.fbx").write_bytes(client.get(files["fbx"]).content)
+            assert client.get(result["settings"]).json()["to_rig"] == "figure.fbx"
+            upload = _onto(client, result["id"], "figure.fbx", fbx_figure.read_bytes())
+            assert upload.status_code == 200, upload.text
+            motion = upload.json()["motions"][0]
+            assert motion["url"].endswith(".fbx") and motion["view"].endswith(".glb")
+            assert client.get(motion["url"]).content.startswith(BINARY_MAGIC)
+            assert len(_glb_document(client.get(motion["view"]).content)["animations"]) == 1
+    finally:
+        running.stop()
+    blender("probe", [{"path": str(tmp_path / "served.fbx"), "out": str(tmp_path / "served.npz"), "fps": 20}],
+            tmp_path)
+    probe = json.loads((tmp_path / "served.json").read_text())
+    with np.load(tmp_path / "served.npz") as arrays:
+        heads, skinned = arrays["heads"], arrays["skinned"]
+    assert len(probe["actions"]) == 1 and len(heads) == result["motions"][0]["frames"]
+    assert np.linalg.norm(heads[-1] - heads[0], axis=-1).max() > 0.02  # the bones move
+    assert np.linalg.norm(skinned[-1] - skinned[0], axis=-1).max() > 0.02  # and the mesh with them
+
+

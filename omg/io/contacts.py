@@ -3,7 +3,9 @@
 Generated motion often lets a planted foot drift a few centimetres (foot skating). Over each
 contact, the foot's lowest joint is pinned to its mean ground position; the shift eases in and
 out over a few frames, moves the whole foot, and the leg follows by two-bone IK in the plane it
-already bends in, so every bone keeps its length and the rest of the body is untouched.
+already bends in, so every bone keeps its length and the rest of the body is untouched. A caller
+that knows how high each planted foot must stand (``onto_rig``: the rig's sole on its ground) gives
+the rise with it, which the same shift carries.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ def _segments(flags: torch.Tensor) -> list[tuple[int, int]]:
     return list(zip(torch.nonzero(edges == 1).flatten().tolist(), torch.nonzero(edges == -1).flatten().tolist()))
 
 
-def _foot_groups(skel: Skeleton) -> list[list[int]]:
+def foot_groups(skel: Skeleton) -> list[list[int]]:
     """The feet as connected groups, top joint first: SMPL's (ankle, toe) per side, SMAL's one joint per leg."""
     groups: list[list[int]] = []
     for j in sorted(skel.feet):
@@ -63,8 +65,11 @@ def clean_foot_contacts(
     fps: float,
     max_speed: float = CLEANUP_SPEED,
     blend: int = 2,
+    rise: np.ndarray | None = None,  # (T, G) metres: per frame, how far each foot group must go up
 ) -> np.ndarray:
-    """Positions with each planted foot pinned over its contact frames (see the module docstring)."""
+    """Positions with each planted foot pinned over its contact frames (see the module docstring); with
+    ``rise``, each group of ``foot_groups`` also moved up by it over its planted frames, and elsewhere where it
+    is positive (a foot in the air below the floor)."""
     skel = get_skeleton(skeleton)
     pos = torch.as_tensor(np.asarray(positions), dtype=torch.float64).clone()  # (T, J, 3)
     T = len(pos)
@@ -73,7 +78,7 @@ def clean_foot_contacts(
     feet = list(skel.feet)
     height = pos[:, feet, 1]  # (T, F)
     contact = ground_contacts(pos, skel.feet, fps, max_speed=max_speed)  # (T, F)
-    for group in _foot_groups(skel):
+    for g, group in enumerate(foot_groups(skel)):
         cols = [feet.index(j) for j in group]
         lowest = group[int(height[:, cols].mean(0).argmin())]
         planted = contact[:, cols].any(1)
@@ -81,10 +86,15 @@ def clean_foot_contacts(
         for start, end in _segments(planted):
             xz = pos[start:end, lowest][:, [0, 2]]
             shift[start:end, [0, 2]] = xz.mean(0) - xz
+            if rise is not None:
+                shift[start:end, 1] = torch.as_tensor(rise[start:end, g], dtype=pos.dtype)
             for k in range(1, blend + 1):  # ease the offset in before landing and out after lift-off
                 for frame, edge in ((start - k, start), (end - 1 + k, end - 1)):
                     if 0 <= frame < T and not planted[frame]:
                         shift[frame] = shift[edge] * (1 - k / (blend + 1))
+        if rise is not None:
+            up = torch.as_tensor(rise[:, g], dtype=pos.dtype).clamp_min(0.0)
+            shift[~planted, 1] = torch.maximum(shift[~planted, 1], up[~planted])
         top = group[0]
         knee = skel.parents[top]
         hip = skel.parents[knee] if knee >= 0 else -1

@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -54,6 +55,9 @@ class FbxCharacter:
     path: str  # the file, absolute
     armature: str  # the armature object's name in Blender's scene
     sole: float | None  # m: the height of the skinned meshes' lowest point in the rest pose (None: no mesh)
+    # the skinned meshes' vertices in the rest pose's lower quarter, world, metres, Y up (V, 3), and the bone each
+    # follows most (V,): ``omg.io.gltf.Character.ground``'s
+    ground: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def blender_python() -> str:
@@ -130,16 +134,21 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
     parents = [int(p) for p in out["parents"]]
     offsets = rest - np.concatenate([np.zeros((1, 3)), rest[parents[1:]]])
     J = len(parents)
-    character = FbxCharacter(path=str(path.resolve()), armature=out["armature"], sole=out["sole"])
+    ground = None
+    if out.get("ground"):
+        rows = np.asarray(out["ground"], dtype=np.float64).reshape(-1, 4)  # x, y, z, bone
+        ground = (rows[:, :3], rows[:, 3].astype(int))
+    character = FbxCharacter(path=str(path.resolve()), armature=out["armature"], sole=out["sole"], ground=ground)
     return RigMotion(name=path.stem, names=list(out["names"]), parents=parents, offsets=offsets, fps=30.0,
                      rotations=np.tile([1.0, 0.0, 0.0, 0.0], (1, J, 1)), translations=offsets[None].copy(),
                      source=str(path), character=character)  # fmt: skip
 
 
-def write_character(path: str | Path, motion: RigMotion) -> Path:
+def write_character(path: str | Path, motion: RigMotion, also: str | Path | None = None) -> Path:
     """The FBX character of ``motion`` (``read_character``'s) with the motion added, written atomically as
     ``path``'s suffix says: ``.fbx`` (Blender's FBX exporter: one take, a key on every frame) or ``.glb``
-    (Blender's glTF exporter: one animation, sampled on every frame).
+    (Blender's glTF exporter: one animation, sampled on every frame); ``also``, a second file the same way from
+    the same keys (the ``.glb`` beside an ``.fbx`` that a page plays), in the same Blender run.
 
     Each bone is posed so that its head is where the motion puts its joint and its orientation is its rest
     orientation turned by the joint's world rotation: the bones keep their lengths and the mesh, skinned to
@@ -151,9 +160,10 @@ def write_character(path: str | Path, motion: RigMotion) -> Path:
     where = f"{path} (onto {ch.path})"
     rotations = torch.from_numpy(np.asarray(motion.rotations, dtype=np.float64))
     turns = motion.skeleton().global_rotations(rotations).numpy()  # (T, J, 4) world rotations from rest, Y up
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, (atomic_path(Path(also)) if also is not None else nullcontext()) as second:
+        outs = [str(tmp.resolve())] + ([str(second.resolve())] if second is not None else [])
         _run({"op": "write", "path": ch.path, "armature": ch.armature, "names": list(motion.names),
-              "fps": float(motion.fps), "name": motion.name, "out": str(tmp.resolve())},
+              "fps": float(motion.fps), "name": motion.name, "out": outs},
              {"turns": turns, "places": motion.positions()}, where)
     return path
 
@@ -234,7 +244,7 @@ def _child_read(path: str) -> dict:
     # the skinned meshes as they deform in the rest pose: their lowest point is the character's ground
     arm.data.pose_position = "REST"
     graph = bpy.context.evaluated_depsgraph_get()
-    lows = []
+    lows, ground = [], []
     for o in bpy.context.scene.objects:
         if o.type != "MESH" or not any(m.type == "ARMATURE" and m.object == arm for m in o.modifiers):
             continue
@@ -243,11 +253,24 @@ def _child_read(path: str) -> dict:
         co = np.zeros(3 * len(mesh.vertices))
         mesh.vertices.foreach_get("co", co)
         evaluated.to_mesh_clear()
-        if len(co):
-            m = np.array(evaluated.matrix_world)
-            lows.append(float(((co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]) @ Y_UP.T)[:, 1].min()))
+        if not len(co):
+            continue
+        m = np.array(evaluated.matrix_world)
+        points = (co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]) @ Y_UP.T  # (V, 3)
+        lows.append(float(points[:, 1].min()))
+        if len(points) != len(o.data.vertices):  # a modifier made other vertices: their groups are not these
+            continue
+        groups = [index.get(g.name, -1) for g in o.vertex_groups]
+        for v, p in zip(o.data.vertices, points):  # each vertex with the bone whose group weighs most on it
+            best = max(((g.weight, -groups[g.group]) for g in v.groups if groups[g.group] >= 0), default=None)
+            if best is not None:  # of bones weighing alike, the first (a parent before its child), as glTF's
+                ground.append([*p.tolist(), -best[1]])
+    if ground:  # the lower quarter: feet stand on it
+        rows = np.array(ground)
+        low, high = rows[:, 1].min(), rows[:, 1].max()
+        ground = rows[rows[:, 1] <= low + 0.25 * (high - low)].tolist()
     return {"armature": arm.name, "names": [b.name for b in bones], "rest": rest, "sole": min(lows) if lows else None,
-            "parents": [-1] + [index[b.parent.name] for b in bones[1:]]}
+            "parents": [-1] + [index[b.parent.name] for b in bones[1:]], "ground": ground}
 
 
 def _quat_matrix(q: np.ndarray) -> np.ndarray:
@@ -316,19 +339,19 @@ def _child_write(request: dict, turns: np.ndarray, places: np.ndarray) -> dict:
     scene.render.fps = max(1, round(fps))
     scene.render.fps_base = scene.render.fps / fps
     scene.frame_start, scene.frame_end = 0, T - 1
-    out = request["out"]
-    if out.lower().endswith(".fbx"):
-        done = bpy.ops.export_scene.fbx(
-            filepath=out, add_leaf_bones=False, bake_anim=True, bake_anim_use_all_bones=True,
-            bake_anim_use_nla_strips=False, bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
-            bake_anim_step=1.0, bake_anim_simplify_factor=0.0, path_mode="COPY", embed_textures=True)
-    else:
-        done = bpy.ops.export_scene.gltf(
-            filepath=out, export_format="GLB", export_animations=True, export_animation_mode="ACTIVE_ACTIONS",
-            export_force_sampling=True, export_optimize_animation_size=False, export_def_bones=False,
-            export_anim_single_armature=True, export_skins=True, export_yup=True)
-    if "FINISHED" not in done:
-        raise _Refused(f"Blender could not export {out}")
+    for out in request["out"]:  # the file, and the one written beside it from the same keys
+        if out.lower().endswith(".fbx"):
+            done = bpy.ops.export_scene.fbx(
+                filepath=out, add_leaf_bones=False, bake_anim=True, bake_anim_use_all_bones=True,
+                bake_anim_use_nla_strips=False, bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
+                bake_anim_step=1.0, bake_anim_simplify_factor=0.0, path_mode="COPY", embed_textures=True)
+        else:
+            done = bpy.ops.export_scene.gltf(
+                filepath=out, export_format="GLB", export_animations=True, export_animation_mode="ACTIVE_ACTIONS",
+                export_force_sampling=True, export_optimize_animation_size=False, export_def_bones=False,
+                export_anim_single_armature=True, export_skins=True, export_yup=True)
+        if "FINISHED" not in done:
+            raise _Refused(f"Blender could not export {out}")
     return {"frames": T}
 
 

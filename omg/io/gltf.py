@@ -43,6 +43,9 @@ class Character:
     parent_rest: np.ndarray  # (J, 4) (w, x, y, z): the world rotation of each joint node's parent node at rest
     root_parent: np.ndarray  # (4, 4) world matrix of the root joint's parent node (the identity without one)
     sole: float | None  # m: the height of the skinned meshes' lowest point in the rest pose (None: no mesh)
+    # the skinned meshes' vertices in the rest pose's lower quarter (feet stand on them), in the world, metres,
+    # Y up (V, 3), and the rig joint each follows most (V,): what ``onto_rig`` puts on the ground
+    ground: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def _local_matrix(node: gl.Node) -> np.ndarray:
@@ -173,7 +176,7 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
     offsets = rest - np.concatenate([np.zeros((1, 3)), rest[parents[1:]]])
     character = Character(gltf=gltf, nodes=order, rest_local=_rotation_of(local), rest_translation=local[:, :3, 3],
                           parent_rest=_rotation_of(parent_world), root_parent=root_parent,
-                          sole=_sole(gltf, mesh_to_world))
+                          sole=_sole(gltf, mesh_to_world), ground=_ground(gltf, mesh_to_world, index))
     J = len(order)
     return RigMotion(name=path.stem, names=names, parents=parents, offsets=offsets, fps=30.0,
                      rotations=np.tile([1.0, 0.0, 0.0, 0.0], (1, J, 1)), translations=offsets[None].copy(),
@@ -219,6 +222,59 @@ def _sole(gltf: gl.GLTF2, mesh_to_world: np.ndarray) -> float | None:
                                 for z in (acc.min[2], acc.max[2])])  # fmt: skip
             lows.append(float((corners @ mesh_to_world.T)[:, 1].min()))
     return min(lows) if lows else None
+
+
+def _read_any(gltf: gl.GLTF2, blob: bytes, index: int) -> np.ndarray | None:
+    """(count, width) values of accessor ``index`` as stored (float, or unsigned integers, normalized or not);
+    None for one omg does not read (sparse, or in no buffer view)."""
+    acc = gltf.accessors[index]
+    kinds = {gl.FLOAT: np.float32, gl.UNSIGNED_BYTE: np.uint8, gl.UNSIGNED_SHORT: np.uint16, gl.UNSIGNED_INT: np.uint32}
+    if acc.bufferView is None or acc.sparse is not None or acc.componentType not in kinds:
+        return None
+    dtype = np.dtype(kinds[acc.componentType])
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}.get(acc.type)
+    if width is None:
+        return None
+    view = gltf.bufferViews[acc.bufferView]
+    stride = view.byteStride or width * dtype.itemsize
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    raw = np.frombuffer(blob, np.uint8, (acc.count - 1) * stride + width * dtype.itemsize, start)
+    rows = np.lib.stride_tricks.as_strided(raw, (acc.count, width * dtype.itemsize), (stride, 1))
+    return rows.copy().view(dtype).reshape(acc.count, width)
+
+
+def _ground(gltf: gl.GLTF2, mesh_to_world: np.ndarray, index: dict[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The skinned meshes' vertices in the lower quarter of their height in the rest pose (the bind pose's mesh
+    is the mesh as modelled, turned by ``mesh_to_world``), in the world, and the rig joint (``index``: node ->
+    joint) whose weight on each is the largest; None without a skinned mesh omg can read."""
+    blob = gltf.binary_blob() or b""
+    points, joints = [], []
+    for node in gltf.nodes or []:
+        if node.mesh is None or node.skin is None:
+            continue
+        skin = gltf.skins[node.skin]
+        for primitive in gltf.meshes[node.mesh].primitives:
+            at = primitive.attributes
+            if at.POSITION is None or at.JOINTS_0 is None or at.WEIGHTS_0 is None:
+                continue
+            xyz, bones, weights = (_read_any(gltf, blob, i) for i in (at.POSITION, at.JOINTS_0, at.WEIGHTS_0))
+            if xyz is None or bones is None or weights is None or xyz.dtype != np.float32:
+                continue
+            world = np.concatenate([xyz, np.ones((len(xyz), 1))], axis=1) @ mesh_to_world.T  # (V, 4)
+            # (V, 4) rig joints; of those weighing alike on a vertex, the first of the rig (a parent before its child)
+            rig_of = np.array([index.get(n, -1) for n in skin.joints] + [-1])
+            joint = rig_of[np.minimum(bones.astype(int), len(skin.joints))]
+            heaviest = weights == weights.max(1, keepdims=True)
+            rig = np.where(heaviest & (joint >= 0), joint, np.iinfo(np.int64).max).min(1)
+            rig[rig == np.iinfo(np.int64).max] = -1
+            points.append(world[rig >= 0, :3])
+            joints.append(rig[rig >= 0])
+    if not points or not sum(len(p) for p in points):
+        return None
+    points, joints = np.concatenate(points), np.concatenate(joints)
+    low, high = points[:, 1].min(), points[:, 1].max()
+    keep = points[:, 1] <= low + 0.25 * (high - low)
+    return points[keep], joints[keep]
 
 
 class _Builder:

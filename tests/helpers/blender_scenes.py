@@ -4,8 +4,8 @@ Run as a script under the Python that has ``bpy`` (``python tests/helpers/blende
 REQUESTS.json``: a list of calls), in a child process as omg runs Blender, so that the test process never
 loads Blender (``blender``: the same from a test):
 
-- ``build``: the figure of ``helpers.characters`` (Mixamo's names; ``boxes``: a box of mesh around each
-  bone, weights as in the glTF figure) as an armature with a skinned mesh, written as FBX; ``unit`` in
+- ``build``: the figure of ``helpers.characters`` (Mixamo's names; its ``boxes``: a box of mesh around each
+  bone, the glTF figure's mesh) as an armature with a skinned mesh, written as FBX; ``unit`` in
   metres per file unit (0.01: centimetres, the scene's unit scale, as Mixamo's files), ``z_up``: the
   file's axes Blender's own (Z up, -Y forward) instead of FBX's Y up, ``pose`` "A": the arms 45 degrees down;
 - ``probe``: a written file (.fbx or .glb) opened in an empty scene at ``fps``: its actions (name, frame
@@ -44,45 +44,16 @@ def _characters():
 
 
 def figure_of(pose: str = "T") -> dict:
-    """The glTF figure's skeleton in ``pose`` as plain data (names, parents, rest heads in metres Y up, the boxes'
-    half width), made by the caller's Python: Blender's child gets it in its request, needing no package of the
-    tests' (Blender's Python may be a venv of its own with bpy and numpy alone)."""
+    """The glTF figure in ``pose`` as plain data (names, parents, rest heads in metres Y up, and its mesh:
+    ``characters.boxes``' vertices, their (joint, weight) lists and the quads), made by the caller's Python:
+    Blender's child gets it in its request, needing no package of the tests' (Blender's Python may be a venv of
+    its own with bpy and numpy alone), and both formats' figures are one geometry."""
     characters = _characters()
     names, parents, rest = characters.figure_rest(pose)
+    vertices, groups, faces = characters.boxes(pose)
     return {"names": list(names), "parents": [int(p) for p in parents], "rest": np.asarray(rest).tolist(),
-            "half_width": characters.HALF_WIDTH}
-
-
-def boxes(pose: str = "T", figure: dict | None = None) -> tuple[np.ndarray, list[list[tuple[int, float]]],
-                                                                 list[list[int]]]:
-    """The figure's mesh: a box around each bone (parent joint -> joint), 8 vertices a bone in joint order, the
-    4 at the parent end bound to the parent, the 4 at the far end half and half; the soles of the foot's
-    boxes on the ground. Each box a little wider than the one before, so that no two vertices share a place
-    at rest (a reader that splits or reorders vertices, as glTF's does, is matched back by place).
-    Returns (V, 3) rest positions (metres, Y up), each vertex's (joint, weight) list, and the quads."""
-    figure = figure or figure_of(pose)
-    names, parents, rest = figure["names"], figure["parents"], np.asarray(figure["rest"])
-    vertices, groups, faces = [], [], []
-    for j in range(1, len(names)):
-        p = parents[j]
-        a, b = rest[p], rest[j]
-        axis = (b - a) / np.linalg.norm(b - a)
-        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
-        side /= np.linalg.norm(side)
-        up = np.cross(axis, side)
-        half = figure["half_width"] * (1.0 + 0.02 * j)
-        foot = names[j].endswith(("ToeBase", "Toe_End"))
-        base = len(vertices)
-        for end, point in enumerate((a, b)):
-            for u, v in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-                q = point + half * (u * side + v * up)
-                if foot and q[1] < point[1]:
-                    q[1] = 0.0
-                vertices.append(q)
-                groups.append([(p, 1.0)] if end == 0 else [(p, 0.5), (j, 0.5)])
-        for quad in [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]:
-            faces.append([base + k for k in quad])
-    return np.array(vertices), groups, faces
+            "vertices": np.asarray(vertices).tolist(), "groups": [[[int(j), float(w)] for j, w in g] for g in groups],
+            "faces": [[int(k) for k in f] for f in faces]}
 
 
 def build(path: str, figure: dict, unit: float = 1.0, z_up: bool = False) -> None:
@@ -108,7 +79,7 @@ def build(path: str, figure: dict, unit: float = 1.0, z_up: bool = False) -> Non
             bone.parent = bones[parents[j]]
         bones.append(bone)
     bpy.ops.object.mode_set(mode="OBJECT")
-    vertices, groups, faces = boxes(figure=figure)
+    vertices, groups, faces = np.asarray(figure["vertices"]), figure["groups"], figure["faces"]
     mesh = bpy.data.meshes.new("body")
     mesh.from_pydata(((vertices @ Y_UP) / unit).tolist(), [], faces)
     body = bpy.data.objects.new("body", mesh)
@@ -171,13 +142,25 @@ def probe(path: str, out: str, fps: float) -> None:
         "vertices": [len(o.data.vertices) for o in meshes]}))
 
 
+def convert(path: str, out: str) -> None:
+    """A glTF character made elsewhere, as FBX: Blender's glTF importer, then its FBX exporter (the armature,
+    the skinned mesh and its materials; no animation)."""
+    bpy = _empty_scene()
+    bpy.ops.import_scene.gltf(filepath=path)
+    for o in bpy.context.scene.objects:
+        if o.animation_data:  # the file's own animation stays in the glTF: the FBX is the character at rest
+            o.animation_data_clear()
+    bpy.ops.export_scene.fbx(filepath=out, add_leaf_bones=False, bake_anim=False)
+
+
 if __name__ == "__main__":  # REQUEST.json: a list of keyword arguments, one call each
     for request in json.loads(Path(sys.argv[2]).read_text()):
-        {"build": build, "probe": probe}[sys.argv[1]](**request)
+        {"build": build, "probe": probe, "convert": convert}[sys.argv[1]](**request)
 
 
 def blender(what: str, requests: list[dict], folder: Path) -> None:
-    """``build`` or ``probe`` each of ``requests`` in one child Python (one Blender start for them all)."""
+    """``build``, ``probe`` or ``convert`` each of ``requests`` in one child Python (one Blender start for them
+    all)."""
     import os
     import subprocess
 

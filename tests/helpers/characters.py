@@ -1,7 +1,8 @@
 """Skinned glTF characters the tests make themselves (nothing binary is committed): a figure with
 Mixamo's joint names, a box of mesh around each bone, skin weights, a textured material (a PNG
 made here) and an extension; in a T-pose in metres, or in an A-pose in centimetres under a Z-up
-root node, every joint node with its own rest rotation.
+root node, every joint node with its own rest rotation. ``evaluate`` plays a written file's animation by the
+tests' own forward kinematics and linear-blend skinning (numpy and scipy), independently of omg's.
 """
 
 from __future__ import annotations
@@ -59,6 +60,40 @@ def figure_rest(pose: str = "T") -> tuple[list[str], list[int], np.ndarray]:
     return names, parents, rest
 
 
+CORNERS = ((-1, -1), (-1, 1), (1, -1), (1, 1))  # a box's four corners around each end of its bone: (side, up)
+QUADS = ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))  # a box's faces
+
+
+def boxes(pose: str = "T") -> tuple[np.ndarray, list[list[tuple[int, float]]], list[list[int]]]:
+    """The figure's mesh, the one both the glTF characters and Blender's FBX ones are made with: a box around
+    each bone (parent joint -> joint), 8 vertices a bone in joint order, the 4 at the parent end bound to the
+    parent, the 4 at the far end half and half; the soles of the foot's boxes on the ground. Each box a little
+    wider than the one before, so that no two vertices share a place at rest (a reader that splits or reorders
+    vertices, as glTF's does, is matched back by place).
+    Returns (V, 3) rest positions (metres, Y up), each vertex's (joint, weight) list, and the quads."""
+    names, parents, rest = figure_rest(pose)
+    vertices, groups, faces = [], [], []
+    for j in range(1, len(names)):
+        p = parents[j]
+        a, b = rest[p], rest[j]
+        axis = (b - a) / np.linalg.norm(b - a)
+        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        up = np.cross(axis, side)
+        half = HALF_WIDTH * (1.0 + 0.02 * j)
+        foot = names[j].endswith(("ToeBase", "Toe_End"))  # the bones of the foot: their soles on the ground
+        base = len(vertices)
+        for end, point in enumerate((a, b)):
+            for u, v in CORNERS:
+                q = point + half * (u * side + v * up)
+                if foot and q[1] < point[1]:
+                    q[1] = 0.0
+                vertices.append(q)
+                groups.append([(p, 1.0)] if end == 0 else [(p, 0.5), (j, 0.5)])
+        faces += [[base + k for k in quad] for quad in QUADS]
+    return np.array(vertices), groups, faces
+
+
 def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool = False,
                     turned: bool = False, posed: bool = False) -> Path:
     """A skinned character at ``path`` (.glb, or .gltf with its buffer as a data URI).
@@ -114,35 +149,12 @@ def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool =
                            ("LeftForeArm", Rotation.from_euler("z", 40, degrees=True))):
             node = gltf.nodes[names.index(M + name) + 1]
             node.rotation = (turn * Rotation.from_quat(node.rotation or [0, 0, 0, 1])).as_quat().tolist()
-    # the mesh: a box around each bone (parent joint -> joint), bound to the parent joint; the feet's boxes
-    # reach down to the ground; the vertices at a bone's far end are shared half and half with that joint
-    positions, joints, weights, uvs, indices = [], [], [], [], []
-    corners = np.array([(a, b) for a in (-1, 1) for b in (-1, 1)], dtype=np.float64)
-    for j in range(1, J):
-        p = parents[j]
-        a, b = rest[p], rest[j]
-        axis = (b - a) / np.linalg.norm(b - a)
-        side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
-        side /= np.linalg.norm(side)
-        up = np.cross(axis, side)
-        foot = names[j].endswith(("ToeBase", "Toe_End"))  # the bones of the foot: their soles on the ground
-        base = len(positions)
-        for end, point in enumerate((a, b)):
-            for u, v in corners:
-                q = point + HALF_WIDTH * (u * side + v * up)
-                if foot and q[1] < point[1]:
-                    q[1] = 0.0
-                positions.append(q)
-                uvs.append((0.5 + 0.5 * u, float(end)))
-                if end == 0:
-                    joints.append((p, 0, 0, 0))
-                    weights.append((1.0, 0.0, 0.0, 0.0))
-                else:
-                    joints.append((p, j, 0, 0))
-                    weights.append((0.5, 0.5, 0.0, 0.0))
-        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-        for q0, q1, q2, q3 in quads:
-            indices += [base + q0, base + q1, base + q2, base + q0, base + q2, base + q3]
+    # the mesh: ``boxes``, each corner's texture coordinates across the box (u) and along the bone (v)
+    positions, groups, quads = boxes(pose)
+    joints = [[j for j, _ in g] + [0] * (4 - len(g)) for g in groups]
+    weights = [[w for _, w in g] + [0.0] * (4 - len(g)) for g in groups]
+    uvs = [(0.5 + 0.5 * u, float(end)) for _ in range(J - 1) for end in (0, 1) for u, _ in CORNERS]
+    indices = [q for q0, q1, q2, q3 in quads for q in (q0, q1, q2, q0, q2, q3)]
     attributes = gl.Attributes(
         POSITION=accessor(np.array(positions, np.float32), "VEC3", gl.FLOAT, gl.ARRAY_BUFFER, minmax=True),
         TEXCOORD_0=accessor(np.array(uvs, np.float32), "VEC2", gl.FLOAT, gl.ARRAY_BUFFER),
@@ -173,3 +185,74 @@ def write_character(path: Path, pose: str = "T", unit: float = 1.0, z_up: bool =
     else:
         path.write_bytes(b"".join(gltf.save_to_bytes()))
     return path
+
+
+def read_accessor(gltf: gl.GLTF2, blob: bytes, index: int) -> np.ndarray:
+    """(count, width) float64 values of accessor ``index`` (float or unsigned short, packed or strided)."""
+    acc = gltf.accessors[index]
+    view = gltf.bufferViews[acc.bufferView]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}[acc.type]
+    dtype = np.dtype({gl.FLOAT: np.float32, gl.UNSIGNED_SHORT: np.uint16}[acc.componentType])
+    stride = view.byteStride or width * dtype.itemsize
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    rows = np.frombuffer(blob, np.uint8, (acc.count - 1) * stride + width * dtype.itemsize, start)
+    rows = np.lib.stride_tricks.as_strided(rows, (acc.count, width * dtype.itemsize), (stride, 1))
+    return rows.copy().view(dtype).reshape(acc.count, width).astype(np.float64)
+
+
+def _node_matrix(translation, rotation, scale) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_quat(rotation).as_matrix() * np.asarray(scale)  # glTF and scipy: (x, y, z, w)
+    m[:3, 3] = translation
+    return m
+
+
+def evaluate(path: Path) -> tuple[gl.GLTF2, np.ndarray, np.ndarray]:
+    """The file's last animation at every key: (T, N, 4, 4) world matrices of every node and (T, V, 3) the
+    skinned mesh's vertices (linear-blend skinning: sum of weight * joint world @ inverse bind)."""
+    gltf = gl.GLTF2().load(str(path))
+    blob = gltf.binary_blob()
+    anim = gltf.animations[-1]
+    keys = {(c.target.node, c.target.path): read_accessor(gltf, blob, anim.samplers[c.sampler].output)
+            for c in anim.channels}
+    T = len(next(iter(keys.values())))
+    parent = {c: i for i, n in enumerate(gltf.nodes) for c in (n.children or [])}
+    world = np.zeros((T, len(gltf.nodes), 4, 4))
+    done: set[int] = set()
+
+    def place(n: int) -> None:
+        if n in done:
+            return
+        node = gltf.nodes[n]
+        if node.matrix is not None:  # a node the animation leaves alone (a Z-up root's turn)
+            assert not any(node_ == n for node_, _ in keys)
+            local = [np.asarray(node.matrix, dtype=np.float64).reshape(4, 4).T] * T  # column-major
+        else:
+            moves = keys.get((n, "translation"), [node.translation or [0, 0, 0]] * T)
+            turns = keys.get((n, "rotation"), [node.rotation or [0, 0, 0, 1]] * T)
+            local = [_node_matrix(moves[t], turns[t], node.scale or [1, 1, 1]) for t in range(T)]
+        if n in parent:
+            place(parent[n])
+            world[:, n] = world[:, parent[n]] @ np.stack(local)
+        else:
+            world[:, n] = np.stack(local)
+        done.add(n)
+
+    for n in range(len(gltf.nodes)):
+        place(n)
+    mesh_node = next(n for n in gltf.nodes if n.skin is not None)
+    skin, primitive = gltf.skins[mesh_node.skin], gltf.meshes[mesh_node.mesh].primitives[0]
+    inverse_bind = read_accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)
+    joint_matrices = world[:, skin.joints] @ inverse_bind  # (T, J, 4, 4)
+    vertices = read_accessor(gltf, blob, primitive.attributes.POSITION)
+    joints = read_accessor(gltf, blob, primitive.attributes.JOINTS_0).astype(int)
+    weights = read_accessor(gltf, blob, primitive.attributes.WEIGHTS_0)
+    homogeneous = np.concatenate([vertices, np.ones((len(vertices), 1))], axis=1)  # (V, 4)
+    skinned = np.einsum("vk,tvkab,vb->tva", weights, joint_matrices[:, joints], homogeneous)[..., :3]
+    return gltf, world, skinned
+
+
+def joint_places(gltf: gl.GLTF2, world: np.ndarray, names: list[str]) -> np.ndarray:
+    """(T, J, 3) the places of the nodes named ``names`` in ``evaluate``'s world matrices."""
+    by_name = {n.name: i for i, n in enumerate(gltf.nodes)}
+    return world[:, [by_name[n] for n in names]][..., :3, 3]

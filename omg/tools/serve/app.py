@@ -477,8 +477,13 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
     @app.post("/v1/results/{result}/character", summary="a result's motions on an uploaded character or rig, as "
                                                       "--to_rig writes them")
     async def character(result: str, file: UploadFile = File(..., description="a skinned glTF character (.glb, "
-                                                                              ".gltf) or a BVH rig"),
-                        joint_map: str | None = Form(None), *, http: Request):
+                                                                              ".gltf), an FBX character (.fbx, "
+                                                                              "with Blender's module) or a BVH rig"),
+                        joint_map: str | None = Form(None),
+                        joint_map_file: UploadFile | None = File(None, description="the character's joint map (YAML, "
+                                                                 "omg joint-map's scaffold finished) where no "
+                                                                 "registered map fits its names"),
+                        *, http: Request):
         fields = [name for name in inspect.signature(character).parameters if name not in ("http", "result")]
         if unknown := sorted(set((await http.form()).keys()) - set(fields)):
             raise UsageError(f"{unknown[0]}: Extra inputs are not permitted (the form's fields: {', '.join(fields)})")
@@ -493,6 +498,13 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
             raise UsageError(f"the upload {name!r} is not a character or rig; give one of {', '.join(RIG_SUFFIXES)}")
         if joint_map is not None and not re.fullmatch(r"[\w\-]+", joint_map):
             raise UsageError(f"joint_map {joint_map!r}: give a registered joint map's name")
+        map_text = None
+        if joint_map_file is not None:
+            if joint_map is not None:
+                raise UsageError("give joint_map (a registered map's name) or joint_map_file (a YAML map), not both")
+            map_text = (_upload_name(joint_map_file.filename), await joint_map_file.read(limits.max_json_bytes + 1))
+            if len(map_text[1]) > limits.max_json_bytes:
+                raise _Refusal(413, f"the joint map is larger than the {limits.max_json_bytes} bytes allowed")
         settings = json.loads((where / "generation.json").read_text())
         data = await file.read(limits.max_upload_bytes + 1)
         if len(data) > limits.max_upload_bytes:
@@ -503,18 +515,18 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
                            {"Retry-After": "5"})
         started = time.perf_counter()
         parsing.add(1)
-        job = asyncio.wrap_future(parser.submit(_onto_character, where, settings, data, suffix, joint_map, name,
-                                                parsing))
+        job = asyncio.wrap_future(parser.submit(_onto_character, where, settings, data, suffix, map_text or joint_map,
+                                                name, parsing))
         try:
             written = await asyncio.wait_for(asyncio.shield(job), limits.parse_timeout)
         except asyncio.TimeoutError:
             raise UsageError(f"the upload {name!r} took more than {limits.parse_timeout:g} s to put the motions "
                              "onto") from None
-        results.grow(result, sum((where / f).stat().st_size for f in written.values()))
+        results.grow(result, sum((where / f).stat().st_size for files in written.values() for f in files))
         url = f"/v1/results/{result}"
         return {"id": result, "character": name, "seconds": round(time.perf_counter() - started, 3),
-                "motions": [{"file": record["file"], "url": f"{url}/{written[record['file']]}"}
-                            for record in settings["samples"]]}
+                "motions": [{"file": record["file"], "url": f"{url}/{written[record['file']][0]}",
+                             "view": f"{url}/{written[record['file']][-1]}"} for record in settings["samples"]]}
 
     async def _answer(model: Model, request: GenerationRequest, rows: int, extra: dict) -> JSONResponse:
         started = time.perf_counter()
@@ -690,14 +702,16 @@ def _read_upload(read: Callable[[Path], Any], data: bytes, suffix: str, name: st
         parsing.add(-1)
 
 
-def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, joint_map: str | None, name: str,
-                    parsing: _Count) -> dict[str, str]:
+def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, joint_map: str | tuple[str, bytes] | None,
+                    name: str, parsing: _Count) -> dict[str, list[str]]:
     """A result's motions (``settings``: its ``generation.json``) on the uploaded character or rig, written
     beside them as ``--to_rig`` writes them (``read_rig``, then ``export_motion`` onto the rig: the same
-    files, byte for byte), each named ``<motion>.<character>-<token>.<format>``; returns motion -> file name.
-    Runs on an upload thread."""
+    files, byte for byte), each named ``<motion>.<character>-<token>.<format>``, an FBX character's with its
+    ``.glb`` beside it (Blender's glTF exporter, from the same keys: what the page plays); returns motion ->
+    [the file, the .glb to view where it is another]. ``joint_map``: a registered map's name, or an uploaded
+    YAML map as (its file name, its bytes). Runs on an upload thread."""
     from omg.export import export_motion, output_format
-    from omg.retarget import read_rig
+    from omg.retarget import load_joint_map, read_rig
     from omg.skeleton import get_skeleton
 
     stem = re.sub(r"[^\w\-]+", "_", Path(name).stem)[:40].strip("_") or "character"
@@ -707,6 +721,13 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
                 tempfile.TemporaryDirectory(prefix=".character-", dir=folder) as staged:
             path = Path(upload) / f"character{suffix}"
             path.write_bytes(data)
+            if isinstance(joint_map, tuple):  # an uploaded map: read as --joint_map FILE reads one
+                map_name, map_path = joint_map[0], Path(upload) / "joint_map.yaml"
+                map_path.write_bytes(joint_map[1])
+                try:
+                    joint_map = load_joint_map(map_path)
+                except UsageError as e:
+                    raise UsageError(str(e).replace(str(map_path), map_name)) from None
             try:
                 rig = read_rig(path, settings["skeleton"], joint_map)
             except UsageError as e:
@@ -715,13 +736,15 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
             except Exception as e:  # a garbled file the reader did not foresee is still the upload's fault
                 raise UsageError(f"could not read the upload {name!r} as a character: {_one_line(e)}") from None
             format, written = output_format(None, rig.source), {}
+            view = format == "fbx"  # the page's viewer plays glTF: an FBX character's motions come as .glb too
             for record in settings["samples"]:
                 joints = np.load(folder / f"{record['file']}.joints.npy")
                 export_motion(Path(staged) / record["file"], joints, get_skeleton(settings["skeleton"]),
-                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format)
-                written[record["file"]] = f"{record['file']}.{tag}.{format}"
-            for file, final in written.items():  # named as --to_rig names it while written: the same bytes
-                os.replace(Path(staged) / f"{file}.{format}", folder / final)
+                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format, view=view)
+                written[record["file"]] = [f"{record['file']}.{tag}.{kind}" for kind in (format, "glb")[: 1 + view]]
+            for file, finals in written.items():  # named as --to_rig names it while written: the same bytes
+                for final in finals:
+                    os.replace(Path(staged) / f"{file}.{final.rsplit('.', 1)[1]}", folder / final)
             return written
     finally:
         parsing.add(-1)

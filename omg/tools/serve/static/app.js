@@ -17,7 +17,8 @@ async function loadModels() {
   const response = await fetch('/v1/models');
   const answer = await response.json();
   models = answer.models;
-  $('character').accept = answer.limits.character_suffixes.join(',');  // the rigs this server reads
+  // the rigs this server reads, and a joint map (YAML) chosen with one whose names no built-in map fits
+  $('character').accept = [...answer.limits.character_suffixes, '.yaml', '.yml'].join(',');
   $('character-kinds').textContent = answer.limits.character_suffixes.join(', ');
   $('model').innerHTML = '';
   for (const m of models) $('model').add(new Option(`${m.name} (${m.card.family}, ${m.card.skeleton})`, m.name));
@@ -114,7 +115,7 @@ async function generate() {
     setStatus(`${result.motions.length} motion(s) in ${result.seconds} s` +
               (result.batched_motions > result.motions.length ? ` (sampled with ${result.batched_motions} others)` : ''));
     showResult(result);
-    if ($('character').files[0]) await putOnCharacter();
+    if ($('character').files.length) await putOnCharacter();
   } catch (e) {
     answered = true;
     setStatus(`the server did not answer: ${e}`, true);
@@ -163,12 +164,15 @@ function showResult(result) {
 // the shown result's motions on the character chosen (POST /v1/results/{id}/character): the files to download,
 // played in the view on the character's mesh; no character chosen: the skeletons again
 async function putOnCharacter() {
-  const file = $('character').files[0];
+  const chosen = [...$('character').files];
+  const map = chosen.find((f) => /\.ya?ml$/i.test(f.name));  // its joint map, chosen with it
+  const file = chosen.find((f) => f !== map);
   const result = shown;
   if (!result) return;
   if (!file) { result.character = null; viewer.showSkeletons(); listSamples(result); return; }
   const form = new FormData();
   form.append('file', file);
+  if (map) form.append('joint_map_file', map);
   const said = $('status').textContent.split('; ')[0];
   setStatus(`${said}; putting the motions onto ${file.name}…`);
   try {
@@ -176,9 +180,10 @@ async function putOnCharacter() {
     const answer = await response.json();
     if (result !== shown) return;  // a newer result is in the view
     if (!response.ok) { setStatus(answer.detail || `error ${response.status}`, true); return; }
-    const urls = answer.motions.map((m) => m.url);
-    const playable = urls.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
-    if (playable) await viewer.showFiles(urls);
+    const urls = answer.motions.map((m) => m.url);  // the downloads: the character's own format
+    const views = answer.motions.map((m) => m.view);  // what the view plays (an FBX character's .glb)
+    const playable = views.every((u) => /\.(glb|bvh)$/i.test(u));  // what the viewer's loaders read
+    if (playable) await viewer.showFiles(views);
     result.character = { name: answer.character, urls };
     listSamples(result);
     setStatus(`${said}; on ${answer.character} in ${answer.seconds} s` +

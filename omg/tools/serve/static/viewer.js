@@ -82,7 +82,7 @@ class SkeletonActor {
   }
 }
 
-// A file the motion was written to (a glTF character or a BVH rig), playing its own first animation.
+// A file the motion was written to (a glTF character or a BVH rig), playing the animation omg added to it.
 class FileActor {
   constructor(scene, bones, clip, offset, color, radius, scale) {
     this.object = new THREE.Group();
@@ -142,7 +142,8 @@ async function loadFile(url) {
   const bones = [];
   gltf.scene.traverse((o) => { if (o.isBone) bones.push(o); });
   if (!gltf.animations.length || !bones.length) throw new Error(`${url.split('/').pop()} holds no animated skeleton`);
-  return { scene: gltf.scene, bones, clip: gltf.animations[0] };
+  // the motion is the animation omg added, the last: a character may come with animations of its own
+  return { scene: gltf.scene, bones, clip: gltf.animations[gltf.animations.length - 1] };
 }
 
 export class Viewer {
