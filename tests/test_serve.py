@@ -1219,7 +1219,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     mesh_before, mesh_after = _coloured(before), _coloured(after)
     assert mesh_before.sum() > 2000 and mesh_after.sum() > 2000  # the mesh is drawn (the grid is grey)
     assert (mesh_before ^ mesh_after).sum() > 0.3 * mesh_before.sum()  # and has moved
-    assert target_before == target_after  # the camera stayed
+    assert np.allclose(target_before, target_after, rtol=0, atol=1e-9)  # the camera stayed (to float noise)
     assert np.abs(np.subtract(center_after, center_before)).max() > 0.01  # while the motions moved
     # following: the camera's target keeps its place relative to the motions
     page.check("#follow")
