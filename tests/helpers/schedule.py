@@ -30,6 +30,7 @@ LONGEST: dict[str, float] = {
     "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 31,
     "test_launch.py::test_devices_2_on_one_machine_starts_both_ranks_from_any_folder": 29,
     "test_plan.py::test_controlnet_activation_estimate_matches_the_measured_peak": 27,
+    "public_api": 40,
     "fbx": 25,
     "retarget": 20,
 }
