@@ -21,18 +21,18 @@ LONGEST: dict[str, float] = {
     "omgpt": 90,
     "test_bench.py::test_the_data_benchmark_runs_its_workers_by_module_path": 70,
     "evaluator": 60,
-    "pretrain_whole_run": 50,
     "test_plan.py::test_activation_estimate_matches_the_measured_peak[8-512-True]": 40,
     "controlnet_module": 40,
+    "public_api": 40,
+    "pretrain_whole_run": 35,
     "test_gpu_check.py::test_dry_run_resolves_every_command_and_trains_nothing": 35,
     "docs": 35,
     "test_multinode.py::test_slurm_sbatch_two_nodes_train_and_checkpoint": 32,
-    "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 31,
     "test_launch.py::test_devices_2_on_one_machine_starts_both_ranks_from_any_folder": 29,
-    "test_plan.py::test_controlnet_activation_estimate_matches_the_measured_peak": 27,
-    "public_api": 40,
     "fbx": 25,
+    "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 20,
     "retarget": 20,
+    "test_plan.py::test_controlnet_activation_estimate_matches_the_measured_peak": 15,
 }
 SLOW_SECONDS = 30.0  # the `slow` marker's "half a minute or more"
 
