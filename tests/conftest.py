@@ -10,14 +10,15 @@ import pytest
 import torch
 
 from helpers import SHARED_MOTION, walking_clip, write_toy_shards
+from helpers.schedule import longest_first
 from omg.data.shards import ShardWriter
 from omg.skeleton import SMPL22
 
 
 def pytest_collection_modifyitems(config, items):
-    """The slow tests first (each keeps its place among them): with two xdist workers the long trainings
-    start at once and the short tests fill the time around them, instead of one long test starting last."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """The longest tests and xdist groups first (helpers.schedule): with two xdist workers the long ones start
+    at once and the short tests fill the time around them, instead of one long test starting last."""
+    longest_first(items)
 
 
 @pytest.fixture

@@ -103,12 +103,30 @@ def plugin_path(tmp_path) -> Path:
     return site
 
 
-def test_plugin_components_are_listed_and_selected_by_name_from_yaml(plugin_path, tmp_path):
-    env = {"PYTHONPATH": os.pathsep.join([str(plugin_path), str(REPO)])}
-    listed = run_omg("plugins", env_extra=env)
-    assert listed.returncode == 0, listed.stderr
-    assert "plugins (entry-point group omg.plugins): toy" in listed.stdout
-    assert "toy3" in listed.stdout and "toy-swing" in listed.stdout and "Pendulum swings" in listed.stdout
+@pytest.fixture
+def installed_plugin(plugin_path, monkeypatch):
+    """The plugin installed in this process, as PYTHONPATH installs it in a new one: its site folder on
+    sys.path, where importlib.metadata finds its entry point. omg's own components are registered first,
+    and each registry is given back after the test as it was, so the plugin's do not outlive the test."""
+    from omg import registry
+
+    for reg in registry.ALL.values():
+        reg.names()  # imports the modules registering omg's own components (into the other registries too)
+    for reg in registry.ALL.values():
+        monkeypatch.setattr(reg, "_entries", dict(reg._entries))
+    monkeypatch.setattr(registry, "_plugins_loaded", None)  # entry points read afresh, as at a start
+    monkeypatch.syspath_prepend(str(plugin_path))
+    yield
+    sys.modules.pop("omg_toy_plugin", None)
+
+
+def test_plugin_components_are_listed_and_selected_by_name_from_yaml(installed_plugin, tmp_path, capsys):
+    """In this process (what the commands do, not how a process starts): `omg plugins`, then `omg shards
+    build` naming the plugin's source and skeleton from YAML, then one of its options misspelt."""
+    main(["plugins"])
+    listed = capsys.readouterr().out
+    assert "plugins (entry-point group omg.plugins): toy" in listed
+    assert "toy3" in listed and "toy-swing" in listed and "Pendulum swings" in listed
 
     config = tmp_path / "build.yaml"
     config.write_text(textwrap.dedent(f"""
@@ -119,16 +137,14 @@ def test_plugin_components_are_listed_and_selected_by_name_from_yaml(plugin_path
         out: {tmp_path / 'toy_shards'}
         option: {{num_clips: 3}}
     """))
-    built = run_omg("shards", "build", "--config", str(config), env_extra=env)
-    assert built.returncode == 0, built.stderr
-    assert "3 clips" in built.stdout
-    inspected = run_omg("shards", "inspect", str(tmp_path / "toy_shards"), env_extra=env)
-    assert "representation maa (24-d) on toy3" in inspected.stdout and "3 valid samples" in inspected.stdout
+    main(["shards", "build", "--config", str(config)])
+    assert "3 clips" in capsys.readouterr().out
+    main(["shards", "inspect", str(tmp_path / "toy_shards")])
+    inspected = capsys.readouterr().out
+    assert "representation maa (24-d) on toy3" in inspected and "3 valid samples" in inspected
 
     config.write_text(config.read_text() + "colour: blue\n")
-    bad = run_omg("shards", "build", "--config", str(config), env_extra=env)
-    assert bad.returncode == 2 and "does not accept option 'colour'" in bad.stderr
-    assert len(bad.stderr.strip().splitlines()) == 1
+    _assert_usage_error(capsys, ["shards", "build", "--config", str(config)], "does not accept option 'colour'")
 
 
 def test_a_broken_plugin_is_named(tmp_path, plugin_path):

@@ -25,12 +25,12 @@ PEAK_STEP = """
 import sys, torch
 from omg.models.controlnet import MoCConfig, MotionControlNet
 from omg.models.dit import DiTConfig, MotionDiT
-from omg.lit.base import checkpoint_each
 torch.set_num_threads(1)
 B, T, ckpt, L = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
 torch.manual_seed(0)
 model = MotionDiT(DiTConfig.from_name("mini"))
-if ckpt:
+if ckpt:  # omg.lit imports Lightning, most of this process's start: only where the step needs it
+    from omg.lit.base import checkpoint_each
     checkpoint_each(model.blocks)
 x, t = torch.randn(B, T, 263), torch.randint(0, 1000, (B,))
 mask = torch.ones(B, T, dtype=torch.bool)

@@ -33,6 +33,10 @@ PACKAGE = REPO / "omg"
 LIBRARIES = ("jsonargparse", "lightning", "lightning_fabric", "pytorch_lightning")
 TORCH = "torch"  # scanned as well, its private names read from its sources' text (an AST of 50 MB is slow)
 
+# the scans share the libraries' private names (functools.cache, about 20 s to read): under xdist their
+# tests run on one worker, which reads them once
+pytestmark = pytest.mark.xdist_group("public_api")
+
 # (omg file, private name) -> why no public route exists. Keep it short: each entry is a hook that
 # a new jsonargparse, Lightning or torch may remove without notice.
 ALLOWED: dict[tuple[str, str], str] = {
@@ -297,17 +301,21 @@ def test_the_scan_finds_the_hooks_it_is_for(tmp_path, monkeypatch):
                      "_hpc_resume_path", "_get_train_description", "_check_type_"}
 
 
-def test_omg_uses_no_private_jsonargparse_lightning_or_torch_attribute():
-    uses = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        where = str(path.relative_to(REPO))
-        uses += [f"{where}:{line}: {what}" for line, name, what in private_uses(path) if (where, name) not in ALLOWED]
+@pytest.fixture(scope="session")
+def omg_uses() -> dict[str, list[tuple[int, str, str]]]:
+    """private_uses of each of omg's files, by its path in the repository (scanned once)."""
+    return {str(path.relative_to(REPO)): private_uses(path) for path in sorted(PACKAGE.rglob("*.py"))}
+
+
+def test_omg_uses_no_private_jsonargparse_lightning_or_torch_attribute(omg_uses):
+    uses = [f"{where}:{line}: {what}" for where, found in omg_uses.items() for line, name, what in found
+            if (where, name) not in ALLOWED]
     assert not uses, ("private jsonargparse/Lightning/torch attributes (use a public API, or add an entry to ALLOWED "
                       "with the reason none exists):\n" + "\n".join(uses))
 
 
-def test_every_allowed_hook_is_still_used():
-    used = {(str(path.relative_to(REPO)), name) for path in PACKAGE.rglob("*.py") for _, name, _ in private_uses(path)}
+def test_every_allowed_hook_is_still_used(omg_uses):
+    used = {(where, name) for where, found in omg_uses.items() for _, name, _ in found}
     assert set(ALLOWED) <= used, f"stale ALLOWED entries: {sorted(set(ALLOWED) - used)}"
 
 

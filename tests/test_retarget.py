@@ -42,6 +42,8 @@ def retargeted() -> list:
     return out
 
 
+# the tests of every real clip share the `retargeted` fixture's retargets: under xdist they run on one worker
+@pytest.mark.xdist_group("retarget")
 def test_every_real_clip_retargets(retargeted):
     assert len(retargeted) == 88
     maps = {}
@@ -80,6 +82,7 @@ def test_every_real_clip_retargets(retargeted):
     }  # fmt: skip
 
 
+@pytest.mark.xdist_group("retarget")
 def test_left_is_left(retargeted):
     """No mirrored map: on walking clips the left joints lie to the left of the direction the
     toes point (SMPL) or the head points (SMAL), i.e. forward = left x up."""
