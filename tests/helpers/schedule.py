@@ -29,6 +29,7 @@ LONGEST: dict[str, float] = {
     "docs": 35,
     "test_multinode.py::test_slurm_sbatch_two_nodes_train_and_checkpoint": 32,
     "test_launch.py::test_devices_2_on_one_machine_starts_both_ranks_from_any_folder": 29,
+    "outside": 45,
     "fbx": 25,
     "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 20,
     "retarget": 20,
