@@ -372,3 +372,11 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     assert set(result["seconds_per_motion_second"]) == {"timeline", "plain", "parts"}
     out = capsys.readouterr().out
     assert "| segments passing, in timelines / alone |" in out and "| body-part compositions: both parts" in out
+    # a subset of the same run: the second timeline's captions and seeds, each text seeing its own stretch
+    second = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=0,
+                            samples=2, steps=2, segment_seconds=1.0, context=0.25, only_timelines=(2,))
+    assert second["timelines"] == result["timelines"][1:] and not second["compositions"]
+    assert [r["timeline"] for r in second["segments"]] == [2, 2, 2]
+    assert second["alone"] == {text: result["alone"][text] for text in second["alone"]}  # the same seeds
+    with pytest.raises(UsageError, match="--only_timelines: 3 is past the 2 the run makes"):
+        bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, only_timelines=(3,))
