@@ -14,8 +14,8 @@ from helpers import MINI, TINY_DIT
 from omg.errors import UsageError
 from omg.generation.timeline import parse_timeline
 from omg.lit.sampling import SamplingSettings
-from omg.lit.timeline import PartText, Segment, resolve_timeline, segment_weights, timeline_denoiser
-from omg.motion import length_mask
+from omg.lit.timeline import PartText, Segment, Timeline, resolve_timeline, segment_weights, timeline_denoiser
+from omg.motion import get_representation, length_mask
 from omg.skeleton import SMPL22, body_parts
 
 WALK, WAVE = "a person walks forward", "a person waves the left hand"
@@ -75,6 +75,7 @@ BAD = [
     ([{"start": 0, "end": 2, "text": "a\x00b"}], "timeline[0].text holds the control character"),
     ({"parts": [{"parts": [], "text": WALK}]}, "parts[0].parts must be a non-empty list of body part names"),
     ({"timeline": [{"start": 0, "end": 2, "text": WALK}], "extra": 1}, "unknown key 'extra'"),
+    ({"timeline": [{"start": 0, "end": 2, "text": WALK}], "context": -1}, "context must be a finite number of seconds"),
     ("walk", "expected a list of segments"),
 ]
 
@@ -211,6 +212,44 @@ def test_each_body_part_takes_its_features_from_its_own_text(controlnet):
     assert list(torch.nonzero(~arm).flatten()[:4]) == [0, 1, 2, 3]  # the trajectory is the walk's
 
 
+def test_with_a_context_each_text_sees_only_its_own_frames_and_that_much_around(controlnet):
+    """``context``: text k's denoiser runs on its own window (its frames, widened by the context) cut out of the
+    sequence, so what happens outside the window cannot change its estimate; without one it sees the whole
+    sequence and does. Inside the window the estimate is that text's denoiser on the cut-out frames."""
+    frames, rep = 80, controlnet.representation
+    segments = [Segment(0, 2, WALK), Segment(2, 4, WAVE)]
+    windowed = resolve_timeline(segments, [], frames, FPS, rep, context=0.5)
+    whole = resolve_timeline(segments, [], frames, FPS, rep)
+    assert windowed.windows == ((0, 55), (26, 80)) and whole.windows is None  # crossing 1.75..2.25 s, + 0.5 s
+    assert torch.equal(windowed.weights, whole.weights)
+    mask = length_mask([frames, frames])
+    gen = torch.Generator().manual_seed(3)
+    x, t = torch.randn(2, frames, 263, generator=gen), torch.tensor([400, 800])
+    later = x.clone()
+    later[:, 60:] = torch.randn(2, 20, 263, generator=gen)  # only the wave's frames past the walk's window
+    with torch.no_grad():
+        seen = timeline_denoiser(controlnet.denoiser, windowed, mask, None)
+        unseen = timeline_denoiser(controlnet.denoiser, whole, mask, None)
+        walk_cut = _estimates(controlnet, [WALK] * 2, length_mask([55, 55]), x[:, :55], t)
+        a, b = seen(x, t), seen(later, t)
+        assert torch.allclose(a[:, :35], walk_cut[:, :35], atol=1e-5)  # the walk's own frames: its cut-out estimate
+        assert torch.equal(a[:, :25], b[:, :25])  # frames only the walk's window covers: blind to frames 60..79
+        assert not torch.allclose(a[:, 60:], b[:, 60:], atol=1e-3)
+        assert not torch.allclose(unseen(x, t)[:, :25], unseen(later, t)[:, :25], atol=1e-4)  # the whole sees them
+
+
+def test_windows_hold_every_frame_of_their_text_and_parts_see_the_whole_motion(controlnet):
+    rep = controlnet.representation
+    three = resolve_timeline([Segment(0, 1, WALK), Segment(0.8, 2, WAVE), Segment(2, 3, "a person turns left")], [],
+                             60, FPS, rep, context=0)
+    assert three.windows == ((0, 23), (14, 45), (36, 60))  # crossings 0.65..1.15 s and 1.75..2.25 s
+    parts = resolve_timeline([], [PartText(("legs", "root"), WALK), PartText(("left_arm",), WAVE, start=1.0)], 60,
+                             FPS, rep, context=0.25)
+    assert parts.windows == ((0, 60), (11, 60))  # the wave crosses in after 0.75 s, seen 0.25 s before
+    with pytest.raises(ValueError, match="must hold its text's frames"):
+        Timeline(three.texts, three.weights, ((0, 23), (20, 45), (36, 60)))
+
+
 def test_a_part_with_a_window_holds_only_then(controlnet):
     frames = 60
     timeline = resolve_timeline([Segment(0, 3, WALK)], [PartText(("left_arm",), WAVE, start=1.0, end=2.0)], frames,
@@ -240,10 +279,13 @@ def test_sampling_a_timeline_is_one_motion_and_without_one_the_plain_path(contro
     assert torch.equal(controlnet.sample(None, [frames, frames], SamplingSettings(steps=3, seed=4, use_ema=False,
                                                                                  timeline=alone)), plain)
     two = resolve_timeline([Segment(0, 1, WALK), Segment(1, 2, WAVE)], [], frames, FPS, controlnet.representation)
+    cut = resolve_timeline([Segment(0, 1, WALK), Segment(1, 2, WAVE)], [], frames, FPS, controlnet.representation,
+                           context=0.25)
     for sampler in SAMPLERS.names():
-        motion = controlnet.sample(None, [frames], SamplingSettings(steps=3, sampler=sampler, use_ema=False,
-                                                                    timeline=two, stance_root=0.5))
-        assert motion.shape == (1, frames, 263) and torch.isfinite(motion).all()
+        for timeline in (two, cut):
+            motion = controlnet.sample(None, [frames, frames - 6], SamplingSettings(
+                steps=3, sampler=sampler, use_ema=False, timeline=timeline, stance_root=0.5))
+            assert motion.shape == (2, frames, 263) and torch.isfinite(motion).all()
     with pytest.raises(ValueError, match="a timeline carries its own texts"):
         controlnet.sample([WALK], [frames], SamplingSettings(steps=1, timeline=two))
 
@@ -290,6 +332,11 @@ def test_the_parser_keeps_the_file_and_checks_against_a_motion():
     spans = parse_timeline({"timeline": [{"start": 0, "end": 2, "text": WALK}, {"start": 2, "end": 4, "text": WAVE}],
                             "transition": 1})
     assert spans.end == 4.0 and spans.kinds == ("timeline",) and spans.transition == 1.0
+    assert spans.context is None and "context" not in spans.to_dict()
+    cut = parse_timeline({**spans.to_dict(), "context": 0.5})
+    assert cut.context == 0.5 and cut.to_dict()["context"] == 0.5
+    rep = get_representation("humanml3d263", SMPL22)
+    assert cut.resolve(80, FPS, rep).windows == ((0, 60), (21, 80))  # a 1-s crossing, 0.5 s on either side
     spans.check("smpl22", 4.0, FPS)
     spans.check("smpl22", 4.0 + 0.4 / FPS, FPS)  # within a frame's rounding
     with pytest.raises(UsageError, match="before the motion's end"):
@@ -301,7 +348,7 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     walk on the legs with a wave on the arms, every figure of the table there."""
     from helpers import walking_clip
     from omg.data.shards import ShardWriter
-    from omg.motion import Clip, get_representation
+    from omg.motion import Clip
     from omg.tools.bench.timeline import bench_timeline
 
     clips = []
@@ -325,3 +372,11 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     assert set(result["seconds_per_motion_second"]) == {"timeline", "plain", "parts"}
     out = capsys.readouterr().out
     assert "| segments passing, in timelines / alone |" in out and "| body-part compositions: both parts" in out
+    # a subset of the same run: the second timeline's captions and seeds, each text seeing its own stretch
+    second = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=0,
+                            samples=2, steps=2, segment_seconds=1.0, context=0.25, only_timelines=(2,))
+    assert second["timelines"] == result["timelines"][1:] and not second["compositions"]
+    assert [r["timeline"] for r in second["segments"]] == [2, 2, 2]
+    assert second["alone"] == {text: result["alone"][text] for text in second["alone"]}  # the same seeds
+    with pytest.raises(UsageError, match="--only_timelines: 3 is past the 2 the run makes"):
+        bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, only_timelines=(3,))

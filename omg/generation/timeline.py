@@ -4,7 +4,7 @@ body-part composition, read and checked here, one line per error, before anythin
 
 The file is JSON: a list of segments ``[{"start": s, "end": s, "text": ...}, ...]`` (seconds), or a mapping
 ``{"timeline": [...], "parts": [{"parts": [...], "text": ..., "start"?: s, "end"?: s}, ...],
-"transition"?: s}``. Segments come in time order, the first at 0 s, each meeting or overlapping the next
+"transition"?: s, "context"?: s}``. Segments come in time order, the first at 0 s, each meeting or overlapping the next
 (no gap, none inside another, none of zero length); the last one ends the motion. Body parts are named
 by ``omg.skeleton.body_parts`` of the model's skeleton, and two entries never name one joint at the same time.
 """
@@ -33,11 +33,13 @@ PART_KEYS = ("parts", "text", "start", "end")
 @dataclass(frozen=True)
 class TimelineFile:
     """A checked timeline in seconds: ``segments`` in time order, ``parts`` in the file's order, ``transition``
-    seconds of crossing where two segments only touch (and at a part's start and end)."""
+    seconds of crossing where two segments only touch (and at a part's start and end), ``context`` seconds
+    each text's denoiser sees on either side of its own frames (None: the whole motion)."""
 
     segments: tuple[Segment, ...] = ()
     parts: tuple[PartText, ...] = ()
     transition: float = DEFAULT_TRANSITION
+    context: float | None = None
 
     @property
     def end(self) -> float | None:
@@ -58,7 +60,7 @@ class TimelineFile:
                 "parts": [{"parts": list(p.parts), "text": p.text,
                            **({} if p.start is None else {"start": p.start}),
                            **({} if p.end is None else {"end": p.end})} for p in self.parts],
-                "transition": self.transition}
+                "transition": self.transition, **({} if self.context is None else {"context": self.context})}
 
     def check(self, skeleton: str, seconds: float, fps: float, where: str = "--timeline") -> None:
         """One line when the file does not fit a motion of ``seconds`` at ``fps`` on ``skeleton``: a segment
@@ -92,7 +94,8 @@ class TimelineFile:
 
     def resolve(self, frames: int, fps: float, representation: Representation) -> Timeline:
         """The tensor-level timeline of ``frames`` feature frames (``omg.lit.timeline.resolve_timeline``)."""
-        return resolve_timeline(self.segments, self.parts, frames, fps, representation, self.transition)
+        return resolve_timeline(self.segments, self.parts, frames, fps, representation, self.transition,
+                                self.context)
 
 
 def _overlap(p: PartText, q: PartText, seconds: float) -> bool:
@@ -121,8 +124,9 @@ def parse_timeline(data: Any, where: str = "timeline",
     if not isinstance(data, dict):
         raise UsageError(f"{where}: expected a list of segments [{{\"start\", \"end\", \"text\"}}] or "
                          "{\"timeline\": [...], \"parts\": [...]}")
-    if extra := sorted(set(data) - {"timeline", "parts", "transition"}):
-        raise UsageError(f"{where}: unknown key {extra[0]!r}; a timeline file has timeline, parts, transition")
+    if extra := sorted(set(data) - {"timeline", "parts", "transition", "context"}):
+        raise UsageError(f"{where}: unknown key {extra[0]!r}; a timeline file has timeline, parts, transition, "
+                         "context")
     raw_segments, raw_parts = data.get("timeline") or [], data.get("parts") or []
     for key, value in (("timeline", raw_segments), ("parts", raw_parts)):
         if not isinstance(value, list):
@@ -133,6 +137,7 @@ def parse_timeline(data: Any, where: str = "timeline",
     if len(raw_segments) + len(raw_parts) > MAX_ENTRIES:
         raise UsageError(f"{where}: {len(raw_segments) + len(raw_parts)} entries; at most {MAX_ENTRIES}")
     transition = _seconds(data.get("transition", DEFAULT_TRANSITION), f"{where}: transition")
+    context = None if data.get("context") is None else _seconds(data["context"], f"{where}: context")
     segments = tuple(_segment(s, f"{where}: timeline[{i}]", check_text) for i, s in enumerate(raw_segments))
     for i, (a, b) in enumerate(zip(segments, segments[1:])):
         if b.start < a.start:
@@ -148,7 +153,7 @@ def parse_timeline(data: Any, where: str = "timeline",
         raise UsageError(f"{where}: timeline[0] starts at {segments[0].start:g} s; the timeline starts the motion, "
                          "at 0 s (a gap before it)")
     parts = tuple(_part(p, f"{where}: parts[{i}]", check_text) for i, p in enumerate(raw_parts))
-    return TimelineFile(segments, parts, transition)
+    return TimelineFile(segments, parts, transition, context)
 
 
 def _fields(entry: Any, keys: tuple[str, ...], needed: tuple[str, ...], what: str, where: str) -> dict[str, Any]:

@@ -51,10 +51,13 @@ class PartText:
 @dataclass(frozen=True, eq=False)
 class Timeline:
     """What a sampler blends: ``texts`` (K distinct captions) and ``weights`` (K, T, D), the share of text k's
-    denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere."""
+    denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere. ``windows``: the
+    frames [start, end) each text's denoiser sees (None: every text sees the whole sequence); a window holds
+    every frame its text has a share in."""
 
     texts: tuple[str, ...]
     weights: Tensor  # (K, T, D)
+    windows: tuple[tuple[int, int], ...] | None = None
 
     def __post_init__(self) -> None:
         w = self.weights
@@ -62,6 +65,14 @@ class Timeline:
             raise ValueError(f"timeline weights (K, T, D) for {len(self.texts)} texts, got {tuple(w.shape)}")
         if not torch.isfinite(w).all() or not torch.allclose(w.sum(0), torch.ones_like(w[0]), atol=1e-5):
             raise ValueError("timeline weights must be finite and sum to 1 over the texts")
+        if self.windows is not None:
+            if len(self.windows) != len(self.texts):
+                raise ValueError(f"{len(self.windows)} windows for {len(self.texts)} texts")
+            frames = torch.arange(w.shape[1])
+            for (start, end), share in zip(self.windows, w):
+                inside = (frames >= start) & (frames < end)
+                if not 0 <= start < end <= w.shape[1] or (share.abs().sum(-1)[~inside] > 0).any():
+                    raise ValueError(f"a window {start}..{end} of {w.shape[1]} frames must hold its text's frames")
 
 
 def smoothstep(u: Tensor) -> Tensor:
@@ -108,13 +119,27 @@ def part_window(part: PartText, times: Tensor, seconds: float, transition: float
     return window
 
 
+def text_windows(weights: Tensor, context: int) -> tuple[tuple[int, int], ...]:
+    """(K, T, D) shares -> each text's frames [start, end): from its first frame with a share to its last,
+    widened by ``context`` frames on each side within the motion."""
+    frames = weights.shape[1]
+    windows = []
+    for share in weights.abs().sum(-1) > 0:  # (T,) the frames this text has a share in
+        held = torch.nonzero(share).flatten()
+        windows.append((max(0, int(held[0]) - context), min(frames, int(held[-1]) + 1 + context)))
+    return tuple(windows)
+
+
 def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], frames: int, fps: float,
-                     representation: Representation, transition: float = 0.5) -> Timeline:
+                     representation: Representation, transition: float = 0.5,
+                     context: float | None = None) -> Timeline:
     """The ``Timeline`` of ``frames`` feature frames at ``fps`` for a model of ``representation``: the segments
     (in time order, meeting or overlapping) share the frames, then each ``PartText`` in turn takes its joints'
     features (``channel_joints``) while it holds. Without segments, the first part's text is the base the
-    others replace. The checks of a user's values (times inside the motion, known part names) are
-    ``omg.generation.timeline``'s; ``body_parts`` and ``channel_joints`` raise their own one line."""
+    others replace. ``context`` (seconds; None: the whole motion) limits what each text's denoiser sees to
+    its own frames and that much on either side (``text_windows``). The checks of a user's values (times
+    inside the motion, known part names) are ``omg.generation.timeline``'s; ``body_parts`` and
+    ``channel_joints`` raise their own one line."""
     times = torch.arange(frames, dtype=torch.float64) / fps  # (T,) the time of each feature frame
     dim = representation.dim
     texts = list(dict.fromkeys([s.text for s in segments] + [p.text for p in parts]))
@@ -135,7 +160,9 @@ def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], fra
             own = torch.zeros(len(texts), 1, 1, dtype=weights.dtype)
             own[texts.index(part.text)] = 1.0
             weights = weights * (1.0 - take) + own * take
-    return Timeline(tuple(texts), weights.float())
+    weights = weights.float()
+    windows = None if context is None else text_windows(weights, round(context * fps))
+    return Timeline(tuple(texts), weights, windows)
 
 
 TextDenoiser = Callable[[Sequence[str], Tensor, "float | None"], Denoiser]  # (texts, mask, guidance) -> denoiser
@@ -149,12 +176,46 @@ def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, 
     if timeline.weights.shape[1] != frames:
         raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
     texts = [text for text in timeline.texts for _ in range(b)]
-    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
+    if timeline.windows is not None:
+        return windowed_denoiser(denoiser(texts, window_mask(mask, timeline.windows), guidance), weights,
+                                 timeline.windows)
+    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
 
     def blended(x: Tensor, t: Tensor) -> Tensor:
         x0 = denoise(x.repeat(k, 1, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, T, D)
         return (weights.to(x0.dtype) * x0).sum(0)
+
+    return blended
+
+
+def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:
+    """(B, T) real frames -> (K·B, L) the real frames of each text's window, moved to its start, L the longest
+    window: text k's rows are k·B..(k+1)·B."""
+    length = max(end - start for start, end in windows)
+    out = mask.new_zeros(len(windows), *mask.shape[:1], length)  # (K, B, L)
+    for k, (start, end) in enumerate(windows):
+        out[k, :, :end - start] = mask[:, start:end]
+    return out.flatten(0, 1)
+
+
+def windowed_denoiser(denoise: Denoiser, weights: Tensor, windows: Sequence[tuple[int, int]]) -> Denoiser:
+    """The blended x̂0 with each text's denoiser (``denoise``, over ``window_mask``'s K·B rows) seeing only its
+    own window of the sequence: text k's frames start..end, cut out and moved to the start of its rows. A text
+    then cannot read another text's stretch of the motion (a run 6 s later) into its own, and the K passes
+    cost their windows' frames instead of K whole sequences."""
+    k, length = len(windows), max(end - start for start, end in windows)
+
+    def blended(x: Tensor, t: Tensor) -> Tensor:
+        b = x.shape[0]
+        cut = x.new_zeros(k, b, length, x.shape[-1])  # (K, B, L, D)
+        for i, (start, end) in enumerate(windows):
+            cut[i, :, :end - start] = x[:, start:end]
+        estimates = denoise(cut.flatten(0, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, L, D)
+        x0 = torch.zeros_like(x)
+        for i, (start, end) in enumerate(windows):  # a text has no share outside its window
+            x0[:, start:end] += weights[i, :, start:end].to(x.dtype) * estimates[i, :, :end - start]
+        return x0
 
     return blended
 

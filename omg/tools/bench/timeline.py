@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from omg.errors import UsageError
-from omg.tools.args import FiniteFloat, NonNegativeInt, PositiveFiniteFloat, PositiveInt
+from omg.tools.args import FiniteFloat, NonNegativeFiniteFloat, NonNegativeInt, PositiveFiniteFloat, PositiveInt
 
 HAND, BODY = ("hand",), ("turn", "travel", "pace")  # the kinds of target an arm part / the legs and root answer for
 
@@ -45,7 +45,8 @@ def bench_timeline(
     timelines: PositiveInt = 6,
     segment_seconds: PositiveFiniteFloat = 3.0,
     transition: PositiveFiniteFloat = 0.5,
-    compositions: PositiveInt = 4,
+    context: NonNegativeFiniteFloat | None = None,
+    compositions: NonNegativeInt = 4,
     composition_seconds: PositiveFiniteFloat = 4.0,
     samples: PositiveInt = 4,
     steps: PositiveInt = 50,
@@ -54,6 +55,8 @@ def bench_timeline(
     seed: NonNegativeInt = 0,
     prompts: Path | None = None,
     label: str = "content",
+    only_timelines: tuple[PositiveInt, ...] = (),
+    only_compositions: tuple[PositiveInt, ...] = (),
     command: str = "omg bench timeline",
 ) -> dict:
     """Prompt timelines and body-part composition of a text-conditioned OMG checkpoint on the held-out captions
@@ -79,6 +82,8 @@ def bench_timeline(
         timelines: timelines to make (each of different captions, neighbours of different actions)
         segment_seconds: seconds per segment
         transition: seconds two segments cross over in (the timeline file's transition)
+        context: seconds each text's denoiser sees on either side of its own frames (the timeline file's
+            context; default: the whole motion)
         compositions: body-part compositions to make
         composition_seconds: seconds per composition
         samples: motions per timeline, composition and caption alone (seeds seed..seed+samples-1)
@@ -88,6 +93,9 @@ def bench_timeline(
         seed: the seed of the choice of captions and of the first motion
         prompts: the prompt file whose ``labels:`` give the targets (default: the built-in set)
         label: the clip label that names the action (a Bandai-Namco take's ``content``)
+        only_timelines: sample only these timelines, numbered 1.. as the full run makes them (the same
+            captions and seeds; the others are chosen, not sampled): a list such as [2, 4]
+        only_compositions: sample only these compositions, numbered the same way
         command: the command line, printed with the results
     """
     import torch
@@ -102,6 +110,10 @@ def bench_timeline(
     from omg.registry import SAMPLERS
 
     SAMPLERS.get(sampler)
+    for name, picked, made in (("only_timelines", only_timelines, timelines),
+                               ("only_compositions", only_compositions, compositions)):
+        if past := [n for n in picked if n > made]:
+            raise UsageError(f"--{name}: {past[0]} is past the {made} the run makes (--{name.split('_')[1]})")
     module = load_module(ckpt, expect=MotionDiffusionModule).eval()
     if not module.text_conditional:
         raise UsageError(f"--ckpt {ckpt}: a timeline needs a text-conditioned (ControlNet) checkpoint")
@@ -147,14 +159,17 @@ def bench_timeline(
             chosen.append(pool[int(rng.integers(len(pool)))])
         while len(chosen) < k:  # fewer actions than segments: repeat, never next to itself
             chosen.append(chosen[-2])
+        if only_timelines and i + 1 not in only_timelines:
+            continue
         spans = parse_timeline({"timeline": [{"start": j * segment_seconds, "end": (j + 1) * segment_seconds,
-                                              "text": c[0]} for j, c in enumerate(chosen)], "transition": transition})
+                                              "text": c[0]} for j, c in enumerate(chosen)], "transition": transition,
+                                "context": context})
         frames = round(k * segment_seconds * fps)
         joints = sample(None, frames, spans, "timeline")  # (n, T, J, 3)
         made.append([c[0] for c in chosen])
         for j, (text, targets, action) in enumerate(chosen):
             own = joints[:, j * seg_frames:(j + 1) * seg_frames]
-            segment_rows.append({"text": text, "targets": targets, "passed": score(own, targets)})
+            segment_rows.append({"timeline": i + 1, "text": text, "targets": targets, "passed": score(own, targets)})
         for j in range(1, k):
             b, w = j * seg_frames, max(2, round(transition * fps))
             for m in joints:
@@ -183,10 +198,13 @@ def bench_timeline(
         walk, wave = walkers[int(rng.integers(len(walkers)))], wavers[int(rng.integers(len(wavers)))]
         hands = {t.get("hand") for t in wave[1] if check_target(t) in HAND}
         arm = "arms" if hands & {"both", "either"} else f"{hands.pop()}_arm"
+        if only_compositions and i + 1 not in only_compositions:
+            continue
         spans = parse_timeline({"parts": [{"parts": ["legs", "root"], "text": walk[0]},
-                                          {"parts": [arm], "text": wave[0]}], "transition": transition})
+                                          {"parts": [arm], "text": wave[0]}], "transition": transition,
+                                "context": context})
         sentence = f"{walk[0].rstrip('.')} and {wave[0].removeprefix('a person ')}"
-        row = {"walk": walk[0], "wave": wave[0], "arm": arm, "sentence": sentence}
+        row = {"composition": i + 1, "walk": walk[0], "wave": wave[0], "arm": arm, "sentence": sentence}
         for key, joints in (("parts", sample(None, comp_frames, spans, "parts")),
                             ("plain", sample([sentence] * samples, comp_frames))):
             body, hand = score(joints, walk[1], BODY), score(joints, wave[1], HAND)
@@ -200,11 +218,11 @@ def bench_timeline(
         values = list(values)
         return f"{sum(values)}/{len(values)} ({np.mean(values):.2f})" if values else "–"
 
-    print(f"\n`{command}`\n\n| timeline segment | its targets | passes in the timeline | passes alone |\n"
-          "|---|---|---:|---:|")
+    print(f"\n`{command}`\n\n| # | timeline segment | its targets | passes in the timeline | passes alone |\n"
+          "|---:|---|---|---:|---:|")
     for r in segment_rows:
         targets = "; ".join(", ".join(f"{k}: {v}" for k, v in t.items()) for t in r["targets"])
-        print(f"| {r['text']} | {targets} | {rate(r['passed'])} | {rate(alone[r['text']])} |")
+        print(f"| {r['timeline']} | {r['text']} | {targets} | {rate(r['passed'])} | {rate(alone[r['text']])} |")
     ratio = in_timeline / by_itself if by_itself else float("nan")
     real_mean, boundary_mean, alone_mean = (float(np.mean(v)) for v in (real_jerk, boundary_jerk, alone_jerk))
     costs = {k: v[0] / v[1] for k, v in clock.items() if v[1]}
@@ -224,12 +242,12 @@ def bench_timeline(
             print(f"| sampling seconds per second of motion, {what} / plain ({steps} {sampler} steps) | "
                   f"{costs[what]:.3f} / {costs['plain']:.3f} ({costs[what] / costs['plain']:.2f}x) | <= 3x |")
     if comp_rows:
-        print("\n| composition: legs and root / arm | arm part | locomotion passes | hand passes | both | plain "
-              "sentence: both |\n|---|---|---:|---:|---:|---:|")
+        print("\n| # | composition: legs and root / arm | arm part | locomotion passes | hand passes | both | plain "
+              "sentence: both |\n|---:|---|---|---:|---:|---:|---:|")
         for r in comp_rows:
             p = r["parts"]
-            print(f"| {r['walk']} / {r['wave']} | {r['arm']} | {rate(p['body'])} | {rate(p['hand'])} | "
-                  f"{rate(p['both'])} | {rate(r['plain']['both'])} |")
+            print(f"| {r['composition']} | {r['walk']} / {r['wave']} | {r['arm']} | {rate(p['body'])} | "
+                  f"{rate(p['hand'])} | {rate(p['both'])} | {rate(r['plain']['both'])} |")
     return {"segments": segment_rows, "alone": alone, "timelines": made, "in_timeline": in_timeline,
             "alone_rate": by_itself, "jerk": {"boundary": boundary_mean, "real": real_mean, "alone": alone_mean},
             "compositions": comp_rows, "seconds_per_motion_second": costs}
