@@ -53,12 +53,13 @@ def number_type(name: str, base: type, restrictions: list[tuple[str, float]], wa
 Seed = number_type("Seed", int, [(">=", 0), ("<", 2**63)], "an integer in [0, 2^63)")
 FiniteFloat = number_type("FiniteFloat", float, [(">", -math.inf), ("<", math.inf)], "a finite number")
 PositiveFiniteFloat = number_type("PositiveFiniteFloat", float, [(">", 0.0), ("<", math.inf)], "a finite number > 0")
-NonNegativeFiniteFloat = number_type("NonNegativeFiniteFloat", float, [(">=", 0.0), ("<", math.inf)],
-                                     "a finite number >= 0")
+# jsonargparse registers one type per set of restrictions: every ">= 0, finite" option is a time span
+NonNegativeSeconds = number_type("NonNegativeSeconds", float, [(">=", 0.0), ("<", math.inf)],
+                                 "a number of seconds >= 0")
 Fraction = number_type("Fraction", float, [(">=", 0.0), ("<", 1.0)], "a number in [0, 1)")
 WANTED[ClosedUnitInterval] = "a number in [0, 1]"  # jsonargparse's
 
-__all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeFiniteFloat", "NonNegativeInt",
+__all__ = ["ClosedUnitInterval", "FiniteFloat", "Fraction", "NonNegativeSeconds", "NonNegativeInt",
            "PositiveFiniteFloat", "PositiveInt",
            "Seed", "number_type", "function_parser", "run", "run_subcommands", "explain", "Settings", "locate",
            "check_config_files", "underscore_options", "repeated", "ExactOptions"]

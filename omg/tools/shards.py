@@ -27,6 +27,7 @@ from omg.skeleton import get_skeleton
 from omg.tools.args import (
     Fraction,
     NonNegativeInt,
+    NonNegativeSeconds,
     PositiveFiniteFloat,
     PositiveInt,
     Seed,
@@ -36,7 +37,6 @@ from omg.tools.args import (
 
 MAX_FPS = 1000.0
 Fps = number_type("Fps", float, [(">", 0.0), ("<=", MAX_FPS)], f"a number of frames per second in (0, {MAX_FPS:g}]")
-Timeout = number_type("Timeout", float, [(">=", 0.0), ("<", math.inf)], "a number of seconds >= 0 (0: no limit)")
 
 # What `omg shards synth` builds by default: the embedded mini data in shards/mini.
 # (subdirectory, skeleton, representation, clips)
@@ -470,7 +470,7 @@ def _yaml(text: str, what: str):
 
 
 def shards_inspect(dirs: list[str], batch_size: PositiveInt = 16, shuffle_buffer: PositiveInt = 1000,
-                   timeout: Timeout = 600.0) -> None:
+                   timeout: NonNegativeSeconds = 600.0) -> None:
     """Summarise shard sets and validate every sample.
 
     Checks every shard against its manifest (file, size, sample count, end-of-archive, sha256)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from omg.errors import UsageError
-from omg.tools.args import FiniteFloat, NonNegativeFiniteFloat, NonNegativeInt, PositiveFiniteFloat, PositiveInt
+from omg.tools.args import FiniteFloat, NonNegativeInt, NonNegativeSeconds, PositiveFiniteFloat, PositiveInt
 
 HAND, BODY = ("hand",), ("turn", "travel", "pace")  # the kinds of target an arm part / the legs and root answer for
 
@@ -45,7 +45,7 @@ def bench_timeline(
     timelines: PositiveInt = 6,
     segment_seconds: PositiveFiniteFloat = 3.0,
     transition: PositiveFiniteFloat = 0.5,
-    context: NonNegativeFiniteFloat | None = None,
+    context: NonNegativeSeconds | None = None,
     compositions: NonNegativeInt = 4,
     composition_seconds: PositiveFiniteFloat = 4.0,
     samples: PositiveInt = 4,
