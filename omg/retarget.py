@@ -641,11 +641,11 @@ def _slope(d: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
     return torch.asin((-(d @ up) / d.norm(dim=-1).clamp_min(1e-12)).clamp(-1.0, 1.0))
 
 
-def _stance_pitches(rig: RigMotion, skel: Skeleton, plan: _Plan, pos: torch.Tensor, fps: float,
+def _stance_pitches(rig: RigMotion, skel: Skeleton, plan: _Plan, pos: torch.Tensor, contact: torch.Tensor,
                     up_axis: torch.Tensor) -> dict[tuple[int, int], float]:
     """Per foot of a character, (ankle, toe) model joints -> radians its foot must pitch down more than the
     model's: the character's slope of that bone at rest less the model's on its flat-footed frames (both
-    joints planted; the template's without one).
+    joints planted in ``contact``, (T, F) over ``skel.feet``; the template's without one).
 
     A character's bind pose stands on its soles, so its foot bone's slope at rest is its flat foot's: where the
     model's foot is flat the character's is, whichever way the two skeletons place ankle and toe on the foot
@@ -657,7 +657,6 @@ def _stance_pitches(rig: RigMotion, skel: Skeleton, plan: _Plan, pos: torch.Tens
     if getattr(rig.character, "sole", None) is None:
         return {}
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))
-    contact = ground_contacts(pos, skel.feet, fps) if len(pos) > 1 else torch.zeros(len(pos), len(skel.feet)) > 0
     feet = list(skel.feet)
     up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
     out = {}
@@ -767,14 +766,16 @@ def onto_rig(
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
 
-    local, top, at = solve(_pitched(pos * scale, _stance_pitches(rig, skel, plan, pos, float(fps), up_axis)))
+    # (T, F) the model's planted feet; a single frame is a stance, but no flat foot to measure a slope on
+    planted = ground_contacts(pos, skel.feet, float(fps)) if T > 1 else torch.zeros(T, len(skel.feet)) > 0
+    local, top, at = solve(_pitched(pos * scale, _stance_pitches(rig, skel, plan, pos, planted, up_axis)))
     # the ground: in the frames where the model's feet are planted, the rig's lowest foot stands at its own
     # clearance, on the floor of the rig's frame (its up axis): a character's sole (its mesh, ``_feet``), a BVH
     # rig's lowest foot point as high as on its own planted frames; the scaled path alone leaves the feet where
     # the model's ankle height, scaled, puts them, off the rig's by the difference of the two
     feet = _feet(rig, skel, plan, up_axis)
     lowest = _foot_levels(placed(local, top, at), feet, up_axis).min(1).values  # (T,)
-    contact = ground_contacts(pos, skel.feet, float(fps)).any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
+    contact = planted.any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
     stance = getattr(rig.character, "sole", None) is not None and clean_contacts and T > 1
     if not contact.any():
         ground = torch.quantile(lowest, 0.02)
