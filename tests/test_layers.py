@@ -60,6 +60,8 @@ DYNAMIC: dict[tuple[str, str], str] = {
     ("omg.lit.checkpoint", "resolve_class"):
         "a checkpoint's recorded LightningModule class: it imports only omg.lit.* (its own layer), else "
         "modules already imported",
+    ("omg.tools.bench.gpu", "_print_config"): "the commands the GPU check resolves in its dry run: _TOOLS' "
+                                              "module:function entries are its imports (DATA_TABLES)",
     ("omg.evaluation", "build_evaluator"):
         "a config's evaluator class_path, user input: configs/ are checked by test_every_config_class_path_imports",
     ("omg.tools.lightning", "OmgLightningCLI.check_ckpt_class"):
@@ -144,8 +146,19 @@ def _safe_globals(tree: ast.AST) -> list[tuple[str, int]]:
             for name in _strings(node.value)]
 
 
+def _entry_tables(*tables: str):
+    """The modules of ``TABLE = {name: "module:attribute"}`` dicts, for each of ``tables``."""
+    def read(tree: ast.AST) -> list[tuple[str, int]]:
+        return [(value.value.partition(":")[0], value.lineno) for node in ast.walk(tree)
+                if isinstance(node, ast.Assign) and any(getattr(t, "id", None) in tables for t in node.targets)
+                and isinstance(node.value, ast.Dict) for value in node.value.values
+                if isinstance(value, ast.Constant) and isinstance(value.value, str)]
+    return read
+
+
 # module -> reader of the module names it keeps as data and imports by name
-DATA_TABLES = {"omg.cli": _command_table, "omg.lit.checkpoint": _safe_globals}
+DATA_TABLES = {"omg.cli": _command_table, "omg.lit.checkpoint": _safe_globals,
+               "omg.tools.bench.gpu": _entry_tables("_TOOLS")}
 
 
 def imports(source: str, name: str, is_package: bool = False,

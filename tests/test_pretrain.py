@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
-import subprocess
 import sys
 import time
 
@@ -14,6 +12,7 @@ import pytest
 import torch
 
 from helpers import REPO, TINY_DIT, TINY_DIT_ARG
+from helpers.forked import OmgProcess
 from omg.cli import main
 from omg.data.datamodule import MotionDataModule
 from omg.lit.base import warmup_cosine
@@ -77,10 +76,10 @@ def test_warmup_then_cosine():
     assert f(60) == pytest.approx(0.5) and f(110) == pytest.approx(0.0) and f(500) == pytest.approx(0.0)
 
 
-def omg_fit(*args, root, timeout=300):
-    cmd = [sys.executable, "-m", "omg.cli", "fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *args]
-    return subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+def omg_fit(*args, root) -> OmgProcess:
+    """`omg fit` on the mini config as its own process (forked from the preloaded server), run from ``root``."""
+    return OmgProcess(["fit", "--config", str(REPO / "configs/mini/pretrain.yaml"), *args], cwd=root,
+                      stderr=root / "fit.err")
 
 
 def fit_here(*args) -> None:

@@ -17,6 +17,7 @@ import torch
 from helpers import REPO, rewrite_member
 from helpers.configs import write_config
 from helpers.faults import KilledWritingLast
+from helpers.forked import OmgProcess
 from omg.cli import SIGINT_EXIT, SIGTERM_EXIT, main
 
 
@@ -148,7 +149,7 @@ def test_top_k_housekeeping_knows_the_files_a_checkpoint_callback_writes(tmp_pat
     assert [p.name for p in written_checkpoints(callback)] == sorted(written)
 
 
-def _mini_fit(root, *args, callbacks: bool = False) -> subprocess.Popen:
+def _mini_fit(root, *args, callbacks: bool = False) -> OmgProcess:
     """`python -m omg.cli fit` on the mini config in its own session (a terminal's process group:
     Ctrl-C reaches the data worker too), writing a checkpoint every 5 steps."""
     command = ["fit", "--config", "configs/mini/pretrain.yaml", f"--trainer.default_root_dir={root}",
@@ -252,15 +253,13 @@ def processes(where: str | None = None, parent: int | None = None) -> list[int]:
     return found
 
 
-def omg_process(*args: str, log: Path, new_session: bool = False) -> subprocess.Popen:
-    """`python -m omg.cli ARGS` from the repository, stderr to ``log``; ``new_session``: in a process
-    group of its own, as a terminal starts it. The test helpers import (callbacks named in a config)."""
-    env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'tests'}", "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "omg.cli", *args], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=log.open("w"), start_new_session=new_session)
+def omg_process(*args: str, log: Path, new_session: bool = False) -> OmgProcess:
+    """`omg ARGS` as its own process (forked from the preloaded server: tests/helpers/forked.py), run from the
+    repository, stderr to ``log``; ``new_session``: in a process group of its own, as a terminal starts it."""
+    return OmgProcess(list(args), env={"OMP_NUM_THREADS": "1"}, stderr=log, new_session=new_session)
 
 
-def finish(process: subprocess.Popen, log: Path, within: float, leftovers: str | None = None) -> str:
+def finish(process: OmgProcess, log: Path, within: float, leftovers: str | None = None) -> str:
     """Wait ``within`` seconds for ``process`` to end (killing it and what it left when it does not), then
     assert it ended with exit code 2 and one error line, and left no process naming ``leftovers``."""
     try:
@@ -386,7 +385,7 @@ def test_ctrl_c_during_a_stalled_manifest_fetch_is_one_line(tmp_path):
 # -- the end of a stalled run: a stop signal ends it at once, and nothing it started outlives it, SIGKILL
 # included. data.timeout is left at its default (600 s): the stall itself would hold the run for 10 minutes.
 
-def stalled_fit(h263_shards, tmp_path, num_workers: int) -> tuple[subprocess.Popen, Path, str]:
+def stalled_fit(h263_shards, tmp_path, num_workers: int) -> tuple[OmgProcess, Path, str]:
     """`omg fit` (as a terminal starts it) on a set whose shards never arrive, once it reads one:
     (the process, its stderr, the stalled set's folder)."""
     train = stalling_set(h263_shards / "train", tmp_path / "fifo")

@@ -176,11 +176,15 @@ def test_minilm_truncation_and_cache(minilm):
 
 @pytest.fixture(scope="session")
 def random_clip(tmp_path_factory):
-    """A random open_clip ViT-L-14 (QuickGELU, as OpenAI's) and its text weights saved to a file."""
+    """A random open_clip CLIP with ViT-L-14's text tower (QuickGELU, as OpenAI's: what ``create_model("ViT-L-14",
+    force_quick_gelu=True)`` builds) and its text weights saved to a file. The vision tower, which nothing here
+    reads, is a one-layer stub: ViT-L-14's own (304M parameters) took half a minute to initialise."""
     import open_clip
 
     torch.manual_seed(0)
-    model = open_clip.create_model("ViT-L-14", pretrained=None, force_quick_gelu=True).eval()
+    config = open_clip.get_model_config("ViT-L-14")
+    stub = {"image_size": 28, "layers": 1, "width": 64, "head_width": 64, "patch_size": 14}
+    model = open_clip.CLIP(config["embed_dim"], vision_cfg=stub, text_cfg=config["text_cfg"], quick_gelu=True).eval()
     path = tmp_path_factory.mktemp("clip") / "vit_l_14_text.pt"
     # the text tower alone keeps the file small; full CLIP state dicts load the same way
     torch.save({k: v for k, v in model.state_dict().items() if not k.startswith("visual.")}, path)

@@ -12,12 +12,16 @@ command and one Markdown file (well under 30 minutes on an H100):
 Each step's output is kept in ``OUT/<step>.log``.
 
 Every step is a subprocess running the ``omg`` CLI, as a user would. ``--dry_run`` (for a machine
-without a GPU) resolves each training config with ``--print_config``, builds each model on the meta
-device and prints the commands; nothing trains.
+without a GPU) resolves each command with ``--print_config`` in this process (the parsers the commands use,
+without six more start-ups of Lightning), builds each model on the meta device and prints the commands; nothing
+trains.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib
+import io
 import json
 import shlex
 import subprocess
@@ -69,6 +73,33 @@ def shown(cmd: list[str]) -> str:
     return shlex.join(cmd)
 
 
+# the commands the check runs besides `omg fit`, by the module:function that `omg` runs for each (omg.cli.COMMANDS)
+_TOOLS = {"bench": "omg.tools.bench:main", "convert-ckpt": "omg.tools.convert:main",
+          "generate": "omg.tools.generate:main"}
+
+
+def _print_config(cmd: list[str]) -> tuple[int, str, str]:
+    """``cmd --print_config`` run in this process: (exit code, stdout, stderr)."""
+    command, rest = cmd[3], [*cmd[4:], "--print_config"]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            if command == "fit":
+                from omg.tools.lightning import OmgLightningCLI
+
+                OmgLightningCLI("fit", rest)
+            else:
+                module, function = _TOOLS[command].split(":")
+                getattr(importlib.import_module(module), function)(rest)
+            code = 0
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else int(e.code is not None)
+        except UsageError as e:
+            print(f"omg: error: {e}", file=sys.stderr)
+            code = 2
+    return code, out.getvalue(), err.getvalue()
+
+
 def print_dry_run(cmds: dict[str, list[str]]) -> None:
     """Each training config resolved as the real run would resolve it, each model built on the meta
     device (no memory, no GPU), each command printed."""
@@ -80,11 +111,11 @@ def print_dry_run(cmds: dict[str, list[str]]) -> None:
     for name, cmd in cmds.items():
         print(f"$ {shown(cmd)}", flush=True)
         # every command parses (the same options, the same config files) without running
-        resolved = subprocess.run([*cmd, "--print_config"], capture_output=True, text=True)
-        if resolved.returncode != 0:
-            raise UsageError(f"{name}: does not resolve: {(resolved.stderr.strip().splitlines() or ['?'])[-1]}")
+        code, stdout, stderr = _print_config(cmd)
+        if code != 0:
+            raise UsageError(f"{name}: does not resolve: {(stderr.strip().splitlines() or ['?'])[-1]}")
         # DeepSpeed's import logs to stdout ahead of the YAML: the YAML starts at its first key
-        lines = resolved.stdout.splitlines()
+        lines = stdout.splitlines()
         config = yaml.safe_load("\n".join(lines[next(i for i, line in enumerate(lines) if line[:1].isalpha()):]))
         if name.startswith("fit "):
             flavor = config["model"]["init_args"]["flavor"]
