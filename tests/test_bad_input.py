@@ -23,6 +23,7 @@ import torch
 import yaml
 
 from helpers import BANDAI_RIG, DOG_RIG, REPO, TINY_BVH, TINY_DIT, rig_bvh
+from helpers.checkpoints import save_module
 from omg.cli import main
 from omg.files import MOTION_MAX_BYTES
 from omg.skeleton import SMPL22
@@ -33,7 +34,6 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
     """Untrained tiny checkpoints: unconditional, text-conditioned, one with NaN weights, a habit VQ-VAE,
     and an animal evaluator in a copy of the human evaluation config."""
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.evaluator import EvaluatorModule
     from omg.lit.habit import HabitVQModule
@@ -42,8 +42,7 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
     root = tmp_path_factory.mktemp("bad_input_ckpts")
 
     def save(module, name):
-        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                    "module_class": class_path(type(module))}, root / name)
+        save_module(module, root / name)
         return str(root / name)
 
     torch.manual_seed(0)

@@ -11,6 +11,7 @@ import torch
 from lightning.pytorch.loggers import CSVLogger
 
 from helpers import REPO, TINY_DIT, TINY_DIT_ARG
+from helpers.checkpoints import save_module
 from omg.callbacks import EvalCallback, RenderCallback
 from omg.data.datamodule import MotionDataModule
 from omg.errors import UsageError
@@ -50,8 +51,7 @@ def evaluator_ckpt(tmp_path_factory):
     torch.manual_seed(0)
     module = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data().spec)
     path = tmp_path_factory.mktemp("evaluator") / "evaluator.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": "omg.lit.evaluator.EvaluatorModule"}, path)
+    save_module(module, path)
     return path
 
 

@@ -23,7 +23,7 @@ from safetensors.torch import load_file, save_file
 from torch.serialization import get_unsafe_globals_in_checkpoint
 
 from helpers import REPO, TINY_DIT, TINY_DIT_ARG
-from helpers.checkpoints import SPEC, write_zero2_checkpoint, zero_tensor_bytes
+from helpers.checkpoints import SPEC, save_module, write_zero2_checkpoint, zero_tensor_bytes
 from omg.cli import main as omg
 from omg.errors import UsageError
 from omg.lit.checkpoint import LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module
@@ -370,8 +370,7 @@ def test_a_checkpoint_of_the_wrong_kind_says_what_it_is(tiny, tmp_path, capsys):
     assert not (tmp_path / "g").exists() and not (tmp_path / "bare.safetensors").exists()
 
     evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC)
-    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
-                "module_class": "omg.lit.evaluator.EvaluatorModule"}, tmp_path / "evaluator.ckpt")
+    save_module(evaluator, tmp_path / "evaluator.ckpt")
     with pytest.raises(UsageError) as error:
         ControlNetModule(pretrained=str(tmp_path / "evaluator.ckpt"), text_encoder="hash")
     assert str(error.value) == (f"model.init_args.pretrained: {tmp_path / 'evaluator.ckpt'} holds a "

@@ -12,6 +12,7 @@ import lightning  # noqa: F401  (imported outside capture: its log handler keeps
 import pytest
 
 from helpers import REPO
+from helpers.checkpoints import save_module
 from omg.cli import COMMANDS, LIGHTNING, main
 
 
@@ -171,7 +172,6 @@ def test_cpu_threads_follow_the_trainable_work(tmp_path, monkeypatch):
     import torch
 
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.pretrain import PretrainModule
     from omg.tools.lightning import pick_cpu_threads
@@ -179,8 +179,7 @@ def test_cpu_threads_follow_the_trainable_work(tmp_path, monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
     pre = PretrainModule(flavor="mini", dit={"n_layers": 6, "d_model": 128, "n_heads": 4}, spec=spec, ema_decay=0)
-    torch.save({"state_dict": pre.state_dict(), "hyper_parameters": dict(pre.hparams),
-                "module_class": class_path(type(pre))}, tmp_path / "pre.ckpt")
+    save_module(pre, tmp_path / "pre.ckpt")
     small = ControlNetModule(pretrained=str(tmp_path / "pre.ckpt"), text_encoder="minilm",
                              moc={"d_c": 64, "num_experts": 4}, spec=spec)
     assert sum(p.numel() for p in small.parameters()) > 25_000_000  # with the frozen MiniLM and DiT

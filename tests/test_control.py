@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from helpers import TINY_DIT
-from helpers.checkpoints import SPEC
+from helpers.checkpoints import SPEC, save_module
 from omg.errors import UsageError
 from omg.generation.control import KINDS, read_constraints
 from omg.generation.protocol import GenerationCard
@@ -67,11 +67,8 @@ def module() -> PretrainModule:
 
 @pytest.fixture(scope="module")
 def pretrain_ckpt(tmp_path_factory, module) -> Path:
-    from omg.lit.checkpoint import class_path
-
     ckpt = tmp_path_factory.mktemp("control") / "pre.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, ckpt)
+    save_module(module, ckpt)
     return ckpt
 
 
@@ -307,8 +304,7 @@ def test_bench_control_scores_realism_with_an_evaluator(pretrain_ckpt, h263_shar
     torch.manual_seed(0)
     judge = EvaluatorModule(text_encoder="hash", flavor="mini", spec=SPEC)
     ckpt = tmp_path / "evaluator.ckpt"
-    torch.save({"state_dict": judge.state_dict(), "hyper_parameters": dict(judge.hparams),
-                "module_class": "omg.lit.evaluator.EvaluatorModule"}, ckpt)
+    save_module(judge, ckpt)
     data = MotionDataModule(val=str(h263_shards / "val"), max_len=40, clips="whole")
     takes = prompt_set(data.val_clips().samples, 4, 0, data.windows)
     judge = build_evaluator(str(ckpt))

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from helpers import REPO
+from helpers.checkpoints import save_module
 from omg.data.datamodule import MotionDataModule
 from omg.io.bvh import read_bvh
 from omg.lit.controlnet import ControlNetModule
@@ -162,8 +163,7 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
 
     torch.manual_seed(0)
     evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data().spec)  # untrained: the plumbing
-    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
-                "module_class": "omg.lit.evaluator.EvaluatorModule"}, tmp_path / "evaluator.ckpt")
+    save_module(evaluator, tmp_path / "evaluator.ckpt")
     (tmp_path / "prompts.yaml").write_text(
         "prompts:\n"
         "  - {text: a person waves the left hand., category: sidedness, seconds: 2, "

@@ -23,6 +23,7 @@ import yaml
 from helpers import REPO, SHARED_MOTION, TINY_DIT
 from helpers.blender_scenes import blender
 from helpers.characters import boxes, figure_rest, write_character
+from helpers.checkpoints import save_module
 from helpers.gltf_validator import validation_errors
 from omg.cli import main
 from omg.io.bvh import read_bvh
@@ -48,7 +49,6 @@ def written(tmp_path_factory) -> dict:
     if not found:
         pytest.skip(f"real motion data not found at {SHARED_MOTION} (the shared/ folder beside the checkout)")
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.pretrain import PretrainModule
 
     root = tmp_path_factory.mktemp("fbx")
@@ -56,8 +56,7 @@ def written(tmp_path_factory) -> dict:
     torch.manual_seed(0)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
     module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, root / "pre.ckpt")
+    save_module(module, root / "pre.ckpt")
     main(["generate", "--unconditional", "--ckpt", str(root / "pre.ckpt"), "--steps", "2", "--length", "1",
           "--num_samples", "1", "--no_preview", "--device", "cpu", "--to_rig", str(root / "t_pose_m.fbx"),
           "--out", str(root / "generated")])

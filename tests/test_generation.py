@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from helpers import TINY_DIT
-from helpers.checkpoints import SPEC
+from helpers.checkpoints import SPEC, save_module
 from omg.errors import UsageError
 from omg.generation.habit import HabitGenerator
 from omg.generation.omg import OmgGenerator
@@ -141,8 +141,6 @@ def test_sampling_settings_are_checked_once_where_they_are_made():
 
 @pytest.fixture(scope="module")
 def pretrain_ckpt(tmp_path_factory):
-    from omg.lit.checkpoint import class_path
-
     mean = list(SPEC["mean"])
     mean[2], mean[259:263] = 0.05, [1.0] * 4  # estimates that walk on planted feet: stance_root has work to do
     torch.manual_seed(0)
@@ -151,8 +149,7 @@ def pretrain_ckpt(tmp_path_factory):
         for p in module.parameters():
             p.add_(torch.randn_like(p) * 0.05)  # the zero-initialised output layer too
     ckpt = tmp_path_factory.mktemp("gen") / "pre.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, ckpt)
+    save_module(module, ckpt)
     return ckpt
 
 

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from helpers import REPO
+from helpers.checkpoints import save_module
 from helpers.habit import CATEGORIES, QUATVEL
 from helpers.habit import fit as _fit
 from omg.models.habit import CouplingFlow, Quantizer
@@ -468,8 +469,7 @@ def test_moved_habit_checkpoints_transfer_and_open_nothing_they_name(tmp_path, m
     vq = HabitVQModule(CATEGORIES, flavor="tiny", text_encoder="hash", spec=spec)
     original = tmp_path / "run" / "vq.ckpt"
     original.parent.mkdir()
-    torch.save({"state_dict": vq.state_dict(), "hyper_parameters": dict(vq.hparams),
-                "module_class": "omg.lit.habit.HabitVQModule"}, original)
+    save_module(vq, original)
     main(["fit", "--config", str(REPO / "configs/mini/habit_prior.yaml"), f"--model.init_args.vq_ckpt={original}",
           "--trainer.max_steps=1", f"--trainer.default_root_dir={tmp_path / 'run'}", "--data.num_workers=0",
           "--trainer.enable_progress_bar=false", "--trainer.enable_model_summary=false"])

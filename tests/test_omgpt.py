@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from helpers import REPO, TINY_DIT
+from helpers.checkpoints import save_module
 from helpers.omgpt import MINI, TINY, fit_config, human_batch, paired, tiny_module
 from helpers.omgpt import data as _data
 from omg.errors import UsageError
@@ -196,7 +197,6 @@ def test_animal_captions_made_about_a_person_and_animals_found():
 
 
 def test_autoencoders_reconstruct_a_fixed_batch_of_both_domains():
-
     torch.manual_seed(0)
     animal_data = _data(MINI / "animal_maa/train")
     module = tiny_module(animal_data.spec)
@@ -369,8 +369,7 @@ def small_eval(tmp_path_factory):
     torch.manual_seed(0)
     evaluator = EvaluatorModule(text_encoder="hash", flavor="mini", spec=_data(MINI / "animal_maa/val").spec)
     evaluator_path = root / "evaluator.ckpt"
-    torch.save({"state_dict": evaluator.state_dict(), "hyper_parameters": dict(evaluator.hparams),
-                "module_class": "omg.lit.evaluator.EvaluatorModule"}, evaluator_path)
+    save_module(evaluator, evaluator_path)
     config = yaml.safe_load((REPO / "configs/mini/omgpt_eval.yaml").read_text())
     for callback in config["trainer"]["callbacks"]:
         if "evaluator" in callback["init_args"]:

@@ -20,6 +20,7 @@ import yaml
 
 from helpers import REPO, SHARED_MOTION, TINY_DIT
 from helpers.characters import evaluate, joint_places, read_accessor
+from helpers.checkpoints import save_module
 from helpers.gltf_validator import validation_errors
 from omg.cli import main
 from omg.errors import UsageError
@@ -54,7 +55,6 @@ def _walk() -> np.ndarray:
 def written(tmp_path_factory) -> dict:
     """``omg generate`` (a tiny untrained checkpoint, 2 s) and ``omg export`` (a real walk) onto the figure."""
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.pretrain import PretrainModule
 
     walk = _walk()
@@ -62,8 +62,7 @@ def written(tmp_path_factory) -> dict:
     torch.manual_seed(0)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
     module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, root / "pre.ckpt")
+    save_module(module, root / "pre.ckpt")
     main(["generate", "--unconditional", "--ckpt", str(root / "pre.ckpt"), "--steps", "2", "--length", "2",
           "--num_samples", "1", "--no_preview", "--device", "cpu", "--to_rig", str(FIGURE), "--joint_map", str(MAP),
           "--out", str(root / "generated")])

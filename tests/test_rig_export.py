@@ -18,6 +18,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from helpers import BANDAI_RIG, DOG_RIG, TINY_DIT, rig_bvh
+from helpers.checkpoints import save_module
 from omg.export import export_motion
 from omg.io.bvh import read_bvh
 from omg.kinematics import ground_contacts
@@ -259,14 +260,12 @@ def test_generate_writes_onto_the_rig(tmp_path):
     from helpers import REPO
     from omg.cli import main
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.pretrain import PretrainModule
 
     torch.manual_seed(0)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
     module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, tmp_path / "pre.ckpt")
+    save_module(module, tmp_path / "pre.ckpt")
     (tmp_path / "rig.bvh").write_text(rig_bvh(BANDAI_RIG))
     main(["generate", "--unconditional", "--ckpt", str(tmp_path / "pre.ckpt"), "--steps", "2", "--length", "1",
           "--num_samples", "2", "--to_rig", str(tmp_path / "rig.bvh"), "--format", "glb", "--out", str(tmp_path / "g"),

@@ -11,6 +11,7 @@ import torch
 import yaml
 
 from helpers import REPO
+from helpers.checkpoints import save_module
 from omg.errors import UsageError
 from omg.lit.sampling import SamplingSettings
 from omg.motion import get_representation
@@ -154,13 +155,11 @@ def test_the_option_is_checked_where_it_is_given():
 
 
 def test_generate_records_it(tmp_path):
-    from omg.lit.checkpoint import class_path
     from omg.tools.generate import generate
 
     module = tiny_pretrain()
     ckpt = tmp_path / "pre.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "module_class": class_path(type(module))}, ckpt)
+    save_module(module, ckpt)
     settings = generate(unconditional=True, ckpt=ckpt, num_samples=1, length=1.0, steps=2, preview=False,
                         stance_root=1.0, out=tmp_path / "out")
     assert settings["stance_root"] == 1.0

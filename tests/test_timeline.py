@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from helpers import MINI, TINY_DIT
+from helpers.checkpoints import save_module
 from omg.errors import UsageError
 from omg.generation.timeline import parse_timeline
 from omg.lit.sampling import SamplingSettings
@@ -27,7 +28,6 @@ def controlnet_ckpt(tmp_path_factory):
     """A tiny ControlNet (hash text) whose weights, the zero-initialised ones too, are random: every text gives
     its own x̂0."""
     from omg.data.datamodule import MotionDataModule
-    from omg.lit.checkpoint import class_path
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.pretrain import PretrainModule
 
@@ -43,8 +43,7 @@ def controlnet_ckpt(tmp_path_factory):
             with torch.no_grad():
                 for p in module.controlnet.parameters():
                     p.add_(torch.randn_like(p) * 0.05)
-        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                    "module_class": class_path(type(module))}, root / name)
+        save_module(module, root / name)
     return {"controlnet": root / "cn.ckpt", "pretrain": root / "pre.ckpt"}
 
 

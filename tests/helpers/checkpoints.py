@@ -1,5 +1,6 @@
-"""Checkpoint files made by hand: the directory DeepSpeed writes for ZeRO-2, a checkpoint with zeroed
-weight bytes, and the data spec of the tiny checkpoint tests (tests/test_checkpoint*.py)."""
+"""Checkpoint files made by hand: a module's weights and hyper-parameters as omg's loaders read them, the
+directory DeepSpeed writes for ZeRO-2, a checkpoint with zeroed weight bytes, and the data spec of the tiny
+checkpoint tests (tests/test_checkpoint*.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,16 @@ import torch
 
 SPEC = {"representation": "humanml3d263", "skeleton": "smpl22", "fps": 20.0, "feature_dim": 263,
         "mean": [0.0] * 263, "std": [1.0] * 263}
+
+
+def save_module(module: torch.nn.Module, path: str | Path) -> Path:
+    """What a trained run's checkpoint holds of ``module`` (weights, hyper-parameters, class), without the
+    trainer's state: enough for ``omg generate``, ``omg serve`` and a ControlNet's ``pretrained``."""
+    from omg.lit.checkpoint import class_path
+
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "module_class": class_path(type(module))}, path)
+    return Path(path)
 
 
 def write_zero2_checkpoint(module, client_state: dict, root: Path, prefix: str = "",
