@@ -2,7 +2,7 @@
 KILL_AT|-1 RESUME(0|1|CKPT) [DEVICES [RECORD]]`` (two devices unless given); RESUME 1 resumes from
 ROOT/ckpt/last.ckpt, a path from that checkpoint (another run's). With RECORD, each rank
 writes ROOT/RECORD-rank{r}.pt: what each step trained on, and the state it started training from.
-Lightning's DDP launcher starts rank 1 by running this script again with LOCAL_RANK set."""
+The test starts each rank with LOCAL_RANK set, as torchrun does (Lightning then launches nothing)."""
 
 import sys
 from pathlib import Path

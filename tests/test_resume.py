@@ -10,10 +10,7 @@ time resuming from the checkpoint the last resumed run wrote.
 
 from __future__ import annotations
 
-import os
 import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import lightning as L
@@ -22,6 +19,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from helpers import TINY_DIT
+from helpers.forked import OmgProcess
 from helpers.resume import Recorder, assert_identical, final_state, run_until_killed
 from omg.data.datamodule import MotionDataModule
 from omg.lit.pretrain import PretrainModule, fresh_noise_seed
@@ -178,19 +176,28 @@ def test_ema_follows_optimizer_steps_under_gradient_accumulation(h263_shards, st
 
 
 def ddp_run(shards, root, kill_at=-1, resume: bool | Path = False, devices=2, record=None) -> tuple[int, str]:
-    """tests/ddp_resume_run.py on ``devices`` gloo ranks: (exit code, the end of its stderr); ``resume``: from
-    ``root``'s last checkpoint (True) or from that file (another run's)."""
+    """tests/ddp_resume_run.py on ``devices`` gloo ranks, each its own process (forked from the preloaded server,
+    tests/helpers/forked.py, with LOCAL_RANK set as torchrun sets it; Lightning's own launcher is
+    tests/test_launch.py's): (the first nonzero exit code of a rank, or 0; the end of that rank's stderr);
+    ``resume``: from ``root``'s last checkpoint (True) or from that file (another run's)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "OMP_NUM_THREADS": "1"}
-    for key in ("LOCAL_RANK", "RANK", "WORLD_SIZE", "NODE_RANK"):
-        env.pop(key, None)
+    env = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port), "OMP_NUM_THREADS": "1"}
     script = Path(__file__).with_name("ddp_resume_run.py")
     resume = str(resume) if isinstance(resume, Path) else str(int(resume))
     args = [str(shards), str(root), str(kill_at), resume, str(devices)] + ([record] if record else [])
-    done = subprocess.run([sys.executable, str(script), *args], env=env, capture_output=True, text=True, timeout=300)
-    return done.returncode, done.stderr[-3000:]
+    ranks, logs = [], [root.parent / f"{root.name}-rank{rank}.err" for rank in range(devices)]
+    for rank, log in enumerate(logs):
+        ranked = {"LOCAL_RANK": str(rank), "NODE_RANK": "0"} if devices > 1 else {}
+        ranks.append(OmgProcess(args, script=script, env={**env, **ranked}, stderr=log))
+    try:
+        codes = [rank.wait(300) for rank in ranks]
+    finally:
+        for rank in ranks:
+            rank.kill()
+    failed = next((r for r, code in enumerate(codes) if code != 0), 0)
+    return codes[failed], logs[failed].read_text()[-3000:]
 
 
 # The multi-process tests: each gloo run starts its ranks' interpreters (10-20 s a run on 2 cores). They

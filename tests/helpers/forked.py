@@ -1,13 +1,14 @@
-"""`omg` commands as real processes that start at once: each is forked from one server process that imported
-omg, Lightning and the test helpers once (multiprocessing's fork server), instead of being a fresh interpreter
-that spends ten seconds of CPU importing them. The child is its own process (its own pid, signals, exit code,
-process group when asked, children of its own); what it does not share with a fresh `python -m omg.cli` is the
-start-up, which tests/test_cli.py and tests/test_launch.py run for real."""
+"""`omg` commands (and the tests' own scripts) as real processes that start at once: each is forked from one
+server process that imported omg, Lightning and the test helpers once (multiprocessing's fork server), instead
+of being a fresh interpreter that spends ten seconds of CPU importing them. The child is its own process (its own
+pid, signals, exit code, process group when asked, children of its own); what it does not share with a fresh
+`python -m omg.cli` is the start-up, which tests/test_cli.py and tests/test_launch.py run for real."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import runpy
 import signal
 import subprocess
 import sys
@@ -22,10 +23,11 @@ _CONTEXT = multiprocessing.get_context("forkserver")
 _CONTEXT.set_forkserver_preload(PRELOAD)
 
 
-def _run(args: list[str], cwd: str, env: dict[str, str], stdout: str, stderr: str, new_session: bool,
-         start_method: str) -> None:
-    """In the child: the process state a fresh `python -m omg.cli ARGS` would have, then ``omg.cli.main``.
-    Its SystemExit is the child's exit code (multiprocessing's bootstrap)."""
+def _run(args: list[str], script: str | None, cwd: str, env: dict[str, str], stdout: str, stderr: str,
+         new_session: bool, start_method: str) -> None:
+    """In the child: the process state a fresh `python -m omg.cli ARGS` (or `python SCRIPT ARGS`) would have,
+    then ``omg.cli.main`` (or the script as ``__main__``). Its SystemExit is the child's exit code
+    (multiprocessing's bootstrap)."""
     # a fork server's child inherits "forkserver" as its default; a fresh interpreter has the platform's (the
     # data loader's workers would otherwise start from the server, without this process's state)
     multiprocessing.set_start_method(start_method, force=True)
@@ -48,6 +50,10 @@ def _run(args: list[str], cwd: str, env: dict[str, str], stdout: str, stderr: st
     import torch
 
     torch.set_num_threads(int(env.get("OMP_NUM_THREADS", "1")))
+    if script is not None:
+        sys.argv = [script, *args]
+        runpy.run_path(script, run_name="__main__")
+        return
     from omg.cli import main
 
     sys.argv = [str(REPO / "omg" / "cli.py"), *args]
@@ -55,15 +61,18 @@ def _run(args: list[str], cwd: str, env: dict[str, str], stdout: str, stderr: st
 
 
 class OmgProcess:
-    """``subprocess.Popen``'s face (pid, poll, wait, returncode, kill, send_signal) on a forked ``omg`` command;
-    ``stdout`` and ``stderr`` are files (the same one for both, as ``stderr=STDOUT``)."""
+    """``subprocess.Popen``'s face (pid, poll, wait, returncode, kill, send_signal) on a forked ``omg ARGS``
+    (or ``python SCRIPT ARGS`` with ``script``); ``stdout`` and ``stderr`` are files (the same one for both,
+    as ``stderr=STDOUT``)."""
 
-    def __init__(self, args: list[str], *, cwd: Path = REPO, env: dict[str, str] | None = None,
-                 stdout: Path | str = os.devnull, stderr: Path | str = os.devnull, new_session: bool = False):
-        self.args = ["omg", *args]
+    def __init__(self, args: list[str], *, script: Path | None = None, cwd: Path = REPO,
+                 env: dict[str, str] | None = None, stdout: Path | str = os.devnull,
+                 stderr: Path | str = os.devnull, new_session: bool = False):
+        self.args = [str(script) if script else "omg", *args]
         env = {**os.environ, **(env or {})}
-        self._process = _CONTEXT.Process(target=_run, args=(list(args), str(cwd), env, str(stdout), str(stderr),
-                                                             new_session, multiprocessing.get_start_method()))
+        self._process = _CONTEXT.Process(target=_run, args=(
+            list(args), None if script is None else str(script), str(cwd), env, str(stdout), str(stderr),
+            new_session, multiprocessing.get_start_method()))
         self._process.start()
         self.pid = self._process.pid
 
