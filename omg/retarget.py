@@ -65,7 +65,15 @@ from omg.io.rig import RigMotion
 from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
 from omg.motion.base import Clip
 from omg.registry import JOINT_MAPS
-from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_identity, quat_mul
+from omg.rotations import (
+    matrix_to_quat,
+    quat_apply,
+    quat_between,
+    quat_conjugate,
+    quat_identity,
+    quat_mul,
+    quat_to_matrix,
+)
 from omg.skeleton import Skeleton, get_skeleton
 
 
@@ -471,27 +479,61 @@ def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
     return [below(j) for j in range(J)]
 
 
-def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor,
+@dataclass(frozen=True)
+class _Pose:
+    """The rig's own pose that ``onto_rig`` turns its mapped joints from: the joints the model lacks as the rig
+    holds them, the mapped ones at rest."""
+
+    local: torch.Tensor  # (J, 4) local rotations
+    world: torch.Tensor  # (J, 4) global rotations
+    positions: torch.Tensor  # (J + E, 3) joints and end sites, the root at its offset
+
+
+def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
+    """The pose the rig's joints the model lacks keep (``mapped``: rig joint -> model joint, those it has).
+
+    A BVH rig's rest pose is a layout of bones, not a pose: the MANN dog's shoulders lie along its spine at
+    rest and stand turned 80 and 127 degrees (within 2) on every frame of its clip, so the legs hung from them
+    at rest stood 6-9 cm off. Such a joint keeps its mean rotation over the rig's own frames (the rotation
+    nearest the mean of their matrices); a character's bind pose is its pose (its joints keep their rest)."""
+    J = rig.num_joints
+    local = quat_identity((J,), torch.float64)
+    if rig.character is None and len(rig):
+        turns = quat_to_matrix(torch.from_numpy(rig.rotations).double()).mean(0)  # (J, 3, 3)
+        mean = matrix_to_quat(kabsch(torch.eye(3, dtype=torch.float64).expand(J, 3, 3), turns.transpose(-1, -2)))
+        keep = torch.tensor([j not in mapped for j in range(J)])
+        local = torch.where(keep[:, None], mean, local)
+    world = rig.skeleton().global_rotations(local[None])[0]
+    translations = rig.offsets[None]
+    positions = replace(rig, rotations=local[None].numpy(), translations=translations).positions_with_end_sites()[0]
+    return _Pose(local, world, torch.from_numpy(positions))
+
+
+def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets: torch.Tensor,
                frames: dict) -> tuple:
     """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
-    rest vectors to its aim points onto the target's vectors between the same model joints.
+    vectors to its aim points in the rig's own pose (``pose``) onto the target's vectors between the
+    same model joints.
 
-    ``rest``: (J + E, 3) rest positions; ``targets``: (T, M, 3) model joint places in the rig's frame.
-    A joint with one aim turns by the shortest arc from its rest direction in its parent's frame (its
-    own rest orientation is where it starts: an A-pose rig is not forced into a T-pose), one with
-    several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
-    fit (Kabsch); unmapped joints keep their rest (identity) rotation.
+    ``targets``: (T, M, 3) model joint places in the rig's frame.
+    A joint with one aim turns by the shortest arc from its direction in the rig's pose, in its parent's
+    frame (its own orientation there is where it starts: an A-pose rig is not forced into a T-pose), one
+    with several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
+    fit (Kabsch); unmapped joints keep their rotation in the rig's pose (``_rig_pose``).
     Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
     """
     T, J = targets.shape[0], rig.num_joints
+    rest = pose.positions
     identity = quat_identity((T,), torch.float64)
-    local = quat_identity((T, J), torch.float64)
+    local = pose.local.expand(T, J, 4).clone()
     world = [identity] * J
     for j, p in enumerate(rig.parents):
         parent = world[p] if p >= 0 else identity
         kids = [c for c in aims[j] if float((rest[c] - rest[j]).norm()) > 1e-9] if j in model_of else []
         if kids:
-            v = rest[kids] - rest[j]  # (C, 3) rest vectors, in j's frame (rest rotations are the identity)
+            # (C, 3) the vectors in j's own frame (a mapped joint's own rotation in the pose is the identity; the
+            # unmapped joints above it may turn it)
+            v = quat_apply(quat_conjugate(pose.world[j]).expand(len(kids), 4), rest[kids] - rest[j])
             w = targets[:, [model_of[c] for c in kids]] - targets[:, model_of[j], None]  # (T, C, 3)
             if len(kids) == 1:
                 aim = quat_apply(quat_conjugate(parent), w[:, 0])
@@ -511,7 +553,7 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
     return local, top, targets[:, model_of[top]]
 
 
-def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch.Tensor, aims: list,
+def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims: list,
                   model_of: dict) -> dict:
     """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
 
@@ -522,6 +564,11 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch
     the model's stubs (template directions on import) would tilt the pelvis.
     """
     lengths = np.linalg.norm(skel.rest_offsets, axis=-1)
+    rest_model = _proxy(plan, skel, pose.positions[None])[0]
+    clip = turns = None
+    if rig.character is None and len(rig):
+        clip = _proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites()))  # (T, J, 3)
+        turns = rig.skeleton().global_rotations(torch.from_numpy(rig.rotations).double())  # (T, J, 4)
     frames = {}
     for r, kids in enumerate(aims):
         # only where every aim hangs right below the joint: a joint the map skips may carry the rig's own
@@ -537,7 +584,14 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch
         observed = F.normalize(rest_model[kids_m] - rest_model[m], dim=-1)
         if not torch.isfinite(observed).all():
             continue
-        frames[r] = (m, kids_m, dirs, kabsch(dirs, observed))
+        if clip is not None:
+            # rig = model @ C, C nearest the mean of model^T @ rig over the rig's own frames
+            seen = F.normalize(clip[:, kids_m] - clip[:, m, None], dim=-1)  # (T, K, 3)
+            held = (kabsch(dirs, seen).transpose(-1, -2) @ quat_to_matrix(turns[:, r])).mean(0)  # (3, 3)
+            frames[r] = (m, kids_m, dirs, kabsch(torch.eye(3, dtype=torch.float64), held))
+        else:
+            # rig = model @ R0^T @ W, W the rig joint's own frame in the pose
+            frames[r] = (m, kids_m, dirs, quat_to_matrix(quat_conjugate(pose.world[r])) @ kabsch(dirs, observed))
     return frames
 
 
@@ -747,21 +801,24 @@ def onto_rig(
         if u not in aim_of and direct.get(p, 0) >= 2 and np.linalg.norm(rig.offsets[u]) < 1e-9:
             aim_of[u] = aim_of[p]
     aims = _aims(rig, aim_of)
-    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, aim_of)
+    pose = _rig_pose(rig, aim_of)
+    rest = pose.positions
+    frames = _joint_frames(rig, skel, plan, pose, aims, aim_of)
     T = len(pos)
     up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
-        return _solve_rig(rig, rest, aims, aim_of, targets, frames)
+        return _solve_rig(rig, pose, aims, aim_of, targets, frames)
 
     def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
-        # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
+        # the joints above the pelvis are unmapped, so rigid in the rig's pose: the pelvis's own position
         # channels carry the path where it has them (Bandai's static joint_Root stays put), else the root's
         translations = np.broadcast_to(rig.offsets, (T, rig.num_joints, 3)).copy()
         own = top > 0 and any(c.endswith("position") for c in (rig.channels or [()] * rig.num_joints)[top])
         if own:
-            translations[:, top] = (at - rest[rig.parents[top]]).numpy()
+            above = rig.parents[top]
+            translations[:, top] = quat_apply(quat_conjugate(pose.world[above]).expand(T, 4), at - rest[above]).numpy()
         else:
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)

@@ -56,9 +56,9 @@ def test_round_trip_onto_own_rig_holds_the_table(shared_motion):
         # planted feet stay planted: no more sliding than the original (plus 2 cm/s of solver noise)
         assert r["slide_back_cm_s"] < r["slide_original_cm_s"] + 2.0, r
         # and on the ground: the rig's lowest foot point where the model's feet are planted is where the rig's
-        # own clip has it, within 1 cm (the scaled path alone left them 1-5.7 cm off); on the MANN dog in 95 %
-        # of those frames only (a few of its poses the model skeleton cannot hold: the row's max error)
-        assert r["ground_cm"] < 1.0 and r["ground_p95_cm"] < (10.0 if r["label"] == "MANN dog" else 1.0), r
+        # own clip has it, within 1 cm on every rig, the MANN dog included (the scaled path alone left them
+        # 1-5.7 cm off; the dog's shoulders and hips in its rest layout, 8.2 cm in 5 % of its frames)
+        assert r["ground_cm"] < 1.0 and r["ground_p95_cm"] < 1.0, r
 
 
 def _bvh_positions(path: Path) -> tuple[list[str], np.ndarray]:
