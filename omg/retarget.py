@@ -38,7 +38,8 @@ and the motion is resampled to the requested fps before anything else.
 The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
 file, or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
 names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
-rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
+rest orientation; joints the model lacks keep the rotation the rig holds them in (a BVH rig's own frames:
+``_rig_pose``); the root travels the model's path
 scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
 (``omg.io.contacts``); a character (its bind pose a stance on its mesh's soles) keeps its feet's slope
 (``_stance_pitches``) and stands each planted foot's sole on the floor frame by frame (``_feet``,
@@ -493,9 +494,10 @@ def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
     """The pose the rig's joints the model lacks keep (``mapped``: rig joint -> model joint, those it has).
 
     A BVH rig's rest pose is a layout of bones, not a pose: the MANN dog's shoulders lie along its spine at
-    rest and stand turned 80 and 127 degrees (within 2) on every frame of its clip, so the legs hung from them
-    at rest stood 6-9 cm off. Such a joint keeps its mean rotation over the rig's own frames (the rotation
-    nearest the mean of their matrices); a character's bind pose is its pose (its joints keep their rest)."""
+    rest and stand turned 80 and 127 degrees on every frame of its clip (spread 0.5 and 1.5 degrees), so its
+    forelegs hung from them at rest stood 6-9 cm off. Such a joint keeps its mean rotation over the rig's own
+    frames (the rotation nearest the mean of their matrices); a character's bind pose is its pose (its joints
+    keep their rest)."""
     J = rig.num_joints
     local = quat_identity((J,), torch.float64)
     if rig.character is None and len(rig):
@@ -523,7 +525,7 @@ def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets:
     Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
     """
     T, J = targets.shape[0], rig.num_joints
-    rest = pose.positions
+    rest = pose.positions  # (J + E, 3)
     identity = quat_identity((T,), torch.float64)
     local = pose.local.expand(T, J, 4).clone()
     world = [identity] * J
@@ -558,10 +560,14 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims
     """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
 
     A model joint's frame is the best fit of the template's directions to its child bones (as on import).
-    The rig's joint is rigid with that frame: at the rig's rest pose (``rest_model``: the model joints'
-    places there) the model frame is R0 while the rig's is the identity, so in every frame
-    rig = model @ R0^T. This keeps the rig's hip and tail stubs where the rig has them, where a fit of
-    the model's stubs (template directions on import) would tilt the pelvis.
+    The rig's joint is rigid with that frame: rig = model @ C in every frame. This keeps the rig's hip and
+    tail stubs where the rig has them, where a fit of the model's stubs (template directions on import) would
+    tilt the pelvis. A BVH rig's own frames give C: the rotation nearest the mean of model^T @ rig over them
+    (the model frame measured on the rig's mapped places, as on import). Its rest pose is a layout of bones, not
+    a pose: the MANN dog's Hips and Spine lie along one line at rest, while its clip turns the Spine 133
+    degrees on the Hips, so C from its rest (the model frame there R0, the rig's the identity: C = R0^T) turned
+    its Hips 50-70 degrees and its hips stood 7 cm off the ground. A character's bind pose is its pose:
+    C = R0^T @ W, R0 the model frame in ``pose``, W the rig joint's there.
     """
     lengths = np.linalg.norm(skel.rest_offsets, axis=-1)
     rest_model = _proxy(plan, skel, pose.positions[None])[0]
@@ -760,7 +766,10 @@ def onto_rig(
     The joint map is the import's, used the other way (detected from the rig's names, or given).
     Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
     the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
-    spine joints) keep their rest rotation relative to their parent. The root travels the model's
+    spine joints, a dog's shoulders) keep the rotation relative to their parent that the rig holds them in: a
+    BVH rig's mean over its own frames (its rest pose is a layout of bones), a character's bind pose
+    (``_rig_pose``); a joint that follows its model joint's frame keeps the relation the rig's own frames
+    show (``_joint_frames``). The root travels the model's
     path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
     from its own frames as on import; ``up`` names it), on the rig's ground: where the model's feet are
     planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
