@@ -184,6 +184,7 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
 # a character's ground under its planted feet's soles: this quantile of their level, the lowest foot's each frame, so
 # that most go up onto it (a knee bends) and few down (a straight knee cannot)
 STANCE_GROUND = 0.8
+FIT_FRAMES = 240  # of a BVH rig's own frames, at most, that measure what a best fit of its joints' aims misses
 TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
 SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
 
@@ -512,7 +513,7 @@ def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
 
 
 def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets: torch.Tensor,
-               frames: dict) -> tuple:
+               frames: dict, fits: dict) -> tuple:
     """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
     vectors to its aim points in the rig's own pose (``pose``) onto the target's vectors between the
     same model joints.
@@ -521,7 +522,8 @@ def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets:
     A joint with one aim turns by the shortest arc from its direction in the rig's pose, in its parent's
     frame (its own orientation there is where it starts: an A-pose rig is not forced into a T-pose), one
     with several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
-    fit (Kabsch); unmapped joints keep their rotation in the rig's pose (``_rig_pose``).
+    fit (Kabsch), turned by what the rig's own frames show that fit misses (``fits``: see ``_fit_turns``);
+    unmapped joints keep their rotation in the rig's pose (``_rig_pose``).
     Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
     """
     T, J = targets.shape[0], rig.num_joints
@@ -547,12 +549,47 @@ def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets:
             else:
                 # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
                 # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
-                best = matrix_to_quat(kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True)))
-                local[:, j] = quat_mul(quat_conjugate(parent), best)
+                best = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (T, 3, 3)
+                if j in fits:
+                    best = best @ fits[j].T
+                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(best))
         world[j] = quat_mul(parent, local[:, j])
     # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
     top = min(model_of)  # (joints added for aiming come after their mapped parent)
     return local, top, targets[:, model_of[top]]
+
+
+def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims: list, model_of: dict,
+               frames: dict, up: str | None) -> dict:
+    """Per rig joint that ``_solve_rig`` turns by the best fit of its aims, the turn K that its own frames show
+    the fit misses: rig = fit @ K^T, K nearest the mean of fit^T @ rig over the rig's own frames (at most
+    ``FIT_FRAMES`` of them), the fit made on the model's places that the import (``retarget``) gives them.
+
+    The model skeleton holds a joint's children where its template puts them, not where the rig has them: the
+    MANN dog's forelegs hang from SMAL's withers (its Neck) along the template's directions, while the rig hangs
+    them from its Spine1 through its shoulders, so the fit of Spine1's aims (its Neck and the two forelegs)
+    tipped its chest and the forepaws stood 3.4-4.4 cm above the original on the way back. Where the rig's
+    places are the model's (a rig on its own template, a character: none is measured), K is the identity."""
+    todo = [j for j, kids in enumerate(aims) if j in model_of and j not in frames
+            and len([c for c in kids if float((pose.positions[c] - pose.positions[j]).norm()) > 1e-9]) > 1]
+    if rig.character is not None or len(rig) < 2 or not todo:
+        return {}
+    take = np.unique(np.linspace(0, len(rig) - 1, min(len(rig), FIT_FRAMES)).round().astype(int))
+    sample = replace(rig, rotations=rig.rotations[take], translations=rig.translations[take])
+    plan = _plan(skel, jmap, source_names(rig))
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(sample.positions_with_end_sites())), skel, up)
+    model = torch.from_numpy(retarget(sample, skel, jmap, up=up).positions).double()  # (t, M, 3) Y up
+    model = quat_apply(quat_conjugate(turn).expand(*model.shape[:2], 4), model)  # the rig's frame, as ``retarget``'s
+    held = sample.skeleton().global_rotations(torch.from_numpy(sample.rotations).double())  # (t, J, 4)
+    fits = {}
+    for j in todo:
+        kids = [c for c in aims[j] if float((pose.positions[c] - pose.positions[j]).norm()) > 1e-9]
+        v = quat_apply(quat_conjugate(pose.world[j]).expand(len(kids), 4), pose.positions[kids] - pose.positions[j])
+        w = model[:, [model_of[c] for c in kids]] - model[:, model_of[j], None]  # (t, C, 3)
+        fit = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (t, 3, 3)
+        mean = (fit.transpose(-1, -2) @ quat_to_matrix(held[:, j])).mean(0)  # (3, 3)
+        fits[j] = kabsch(torch.eye(3, dtype=torch.float64), mean)
+    return fits
 
 
 def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims: list,
@@ -813,12 +850,13 @@ def onto_rig(
     pose = _rig_pose(rig, aim_of)
     rest = pose.positions
     frames = _joint_frames(rig, skel, plan, pose, aims, aim_of)
+    fits = _fit_turns(rig, skel, jmap, pose, aims, aim_of, frames, up)
     T = len(pos)
     up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
-        return _solve_rig(rig, pose, aims, aim_of, targets, frames)
+        return _solve_rig(rig, pose, aims, aim_of, targets, frames, fits)
 
     def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
         # the joints above the pelvis are unmapped, so rigid in the rig's pose: the pelvis's own position
@@ -882,7 +920,9 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     where the model's feet are planted (``ground_contacts``), in the original and on the way back;
     ``ground_cm``, ``ground_p95_cm``, ``ground_max_cm``: over those frames, how far the rig's lowest foot
     point (its feet, toes and their end sites, along its up axis, no translation removed) is on the way
-    back from where the original has it: the median, 95th percentile and largest.
+    back from where the original has it: the median, 95th percentile and largest; ``foot_cm``, ``foot_p95_cm``:
+    the same for each foot of the model on its own (its rig joints, those below and their end sites, over the
+    frames where that foot is planted), the largest median and the largest 95th percentile of the feet.
     """
     skel = get_skeleton(skeleton)
     jmap = _rig_joint_map(rig, skel, joint_map)
@@ -908,6 +948,17 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     points = _foot_points(rig, feet)
     heights = [(x[:, points] @ up_axis).min(1) for x in (a, b)]  # (T,) the lowest foot point, original and back
     off_ground = np.abs(heights[1] - heights[0])[contact.any(1)] * 100  # (planted frames,) cm
+    # each foot on its own, over the frames where the model's foot is planted: the lowest point of all of them
+    # hides a foot standing above the others (the MANN dog's forepaws, while its hind paws are the lowest)
+    from omg.io.contacts import foot_groups
+
+    per_foot = []  # (median, 95th percentile) cm per foot of the model the rig has
+    for group in foot_groups(skel):
+        at = _foot_points(rig, [plan.source[f] for f in group])
+        here = contact[:, [list(skel.feet).index(f) for f in group]].any(1)
+        if here.any():
+            off = np.abs((b[:, at] @ up_axis).min(1) - (a[:, at] @ up_axis).min(1))[here] * 100
+            per_foot.append((float(np.median(off)), float(np.percentile(off, 95))))
 
     def slide(x: np.ndarray) -> float:
         speed = np.linalg.norm(np.diff(x[:, feet], axis=0), axis=-1) * clip.fps * 100  # (T - 1, F) cm/s
@@ -922,6 +973,8 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
         "ground_cm": float(np.median(off_ground)) if len(off_ground) else 0.0,
         "ground_p95_cm": float(np.percentile(off_ground, 95)) if len(off_ground) else 0.0,
         "ground_max_cm": float(off_ground.max(initial=0.0)),
+        "foot_cm": max((m for m, _ in per_foot), default=0.0),
+        "foot_p95_cm": max((p for _, p in per_foot), default=0.0),
     }  # fmt: skip
 
 
