@@ -184,6 +184,10 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
 # a character's ground under its planted feet's soles: this quantile of their level, the lowest foot's each frame, so
 # that most go up onto it (a knee bends) and few down (a straight knee cannot)
 STANCE_GROUND = 0.8
+# m: a planted foot of a BVH rig whose median height over its contacts is within this of its height on the rig's
+# own planted frames stays as the model puts it (the two sets of planted frames alone move the human rows' by up
+# to 0.11 cm: a clip's round trip comes back as it went); one further off is moved to within it
+FOOT_TOLERANCE = 0.003
 FIT_FRAMES = 240  # of a BVH rig's own frames, at most, that measure what a best fit of its joints' aims misses
 TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
 SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
@@ -715,22 +719,29 @@ def _foot_levels(motion: RigMotion, feet: list[_Foot], up_axis: torch.Tensor) ->
     return torch.stack(levels, 1)
 
 
+def _own_height(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float | None:
+    """Metres the lowest of ``points`` (a foot's, or all feet's) stands above the ground when planted on a BVH
+    rig's own clip: its median height over the clip's frames where they are planted; None on a rig without
+    a clip (or a character: its feet stand on its mesh's sole, ``_feet``), or where it is over a tenth of the
+    leg or under the floor (no foot's)."""
+    if getattr(rig.character, "sole", None) is not None or len(rig) <= 2:
+        return None
+    at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
+    yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
+    yup[..., 1] = at
+    yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
+                   - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
+    planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
+    height = float(at.min(1).values[planted].median()) if planted.any() else 0.0
+    return height if 0.0 <= height <= 0.1 * leg else None
+
+
 def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
     """Metres the rig's lowest foot point stands above its ground when planted: on a BVH rig with a clip its
-    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
-    else 0 (a character's feet stand on its mesh's sole: ``_feet``); a clearance over a tenth of the leg is no
-    foot's, and 0 is taken."""
-    if getattr(rig.character, "sole", None) is None and len(rig) > 2:
-        at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
-        yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
-        yup[..., 1] = at
-        yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
-                       - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
-        planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
-        clearance = float(at.min(1).values[planted].median()) if planted.any() else 0.0
-    else:
-        clearance = 0.0
-    return clearance if 0.0 <= clearance <= 0.1 * leg else 0.0
+    height on its own planted frames (``_own_height``: joints sit inside the foot, Bandai's toe ends stand 4 cm
+    up), else 0 (a character's feet stand on its mesh's sole: ``_feet``)."""
+    height = _own_height(rig, points, up_axis, leg)
+    return 0.0 if height is None else height
 
 
 def _slope(d: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -899,9 +910,25 @@ def onto_rig(
         # rise with its pin, and the leg bends or stretches to it. A BVH rig's feet go as the model's: its clip
         # comes back as it went
         rise = None
+        own = [None] * len(feet) if stance else [_own_height(rig, f.points, up_axis, rig_leg) for f in feet]
         if stance:
             rise = np.zeros((T, len(foot_groups(skel))))  # (T, G) a foot the rig lacks stays where it is
             rise[:, [f.group for f in feet]] = (clearance - _foot_levels(out, feet, up_axis)).numpy()
+        elif any(height is not None for height in own):
+            # a BVH rig's planted foot stands, over its contacts, within FOOT_TOLERANCE of the height that foot
+            # has on the rig's own planted frames (the median of each; the least move): one ground for all feet
+            # leaves a foot whose joints sit higher or lower in it than the lowest foot's off by the difference
+            # (the DeepMimic dog's feet 1.2-1.5 cm, the MANN dog's forepaws); its motion within them stays the
+            # model's
+            rise = np.zeros((T, len(foot_groups(skel))))
+            held = ground_contacts(filled, skel.feet, float(fps), max_speed=GROUND_CONTACT_SPEED)  # the clean-up's
+            levels = _foot_levels(out, feet, up_axis)  # (T, F)
+            for k, (foot, height) in enumerate(zip(feet, own)):
+                here = held[:, [list(skel.feet).index(j) for j in foot_groups(skel)[foot.group]]].any(1)
+                if height is not None and here.any():
+                    off = height - float(levels[here, k].median())
+                    off = float(np.sign(off)) * max(abs(off) - FOOT_TOLERANCE, 0.0)
+                    rise[here.numpy(), foot.group] = off
         # retargeting's contact rule (slow and low), not the clean-up's looser one for generated feet: a
         # slowly walking dog's feet are not planted
         cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED, rise=rise)

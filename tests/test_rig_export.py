@@ -31,10 +31,11 @@ CMU_WALK = "human/cmu/02_01.bvh"
 # per rig (RIG_CLIPS label): mean and max joint error (cm, every joint and end site of the rig) and the
 # largest bone-length change (cm). Measured (omg bench rig): Bandai 0.04 / 1.9 / 0, CMU 0.6 / 5.1 / 0,
 # the CMU rig renamed 0.1-0.5 / 4.2-5.2 / 0, DeepMimic humanoid 0.03 / 1.1, MANN dog 1.5 / 5.5, DeepMimic dog
-# 0.9 / 2.9. Headroom about 1.5x; what the model skeletons cannot represent sets the level: the CMU rig's
+# 0.9 / 5.2. Headroom about 1.5x; what the model skeletons cannot represent sets the level: the CMU rig's
 # fingers, thumb and second neck joint ride rigidly on their parents (in the pose its own clip holds them),
 # SMAL's spine turns the MANN dog's from the template's directions, Bandai's position channels move its joints
-# off their offsets (the rig keeps its offsets); the CMU rows' max is a knee the contact clean-up bends.
+# off their offsets (the rig keeps its offsets); the CMU rows' and the DeepMimic dog's max is a knee the contact
+# clean-up bends (the dog's to stand its feet at their own height).
 THRESHOLDS = {
     "Bandai-Namco": (0.3, 3.0, 1.5),
     "CMU (cgspeed BVH)": (1.0, 7.0, 0.01),
@@ -43,7 +44,7 @@ THRESHOLDS = {
     "100STYLE (CMU 02_01 renamed)": (0.8, 7.5, 0.01),
     "Mixamo (CMU 02_01 renamed)": (0.3, 6.5, 0.01),
     "MANN dog": (2.2, 8.5, 0.01),
-    "DeepMimic dog": (1.5, 4.5, 0.01),
+    "DeepMimic dog": (1.5, 7.5, 0.01),
 }
 
 
@@ -59,6 +60,9 @@ def test_round_trip_onto_own_rig_holds_the_table(shared_motion):
         # own clip has it, within 1 cm on every rig, the MANN dog included (the scaled path alone left them
         # 1-5.7 cm off; the dog's shoulders and hips in its rest layout, 8.2 cm in 5 % of its frames)
         assert r["ground_cm"] < 1.0 and r["ground_p95_cm"] < 1.0, r
+        # each foot on its own too, over the frames where it is planted (the MANN dog's worst foot was 9.3 cm off
+        # in half of them, 11.4 in 5 %; the DeepMimic dog's 1.2 cm: its feet sit at different heights)
+        assert r["foot_cm"] < 1.0 and r["foot_p95_cm"] < 1.0, r
 
 
 def test_joints_the_model_lacks_keep_the_pose_of_the_rigs_own_frames(tmp_path):
