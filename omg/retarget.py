@@ -35,16 +35,16 @@ The source's up axis is detected (pelvis above the feet) and turned to +Y, the f
 is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slow and low),
 and the motion is resampled to the requested fps before anything else.
 
-The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
-file, or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
-names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
-rest orientation; joints the model lacks keep the rotation the rig holds them in (a BVH rig's own frames:
-``_rig_pose``); the root travels the model's path
-scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
-(``omg.io.contacts``); a character (its bind pose a stance on its mesh's soles) keeps its feet's slope
-(``_stance_pitches``) and stands each planted foot's sole on the floor frame by frame (``_feet``,
-``_foot_levels``). ``rig_round_trip`` measures
-import + export on a rig's own clip (``omg bench rig``).
+The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH file,
+or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
+names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own rest
+orientation; joints the model lacks keep the rotation the rig holds them in (a BVH rig's own frames:
+``_rig_pose``, ``_joint_frames``, ``_fit_turns``); the root travels the model's path scaled to the rig's
+leg length, on the rig's own ground (``_clearance``), and planted feet are pinned (``omg.io.contacts``),
+each at its own height on the rig's clip (``_own_height``); a character (its bind pose a stance on its
+mesh's soles) keeps its feet's slope (``_stance_pitches``) and stands each planted foot's sole on the
+floor frame by frame (``_feet``, ``_foot_levels``). ``rig_round_trip`` measures import + export on a
+rig's own clip (``omg bench rig``).
 """
 
 from __future__ import annotations
@@ -823,7 +823,9 @@ def onto_rig(
     planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
     planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places;
     a character's planted feet are also put with their soles on the floor on each frame, and its feet in the
-    air kept above it. A character's foot bones keep their own slope at stance (``_stance_pitches``).
+    air kept above it; a BVH rig's planted feet each stand, over their contacts, within ``FOOT_TOLERANCE`` of
+    the height that foot has on the rig's own planted frames. A character's foot bones keep their own slope at
+    stance (``_stance_pitches``).
     """
     from omg.io.contacts import clean_foot_contacts, foot_groups
 
