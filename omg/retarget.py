@@ -188,7 +188,7 @@ STANCE_GROUND = 0.8
 # own planted frames stays as the model puts it (the two sets of planted frames alone move the human rows' by up
 # to 0.11 cm: a clip's round trip comes back as it went); one further off is moved to within it
 FOOT_TOLERANCE = 0.003
-FIT_FRAMES = 240  # of a BVH rig's own frames, at most, that measure what a best fit of its joints' aims misses
+FIT_FRAMES = 240  # of a BVH rig's own frames, at most, that its pose and the turns its fits miss are measured on
 TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
 SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
 
@@ -485,6 +485,11 @@ def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
     return [below(j) for j in range(J)]
 
 
+def _sampled(frames: int) -> np.ndarray:
+    """At most ``FIT_FRAMES`` of a rig's own frames, evenly spread: what its means are taken over."""
+    return np.unique(np.linspace(0, frames - 1, min(frames, FIT_FRAMES)).round().astype(int))
+
+
 @dataclass(frozen=True)
 class _Pose:
     """The rig's own pose that ``onto_rig`` turns its mapped joints from: the joints the model lacks as the rig
@@ -505,11 +510,12 @@ def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
     keep their rest)."""
     J = rig.num_joints
     local = quat_identity((J,), torch.float64)
-    if rig.character is None and len(rig):
-        turns = quat_to_matrix(torch.from_numpy(rig.rotations).double()).mean(0)  # (J, 3, 3)
-        mean = matrix_to_quat(kabsch(torch.eye(3, dtype=torch.float64).expand(J, 3, 3), turns.transpose(-1, -2)))
-        keep = torch.tensor([j not in mapped for j in range(J)])
-        local = torch.where(keep[:, None], mean, local)
+    keep = [j for j in range(J) if j not in mapped]
+    if rig.character is None and len(rig) and keep:
+        held = torch.from_numpy(rig.rotations[_sampled(len(rig))][:, keep]).double()  # (t, K, 4)
+        turns = quat_to_matrix(held).mean(0)  # (K, 3, 3)
+        eye = torch.eye(3, dtype=torch.float64).expand(len(keep), 3, 3)
+        local[keep] = matrix_to_quat(kabsch(eye, turns.transpose(-1, -2)))
     world = rig.skeleton().global_rotations(local[None])[0]
     translations = rig.offsets[None]
     positions = replace(rig, rotations=local[None].numpy(), translations=translations).positions_with_end_sites()[0]
@@ -578,7 +584,7 @@ def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims
             and len([c for c in kids if float((pose.positions[c] - pose.positions[j]).norm()) > 1e-9]) > 1]
     if rig.character is not None or len(rig) < 2 or not todo:
         return {}
-    take = np.unique(np.linspace(0, len(rig) - 1, min(len(rig), FIT_FRAMES)).round().astype(int))
+    take = _sampled(len(rig))
     sample = replace(rig, rotations=rig.rotations[take], translations=rig.translations[take])
     plan = _plan(skel, jmap, source_names(rig))
     turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(sample.positions_with_end_sites())), skel, up)
@@ -597,7 +603,7 @@ def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims
 
 
 def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims: list,
-                  model_of: dict) -> dict:
+                  model_of: dict, own: torch.Tensor) -> dict:
     """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
 
     A model joint's frame is the best fit of the template's directions to its child bones (as on import).
@@ -614,8 +620,9 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims
     rest_model = _proxy(plan, skel, pose.positions[None])[0]
     clip = turns = None
     if rig.character is None and len(rig):
-        clip = _proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites()))  # (T, J, 3)
-        turns = rig.skeleton().global_rotations(torch.from_numpy(rig.rotations).double())  # (T, J, 4)
+        take = _sampled(len(rig))
+        clip = _proxy(plan, skel, own[take])  # (t, J, 3)
+        turns = rig.skeleton().global_rotations(torch.from_numpy(rig.rotations[take]).double())  # (t, J, 4)
     frames = {}
     for r, kids in enumerate(aims):
         # only where every aim hangs right below the joint: a joint the map skips may carry the rig's own
@@ -719,28 +726,29 @@ def _foot_levels(motion: RigMotion, feet: list[_Foot], up_axis: torch.Tensor) ->
     return torch.stack(levels, 1)
 
 
-def _own_height(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float | None:
+def _own_height(rig: RigMotion, frames: torch.Tensor, points: list[int], up_axis: torch.Tensor,
+                leg: float) -> float | None:
     """Metres the lowest of ``points`` (a foot's, or all feet's) stands above the ground when planted on a BVH
     rig's own clip: its median height over the clip's frames where they are planted; None on a rig without
     a clip (or a character: its feet stand on its mesh's sole, ``_feet``), or where it is over a tenth of the
-    leg or under the floor (no foot's)."""
+    leg or under the floor (no foot's). ``frames``: (T, J + E, 3) the rig's ``positions_with_end_sites``."""
     if getattr(rig.character, "sole", None) is not None or len(rig) <= 2:
         return None
-    at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
+    at = frames[:, points] @ up_axis  # (T, P) heights
     yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
     yup[..., 1] = at
-    yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
-                   - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
+    # the horizontal distance: enough for the speed
+    yup[..., 0] = (frames[:, points] - at[..., None] * up_axis).norm(dim=-1)
     planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
     height = float(at.min(1).values[planted].median()) if planted.any() else 0.0
     return height if 0.0 <= height <= 0.1 * leg else None
 
 
-def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
+def _clearance(rig: RigMotion, frames: torch.Tensor, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
     """Metres the rig's lowest foot point stands above its ground when planted: on a BVH rig with a clip its
     height on its own planted frames (``_own_height``: joints sit inside the foot, Bandai's toe ends stand 4 cm
     up), else 0 (a character's feet stand on its mesh's sole: ``_feet``)."""
-    height = _own_height(rig, points, up_axis, leg)
+    height = _own_height(rig, frames, points, up_axis, leg)
     return 0.0 if height is None else height
 
 
@@ -843,7 +851,8 @@ def onto_rig(
     if not rig_leg > 1e-6:
         raise UsageError(f"{where}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
                          "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
-    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites())), skel, up)
+    own = torch.from_numpy(rig.positions_with_end_sites())  # (T, J + E, 3) the rig's own frames
+    turn = _up_rotation(_proxy(plan, skel, own), skel, up)
     back = quat_conjugate(turn)  # Y up -> the rig's frame
     scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
     model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
@@ -862,7 +871,7 @@ def onto_rig(
     aims = _aims(rig, aim_of)
     pose = _rig_pose(rig, aim_of)
     rest = pose.positions
-    frames = _joint_frames(rig, skel, plan, pose, aims, aim_of)
+    frames = _joint_frames(rig, skel, plan, pose, aims, aim_of, own)
     fits = _fit_turns(rig, skel, jmap, pose, aims, aim_of, frames, up)
     T = len(pos)
     up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
@@ -900,7 +909,7 @@ def onto_rig(
         ground = torch.quantile(lowest[contact], STANCE_GROUND)
     else:
         ground = lowest[contact].median()
-    clearance = _clearance(rig, sorted({p for f in feet for p in f.points}), up_axis, rig_leg)
+    clearance = _clearance(rig, own, sorted({p for f in feet for p in f.points}), up_axis, rig_leg)
     out = placed(local, top, at - (ground - clearance) * up_axis)
     if clean_contacts and T > 1:
         # the rig's own places of the model joints, Y up: its feet are what must stay planted
@@ -912,11 +921,11 @@ def onto_rig(
         # rise with its pin, and the leg bends or stretches to it. A BVH rig's feet go as the model's: its clip
         # comes back as it went
         rise = None
-        own = [None] * len(feet) if stance else [_own_height(rig, f.points, up_axis, rig_leg) for f in feet]
+        heights = [None] * len(feet) if stance else [_own_height(rig, own, f.points, up_axis, rig_leg) for f in feet]
         if stance:
             rise = np.zeros((T, len(foot_groups(skel))))  # (T, G) a foot the rig lacks stays where it is
             rise[:, [f.group for f in feet]] = (clearance - _foot_levels(out, feet, up_axis)).numpy()
-        elif any(height is not None for height in own):
+        elif any(height is not None for height in heights):
             # a BVH rig's planted foot stands, over its contacts, within FOOT_TOLERANCE of the height that foot
             # has on the rig's own planted frames (the median of each; the least move): one ground for all feet
             # leaves a foot whose joints sit higher or lower in it than the lowest foot's off by the difference
@@ -925,7 +934,7 @@ def onto_rig(
             rise = np.zeros((T, len(foot_groups(skel))))
             held = ground_contacts(filled, skel.feet, float(fps), max_speed=GROUND_CONTACT_SPEED)  # the clean-up's
             levels = _foot_levels(out, feet, up_axis)  # (T, F)
-            for k, (foot, height) in enumerate(zip(feet, own)):
+            for k, (foot, height) in enumerate(zip(feet, heights)):
                 here = held[:, [list(skel.feet).index(j) for j in foot_groups(skel)[foot.group]]].any(1)
                 if height is not None and here.any():
                     off = height - float(levels[here, k].median())
