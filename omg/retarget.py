@@ -35,15 +35,16 @@ The source's up axis is detected (pelvis above the feet) and turned to +Y, the f
 is put under the feet of contact frames (``omg.kinematics.ground_contacts``: slow and low),
 and the motion is resampled to the requested fps before anything else.
 
-The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH
-file, or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
-names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own
-rest orientation; joints the model lacks keep their rest rotation; the root travels the model's path
-scaled to the rig's leg length, on the rig's own ground (``_clearance``), and planted feet are pinned
-(``omg.io.contacts``); a character (its bind pose a stance on its mesh's soles) keeps its feet's slope
-(``_stance_pitches``) and stands each planted foot's sole on the floor frame by frame (``_feet``,
-``_foot_levels``). ``rig_round_trip`` measures
-import + export on a rig's own clip (``omg bench rig``).
+The other direction, ``onto_rig``: a motion on a model skeleton written onto a user's rig (a BVH file,
+or a skinned glTF or FBX character, read by ``read_rig``), with the same maps (detected from the rig's
+names, or given). Mapped rig joints turn so that their bones follow the model's, from the rig's own rest
+orientation; joints the model lacks keep the rotation the rig holds them in (a BVH rig's own frames:
+``_rig_pose``, ``_joint_frames``, ``_fit_turns``); the root travels the model's path scaled to the rig's
+leg length, on the rig's own ground (``_clearance``), and planted feet are pinned (``omg.io.contacts``),
+each at its own height on the rig's clip (``_own_height``); a character (its bind pose a stance on its
+mesh's soles) keeps its feet's slope (``_stance_pitches``) and stands each planted foot's sole on the
+floor frame by frame (``_feet``, ``_foot_levels``). ``rig_round_trip`` measures import + export on a
+rig's own clip (``omg bench rig``).
 """
 
 from __future__ import annotations
@@ -65,7 +66,15 @@ from omg.io.rig import RigMotion
 from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
 from omg.motion.base import Clip
 from omg.registry import JOINT_MAPS
-from omg.rotations import matrix_to_quat, quat_apply, quat_between, quat_conjugate, quat_identity, quat_mul
+from omg.rotations import (
+    matrix_to_quat,
+    quat_apply,
+    quat_between,
+    quat_conjugate,
+    quat_identity,
+    quat_mul,
+    quat_to_matrix,
+)
 from omg.skeleton import Skeleton, get_skeleton
 
 
@@ -175,6 +184,11 @@ def resolve_joint_map(motion: RigMotion, target: Skeleton, joint_map: str | Path
 # a character's ground under its planted feet's soles: this quantile of their level, the lowest foot's each frame, so
 # that most go up onto it (a knee bends) and few down (a straight knee cannot)
 STANCE_GROUND = 0.8
+# m: a planted foot of a BVH rig whose median height over its contacts is within this of its height on the rig's
+# own planted frames stays as the model puts it (the two sets of planted frames alone move the human rows' by up
+# to 0.11 cm: a clip's round trip comes back as it went); one further off is moved to within it
+FOOT_TOLERANCE = 0.003
+FIT_FRAMES = 240  # of a BVH rig's own frames, at most, that its pose and the turns its fits miss are measured on
 TODO = "TODO"  # a scaffold's value for a target joint no joint of the rig was matched to
 SIMILAR = 0.75  # difflib ratio of two names' cores above which a scaffold proposes a joint
 
@@ -471,27 +485,69 @@ def _aims(rig: RigMotion, mapped: dict) -> list[list[int]]:
     return [below(j) for j in range(J)]
 
 
-def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, targets: torch.Tensor,
-               frames: dict) -> tuple:
-    """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
-    rest vectors to its aim points onto the target's vectors between the same model joints.
+def _sampled(frames: int) -> np.ndarray:
+    """At most ``FIT_FRAMES`` of a rig's own frames, evenly spread: what its means are taken over."""
+    return np.unique(np.linspace(0, frames - 1, min(frames, FIT_FRAMES)).round().astype(int))
 
-    ``rest``: (J + E, 3) rest positions; ``targets``: (T, M, 3) model joint places in the rig's frame.
-    A joint with one aim turns by the shortest arc from its rest direction in its parent's frame (its
-    own rest orientation is where it starts: an A-pose rig is not forced into a T-pose), one with
-    several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
-    fit (Kabsch); unmapped joints keep their rest (identity) rotation.
+
+@dataclass(frozen=True)
+class _Pose:
+    """The rig's own pose that ``onto_rig`` turns its mapped joints from: the joints the model lacks as the rig
+    holds them, the mapped ones at rest."""
+
+    local: torch.Tensor  # (J, 4) local rotations
+    world: torch.Tensor  # (J, 4) global rotations
+    positions: torch.Tensor  # (J + E, 3) joints and end sites, the root at its offset
+
+
+def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
+    """The pose the rig's joints the model lacks keep (``mapped``: rig joint -> model joint, those it has).
+
+    A BVH rig's rest pose is a layout of bones, not a pose: the MANN dog's shoulders lie along its spine at
+    rest and stand turned 80 and 127 degrees on every frame of its clip (spread 0.5 and 1.5 degrees), so its
+    forelegs hung from them at rest stood 6-9 cm off. Such a joint keeps its mean rotation over the rig's own
+    frames (the rotation nearest the mean of their matrices); a character's bind pose is its pose (its joints
+    keep their rest)."""
+    J = rig.num_joints
+    local = quat_identity((J,), torch.float64)
+    keep = [j for j in range(J) if j not in mapped]
+    if rig.character is None and len(rig) and keep:
+        held = torch.from_numpy(rig.rotations[_sampled(len(rig))][:, keep]).double()  # (t, K, 4)
+        turns = quat_to_matrix(held).mean(0)  # (K, 3, 3)
+        eye = torch.eye(3, dtype=torch.float64).expand(len(keep), 3, 3)
+        local[keep] = matrix_to_quat(kabsch(eye, turns.transpose(-1, -2)))
+    world = rig.skeleton().global_rotations(local[None])[0]
+    translations = rig.offsets[None]
+    positions = replace(rig, rotations=local[None].numpy(), translations=translations).positions_with_end_sites()[0]
+    return _Pose(local, world, torch.from_numpy(positions))
+
+
+def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets: torch.Tensor,
+               frames: dict, fits: dict) -> tuple:
+    """Local rotations (T, J, 4) and root translation (T, 3) of the rig turning each mapped joint's
+    vectors to its aim points in the rig's own pose (``pose``) onto the target's vectors between the
+    same model joints.
+
+    ``targets``: (T, M, 3) model joint places in the rig's frame.
+    A joint with one aim turns by the shortest arc from its direction in the rig's pose, in its parent's
+    frame (its own orientation there is where it starts: an A-pose rig is not forced into a T-pose), one
+    with several follows the model joint's own frame (``frames``: see ``_joint_frames``), else their best
+    fit (Kabsch), turned by what the rig's own frames show that fit misses (``fits``: see ``_fit_turns``);
+    unmapped joints keep their rotation in the rig's pose (``_rig_pose``).
     Returns the rotations, the top mapped joint (the pelvis) and its (T, 3) place.
     """
     T, J = targets.shape[0], rig.num_joints
+    rest = pose.positions  # (J + E, 3)
     identity = quat_identity((T,), torch.float64)
-    local = quat_identity((T, J), torch.float64)
+    local = pose.local.expand(T, J, 4).clone()
     world = [identity] * J
     for j, p in enumerate(rig.parents):
         parent = world[p] if p >= 0 else identity
         kids = [c for c in aims[j] if float((rest[c] - rest[j]).norm()) > 1e-9] if j in model_of else []
         if kids:
-            v = rest[kids] - rest[j]  # (C, 3) rest vectors, in j's frame (rest rotations are the identity)
+            # (C, 3) the vectors in j's own frame (a mapped joint's own rotation in the pose is the identity; the
+            # unmapped joints above it may turn it)
+            v = quat_apply(quat_conjugate(pose.world[j]).expand(len(kids), 4), rest[kids] - rest[j])
             w = targets[:, [model_of[c] for c in kids]] - targets[:, model_of[j], None]  # (T, C, 3)
             if len(kids) == 1:
                 aim = quat_apply(quat_conjugate(parent), w[:, 0])
@@ -503,25 +559,70 @@ def _solve_rig(rig: RigMotion, rest: torch.Tensor, aims: list, model_of: dict, t
             else:
                 # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
                 # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
-                best = matrix_to_quat(kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True)))
-                local[:, j] = quat_mul(quat_conjugate(parent), best)
+                best = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (T, 3, 3)
+                if j in fits:
+                    best = best @ fits[j].T
+                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(best))
         world[j] = quat_mul(parent, local[:, j])
     # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
     top = min(model_of)  # (joints added for aiming come after their mapped parent)
     return local, top, targets[:, model_of[top]]
 
 
-def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch.Tensor, aims: list,
-                  model_of: dict) -> dict:
+def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims: list, model_of: dict,
+               frames: dict, up: str | None) -> dict:
+    """Per rig joint that ``_solve_rig`` turns by the best fit of its aims, the turn K that its own frames show
+    the fit misses: rig = fit @ K^T, K nearest the mean of fit^T @ rig over the rig's own frames (at most
+    ``FIT_FRAMES`` of them), the fit made on the model's places that the import (``retarget``) gives them.
+
+    The model skeleton holds a joint's children where its template puts them, not where the rig has them: the
+    MANN dog's forelegs hang from SMAL's withers (its Neck) along the template's directions, while the rig hangs
+    them from its Spine1 through its shoulders, so the fit of Spine1's aims (its Neck and the two forelegs)
+    tipped its chest and the forepaws stood 3.4-4.4 cm above the original on the way back. Where the rig's
+    places are the model's (a rig on its own template, a character: none is measured), K is the identity."""
+    todo = [j for j, kids in enumerate(aims) if j in model_of and j not in frames
+            and len([c for c in kids if float((pose.positions[c] - pose.positions[j]).norm()) > 1e-9]) > 1]
+    if rig.character is not None or len(rig) < 2 or not todo:
+        return {}
+    take = _sampled(len(rig))
+    sample = replace(rig, rotations=rig.rotations[take], translations=rig.translations[take])
+    plan = _plan(skel, jmap, source_names(rig))
+    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(sample.positions_with_end_sites())), skel, up)
+    model = torch.from_numpy(retarget(sample, skel, jmap, up=up).positions).double()  # (t, M, 3) Y up
+    model = quat_apply(quat_conjugate(turn).expand(*model.shape[:2], 4), model)  # the rig's frame, as ``retarget``'s
+    held = sample.skeleton().global_rotations(torch.from_numpy(sample.rotations).double())  # (t, J, 4)
+    fits = {}
+    for j in todo:
+        kids = [c for c in aims[j] if float((pose.positions[c] - pose.positions[j]).norm()) > 1e-9]
+        v = quat_apply(quat_conjugate(pose.world[j]).expand(len(kids), 4), pose.positions[kids] - pose.positions[j])
+        w = model[:, [model_of[c] for c in kids]] - model[:, model_of[j], None]  # (t, C, 3)
+        fit = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (t, 3, 3)
+        mean = (fit.transpose(-1, -2) @ quat_to_matrix(held[:, j])).mean(0)  # (3, 3)
+        fits[j] = kabsch(torch.eye(3, dtype=torch.float64), mean)
+    return fits
+
+
+def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims: list,
+                  model_of: dict, own: torch.Tensor) -> dict:
     """Per rig joint with several aims (a pelvis, a chest), how its model joint's frame maps onto it.
 
     A model joint's frame is the best fit of the template's directions to its child bones (as on import).
-    The rig's joint is rigid with that frame: at the rig's rest pose (``rest_model``: the model joints'
-    places there) the model frame is R0 while the rig's is the identity, so in every frame
-    rig = model @ R0^T. This keeps the rig's hip and tail stubs where the rig has them, where a fit of
-    the model's stubs (template directions on import) would tilt the pelvis.
+    The rig's joint is rigid with that frame: rig = model @ C in every frame. This keeps the rig's hip and
+    tail stubs where the rig has them, where a fit of the model's stubs (template directions on import) would
+    tilt the pelvis. A BVH rig's own frames give C: the rotation nearest the mean of model^T @ rig over them
+    (the model frame measured on the rig's mapped places, as on import). Its rest pose is a layout of bones, not
+    a pose: the MANN dog's Hips and Spine lie along one line at rest, while its clip turns the Spine 133
+    degrees on the Hips, so C from its rest (the model frame there R0, the rig's the identity: C = R0^T) turned
+    its Hips 50-70 degrees and its hips stood 7 cm off the ground. A character's bind pose is its pose:
+    C = R0^T @ W, R0 the model frame in ``pose``, W the rig joint's there.
     """
     lengths = np.linalg.norm(skel.rest_offsets, axis=-1)
+    rest_model = _proxy(plan, skel, pose.positions[None])[0]
+    clip = turns = None
+    if rig.character is None and len(rig):
+        take = _sampled(len(rig))
+        clip = _proxy(plan, skel, own[take])  # (t, J, 3)
+        turns = rig.skeleton().global_rotations(torch.from_numpy(rig.rotations[take]).double())  # (t, J, 4)
     frames = {}
     for r, kids in enumerate(aims):
         # only where every aim hangs right below the joint: a joint the map skips may carry the rig's own
@@ -537,7 +638,14 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, rest_model: torch
         observed = F.normalize(rest_model[kids_m] - rest_model[m], dim=-1)
         if not torch.isfinite(observed).all():
             continue
-        frames[r] = (m, kids_m, dirs, kabsch(dirs, observed))
+        if clip is not None:
+            # rig = model @ C, C nearest the mean of model^T @ rig over the rig's own frames
+            seen = F.normalize(clip[:, kids_m] - clip[:, m, None], dim=-1)  # (T, K, 3)
+            held = (kabsch(dirs, seen).transpose(-1, -2) @ quat_to_matrix(turns[:, r])).mean(0)  # (3, 3)
+            frames[r] = (m, kids_m, dirs, kabsch(torch.eye(3, dtype=torch.float64), held))
+        else:
+            # rig = model @ R0^T @ W, W the rig joint's own frame in the pose
+            frames[r] = (m, kids_m, dirs, quat_to_matrix(quat_conjugate(pose.world[r])) @ kabsch(dirs, observed))
     return frames
 
 
@@ -618,22 +726,30 @@ def _foot_levels(motion: RigMotion, feet: list[_Foot], up_axis: torch.Tensor) ->
     return torch.stack(levels, 1)
 
 
-def _clearance(rig: RigMotion, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
+def _own_height(rig: RigMotion, frames: torch.Tensor, points: list[int], up_axis: torch.Tensor,
+                leg: float) -> float | None:
+    """Metres the lowest of ``points`` (a foot's, or all feet's) stands above the ground when planted on a BVH
+    rig's own clip: its median height over the clip's frames where they are planted; None on a rig without
+    a clip (or a character: its feet stand on its mesh's sole, ``_feet``), or where it is over a tenth of the
+    leg or under the floor (no foot's). ``frames``: (T, J + E, 3) the rig's ``positions_with_end_sites``."""
+    if getattr(rig.character, "sole", None) is not None or len(rig) <= 2:
+        return None
+    at = frames[:, points] @ up_axis  # (T, P) heights
+    yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
+    yup[..., 1] = at
+    # the horizontal distance: enough for the speed
+    yup[..., 0] = (frames[:, points] - at[..., None] * up_axis).norm(dim=-1)
+    planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
+    height = float(at.min(1).values[planted].median()) if planted.any() else 0.0
+    return height if 0.0 <= height <= 0.1 * leg else None
+
+
+def _clearance(rig: RigMotion, frames: torch.Tensor, points: list[int], up_axis: torch.Tensor, leg: float) -> float:
     """Metres the rig's lowest foot point stands above its ground when planted: on a BVH rig with a clip its
-    median height over its own planted frames (joints sit inside the foot: Bandai's toe ends stand 4 cm up),
-    else 0 (a character's feet stand on its mesh's sole: ``_feet``); a clearance over a tenth of the leg is no
-    foot's, and 0 is taken."""
-    if getattr(rig.character, "sole", None) is None and len(rig) > 2:
-        at = torch.from_numpy(rig.positions_with_end_sites())[:, points] @ up_axis  # (T, P) heights
-        yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
-        yup[..., 1] = at
-        yup[..., 0] = (torch.from_numpy(rig.positions_with_end_sites())[:, points]
-                       - at[..., None] * up_axis).norm(dim=-1)  # horizontal distance: enough for the speed
-        planted = ground_contacts(yup, list(range(len(points))), rig.fps).any(1)
-        clearance = float(at.min(1).values[planted].median()) if planted.any() else 0.0
-    else:
-        clearance = 0.0
-    return clearance if 0.0 <= clearance <= 0.1 * leg else 0.0
+    height on its own planted frames (``_own_height``: joints sit inside the foot, Bandai's toe ends stand 4 cm
+    up), else 0 (a character's feet stand on its mesh's sole: ``_feet``)."""
+    height = _own_height(rig, frames, points, up_axis, leg)
+    return 0.0 if height is None else height
 
 
 def _slope(d: torch.Tensor, up: torch.Tensor) -> torch.Tensor:
@@ -706,13 +822,18 @@ def onto_rig(
     The joint map is the import's, used the other way (detected from the rig's names, or given).
     Each mapped rig joint turns so that its bones towards the next mapped joints below it follow
     the model's bones between the same joints; joints the model lacks (fingers, twist bones, extra
-    spine joints) keep their rest rotation relative to their parent. The root travels the model's
+    spine joints, a dog's shoulders) keep the rotation relative to their parent that the rig holds them in: a
+    BVH rig's mean over its own frames (its rest pose is a layout of bones), a character's bind pose
+    (``_rig_pose``); a joint that follows its model joint's frame keeps the relation the rig's own frames
+    show (``_joint_frames``). The root travels the model's
     path scaled by the ratio of the rig's leg length to the model's, in the rig's up axis (detected
     from its own frames as on import; ``up`` names it), on the rig's ground: where the model's feet are
     planted the rig's lowest foot point stands at the rig's own clearance. With ``clean_contacts`` feet
     planted on the rig stay where they landed (``omg.io.contacts``), its legs re-aimed at the pinned places;
     a character's planted feet are also put with their soles on the floor on each frame, and its feet in the
-    air kept above it. A character's foot bones keep their own slope at stance (``_stance_pitches``).
+    air kept above it; a BVH rig's planted feet each stand, over their contacts, within ``FOOT_TOLERANCE`` of
+    the height that foot has on the rig's own planted frames. A character's foot bones keep their own slope at
+    stance (``_stance_pitches``).
     """
     from omg.io.contacts import clean_foot_contacts, foot_groups
 
@@ -730,7 +851,8 @@ def onto_rig(
     if not rig_leg > 1e-6:
         raise UsageError(f"{where}: the rig has no rest pose (its leg joints' OFFSETs are zero); "
                          "give a BVH whose hierarchy holds the rig's bones")  # fmt: skip
-    turn = _up_rotation(_proxy(plan, skel, torch.from_numpy(rig.positions_with_end_sites())), skel, up)
+    own = torch.from_numpy(rig.positions_with_end_sites())  # (T, J + E, 3) the rig's own frames
+    turn = _up_rotation(_proxy(plan, skel, own), skel, up)
     back = quat_conjugate(turn)  # Y up -> the rig's frame
     scale = rig_leg / float(_leg_length(skel, pos).mean().clamp_min(1e-6))
     model_of = {column: j for j, column in plan.source.items()}  # rig column -> model joint
@@ -747,21 +869,25 @@ def onto_rig(
         if u not in aim_of and direct.get(p, 0) >= 2 and np.linalg.norm(rig.offsets[u]) < 1e-9:
             aim_of[u] = aim_of[p]
     aims = _aims(rig, aim_of)
-    frames = _joint_frames(rig, skel, plan, _proxy(plan, skel, rest[None])[0], aims, aim_of)
+    pose = _rig_pose(rig, aim_of)
+    rest = pose.positions
+    frames = _joint_frames(rig, skel, plan, pose, aims, aim_of, own)
+    fits = _fit_turns(rig, skel, jmap, pose, aims, aim_of, frames, up)
     T = len(pos)
     up_axis = quat_apply(back, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # (3,) in the rig's frame
 
     def solve(targets_yup: torch.Tensor) -> tuple:
         targets = quat_apply(back.expand(T, skel.num_joints, 4), targets_yup)
-        return _solve_rig(rig, rest, aims, aim_of, targets, frames)
+        return _solve_rig(rig, pose, aims, aim_of, targets, frames, fits)
 
     def placed(local: torch.Tensor, top: int, at: torch.Tensor) -> RigMotion:
-        # the joints above the pelvis are unmapped, so rigid at rest: the pelvis's own position
+        # the joints above the pelvis are unmapped, so rigid in the rig's pose: the pelvis's own position
         # channels carry the path where it has them (Bandai's static joint_Root stays put), else the root's
         translations = np.broadcast_to(rig.offsets, (T, rig.num_joints, 3)).copy()
         own = top > 0 and any(c.endswith("position") for c in (rig.channels or [()] * rig.num_joints)[top])
         if own:
-            translations[:, top] = (at - rest[rig.parents[top]]).numpy()
+            above = rig.parents[top]
+            translations[:, top] = quat_apply(quat_conjugate(pose.world[above]).expand(T, 4), at - rest[above]).numpy()
         else:
             translations[:, 0] = (at - (rest[top] - rest[0])).numpy()
         return replace(rig, fps=float(fps), rotations=local.numpy(), translations=translations)
@@ -783,7 +909,7 @@ def onto_rig(
         ground = torch.quantile(lowest[contact], STANCE_GROUND)
     else:
         ground = lowest[contact].median()
-    clearance = _clearance(rig, sorted({p for f in feet for p in f.points}), up_axis, rig_leg)
+    clearance = _clearance(rig, own, sorted({p for f in feet for p in f.points}), up_axis, rig_leg)
     out = placed(local, top, at - (ground - clearance) * up_axis)
     if clean_contacts and T > 1:
         # the rig's own places of the model joints, Y up: its feet are what must stay planted
@@ -795,9 +921,25 @@ def onto_rig(
         # rise with its pin, and the leg bends or stretches to it. A BVH rig's feet go as the model's: its clip
         # comes back as it went
         rise = None
+        heights = [None] * len(feet) if stance else [_own_height(rig, own, f.points, up_axis, rig_leg) for f in feet]
         if stance:
             rise = np.zeros((T, len(foot_groups(skel))))  # (T, G) a foot the rig lacks stays where it is
             rise[:, [f.group for f in feet]] = (clearance - _foot_levels(out, feet, up_axis)).numpy()
+        elif any(height is not None for height in heights):
+            # a BVH rig's planted foot stands, over its contacts, within FOOT_TOLERANCE of the height that foot
+            # has on the rig's own planted frames (the median of each; the least move): one ground for all feet
+            # leaves a foot whose joints sit higher or lower in it than the lowest foot's off by the difference
+            # (the DeepMimic dog's feet 1.2-1.5 cm, the MANN dog's forepaws); its motion within them stays the
+            # model's
+            rise = np.zeros((T, len(foot_groups(skel))))
+            held = ground_contacts(filled, skel.feet, float(fps), max_speed=GROUND_CONTACT_SPEED)  # the clean-up's
+            levels = _foot_levels(out, feet, up_axis)  # (T, F)
+            for k, (foot, height) in enumerate(zip(feet, heights)):
+                here = held[:, [list(skel.feet).index(j) for j in foot_groups(skel)[foot.group]]].any(1)
+                if height is not None and here.any():
+                    off = height - float(levels[here, k].median())
+                    off = float(np.sign(off)) * max(abs(off) - FOOT_TOLERANCE, 0.0)
+                    rise[here.numpy(), foot.group] = off
         # retargeting's contact rule (slow and low), not the clean-up's looser one for generated feet: a
         # slowly walking dog's feet are not planted
         cleaned = clean_foot_contacts(filled.numpy(), skel, float(fps), max_speed=GROUND_CONTACT_SPEED, rise=rise)
@@ -816,7 +958,9 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     where the model's feet are planted (``ground_contacts``), in the original and on the way back;
     ``ground_cm``, ``ground_p95_cm``, ``ground_max_cm``: over those frames, how far the rig's lowest foot
     point (its feet, toes and their end sites, along its up axis, no translation removed) is on the way
-    back from where the original has it: the median, 95th percentile and largest.
+    back from where the original has it: the median, 95th percentile and largest; ``foot_cm``, ``foot_p95_cm``:
+    the same for each foot of the model on its own (its rig joints, those below and their end sites, over the
+    frames where that foot is planted), the largest median and the largest 95th percentile of the feet.
     """
     skel = get_skeleton(skeleton)
     jmap = _rig_joint_map(rig, skel, joint_map)
@@ -842,6 +986,17 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
     points = _foot_points(rig, feet)
     heights = [(x[:, points] @ up_axis).min(1) for x in (a, b)]  # (T,) the lowest foot point, original and back
     off_ground = np.abs(heights[1] - heights[0])[contact.any(1)] * 100  # (planted frames,) cm
+    # each foot on its own, over the frames where the model's foot is planted: the lowest point of all of them
+    # hides a foot standing above the others (the MANN dog's forepaws, while its hind paws are the lowest)
+    from omg.io.contacts import foot_groups
+
+    per_foot = []  # (median, 95th percentile) cm per foot of the model the rig has
+    for group in foot_groups(skel):
+        at = _foot_points(rig, [plan.source[f] for f in group])
+        here = contact[:, [list(skel.feet).index(f) for f in group]].any(1)
+        if here.any():
+            off = np.abs((b[:, at] @ up_axis).min(1) - (a[:, at] @ up_axis).min(1))[here] * 100
+            per_foot.append((float(np.median(off)), float(np.percentile(off, 95))))
 
     def slide(x: np.ndarray) -> float:
         speed = np.linalg.norm(np.diff(x[:, feet], axis=0), axis=-1) * clip.fps * 100  # (T - 1, F) cm/s
@@ -856,6 +1011,8 @@ def rig_round_trip(rig: RigMotion, skeleton: str | Skeleton, joint_map: str | Pa
         "ground_cm": float(np.median(off_ground)) if len(off_ground) else 0.0,
         "ground_p95_cm": float(np.percentile(off_ground, 95)) if len(off_ground) else 0.0,
         "ground_max_cm": float(off_ground.max(initial=0.0)),
+        "foot_cm": max((m for m, _ in per_foot), default=0.0),
+        "foot_p95_cm": max((p for _, p in per_foot), default=0.0),
     }  # fmt: skip
 
 

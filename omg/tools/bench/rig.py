@@ -69,11 +69,12 @@ def bench_rig(data: Path) -> list[dict]:
     if not rows:
         raise UsageError(f"--data {data}: none of the benchmark's clips is there ({RIG_CLIPS[0][1]}, ...)")
     print("| rig | clip | joints (map points) | frames | mean error cm | max error cm | mapped joints mean cm "
-          "| bone length change cm | foot slide cm/s original -> back | feet off the ground cm median / 95 % |"
-          "\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "| bone length change cm | foot slide cm/s original -> back | feet off the ground cm median / 95 % "
+          "| worst foot off the ground cm median / 95 % |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['label']} | {Path(r['file']).name} | {r['joints']} ({r['mapped']}) | {r['frames']} "
               f"| {r['mean_cm']:.2f} | {r['max_cm']:.2f} | {r['mapped_mean_cm']:.2f} | {r['bone_cm']:.2f} "
               f"| {r['slide_original_cm_s']:.1f} -> {r['slide_back_cm_s']:.1f} "
-              f"| {r['ground_cm']:.2f} / {r['ground_p95_cm']:.2f} |", flush=True)
+              f"| {r['ground_cm']:.2f} / {r['ground_p95_cm']:.2f} | {r['foot_cm']:.2f} / {r['foot_p95_cm']:.2f} |",
+              flush=True)
     return rows
