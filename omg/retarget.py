@@ -686,7 +686,7 @@ def _feet(rig: RigMotion, skel: Skeleton, plan: _Plan, up_axis: torch.Tensor) ->
     from omg.io.contacts import foot_groups
 
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))
-    sole = getattr(rig.character, "sole", None)
+    sole = rig.sole
     ground = getattr(rig.character, "ground", None) if sole is not None else None
     feet = []
     for g, group in enumerate(foot_groups(skel)):
@@ -732,7 +732,7 @@ def _own_height(rig: RigMotion, frames: torch.Tensor, points: list[int], up_axis
     rig's own clip: its median height over the clip's frames where they are planted; None on a rig without
     a clip (or a character: its feet stand on its mesh's sole, ``_feet``), or where it is over a tenth of the
     leg or under the floor (no foot's). ``frames``: (T, J + E, 3) the rig's ``positions_with_end_sites``."""
-    if getattr(rig.character, "sole", None) is not None or len(rig) <= 2:
+    if rig.sole is not None or len(rig) <= 2:
         return None
     at = frames[:, points] @ up_axis  # (T, P) heights
     yup = torch.zeros(len(rig), len(points), 3, dtype=torch.float64)
@@ -770,7 +770,7 @@ def _stance_pitches(rig: RigMotion, skel: Skeleton, plan: _Plan, pos: torch.Tens
     feet follow the model's bones as its other limbs do (a clip's round trip comes back as it went)."""
     from omg.io.contacts import foot_groups
 
-    if getattr(rig.character, "sole", None) is None:
+    if rig.sole is None:
         return {}
     rest = torch.from_numpy(rig.rest_positions(end_sites=True))
     feet = list(skel.feet)
@@ -902,7 +902,7 @@ def onto_rig(
     feet = _feet(rig, skel, plan, up_axis)
     lowest = _foot_levels(placed(local, top, at), feet, up_axis).min(1).values  # (T,)
     contact = planted.any(1) if T > 1 else torch.ones(T, dtype=torch.bool)
-    stance = getattr(rig.character, "sole", None) is not None and clean_contacts and T > 1
+    stance = rig.sole is not None and clean_contacts and T > 1
     if not contact.any():
         ground = torch.quantile(lowest, 0.02)
     elif stance:  # its planted feet go onto the sole below: a leg bends up to any, but may not stretch down

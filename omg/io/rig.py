@@ -41,6 +41,12 @@ class RigMotion:
         return self.rotations.shape[0]
 
     @property
+    def sole(self) -> float | None:
+        """A character's sole: the height (m) of its skinned meshes' lowest point at rest; None for a rig without a
+        mesh (a BVH file, a skeleton-only glTF), whose feet stand where its own frames put them."""
+        return getattr(self.character, "sole", None)
+
+    @property
     def num_joints(self) -> int:
         return len(self.names)
 
