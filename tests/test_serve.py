@@ -922,14 +922,21 @@ def _canvas_colours(page) -> int:
     return len(set(image.resize((160, 120)).getdata()))
 
 
-def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, tmp_path):
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1200, "height": 800})
+def _open_page(browser, server, width: int = 1280):
+    """The page in a new browser context (``width`` x 800, downloads kept), its models listed: (the context, the
+    page, the script errors it raises, the URLs it requests), the lists filling as it runs."""
+    context = browser.new_context(accept_downloads=True, viewport={"width": width, "height": 800})
     page = context.new_page()
     requests, errors = [], []
     page.on("request", lambda r: requests.append(r.url))
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(server.url + "/")
     page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    return context, page, errors, requests
+
+
+def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, tmp_path):
+    context, page, errors, requests = _open_page(browser, server, width=1200)
     page.select_option("#model", "human")
     assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
     # an empty box asks for nothing: the page says so instead of sampling unconditional motion
@@ -1103,12 +1110,7 @@ def test_the_page_plays_the_motions_on_an_outside_character_with_its_joint_map(s
     """Khronos' Rigged Figure chosen on the page with its joint map (the two files at once): the motion goes onto
     it and its mesh moves in the view between two screenshots (their paths printed), played from the animation
     omg added, not the sample's own (its first); the download is the character as .glb."""
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(server.url + "/")
-    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    context, page, errors, _ = _open_page(browser, server)
     page.select_option("#model", "human")
     page.set_input_files("#character", [str(OUTSIDE / "RiggedFigure.gltf"), str(OUTSIDE / "RiggedFigure.joints.yaml")])
     page.fill("#prompts", "a person walks forward")
@@ -1167,12 +1169,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     from helpers.characters import write_character
 
     character = write_character(tmp_path / "figure.glb")
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(server.url + "/")
-    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    context, page, errors, _ = _open_page(browser, server)
     page.select_option("#model", "human")
     # the kinds this server reads (.fbx too where Blender's module is there)
     from omg.tools.serve.app import character_suffixes
@@ -1270,12 +1267,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_fbx_character(server, browser
     two screenshots at different frames (their paths printed); the download is the FBX."""
     from omg.io.fbx import BINARY_MAGIC
 
-    context = browser.new_context(accept_downloads=True, viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(server.url + "/")
-    page.wait_for_function("document.querySelectorAll('#model option').length == 4")
+    context, page, errors, _ = _open_page(browser, server)
     page.select_option("#model", "human")
     assert ".fbx" in page.get_attribute("#character", "accept").split(",")
     page.set_input_files("#character", str(fbx_figure))
