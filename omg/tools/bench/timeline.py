@@ -46,6 +46,8 @@ def bench_timeline(
     segment_seconds: PositiveFiniteFloat = 3.0,
     transition: PositiveFiniteFloat = 0.5,
     context: NonNegativeSeconds | None = None,
+    chains: str = "joint",
+    coupling: FiniteFloat = 0.0,
     compositions: NonNegativeInt = 4,
     composition_seconds: PositiveFiniteFloat = 4.0,
     samples: PositiveInt = 4,
@@ -84,6 +86,10 @@ def bench_timeline(
         transition: seconds two segments cross over in (the timeline file's transition)
         context: seconds each text's denoiser sees on either side of its own frames (the timeline file's
             context; default: the whole motion)
+        chains: how the texts are sampled (the timeline file's chains): joint (one chain, the texts'
+            estimates blended) or separate (one chain per text)
+        coupling: with separate chains, each chain's pull towards the composed estimate, 0..1 (the timeline
+            file's coupling)
         compositions: body-part compositions to make
         composition_seconds: seconds per composition
         samples: motions per timeline, composition and caption alone (seeds seed..seed+samples-1)
@@ -101,15 +107,22 @@ def bench_timeline(
     import torch
 
     from omg.data.datamodule import MotionDataModule
-    from omg.generation.timeline import parse_timeline
+    from omg.generation.timeline import check_chains, parse_timeline
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
     from omg.lit.sampling import SamplingSettings
     from omg.metrics.following import Joints, check_target, passes
+    from omg.metrics.joints import FootSkating
     from omg.motion import get_representation
     from omg.registry import SAMPLERS
 
     SAMPLERS.get(sampler)
+    check_chains(chains, "--chains")
+    if chains == "separate" and context is not None:
+        raise UsageError("--chains separate: each chain reads its own whole motion; give --chains or --context")
+    if not 0 <= coupling <= 1 or (coupling and chains != "separate"):
+        raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")
+    how = {"context": context, "chains": chains, **({"coupling": coupling} if chains == "separate" else {})}
     for name, picked, made in (("only_timelines", only_timelines, timelines),
                                ("only_compositions", only_compositions, compositions)):
         if past := [n for n in picked if n > made]:
@@ -163,7 +176,7 @@ def bench_timeline(
             continue
         spans = parse_timeline({"timeline": [{"start": j * segment_seconds, "end": (j + 1) * segment_seconds,
                                               "text": c[0]} for j, c in enumerate(chosen)], "transition": transition,
-                                "context": context})
+                                **how})
         frames = round(k * segment_seconds * fps)
         joints = sample(None, frames, spans, "timeline")  # (n, T, J, 3)
         made.append([c[0] for c in chosen])
@@ -202,13 +215,16 @@ def bench_timeline(
             continue
         spans = parse_timeline({"parts": [{"parts": ["legs", "root"], "text": walk[0]},
                                           {"parts": [arm], "text": wave[0]}], "transition": transition,
-                                "context": context})
+                                **how})
         sentence = f"{walk[0].rstrip('.')} and {wave[0].removeprefix('a person ')}"
         row = {"composition": i + 1, "walk": walk[0], "wave": wave[0], "arm": arm, "sentence": sentence}
         for key, joints in (("parts", sample(None, comp_frames, spans, "parts")),
                             ("plain", sample([sentence] * samples, comp_frames))):
             body, hand = score(joints, walk[1], BODY), score(joints, wave[1], HAND)
-            row[key] = {"body": body, "hand": hand, "both": [a and b for a, b in zip(body, hand)]}
+            skating = FootSkating(module.spec.skeleton, fps)
+            skating.update(joints, torch.ones(joints.shape[:2], dtype=torch.bool))
+            row[key] = {"body": body, "hand": hand, "both": [a and b for a, b in zip(body, hand)],
+                        "skating": float(skating.compute())}
         comp_rows.append(row)
     if not comp_rows:
         print("(no body-part composition: the captions need a locomotion action and a hand action with targets)")
@@ -237,6 +253,9 @@ def bench_timeline(
         plain = [b for r in comp_rows for b in r["plain"]["both"]]
         print(f"| body-part compositions: both parts pass / as one plain sentence | {rate(both)} / {rate(plain)} "
               "| >= 0.7 |")
+        skated = [float(np.mean([r[k]["skating"] for r in comp_rows])) for k in ("parts", "plain")]
+        print(f"| foot skating, compositions / the plain sentence | {skated[0]:.3f} / {skated[1]:.3f} "
+              f"({skated[0] / max(skated[1], 1e-9):.2f}x) | |")
     for what in ("timeline", "parts"):
         if what in costs and "plain" in costs:
             print(f"| sampling seconds per second of motion, {what} / plain ({steps} {sampler} steps) | "
