@@ -23,6 +23,11 @@ def joint_jerk(joints, fps: float):
     return jerk.norm(dim=-1).mean(-1)
 
 
+def mean(values) -> float:
+    """The mean of ``values``, NaN for none (a run that samples no timeline)."""
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
 def held_out_captions(samples: list[dict], label: str, prompts: Path | None) -> list[tuple[str, list[dict], str]]:
     """(caption, targets, action label) of every held-out clip caption whose action label has targets under the
     prompt file's ``labels:`` (``omg.metrics.following.label_targets``), each caption once."""
@@ -101,7 +106,8 @@ def bench_timeline(
         label: the clip label that names the action (a Bandai-Namco take's ``content``)
         only_timelines: sample only these timelines, numbered 1.. as the full run makes them (the same
             captions and seeds; the others are chosen, not sampled): a list such as [2, 4]
-        only_compositions: sample only these compositions, numbered the same way
+        only_compositions: sample only these compositions, numbered the same way (either list given, the
+            kind it does not name is not sampled)
         command: the command line, printed with the results
     """
     import torch
@@ -172,7 +178,7 @@ def bench_timeline(
             chosen.append(pool[int(rng.integers(len(pool)))])
         while len(chosen) < k:  # fewer actions than segments: repeat, never next to itself
             chosen.append(chosen[-2])
-        if only_timelines and i + 1 not in only_timelines:
+        if (only_timelines or only_compositions) and i + 1 not in only_timelines:
             continue
         spans = parse_timeline({"timeline": [{"start": j * segment_seconds, "end": (j + 1) * segment_seconds,
                                               "text": c[0]} for j, c in enumerate(chosen)], "transition": transition,
@@ -195,8 +201,8 @@ def bench_timeline(
     real = get_representation(data.spec.representation, data.spec.skeleton)
     real_jerk = [float(joint_jerk(real.decode(torch.as_tensor(s["motion"]).float()), data.spec.fps).mean())
                  for s in held_out if len(s["motion"]) > 4]
-    in_timeline = float(np.mean([np.mean(r["passed"]) for r in segment_rows]))
-    by_itself = float(np.mean([np.mean(alone[r["text"]]) for r in segment_rows]))
+    in_timeline = mean([np.mean(r["passed"]) for r in segment_rows])
+    by_itself = mean([np.mean(alone[r["text"]]) for r in segment_rows])
 
     # -- body-part compositions ---------------------------------------------------------------------------------
     def moves(targets: list[dict]) -> bool:  # a locomotion caption: it goes somewhere, and not by its hands
@@ -211,7 +217,7 @@ def bench_timeline(
         walk, wave = walkers[int(rng.integers(len(walkers)))], wavers[int(rng.integers(len(wavers)))]
         hands = {t.get("hand") for t in wave[1] if check_target(t) in HAND}
         arm = "arms" if hands & {"both", "either"} else f"{hands.pop()}_arm"
-        if only_compositions and i + 1 not in only_compositions:
+        if (only_timelines or only_compositions) and i + 1 not in only_compositions:
             continue
         spans = parse_timeline({"parts": [{"parts": ["legs", "root"], "text": walk[0]},
                                           {"parts": [arm], "text": wave[0]}], "transition": transition,
@@ -234,20 +240,24 @@ def bench_timeline(
         values = list(values)
         return f"{sum(values)}/{len(values)} ({np.mean(values):.2f})" if values else "–"
 
-    print(f"\n`{command}`\n\n| # | timeline segment | its targets | passes in the timeline | passes alone |\n"
-          "|---:|---|---|---:|---:|")
+    print(f"\n`{command}`")
+    if segment_rows:
+        print("\n| # | timeline segment | its targets | passes in the timeline | passes alone |\n"
+              "|---:|---|---|---:|---:|")
     for r in segment_rows:
         targets = "; ".join(", ".join(f"{k}: {v}" for k, v in t.items()) for t in r["targets"])
         print(f"| {r['timeline']} | {r['text']} | {targets} | {rate(r['passed'])} | {rate(alone[r['text']])} |")
     ratio = in_timeline / by_itself if by_itself else float("nan")
-    real_mean, boundary_mean, alone_mean = (float(np.mean(v)) for v in (real_jerk, boundary_jerk, alone_jerk))
+    real_mean, boundary_mean, alone_mean = (mean(v) for v in (real_jerk, boundary_jerk, alone_jerk))
     costs = {k: v[0] / v[1] for k, v in clock.items() if v[1]}
-    print(f"\n| measure | value | target |\n|---|---:|---:|\n"
-          f"| segments passing, in timelines / alone | {in_timeline:.3f} / {by_itself:.3f} ({ratio:.2f}x) | >= 0.9x |\n"
-          f"| joint jerk at the transitions / real held-out takes (m/s³) | {boundary_mean:.1f} / {real_mean:.1f} "
-          f"({boundary_mean / real_mean:.2f}x) | <= 1.5x |\n"
-          f"| joint jerk of one caption alone / real (m/s³) | {alone_mean:.1f} / {real_mean:.1f} "
-          f"({alone_mean / real_mean:.2f}x) | |")
+    print("\n| measure | value | target |\n|---|---:|---:|")
+    if segment_rows:
+        print(f"| segments passing, in timelines / alone | {in_timeline:.3f} / {by_itself:.3f} ({ratio:.2f}x) "
+              "| >= 0.9x |\n"
+              f"| joint jerk at the transitions / real held-out takes (m/s³) | {boundary_mean:.1f} / {real_mean:.1f} "
+              f"({boundary_mean / real_mean:.2f}x) | <= 1.5x |\n"
+              f"| joint jerk of one caption alone / real (m/s³) | {alone_mean:.1f} / {real_mean:.1f} "
+              f"({alone_mean / real_mean:.2f}x) | |")
     if comp_rows:
         both = [b for r in comp_rows for b in r["parts"]["both"]]
         plain = [b for r in comp_rows for b in r["plain"]["both"]]
