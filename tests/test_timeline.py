@@ -5,6 +5,7 @@ with nothing written, and sampling without a timeline is the plain path."""
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -381,6 +382,20 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     assert second["alone"] == {text: result["alone"][text] for text in second["alone"]}  # the same seeds
     with pytest.raises(UsageError, match="--only_timelines: 3 is past the 2 the run makes"):
         bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, only_timelines=(3,))
+    # the same composition with separate chains, sampled alone (no timeline), its foot skating beside the plain's
+    split = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=1,
+                           samples=2, steps=2, segment_seconds=1.0, composition_seconds=1.0, chains="separate",
+                           coupling=0.5, only_compositions=(1,))
+    assert not split["segments"] and split["compositions"][0]["walk"] == composition["walk"]
+    assert split["compositions"][0]["plain"] == composition["plain"]  # the same seeds, the plain sentence as before
+    assert split["compositions"][0]["parts"]["skating"] >= 0 and "parts" in split["seconds_per_motion_second"]
+    for chains, coupling, context, message in (("split", 0.0, None, "--chains must be one of joint, separate"),
+                                               ("joint", 0.5, None, "--coupling 0.5: a number in [0, 1], with "
+                                                                    "--chains separate"),
+                                               ("separate", 0.0, 0.5, "give --chains or --context")):
+        with pytest.raises(UsageError, match=re.escape(message)):
+            bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), chains=chains, coupling=coupling,
+                           context=context)
 
 
 # -- separate chains -------------------------------------------------------------------------------------------
