@@ -16,7 +16,15 @@ from helpers import MINI, TINY_DIT
 from omg.errors import UsageError
 from omg.generation.timeline import parse_timeline
 from omg.lit.sampling import SamplingSettings
-from omg.lit.timeline import PartText, Segment, Timeline, resolve_timeline, segment_weights, timeline_denoiser
+from omg.lit.timeline import (
+    DEFAULT_COUPLING,
+    PartText,
+    Segment,
+    Timeline,
+    resolve_timeline,
+    segment_weights,
+    timeline_denoiser,
+)
 from omg.motion import get_representation, length_mask
 from omg.skeleton import SMPL22, body_parts
 
@@ -415,7 +423,7 @@ def test_separate_independent_chains_give_each_part_its_own_text_sampled_alone(c
     settings = SamplingSettings(steps=4, seeds=seeds, use_ema=False)
     walk, wave = (controlnet.sample([text] * 2, [frames] * 2, settings) for text in (WALK, WAVE))
     split = controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(controlnet, frames,
-                                                                                   chains="separate")))
+                                                                                   chains="separate", coupling=0.0)))
     assert torch.allclose(split[..., ~arm], walk[..., ~arm], atol=1e-4)
     assert torch.allclose(split[..., arm], wave[..., arm], atol=1e-4)
     joint = controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(controlnet, frames)))
@@ -463,6 +471,7 @@ def test_chains_in_the_file_are_checked_in_one_line_and_recorded():
     parts = [{"parts": ["legs", "root"], "text": WALK}, {"parts": ["left_arm"], "text": WAVE}]
     spans = parse_timeline({"parts": parts, "chains": "separate", "coupling": 0.25})
     assert spans.chains == "separate" and spans.coupling == 0.25
+    assert parse_timeline({"parts": parts, "chains": "separate"}).coupling == DEFAULT_COUPLING
     assert spans.to_dict()["chains"] == "separate" and parse_timeline(spans.to_dict()) == spans
     assert "chains" not in parse_timeline({"parts": parts}).to_dict()  # the joint blend, recorded as before
     rep = get_representation("humanml3d263", SMPL22)

@@ -21,12 +21,11 @@ from typing import Any
 
 from omg.errors import UsageError
 from omg.files import read_text
-from omg.lit.timeline import CHAINS, PartText, Segment, Timeline, resolve_timeline
+from omg.lit.timeline import CHAINS, DEFAULT_COUPLING, PartText, Segment, Timeline, resolve_timeline
 from omg.motion.base import Representation
 from omg.skeleton import body_parts, get_skeleton
 
 DEFAULT_TRANSITION = 0.5  # seconds two segments that only touch cross over in
-DEFAULT_COUPLING = 0.0  # separate chains' pull towards the composed estimate (docs/results/timelines.md)
 MAX_ENTRIES = 32  # segments and parts in one file: each distinct text is one more denoiser pass per step
 SEGMENT_KEYS = ("start", "end", "text")
 PART_KEYS = ("parts", "text", "start", "end")

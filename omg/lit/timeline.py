@@ -36,6 +36,9 @@ from omg.motion.base import Representation
 from omg.skeleton import body_parts
 
 CHAINS = ("joint", "separate")  # a timeline's sampling: one chain of blended estimates, or one chain per text
+# separate chains' pull towards the composed estimate: on the small recipe's compositions 0 and 0.1 passed both
+# parts alike (6/8) and 0.5 fell back to the joint blend's 2/8; 0.1 skated less (docs/results/timelines.md)
+DEFAULT_COUPLING = 0.1
 
 
 @dataclass(frozen=True)
@@ -71,7 +74,7 @@ class Timeline:
     weights: Tensor  # (K, T, D)
     windows: tuple[tuple[int, int], ...] | None = None
     chains: str = "joint"
-    coupling: float = 0.0
+    coupling: float = DEFAULT_COUPLING
 
     def __post_init__(self) -> None:
         if self.chains not in CHAINS:
@@ -157,7 +160,8 @@ def text_windows(weights: Tensor, context: int) -> tuple[tuple[int, int], ...]:
 
 def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], frames: int, fps: float,
                      representation: Representation, transition: float = 0.5,
-                     context: float | None = None, chains: str = "joint", coupling: float = 0.0) -> Timeline:
+                     context: float | None = None, chains: str = "joint",
+                     coupling: float = DEFAULT_COUPLING) -> Timeline:
     """The ``Timeline`` of ``frames`` feature frames at ``fps`` for a model of ``representation``: the segments
     (in time order, meeting or overlapping) share the frames, then each ``PartText`` in turn takes its joints'
     features (``channel_joints``) while it holds. Without segments, the first part's text is the base the

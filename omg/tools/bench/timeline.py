@@ -52,7 +52,7 @@ def bench_timeline(
     transition: PositiveFiniteFloat = 0.5,
     context: NonNegativeSeconds | None = None,
     chains: str = "joint",
-    coupling: FiniteFloat = 0.0,
+    coupling: FiniteFloat | None = None,
     compositions: NonNegativeInt = 4,
     composition_seconds: PositiveFiniteFloat = 4.0,
     samples: PositiveInt = 4,
@@ -94,7 +94,7 @@ def bench_timeline(
         chains: how the texts are sampled (the timeline file's chains): joint (one chain, the texts'
             estimates blended) or separate (one chain per text)
         coupling: with separate chains, each chain's pull towards the composed estimate, 0..1 (the timeline
-            file's coupling)
+            file's coupling; default: its default)
         compositions: body-part compositions to make
         composition_seconds: seconds per composition
         samples: motions per timeline, composition and caption alone (seeds seed..seed+samples-1)
@@ -126,9 +126,9 @@ def bench_timeline(
     check_chains(chains, "--chains")
     if chains == "separate" and context is not None:
         raise UsageError("--chains separate: each chain reads its own whole motion; give --chains or --context")
-    if not 0 <= coupling <= 1 or (coupling and chains != "separate"):
+    if coupling is not None and (not 0 <= coupling <= 1 or chains != "separate"):
         raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")
-    how = {"context": context, "chains": chains, **({"coupling": coupling} if chains == "separate" else {})}
+    how = {"context": context, "chains": chains, **({} if coupling is None else {"coupling": coupling})}
     for name, picked, made in (("only_timelines", only_timelines, timelines),
                                ("only_compositions", only_compositions, compositions)):
         if past := [n for n in picked if n > made]:
