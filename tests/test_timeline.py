@@ -485,7 +485,7 @@ def test_chains_in_the_file_are_checked_in_one_line_and_recorded():
         assert message in str(e.value) and "\n" not in str(e.value)
 
 
-def test_omg_generate_and_the_api_take_separate_chains(controlnet_ckpt, tmp_path):
+def test_omg_generate_takes_separate_chains_from_the_file(controlnet_ckpt, tmp_path):
     from omg.cli import main
 
     path = tmp_path / "t.json"
