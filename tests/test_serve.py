@@ -187,6 +187,10 @@ def test_generate_follows_a_timeline_in_the_body(client, server):
     assert [m["frames"] for m in result["motions"]] == [40, 40]  # the timeline's 2 s
     settings = client.get(result["settings"]).json()
     assert settings["timeline"]["parts"][0]["parts"] == ["right_arm"] and settings["length_s"] == 2.0
+    separate = _generate(client, model="human", timeline={**timeline, "chains": "separate", "coupling": 0.25},
+                         num_samples=1, steps=2, seed=3)  # one chain per text, the motion joined from them
+    recorded = client.get(separate["settings"]).json()["timeline"]
+    assert recorded["chains"] == "separate" and recorded["coupling"] == 0.25
     cards = {m["name"]: m["card"] for m in client.get("/v1/models").json()["models"]}
     assert cards["human"]["timeline"] == ["timeline", "parts"]
     assert cards["animal"]["timeline"] == cards["habit"]["timeline"] == cards["pretrain"]["timeline"] == []
@@ -385,6 +389,8 @@ def test_the_families_without_sampler_steps_report_each_motion(server, shared_mo
     (dict(model="human", prompt="a person walks"), 422, "prompt: Extra inputs are not permitted"),
     (dict(model="human", timeline=[{"start": 0, "end": 1, "txt": "a person walks"}]), 422,
      "timeline: timeline[0]: unknown key 'txt'; a segment has start, end, text"),
+    (dict(model="human", timeline={"parts": [{"parts": ["legs"], "text": "a person walks"}], "chains": "split"}), 422,
+     "timeline: chains must be one of joint, separate, got 'split'"),
     (dict(model="human", prompts=["a person walks"], constraints={"keyframes": [], "keyframe": []}), 422,
      "constraints: unknown key 'keyframe'"),
     (dict(model="human", prompts="a person walks"), 422, "prompts: Input should be a valid list"),

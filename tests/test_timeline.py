@@ -5,6 +5,8 @@ with nothing written, and sampling without a timeline is the plain path."""
 from __future__ import annotations
 
 import json
+import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,7 +17,15 @@ from helpers.checkpoints import save_module
 from omg.errors import UsageError
 from omg.generation.timeline import parse_timeline
 from omg.lit.sampling import SamplingSettings
-from omg.lit.timeline import PartText, Segment, Timeline, resolve_timeline, segment_weights, timeline_denoiser
+from omg.lit.timeline import (
+    DEFAULT_COUPLING,
+    PartText,
+    Segment,
+    Timeline,
+    resolve_timeline,
+    segment_weights,
+    timeline_denoiser,
+)
 from omg.motion import get_representation, length_mask
 from omg.skeleton import SMPL22, body_parts
 
@@ -379,3 +389,110 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     assert second["alone"] == {text: result["alone"][text] for text in second["alone"]}  # the same seeds
     with pytest.raises(UsageError, match="--only_timelines: 3 is past the 2 the run makes"):
         bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, only_timelines=(3,))
+    # the same composition with separate chains, sampled alone (no timeline), its foot skating beside the plain's
+    split = bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), timelines=2, compositions=1,
+                           samples=2, steps=2, segment_seconds=1.0, composition_seconds=1.0, chains="separate",
+                           coupling=0.5, only_compositions=(1,))
+    assert not split["segments"] and split["compositions"][0]["walk"] == composition["walk"]
+    assert split["compositions"][0]["plain"] == composition["plain"]  # the same seeds, the plain sentence as before
+    assert split["compositions"][0]["parts"]["skating"] >= 0 and "parts" in split["seconds_per_motion_second"]
+    for chains, coupling, context, message in (("split", 0.0, None, "--chains must be one of joint, separate"),
+                                               ("joint", 0.5, None, "--coupling 0.5: a number in [0, 1], with "
+                                                                    "--chains separate"),
+                                               ("separate", 0.0, 0.5, "give --chains or --context")):
+        with pytest.raises(UsageError, match=re.escape(message)):
+            bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), chains=chains, coupling=coupling,
+                           context=context)
+
+
+# -- separate chains -------------------------------------------------------------------------------------------
+
+
+def _parts(controlnet, frames: int, **how):
+    return resolve_timeline([], [PartText(("legs", "root"), WALK), PartText(("left_arm",), WAVE)], frames, FPS,
+                            controlnet.representation, **how)
+
+
+def test_separate_independent_chains_give_each_part_its_own_text_sampled_alone(controlnet):
+    """``chains="separate"``, coupling 0: each text's chain is that text sampled alone from the same noise, and
+    the motion takes each part's features from its own text's chain (SINC's splice); the joint blend does not."""
+    frames, seeds = 40, (5, 6)
+    arm = torch.isin(torch.as_tensor(controlnet.representation.channel_joints()),
+                     torch.tensor(body_parts(SMPL22)["left_arm"]))  # (D,)
+    settings = SamplingSettings(steps=4, seeds=seeds, use_ema=False)
+    walk, wave = (controlnet.sample([text] * 2, [frames] * 2, settings) for text in (WALK, WAVE))
+    split = controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(controlnet, frames,
+                                                                                   chains="separate", coupling=0.0)))
+    assert torch.allclose(split[..., ~arm], walk[..., ~arm], atol=1e-4)
+    assert torch.allclose(split[..., arm], wave[..., arm], atol=1e-4)
+    joint = controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(controlnet, frames)))
+    assert not torch.allclose(joint[..., ~arm], walk[..., ~arm], atol=1e-2)  # the joint blend reads the wave's arm
+
+
+def test_fully_coupled_chains_are_the_joint_blend_and_coupling_sits_between(controlnet):
+    """Coupling 1 gives every chain the composed estimate: the chains never part and the motion is the joint
+    blend's; a coupling between moves the motion away from both ends."""
+    frames = 40
+    settings = SamplingSettings(steps=4, seed=3, use_ema=False)
+    joint = controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(controlnet, frames)))
+    coupled, half, apart = (controlnet.sample(None, [frames] * 2, replace(settings, timeline=_parts(
+        controlnet, frames, chains="separate", coupling=c))) for c in (1.0, 0.5, 0.0))
+    assert torch.allclose(coupled, joint, atol=1e-5)
+    assert not torch.allclose(half, joint, atol=1e-3) and not torch.allclose(half, apart, atol=1e-3)
+
+
+def test_separate_chains_sample_with_every_sampler_guidance_stance_root_and_control(controlnet):
+    from omg.lit.control import Control
+    from omg.registry import SAMPLERS
+
+    frames = 40
+    timeline = _parts(controlnet, frames, chains="separate", coupling=0.25)
+    for sampler in SAMPLERS.names():
+        motion = controlnet.sample(None, [frames, frames - 6], SamplingSettings(
+            steps=3, sampler=sampler, use_ema=True, timeline=timeline, stance_root=0.5, guidance=2.0))
+        assert motion.shape == (2, frames, 263) and torch.isfinite(motion).all(), sampler
+    # a hand target per motion: every chain steered towards it, the motion's left wrist near it
+    wrist = SMPL22.names.index("left_wrist")
+    targets = torch.zeros(2, frames, 22, 3)
+    targets[:, -1, wrist] = torch.tensor([0.3, 1.6, 0.2])
+    weights = torch.zeros(2, frames, 22)
+    weights[:, -1, wrist] = 1.0
+    control = Control(targets=targets, axes=torch.ones(2, frames, 22, 3, dtype=torch.bool), weights=weights,
+                      tolerance=torch.zeros(2, frames, 22), groups=(weights > 0).long() - 1, names=("hand",))
+    free, steered = (controlnet.sample(None, [frames] * 2, SamplingSettings(
+        steps=4, use_ema=False, timeline=timeline, control=c)) for c in (None, control))
+    miss = [(controlnet.representation.decode(m)[:, -1, wrist] - targets[:, -1, wrist]).norm(dim=-1).mean()
+            for m in (free, steered)]
+    assert miss[1] < 0.5 * miss[0], miss
+
+
+def test_chains_in_the_file_are_checked_in_one_line_and_recorded():
+    parts = [{"parts": ["legs", "root"], "text": WALK}, {"parts": ["left_arm"], "text": WAVE}]
+    spans = parse_timeline({"parts": parts, "chains": "separate", "coupling": 0.25})
+    assert spans.chains == "separate" and spans.coupling == 0.25
+    assert parse_timeline({"parts": parts, "chains": "separate"}).coupling == DEFAULT_COUPLING
+    assert spans.to_dict()["chains"] == "separate" and parse_timeline(spans.to_dict()) == spans
+    assert "chains" not in parse_timeline({"parts": parts}).to_dict()  # the joint blend, recorded as before
+    rep = get_representation("humanml3d263", SMPL22)
+    assert spans.resolve(40, FPS, rep).separate and not parse_timeline({"parts": parts}).resolve(40, FPS, rep).separate
+    for extra, message in (({"chains": "split"}, "timeline: chains must be one of joint, separate, got 'split'"),
+                           ({"chains": "separate", "coupling": 2}, "coupling must be a number in [0, 1], got 2"),
+                           ({"coupling": 0.5}, "coupling pulls separate chains together"),
+                           ({"chains": "separate", "context": 0}, "give one of chains or context")):
+        with pytest.raises(UsageError) as e:
+            parse_timeline({"parts": parts, **extra})
+        assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_omg_generate_takes_separate_chains_from_the_file(controlnet_ckpt, tmp_path):
+    from omg.cli import main
+
+    path = tmp_path / "t.json"
+    timeline = {"parts": [{"parts": ["legs", "root"], "text": WALK}, {"parts": ["left_arm"], "text": WAVE}],
+                "chains": "separate", "coupling": 0.5}
+    path.write_text(json.dumps(timeline))
+    main(["generate", "--ckpt", str(controlnet_ckpt["controlnet"]), "--timeline", str(path), "--num_samples", "2",
+          "--steps", "2", "--length", "2", "--no_preview", "--out", str(tmp_path / "out")])
+    recorded = json.loads((tmp_path / "out/generation.json").read_text())["timeline"]
+    assert recorded["chains"] == "separate" and recorded["coupling"] == 0.5
+    assert np.load(tmp_path / "out/sample_000.features.npy").shape == (40, 263)

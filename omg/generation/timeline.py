@@ -4,8 +4,9 @@ body-part composition, read and checked here, one line per error, before anythin
 
 The file is JSON: a list of segments ``[{"start": s, "end": s, "text": ...}, ...]`` (seconds), or a mapping
 ``{"timeline": [...], "parts": [{"parts": [...], "text": ..., "start"?: s, "end"?: s}, ...],
-"transition"?: s, "context"?: s}``. Segments come in time order, the first at 0 s, each meeting or overlapping the next
-(no gap, none inside another, none of zero length); the last one ends the motion. Body parts are named
+"transition"?: s, "context"?: s, "chains"?: "joint" | "separate", "coupling"?: 0..1}``. Segments come in time
+order, the first at 0 s, each meeting or overlapping the next (no gap, none inside another, none of zero length);
+the last one ends the motion. Body parts are named
 by ``omg.skeleton.body_parts`` of the model's skeleton, and two entries never name one joint at the same time.
 """
 
@@ -20,7 +21,7 @@ from typing import Any
 
 from omg.errors import UsageError
 from omg.files import read_text
-from omg.lit.timeline import PartText, Segment, Timeline, resolve_timeline
+from omg.lit.timeline import CHAINS, DEFAULT_COUPLING, PartText, Segment, Timeline, resolve_timeline
 from omg.motion.base import Representation
 from omg.skeleton import body_parts, get_skeleton
 
@@ -34,12 +35,16 @@ PART_KEYS = ("parts", "text", "start", "end")
 class TimelineFile:
     """A checked timeline in seconds: ``segments`` in time order, ``parts`` in the file's order, ``transition``
     seconds of crossing where two segments only touch (and at a part's start and end), ``context`` seconds
-    each text's denoiser sees on either side of its own frames (None: the whole motion)."""
+    each text's denoiser sees on either side of its own frames (None: the whole motion); ``chains`` and
+    ``coupling``: one sampling chain of blended estimates, or one per text pulled towards the blend
+    (``omg.lit.timeline``)."""
 
     segments: tuple[Segment, ...] = ()
     parts: tuple[PartText, ...] = ()
     transition: float = DEFAULT_TRANSITION
     context: float | None = None
+    chains: str = "joint"
+    coupling: float = DEFAULT_COUPLING
 
     @property
     def end(self) -> float | None:
@@ -60,7 +65,8 @@ class TimelineFile:
                 "parts": [{"parts": list(p.parts), "text": p.text,
                            **({} if p.start is None else {"start": p.start}),
                            **({} if p.end is None else {"end": p.end})} for p in self.parts],
-                "transition": self.transition, **({} if self.context is None else {"context": self.context})}
+                "transition": self.transition, **({} if self.context is None else {"context": self.context}),
+                **({"chains": self.chains, "coupling": self.coupling} if self.chains != "joint" else {})}
 
     def check(self, skeleton: str, seconds: float, fps: float, where: str = "--timeline") -> None:
         """One line when the file does not fit a motion of ``seconds`` at ``fps`` on ``skeleton``: a segment
@@ -95,7 +101,7 @@ class TimelineFile:
     def resolve(self, frames: int, fps: float, representation: Representation) -> Timeline:
         """The tensor-level timeline of ``frames`` feature frames (``omg.lit.timeline.resolve_timeline``)."""
         return resolve_timeline(self.segments, self.parts, frames, fps, representation, self.transition,
-                                self.context)
+                                self.context, self.chains, self.coupling)
 
 
 def _overlap(p: PartText, q: PartText, seconds: float) -> bool:
@@ -124,9 +130,9 @@ def parse_timeline(data: Any, where: str = "timeline",
     if not isinstance(data, dict):
         raise UsageError(f"{where}: expected a list of segments [{{\"start\", \"end\", \"text\"}}] or "
                          "{\"timeline\": [...], \"parts\": [...]}")
-    if extra := sorted(set(data) - {"timeline", "parts", "transition", "context"}):
+    if extra := sorted(set(data) - {"timeline", "parts", "transition", "context", "chains", "coupling"}):
         raise UsageError(f"{where}: unknown key {extra[0]!r}; a timeline file has timeline, parts, transition, "
-                         "context")
+                         "context, chains, coupling")
     raw_segments, raw_parts = data.get("timeline") or [], data.get("parts") or []
     for key, value in (("timeline", raw_segments), ("parts", raw_parts)):
         if not isinstance(value, list):
@@ -138,6 +144,15 @@ def parse_timeline(data: Any, where: str = "timeline",
         raise UsageError(f"{where}: {len(raw_segments) + len(raw_parts)} entries; at most {MAX_ENTRIES}")
     transition = _seconds(data.get("transition", DEFAULT_TRANSITION), f"{where}: transition")
     context = None if data.get("context") is None else _seconds(data["context"], f"{where}: context")
+    chains = check_chains(data.get("chains", "joint"), f"{where}: chains")
+    coupling = data.get("coupling", DEFAULT_COUPLING)
+    if isinstance(coupling, bool) or not isinstance(coupling, int | float) or not 0 <= coupling <= 1:
+        raise UsageError(f"{where}: coupling must be a number in [0, 1], got {coupling!r}")
+    if "coupling" in data and chains != "separate":
+        raise UsageError(f"{where}: coupling pulls separate chains together; give it with \"chains\": \"separate\"")
+    if chains == "separate" and context is not None:
+        raise UsageError(f"{where}: context limits what one chain's denoiser sees; separate chains each read their "
+                         "own whole motion: give one of chains or context")
     segments = tuple(_segment(s, f"{where}: timeline[{i}]", check_text) for i, s in enumerate(raw_segments))
     for i, (a, b) in enumerate(zip(segments, segments[1:])):
         if b.start < a.start:
@@ -153,7 +168,14 @@ def parse_timeline(data: Any, where: str = "timeline",
         raise UsageError(f"{where}: timeline[0] starts at {segments[0].start:g} s; the timeline starts the motion, "
                          "at 0 s (a gap before it)")
     parts = tuple(_part(p, f"{where}: parts[{i}]", check_text) for i, p in enumerate(raw_parts))
-    return TimelineFile(segments, parts, transition, context)
+    return TimelineFile(segments, parts, transition, context, chains, float(coupling))
+
+
+def check_chains(value: Any, where: str) -> str:
+    """``value`` when it names a way of sampling a timeline's texts (``CHAINS``), else one line naming ``where``."""
+    if value not in CHAINS:
+        raise UsageError(f"{where} must be one of {', '.join(CHAINS)}, got {value!r}")
+    return value
 
 
 def _fields(entry: Any, keys: tuple[str, ...], needed: tuple[str, ...], what: str, where: str) -> dict[str, Any]:

@@ -91,6 +91,16 @@ class Control:
                        final_iterations=self.final_iterations, final_share=self.final_share, smooth=self.smooth,
                        inpaint=self.inpaint)
 
+    def tiled(self, k: int) -> Control:
+        """The control of K copies of the motions (separate timeline chains: K·B rows), itself when N = 1 or
+        k = 1."""
+        if k == 1 or self.targets.shape[0] == 1:
+            return self
+        moved = {key: getattr(self, key) for key in ("targets", "axes", "weights", "tolerance", "groups",
+                                                      "contacts", "facing")}
+        return replace(self, **{key: None if v is None else v.repeat(k, *[1] * (v.ndim - 1))
+                                for key, v in moved.items()})
+
 
 def distances(joints: Tensor, control: Control) -> Tensor:
     """(B, T, J, 3) positions -> (B, T, J) metres from each target on its stated axes (0 where none is)."""

@@ -22,7 +22,7 @@ from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
 from omg.lit.control import Control, steered
 from omg.lit.sampling import SamplingSettings, check_stance_root
-from omg.lit.timeline import check_timeline, timeline_denoiser
+from omg.lit.timeline import chains_denoiser, check_timeline, compose_chains, timeline_denoiser
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
@@ -228,7 +228,9 @@ class MotionDiffusionModule(OmgModule):
         ``stance_root`` (default: the module's) steps the root of every denoised estimate by its stance
         foot (``stance_denoiser``); ``control`` then steers it towards joint targets (``omg.lit.control``), on
         the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
-        stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``).
+        stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``); with
+        its separate chains, each text samples its own chain (K·B rows from the same x_T, stance_root and control
+        applied to each chain), the chains joined at every step and in the motion returned.
         ``progress`` (a watcher of this call, not a setting) hears the solver's (step, steps) after each step.
         """
         settings = settings or SamplingSettings()
@@ -247,10 +249,21 @@ class MotionDiffusionModule(OmgModule):
         with modes_restored(self), self.ema_weights(settings.use_ema):
             self.eval()
             dtype = next(self.model.parameters()).dtype
-            if settings.timeline is None:
+            timeline, chains = settings.timeline, 1  # chains: K with separate chains (K·B rows), else 1
+            shape = (*mask.shape, self.config.input_dim)
+            given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
+            if timeline is None:
                 denoise = self.denoiser(texts, mask, settings.guidance)
+            elif timeline.separate:  # one chain per text, joined at every step (omg.lit.timeline)
+                denoise = chains_denoiser(self.denoiser, timeline, mask, settings.guidance)
+                chains = len(timeline.texts)
+                if "noise" not in given:  # the chains start from the same x_T, drawn as one chain's would be
+                    given["noise"] = torch.randn(shape, generator=gen, device=self.device, dtype=dtype)
+                given["noise"] = given["noise"].repeat(chains, 1, 1)
+                mask = mask.repeat(chains, 1)
+                shape = (*mask.shape, shape[-1])
             else:  # each text's x̂0 blended at every step (omg.lit.timeline)
-                denoise = timeline_denoiser(self.denoiser, settings.timeline, mask, settings.guidance)
+                denoise = timeline_denoiser(self.denoiser, timeline, mask, settings.guidance)
             if settings.autocast is not None:
                 denoise = autocasting(denoise, self.device.type, settings.autocast)
             if settings.compile:
@@ -258,14 +271,14 @@ class MotionDiffusionModule(OmgModule):
             strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
-            if settings.control is not None:
-                denoise = self.control_denoiser(denoise, mask, settings.control, settings.steps)
-            shape = (*mask.shape, self.config.input_dim)
-            given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
+            if settings.control is not None:  # with separate chains, every chain steered to the targets
+                denoise = self.control_denoiser(denoise, mask, settings.control.tiled(chains), settings.steps)
             if progress is not None:  # passed only when watched: a plugin sampler need not take it
                 given["progress"] = progress
             x = solver(self.diffusion, denoise, shape, steps=settings.steps, generator=gen, device=self.device,
                        dtype=dtype, mask=mask, **given)
+            if chains > 1:
+                x = compose_chains(x, timeline)
         return self.denormalize(x)
 
     def check_sampling(self, settings: SamplingSettings, key: str) -> None:

@@ -10,6 +10,14 @@ the whole sequence towards one motion that changes from one text to the next; a 
 of its joints (``Representation.channel_joints``: the root's features carry the trajectory) from its own
 text. Away from every crossing a frame's estimate is its own text's alone.
 
+With ``chains="separate"`` each text keeps its own sampling chain instead (SINC's splice, coupled): the
+sampler's state is K chains of the B motions (K·B rows, all starting from the same noise), chain k denoised
+by text k alone, reading its own estimate of every part, so a walk's pass denoises a walking body, not the
+walk's legs under another text's waving arms. At every step the chains' estimates are joined by the same
+weights (the composed x̂0) and each chain's estimate is pulled towards it by ``coupling`` (0: the chains
+independent, each exactly its text sampled alone; 1: every chain given the composed estimate, the joint
+blend above); the motion returned is the chains' samples joined by the weights (``compose_chains``).
+
 ``resolve_timeline`` turns seconds and body-part names into the tensor-level ``Timeline`` that
 ``SamplingSettings.timeline`` carries; reading and checking a user's file is ``omg.generation.timeline``.
 """
@@ -26,6 +34,11 @@ from omg.diffusion import Denoiser
 from omg.errors import UsageError
 from omg.motion.base import Representation
 from omg.skeleton import body_parts
+
+CHAINS = ("joint", "separate")  # a timeline's sampling: one chain of blended estimates, or one chain per text
+# separate chains' pull towards the composed estimate: on the small recipe's compositions 0 and 0.1 passed both
+# parts alike (6/8) and 0.5 fell back to the joint blend's 2/8; 0.1 skated less (docs/results/timelines.md)
+DEFAULT_COUPLING = 0.1
 
 
 @dataclass(frozen=True)
@@ -53,13 +66,23 @@ class Timeline:
     """What a sampler blends: ``texts`` (K distinct captions) and ``weights`` (K, T, D), the share of text k's
     denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere. ``windows``: the
     frames [start, end) each text's denoiser sees (None: every text sees the whole sequence); a window holds
-    every frame its text has a share in."""
+    every frame its text has a share in. ``chains``: ``joint`` (one chain, the texts' estimates blended) or
+    ``separate`` (one chain per text, each pulled towards the blend by ``coupling`` in [0, 1]; the module
+    docstring)."""
 
     texts: tuple[str, ...]
     weights: Tensor  # (K, T, D)
     windows: tuple[tuple[int, int], ...] | None = None
+    chains: str = "joint"
+    coupling: float = DEFAULT_COUPLING
 
     def __post_init__(self) -> None:
+        if self.chains not in CHAINS:
+            raise ValueError(f"timeline chains {self.chains!r}; one of {', '.join(CHAINS)}")
+        if not 0.0 <= self.coupling <= 1.0:
+            raise ValueError(f"timeline coupling {self.coupling!r} outside [0, 1]")
+        if self.separate and self.windows is not None:
+            raise ValueError("separate chains read each text's whole motion: no windows")
         w = self.weights
         if w.ndim != 3 or w.shape[0] != len(self.texts) or not self.texts:
             raise ValueError(f"timeline weights (K, T, D) for {len(self.texts)} texts, got {tuple(w.shape)}")
@@ -73,6 +96,11 @@ class Timeline:
                 inside = (frames >= start) & (frames < end)
                 if not 0 <= start < end <= w.shape[1] or (share.abs().sum(-1)[~inside] > 0).any():
                     raise ValueError(f"a window {start}..{end} of {w.shape[1]} frames must hold its text's frames")
+
+    @property
+    def separate(self) -> bool:
+        """Whether each text samples its own chain (K·B rows in the sampler)."""
+        return self.chains == "separate"
 
 
 def smoothstep(u: Tensor) -> Tensor:
@@ -132,14 +160,15 @@ def text_windows(weights: Tensor, context: int) -> tuple[tuple[int, int], ...]:
 
 def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], frames: int, fps: float,
                      representation: Representation, transition: float = 0.5,
-                     context: float | None = None) -> Timeline:
+                     context: float | None = None, chains: str = "joint",
+                     coupling: float = DEFAULT_COUPLING) -> Timeline:
     """The ``Timeline`` of ``frames`` feature frames at ``fps`` for a model of ``representation``: the segments
     (in time order, meeting or overlapping) share the frames, then each ``PartText`` in turn takes its joints'
     features (``channel_joints``) while it holds. Without segments, the first part's text is the base the
     others replace. ``context`` (seconds; None: the whole motion) limits what each text's denoiser sees to
     its own frames and that much on either side (``text_windows``). The checks of a user's values (times
     inside the motion, known part names) are ``omg.generation.timeline``'s; ``body_parts`` and
-    ``channel_joints`` raise their own one line."""
+    ``channel_joints`` raise their own one line. ``chains`` and ``coupling``: ``Timeline``'s."""
     times = torch.arange(frames, dtype=torch.float64) / fps  # (T,) the time of each feature frame
     dim = representation.dim
     texts = list(dict.fromkeys([s.text for s in segments] + [p.text for p in parts]))
@@ -162,7 +191,7 @@ def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], fra
             weights = weights * (1.0 - take) + own * take
     weights = weights.float()
     windows = None if context is None else text_windows(weights, round(context * fps))
-    return Timeline(tuple(texts), weights, windows)
+    return Timeline(tuple(texts), weights, windows, chains, coupling)
 
 
 TextDenoiser = Callable[[Sequence[str], Tensor, "float | None"], Denoiser]  # (texts, mask, guidance) -> denoiser
@@ -187,6 +216,35 @@ def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, 
         return (weights.to(x0.dtype) * x0).sum(0)
 
     return blended
+
+
+def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
+    """Separate chains (the module docstring): x (K·B rows, chain k of motion b at row k·B + b) -> each chain's
+    x̂0, its own text's estimate pulled towards the composed one by ``timeline.coupling``. ``denoiser`` runs
+    once per step on the K·B rows, each with its chain's text; ``mask`` (B, T) the motions' real frames."""
+    k, (b, frames) = len(timeline.texts), mask.shape
+    if timeline.weights.shape[1] != frames:
+        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
+    texts = [text for text in timeline.texts for _ in range(b)]
+    weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
+    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
+    coupling = timeline.coupling
+
+    def chained(x: Tensor, t: Tensor) -> Tensor:
+        x0 = denoise(x, t).unflatten(0, (k, b))  # (K, B, T, D) each chain by its own text
+        composed = (weights.to(x0.dtype) * x0).sum(0)  # (B, T, D) each part from its own text's chain
+        # lerp is exact at both ends: 0 leaves a chain its own estimate, 1 gives it the composed one
+        return torch.lerp(x0, composed.expand_as(x0), coupling).flatten(0, 1)
+
+    return chained
+
+
+def compose_chains(x: Tensor, timeline: Timeline) -> Tensor:
+    """(K·B, T, D) the separate chains' samples -> (B, T, D) the motion: each feature of each frame from its
+    texts' chains by the timeline's weights."""
+    k = len(timeline.texts)
+    chains = x.unflatten(0, (k, x.shape[0] // k))  # (K, B, T, D)
+    return (timeline.weights.to(device=x.device, dtype=x.dtype)[:, None] * chains).sum(0)
 
 
 def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:

@@ -23,6 +23,11 @@ def joint_jerk(joints, fps: float):
     return jerk.norm(dim=-1).mean(-1)
 
 
+def mean(values) -> float:
+    """The mean of ``values``, NaN for none (a run that samples no timeline)."""
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
 def held_out_captions(samples: list[dict], label: str, prompts: Path | None) -> list[tuple[str, list[dict], str]]:
     """(caption, targets, action label) of every held-out clip caption whose action label has targets under the
     prompt file's ``labels:`` (``omg.metrics.following.label_targets``), each caption once."""
@@ -46,6 +51,8 @@ def bench_timeline(
     segment_seconds: PositiveFiniteFloat = 3.0,
     transition: PositiveFiniteFloat = 0.5,
     context: NonNegativeSeconds | None = None,
+    chains: str = "joint",
+    coupling: FiniteFloat | None = None,
     compositions: NonNegativeInt = 4,
     composition_seconds: PositiveFiniteFloat = 4.0,
     samples: PositiveInt = 4,
@@ -84,6 +91,10 @@ def bench_timeline(
         transition: seconds two segments cross over in (the timeline file's transition)
         context: seconds each text's denoiser sees on either side of its own frames (the timeline file's
             context; default: the whole motion)
+        chains: how the texts are sampled (the timeline file's chains): joint (one chain, the texts'
+            estimates blended) or separate (one chain per text)
+        coupling: with separate chains, each chain's pull towards the composed estimate, 0..1 (the timeline
+            file's coupling; default: its default)
         compositions: body-part compositions to make
         composition_seconds: seconds per composition
         samples: motions per timeline, composition and caption alone (seeds seed..seed+samples-1)
@@ -95,21 +106,29 @@ def bench_timeline(
         label: the clip label that names the action (a Bandai-Namco take's ``content``)
         only_timelines: sample only these timelines, numbered 1.. as the full run makes them (the same
             captions and seeds; the others are chosen, not sampled): a list such as [2, 4]
-        only_compositions: sample only these compositions, numbered the same way
+        only_compositions: sample only these compositions, numbered the same way (either list given, the
+            kind it does not name is not sampled)
         command: the command line, printed with the results
     """
     import torch
 
     from omg.data.datamodule import MotionDataModule
-    from omg.generation.timeline import parse_timeline
+    from omg.generation.timeline import check_chains, parse_timeline
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
     from omg.lit.sampling import SamplingSettings
     from omg.metrics.following import Joints, check_target, passes
+    from omg.metrics.joints import FootSkating
     from omg.motion import get_representation
     from omg.registry import SAMPLERS
 
     SAMPLERS.get(sampler)
+    check_chains(chains, "--chains")
+    if chains == "separate" and context is not None:
+        raise UsageError("--chains separate: each chain reads its own whole motion; give --chains or --context")
+    if coupling is not None and (not 0 <= coupling <= 1 or chains != "separate"):
+        raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")
+    how = {"context": context, "chains": chains, **({} if coupling is None else {"coupling": coupling})}
     for name, picked, made in (("only_timelines", only_timelines, timelines),
                                ("only_compositions", only_compositions, compositions)):
         if past := [n for n in picked if n > made]:
@@ -159,11 +178,11 @@ def bench_timeline(
             chosen.append(pool[int(rng.integers(len(pool)))])
         while len(chosen) < k:  # fewer actions than segments: repeat, never next to itself
             chosen.append(chosen[-2])
-        if only_timelines and i + 1 not in only_timelines:
+        if (only_timelines or only_compositions) and i + 1 not in only_timelines:
             continue
         spans = parse_timeline({"timeline": [{"start": j * segment_seconds, "end": (j + 1) * segment_seconds,
                                               "text": c[0]} for j, c in enumerate(chosen)], "transition": transition,
-                                "context": context})
+                                **how})
         frames = round(k * segment_seconds * fps)
         joints = sample(None, frames, spans, "timeline")  # (n, T, J, 3)
         made.append([c[0] for c in chosen])
@@ -182,8 +201,8 @@ def bench_timeline(
     real = get_representation(data.spec.representation, data.spec.skeleton)
     real_jerk = [float(joint_jerk(real.decode(torch.as_tensor(s["motion"]).float()), data.spec.fps).mean())
                  for s in held_out if len(s["motion"]) > 4]
-    in_timeline = float(np.mean([np.mean(r["passed"]) for r in segment_rows]))
-    by_itself = float(np.mean([np.mean(alone[r["text"]]) for r in segment_rows]))
+    in_timeline = mean([np.mean(r["passed"]) for r in segment_rows])
+    by_itself = mean([np.mean(alone[r["text"]]) for r in segment_rows])
 
     # -- body-part compositions ---------------------------------------------------------------------------------
     def moves(targets: list[dict]) -> bool:  # a locomotion caption: it goes somewhere, and not by its hands
@@ -198,17 +217,20 @@ def bench_timeline(
         walk, wave = walkers[int(rng.integers(len(walkers)))], wavers[int(rng.integers(len(wavers)))]
         hands = {t.get("hand") for t in wave[1] if check_target(t) in HAND}
         arm = "arms" if hands & {"both", "either"} else f"{hands.pop()}_arm"
-        if only_compositions and i + 1 not in only_compositions:
+        if (only_timelines or only_compositions) and i + 1 not in only_compositions:
             continue
         spans = parse_timeline({"parts": [{"parts": ["legs", "root"], "text": walk[0]},
                                           {"parts": [arm], "text": wave[0]}], "transition": transition,
-                                "context": context})
+                                **how})
         sentence = f"{walk[0].rstrip('.')} and {wave[0].removeprefix('a person ')}"
         row = {"composition": i + 1, "walk": walk[0], "wave": wave[0], "arm": arm, "sentence": sentence}
         for key, joints in (("parts", sample(None, comp_frames, spans, "parts")),
                             ("plain", sample([sentence] * samples, comp_frames))):
             body, hand = score(joints, walk[1], BODY), score(joints, wave[1], HAND)
-            row[key] = {"body": body, "hand": hand, "both": [a and b for a, b in zip(body, hand)]}
+            skating = FootSkating(module.spec.skeleton, fps)
+            skating.update(joints, torch.ones(joints.shape[:2], dtype=torch.bool))
+            row[key] = {"body": body, "hand": hand, "both": [a and b for a, b in zip(body, hand)],
+                        "skating": float(skating.compute())}
         comp_rows.append(row)
     if not comp_rows:
         print("(no body-part composition: the captions need a locomotion action and a hand action with targets)")
@@ -218,25 +240,32 @@ def bench_timeline(
         values = list(values)
         return f"{sum(values)}/{len(values)} ({np.mean(values):.2f})" if values else "–"
 
-    print(f"\n`{command}`\n\n| # | timeline segment | its targets | passes in the timeline | passes alone |\n"
-          "|---:|---|---|---:|---:|")
+    print(f"\n`{command}`")
+    if segment_rows:
+        print("\n| # | timeline segment | its targets | passes in the timeline | passes alone |\n"
+              "|---:|---|---|---:|---:|")
     for r in segment_rows:
         targets = "; ".join(", ".join(f"{k}: {v}" for k, v in t.items()) for t in r["targets"])
         print(f"| {r['timeline']} | {r['text']} | {targets} | {rate(r['passed'])} | {rate(alone[r['text']])} |")
     ratio = in_timeline / by_itself if by_itself else float("nan")
-    real_mean, boundary_mean, alone_mean = (float(np.mean(v)) for v in (real_jerk, boundary_jerk, alone_jerk))
+    real_mean, boundary_mean, alone_mean = (mean(v) for v in (real_jerk, boundary_jerk, alone_jerk))
     costs = {k: v[0] / v[1] for k, v in clock.items() if v[1]}
-    print(f"\n| measure | value | target |\n|---|---:|---:|\n"
-          f"| segments passing, in timelines / alone | {in_timeline:.3f} / {by_itself:.3f} ({ratio:.2f}x) | >= 0.9x |\n"
-          f"| joint jerk at the transitions / real held-out takes (m/s³) | {boundary_mean:.1f} / {real_mean:.1f} "
-          f"({boundary_mean / real_mean:.2f}x) | <= 1.5x |\n"
-          f"| joint jerk of one caption alone / real (m/s³) | {alone_mean:.1f} / {real_mean:.1f} "
-          f"({alone_mean / real_mean:.2f}x) | |")
+    print("\n| measure | value | target |\n|---|---:|---:|")
+    if segment_rows:
+        print(f"| segments passing, in timelines / alone | {in_timeline:.3f} / {by_itself:.3f} ({ratio:.2f}x) "
+              "| >= 0.9x |\n"
+              f"| joint jerk at the transitions / real held-out takes (m/s³) | {boundary_mean:.1f} / {real_mean:.1f} "
+              f"({boundary_mean / real_mean:.2f}x) | <= 1.5x |\n"
+              f"| joint jerk of one caption alone / real (m/s³) | {alone_mean:.1f} / {real_mean:.1f} "
+              f"({alone_mean / real_mean:.2f}x) | |")
     if comp_rows:
         both = [b for r in comp_rows for b in r["parts"]["both"]]
         plain = [b for r in comp_rows for b in r["plain"]["both"]]
         print(f"| body-part compositions: both parts pass / as one plain sentence | {rate(both)} / {rate(plain)} "
               "| >= 0.7 |")
+        skated = [float(np.mean([r[k]["skating"] for r in comp_rows])) for k in ("parts", "plain")]
+        print(f"| foot skating, compositions / the plain sentence | {skated[0]:.3f} / {skated[1]:.3f} "
+              f"({skated[0] / max(skated[1], 1e-9):.2f}x) | |")
     for what in ("timeline", "parts"):
         if what in costs and "plain" in costs:
             print(f"| sampling seconds per second of motion, {what} / plain ({steps} {sampler} steps) | "
