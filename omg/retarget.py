@@ -242,8 +242,8 @@ def _scaffold(jmap: JointMap, names: list[str], called: dict[str, set[str]],
 
 def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[str, dict[str, int]]:
     """A joint map to finish for a rig no registered map fits, started from the registered map (onto
-    ``target``, or any) that leaves the fewest joints TODO (then: most matched by name, most joints).
-    Each target joint is written out with the rig's joint of the same name; else the one the rig's
+    ``target``, or any) that leaves the fewest joints TODO (then: one the rig's names fit, most joints, most
+    matched by name). Each target joint is written out with the rig's joint of the same name; else the one the rig's
     hierarchy and rest pose show (``omg.rig_structure``: SMPL-22 joints of a biped, whatever the names);
     else the rig's joint whose name is closest to what the registered maps call it (same side, difflib
     ratio of the names' cores >= ``SIMILAR``); those two marked as a guess to check, with the reason;
@@ -266,11 +266,11 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
         mine = {joint: called[(m.target, joint)] for joint in m.joints}
         results[m.name] = _scaffold(m, names, mine, humanoid if m.target == "smpl22" else {})
 
-    def todo_then_matched(m: JointMap) -> tuple:
+    def fewest_todo(m: JointMap) -> tuple:
         chosen, guessed = results[m.name]
-        return len(m.joints) - len(chosen), len(guessed) - len(chosen), -len(m.joints), m.name
+        return len(m.joints) - len(chosen), bool(guessed), -len(m.joints), len(guessed) - len(chosen), m.name
 
-    closest = min(maps, key=todo_then_matched)
+    closest = min(maps, key=fewest_todo)
     chosen, guessed = results[closest.name]
     where = motion.source or motion.name
     counts = {"matched": len(chosen) - len(guessed), "guessed": len(guessed),
