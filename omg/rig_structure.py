@@ -3,24 +3,27 @@
 Used by ``omg.retarget.scaffold_joint_map`` for the joints no name matches; every proposal comes with the
 reason it was made, and where the rest pose does not tell (a rig without mirror symmetry, feet that do not
 point forward and names without a side), nothing is proposed rather than a guess. The rig's frame: the
-lateral axis is the one the rest pose is mirror-symmetric across, up the longer of the other two, pointing
-to the end whose extremity lies on the mirror plane (the head; the feet are a pair off it), forward the way
-the feet point (toes ahead of ankles). Then:
+lateral axis is the one the rest pose is mirror-symmetric across, up the longer of the other two (its sign:
+the one a biped is found in, below; neither or both: nothing), forward the way the feet point (toes ahead
+of ankles). A joint at its parent's place (CMU's ``LHipJoint`` at the hips) is passed over: its parent
+turns what hangs from both. Then:
 
-- pelvis: where the two lowest joints of either side (the feet) branch apart;
+- pelvis: where the lowest joints off the mirror plane on either side (the feet) branch apart;
 - legs: the chain from the pelvis to each foot; hip, knee and ankle start, join and end its two longest
-  consecutive bones, the foot is the joint (or end site) after the ankle;
+  consecutive bones (the first no shorter than ``PROXIMAL`` of the second), the foot is the joint (or the
+  end site) after the ankle;
 - spine: the chain from the pelvis to the highest joint on the mirror plane (the head's top); spine3 is
-  where the arms (the subtrees reaching farthest to either side) branch from it, spine1 and spine2 the
-  joints between the pelvis and spine3, neck the joint above spine3 and head the next (one named head
-  where there is one);
-- arms: shoulder, elbow and wrist start, join and end the two longest consecutive bones of the chain from
-  spine3 to the joint farthest to that side, the collar the joint before the shoulder.
+  where the arms branch from it, spine1 and spine2 the joints between the pelvis and spine3, neck the joint
+  above spine3 and head the next (one named head where there is one);
+- arms: the subtrees off the spine reaching farthest to either side, each ending at its joint farthest from
+  spine3 (a fingertip); shoulder, elbow and wrist start, join and end its two longest consecutive bones as a
+  leg's, the collar the joint before the shoulder.
 
 Left and right: by the joints' names where they say (``L``, ``left``, ``.l``: ``omg.retarget``'s side
 tokens), else from up and forward (left = up x forward). Quadrupeds (smal35) are not attempted: a dog's
 longest axis is its length, not its height, and its four legs hang from two girdles; a rig that is no
-upright biped fails the checks below and gets nothing.
+upright biped fails the checks below and gets nothing, as does a rig whose rest pose (every rotation zero)
+is no standing pose (the Bandai-Namco BVHs': their offsets lie along each joint's own axes).
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ MIRROR = 0.03  # of the rig's size: mean distance of a joint's mirror image to t
 ON_PLANE = 0.03  # of the rig's height: a joint this close to the mirror plane is on the body's centre line
 CLEAR = 0.02  # of the rig's height: two measurements closer than this do not tell (up's sign, forward's sign)
 LONG_BONE = 0.1  # of the rig's height: the shortest upper arm, forearm, thigh or shin a human rig has
+PROXIMAL = 0.8  # the shortest a thigh is of its shin, an upper arm of its forearm (adults: 1.0 and 1.27)
+ARM_OUT = 0.05  # of the rig's height: the least a hand reaches out from the centre line (arms hanging down: 0.13)
+SAME_PLACE = 1e-3  # of the rig's height: a joint this close to its parent is a second joint at the same place
 
 
 def _path(parents: list[int], child: int, ancestor: int) -> list[int] | None:
@@ -60,9 +66,12 @@ def _ancestors(parents: list[int], j: int) -> list[int]:
 
 def _limb(chain: list[int], rest: np.ndarray, height: float) -> int | None:
     """The index in ``chain`` of a limb's first long bone's start (hip, shoulder): the two longest
-    consecutive bones start, join and end at chain[k], chain[k + 1], chain[k + 2]; None if none are long."""
+    consecutive bones, the first no shorter than ``PROXIMAL`` of the second (a thigh is as long as its shin,
+    an upper arm longer than its forearm; a collar bone shorter than its upper arm), start, join and end at
+    chain[k], chain[k + 1], chain[k + 2]; None if no two are long."""
     seg = np.linalg.norm(np.diff(rest[chain], axis=0), axis=1)  # (len - 1,)
-    pairs = [(seg[k] + seg[k + 1], k) for k in range(len(seg) - 1) if min(seg[k], seg[k + 1]) >= LONG_BONE * height]
+    pairs = [(seg[k] + seg[k + 1], k) for k in range(len(seg) - 1)
+             if min(seg[k], seg[k + 1]) >= LONG_BONE * height and seg[k] >= PROXIMAL * seg[k + 1]]
     return max(pairs)[1] if pairs else None
 
 
@@ -121,6 +130,11 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
     up_name = "+-"[int(frame.sign < 0)] + axis_names[frame.up]
     off_plane = [j for j in range(len(names)) if abs(side[j]) > ON_PLANE * height]
 
+    def solid(chain: list[int]) -> list[int]:
+        """``chain`` without the joints at their parent's place (CMU's LHipJoint at the hips, Neck at the
+        chest): the joint above such a one is the one that turns what hangs from both."""
+        return [j for j in chain if np.linalg.norm(rest[j] - rest[parents[j]]) > SAME_PLACE * height]
+
     # the feet: the lowest joint off the mirror plane, and the lowest on its other side
     if not off_plane:
         return {}
@@ -139,7 +153,7 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
 
     legs = {}  # +1/-1 (the side of the mirror plane) -> (hip, knee, ankle, foot or None, the foot's place)
     for foot in (foot1, foot2):
-        chain = _path(parents, foot, pelvis)
+        chain = solid(_path(parents, foot, pelvis))
         k = _limb(chain, rest, height) if chain else None
         if k is None:
             return {}
@@ -153,20 +167,27 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
         legs[int(np.sign(side[foot]))] = (hip, knee, ankle, toe, place)
 
     # the spine up to the head's top, and the arms: the farthest joints to either side, off the legs
-    in_legs = {j for leg in legs.values() for j in _path(parents, leg[2], pelvis) or []}
-    body = [j for j in range(len(names)) if j not in in_legs and _path(parents, j, pelvis)]
+    leg_tops = {_path(parents, foot, pelvis)[0] for foot in (foot1, foot2)}
+    body = [j for j in range(len(names)) if (up_to := _path(parents, j, pelvis)) and up_to[0] not in leg_tops]
     centre_line = [j for j in body if abs(side[j]) <= ON_PLANE * height]
     if not centre_line:
         return out
-    spine = _path(parents, max(centre_line, key=lambda j: h[j]), pelvis)
+    top = max(centre_line, key=lambda j: h[j])
+    spine = solid(_path(parents, top, pelvis))
     arms = {}
     for sign in (1, -1):
-        hand = max(body, key=lambda j: sign * side[j])
-        branch = next((j for j in _ancestors(parents, hand) if j in spine), None)
-        k = _limb(_path(parents, hand, branch), rest, height) if branch is not None else None
-        if sign * side[hand] < 0.15 * height or k is None or not h[branch] > h[pelvis]:
+        out_most = max(body, key=lambda j: sign * side[j])  # on the arm, which ends at its joint farthest away
+        branch = next((j for j in _ancestors(parents, out_most) if j in spine), None)
+        if branch is None or sign * side[out_most] < ARM_OUT * height or not h[branch] > h[pelvis]:
             return out
-        arms[sign] = (branch, _path(parents, hand, branch), k)
+        arm_top = _path(parents, out_most, branch)[0]
+        hand = max((j for j in body if arm_top in _ancestors(parents, j)),
+                   key=lambda j: np.linalg.norm(rest[j] - rest[branch]))
+        chain = solid(_path(parents, hand, branch))
+        k = _limb(chain, rest, height) if chain else None
+        if k is None:
+            return out
+        arms[sign] = (branch, chain, k)
     if len({arm[0] for arm in arms.values()}) != 1:
         return out
     chest = spine.index(arms[1][0])

@@ -6,16 +6,17 @@ studios' conventions), so that only their structure tells the joints."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import pytest
 import yaml
 
-from helpers import BANDAI_RIG, DOG_RIG, REPO, rig_bvh
+from helpers import BANDAI_RIG, DOG_RIG, REPO, SHARED_MOTION, rig_bvh
 from helpers.characters import figure_rest
 from omg.cli import main
 from omg.errors import UsageError
-from omg.retarget import load_joint_map, read_rig, read_rig_file, scaffold_joint_map
+from omg.retarget import detect_joint_map, load_joint_map, read_rig, read_rig_file, scaffold_joint_map
 
 # the Bandai rig with names of another studio: thighs and shins no map calls so, hands and chest close to a map's
 RENAMED = {"UpperLeg_L": "Thigh_L", "UpperLeg_R": "Thigh_R", "LowerLeg_L": "Shin_L", "LowerLeg_R": "Shin_R",
@@ -110,6 +111,21 @@ def test_a_rig_standing_on_a_root_at_its_feet_is_scaffolded_by_its_structure(tmp
     text, new, counts = _renamed(tmp_path, BANDAI_RIG, RENAMINGS["opaque"])
     assert yaml.safe_load(text)["joints"] == {k: new[v] for k, v in BANDAI.items()}
     assert counts == {"matched": 0, "guessed": 21, "todo": 0}
+
+
+@pytest.mark.parametrize("clip", ["01_01", "131_01"])
+def test_real_mocap_rigs_with_opaque_names_are_scaffolded_by_their_structure(clip):
+    """CMU's BVH rigs (cgspeed's names, and 3ds Max's: arms hanging down, joints at their parent's place),
+    every joint renamed ``j0``..: the scaffold proposes the joints their registered map names."""
+    path = SHARED_MOTION / f"human/cmu/{clip}.bvh"
+    if not path.exists():
+        pytest.skip(f"real motion data not found at {SHARED_MOTION}")
+    rig = read_rig_file(path)
+    truth = detect_joint_map(rig).joints
+    new = {n: f"j{i}" for i, n in enumerate(rig.names)}
+    text, counts = scaffold_joint_map(dataclasses.replace(rig, names=[new[n] for n in rig.names]), "smpl22")
+    assert yaml.safe_load(text)["joints"] == {k: new[v] for k, v in truth.items()}
+    assert counts == {"matched": 0, "guessed": 19, "todo": 0}
 
 
 def test_what_the_structure_does_not_tell_stays_todo(tmp_path, capsys):
