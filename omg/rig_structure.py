@@ -171,7 +171,7 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
     body = [j for j in range(len(names)) if (up_to := _path(parents, j, pelvis)) and up_to[0] not in leg_tops]
     centre_line = [j for j in body if abs(side[j]) <= ON_PLANE * height]
     if not centre_line:
-        return out
+        return {}
     top = max(centre_line, key=lambda j: h[j])
     spine = solid(_path(parents, top, pelvis))
     arms = {}
@@ -179,17 +179,17 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
         out_most = max(body, key=lambda j: sign * side[j])  # on the arm, which ends at its joint farthest away
         branch = next((j for j in _ancestors(parents, out_most) if j in spine), None)
         if branch is None or sign * side[out_most] < ARM_OUT * height or not h[branch] > h[pelvis]:
-            return out
+            return {}
         arm_top = _path(parents, out_most, branch)[0]
         hand = max((j for j in body if arm_top in _ancestors(parents, j)),
                    key=lambda j: np.linalg.norm(rest[j] - rest[branch]))
         chain = solid(_path(parents, hand, branch))
         k = _limb(chain, rest, height) if chain else None
         if k is None:
-            return out
+            return {}
         arms[sign] = (branch, chain, k)
     if len({arm[0] for arm in arms.values()}) != 1:
-        return out
+        return {}
     chest = spine.index(arms[1][0])
     out["spine3"] = (names[spine[chest]], "the spine's joint the two arms branch from")
     below = spine[:chest]

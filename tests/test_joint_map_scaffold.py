@@ -128,6 +128,20 @@ def test_real_mocap_rigs_with_opaque_names_are_scaffolded_by_their_structure(cli
     assert counts == {"matched": 0, "guessed": 19, "todo": 0}
 
 
+@pytest.mark.parametrize("clip", ["human/bandai1/dataset-1_walk_normal_001.bvh",
+                                  "quadruped/mann_dog/D1_004_KAN01_001.bvh"])
+def test_a_rig_whose_rest_pose_is_no_standing_biped_gets_no_guess(clip):
+    """The Bandai-Namco BVHs' rest pose (every rotation zero) lies along each joint's own axes, the MANN dog is
+    a quadruped: with opaque names, nothing is proposed, on either skeleton."""
+    path = SHARED_MOTION / clip
+    if not path.exists():
+        pytest.skip(f"real motion data not found at {SHARED_MOTION}")
+    rig = read_rig_file(path)
+    opaque = dataclasses.replace(rig, names=[f"j{i}" for i in range(rig.num_joints)])
+    for target in ("smpl22", "smal35"):
+        assert scaffold_joint_map(opaque, target)[1]["guessed"] == 0
+
+
 def test_what_the_structure_does_not_tell_stays_todo(tmp_path, capsys):
     """Feet that point nowhere (no toes, end sites straight down), opaque names: the centre line is found, left
     and right are not, and stay TODO; the unfinished map is refused in one line. A dog is no biped: nothing."""
