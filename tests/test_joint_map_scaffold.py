@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import re
 
+import numpy as np
 import pytest
 import yaml
 
@@ -104,6 +105,16 @@ def test_a_figure_with_names_no_map_knows_is_scaffolded_by_its_structure(tmp_pat
     text, new, counts = _renamed(tmp_path, _figure_rows(pose), RENAMINGS[convention])
     assert yaml.safe_load(text)["joints"] == {k: new[v] for k, v in MIXAMO.items()}
     assert counts == {"matched": 0, "guessed": 22, "todo": 0}
+
+
+def test_a_figure_z_up_facing_minus_x_is_scaffolded_by_its_structure(tmp_path):
+    """Up, forward and left are read from the rest pose, not assumed: the figure turned Z up, facing -X (its
+    left on -Y), opaque names."""
+    turn = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # Y up, facing +Z -> Z up, facing -X
+    rows = [(n, p, tuple(turn @ np.array(offset))) for n, p, offset in _figure_rows("A")]
+    text, new, counts = _renamed(tmp_path, rows, RENAMINGS["opaque"])
+    assert yaml.safe_load(text)["joints"] == {k: new[v] for k, v in MIXAMO.items()}
+    assert "the left leg (-Y side: facing -X, where the toes point, +Z up)" in text
 
 
 def test_a_rig_standing_on_a_root_at_its_feet_is_scaffolded_by_its_structure(tmp_path):
