@@ -282,11 +282,15 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
              "# or delete the line: a joint between two mapped ones is filled in). Then pass it as --joint_map FILE.",
              f"target: {closest.target}", f"category: {closest.category}",
              "joints:  # target joint: the rig's joint (<joint>_end: its end site)"]
+    sided = any(j.startswith(("left_", "right_")) for j in humanoid)
     for joint in closest.joints:
         key = f"{joint}:".ljust(width)
         if joint not in chosen:
+            why = "" if closest.target != "smpl22" else ", and its rest pose shows no standing biped" \
+                if not humanoid else ", and its rest pose does not tell left from right" \
+                if joint.startswith(("left_", "right_")) and not sided else ", nor a joint there by its structure"
             lines.append(f"  {key} {TODO}  # {closest.name} maps it to {json.dumps(closest.joints[joint])}; "
-                         "the rig has no such joint")
+                         f"the rig has no such joint{why}")
         elif joint in guessed:
             lines.append(f"  {key} {json.dumps(chosen[joint])}  # guessed: {guessed[joint]}; check")
         else:

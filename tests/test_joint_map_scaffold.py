@@ -163,6 +163,8 @@ def test_what_the_structure_does_not_tell_stays_todo(tmp_path, capsys):
         "pelvis": new["Hips"], "spine1": new["Spine"], "spine3": new["Chest"], "neck": new["Neck"],
         "head": new["Head"]}
     assert counts == {"matched": 0, "guessed": 5, "todo": 14}
+    assert re.search(r"^  left_hip: +TODO  # .*; the rig has no such joint, and its rest pose does not tell left "
+                     "from right$", text, re.M)
     out = tmp_path / "flat.yaml"
     out.write_text(text)
     with pytest.raises(UsageError, match=r"left_hip is TODO \(no joint of the rig was matched to it\)"):
@@ -172,7 +174,8 @@ def test_what_the_structure_does_not_tell_stays_todo(tmp_path, capsys):
            for i, (_, p, offset) in enumerate(DOG_RIG)]
     (tmp_path / "dog.bvh").write_text(rig_bvh(dog))
     main(["joint-map", str(tmp_path / "dog.bvh"), "--target", "smpl22"])
-    assert "0 joints matched by name, 0 guessed" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "0 joints matched by name, 0 guessed" in text and "its rest pose shows no standing biped" in text
 
 
 def test_a_rig_a_map_fits_is_all_matched_and_the_target_can_be_chosen(tmp_path, capsys):
