@@ -38,7 +38,7 @@ from omg.io.rig import RigMotion
 
 MIRROR = 0.03  # of the rig's size: mean distance of a joint's mirror image to the nearest joint on a symmetric rig
 ON_PLANE = 0.03  # of the rig's height: a joint this close to the mirror plane is on the body's centre line
-CLEAR = 0.02  # of the rig's height: two measurements closer than this do not tell (up's sign, forward's sign)
+CLEAR = 0.02  # of the rig's height: toes no further ahead of their ankles than this point nowhere
 LONG_BONE = 0.1  # of the rig's height: the shortest upper arm, forearm, thigh or shin a human rig has
 PROXIMAL = 0.8  # the shortest a thigh is of its shin, an upper arm of its forearm (adults: 1.0 and 1.27)
 ARM_OUT = 0.05  # of the rig's height: the least a hand reaches out from the centre line (arms hanging down: 0.13)
@@ -124,6 +124,7 @@ def humanoid_joints(motion: RigMotion, side_of: Callable[[str], str | None]) -> 
 
 def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable[[str], str | None]
            ) -> dict[str, tuple[str, str]]:
+    """``humanoid_joints`` in one frame (up's sign given): {} where its checks fail."""
     names, parents = motion.names, motion.parents
     side, h, height = frame.side, frame.h, frame.height
     axis_names = ["X", "Y", "Z"]
@@ -146,8 +147,8 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
     if h[foot2] - h[foot1] > 0.1 * height:
         return {}
     a1, a2 = _ancestors(parents, foot1), set(_ancestors(parents, foot2))
-    pelvis = next(j for j in a1 if j in a2)
-    if h[pelvis] - h[foot1] < 0.3 * height:
+    pelvis = next((j for j in a1 if j in a2), None)  # None: two separate trees
+    if pelvis is None or h[pelvis] - h[foot1] < 0.3 * height:
         return {}
     out: dict[str, tuple[str, str]] = {"pelvis": (names[pelvis], "where the two legs and the spine branch")}
 
@@ -177,7 +178,7 @@ def _biped(motion: RigMotion, rest: np.ndarray, frame: _Frame, side_of: Callable
     arms = {}
     for sign in (1, -1):
         out_most = max(body, key=lambda j: sign * side[j])  # on the arm, which ends at its joint farthest away
-        branch = next((j for j in _ancestors(parents, out_most) if j in spine), None)
+        branch = next((j for j in _ancestors(parents, out_most)[1:] if j in spine), None)
         if branch is None or sign * side[out_most] < ARM_OUT * height or not h[branch] > h[pelvis]:
             return {}
         arm_top = _path(parents, out_most, branch)[0]
