@@ -212,40 +212,66 @@ def _core(name: str) -> str:
     return re.sub(r"[^a-z0-9]", "", base.lower())
 
 
-def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[str, dict[str, int]]:
-    """A joint map to finish for a rig no registered map fits: the closest registered map (onto
-    ``target``, or any: the fewest of its joints missing from the rig), each target joint written
-    out with the rig's joint of the same name, else the rig's joint whose name is closest to what
-    the registered maps call it (same side, difflib ratio of the names' cores >= ``SIMILAR``), marked
-    as a guess to check, else ``TODO``. Returns the YAML text and the counts (matched, guessed, todo)."""
+def _scaffold(jmap: JointMap, names: list[str], called: dict[str, set[str]],
+              structure: dict[str, tuple[str, str]]) -> tuple[dict[str, str], dict[str, str]]:
+    """``jmap``'s joints on a rig with joints ``names``: (target joint -> rig joint, target joint -> why it
+    is a guess). The rig's joint of the map's name first, then what the rig's structure shows (for a map
+    onto the skeleton ``structure`` is of), then the closest name to what the registered maps call it."""
     import difflib
     import json
 
-    names = source_names(motion)
-    maps = [m for m in registered_joint_maps() if target is None or m.target == target]
-    if not maps:
-        raise UsageError(f"no registered joint map targets {target!r}")
-    closest = min(maps, key=lambda m: (len(m.missing(names)), -len(m.joints), m.name))
-    # what every registered map of that skeleton calls each of its joints, and the joint's own name
-    called: dict[str, set[str]] = {}
-    for m in registered_joint_maps():
-        if m.target == closest.target:
-            for joint, source in m.joints.items():
-                called.setdefault(joint, {joint}).add(source)
-    chosen = {joint: source for joint, source in closest.joints.items() if source in names}
+    chosen = {joint: source for joint, source in jmap.joints.items() if source in names}
+    guessed: dict[str, str] = {}
+    for joint, (source, why) in structure.items():
+        if joint in jmap.joints and joint not in chosen and source not in chosen.values():
+            chosen[joint], guessed[joint] = source, why
     free = [n for n in names if n not in chosen.values()]
     scored = []  # (score, target joint, rig joint, the registered name it resembles)
-    for joint in closest.joints:
+    for joint in jmap.joints:
         if joint in chosen:
             continue
         for candidate in free:
             for known in called[joint]:
                 if _side(known) == _side(candidate) and (a := _core(known)) and (b := _core(candidate)):
                     scored.append((difflib.SequenceMatcher(None, a, b).ratio(), joint, candidate, known))
-    guessed: dict[str, str] = {}
     for score, joint, candidate, known in sorted(scored, key=lambda s: -s[0]):  # the best pairs first, each once
         if score >= SIMILAR and joint not in chosen and candidate not in chosen.values():
-            chosen[joint], guessed[joint] = candidate, known
+            chosen[joint], guessed[joint] = candidate, f"like {json.dumps(known)}"
+    return chosen, guessed
+
+
+def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[str, dict[str, int]]:
+    """A joint map to finish for a rig no registered map fits, started from the registered map (onto
+    ``target``, or any) that leaves the fewest joints TODO (then: one the rig's names fit, most joints, most
+    matched by name). Each target joint is written out with the rig's joint of the same name; else the one the rig's
+    hierarchy and rest pose show (``omg.rig_structure``: SMPL-22 joints of a biped, whatever the names);
+    else the rig's joint whose name is closest to what the registered maps call it (same side, difflib
+    ratio of the names' cores >= ``SIMILAR``); those two marked as a guess to check, with the reason;
+    else ``TODO``. Returns the YAML text and the counts (matched, guessed, todo)."""
+    import json
+
+    from omg.rig_structure import humanoid_joints
+
+    names = source_names(motion)
+    maps = [m for m in registered_joint_maps() if target is None or m.target == target]
+    if not maps:
+        raise UsageError(f"no registered joint map targets {target!r}")
+    called: dict[tuple[str, str], set[str]] = {}  # (skeleton, joint) -> what the registered maps call it
+    for m in registered_joint_maps():
+        for joint, source in m.joints.items():
+            called.setdefault((m.target, joint), {joint}).add(source)
+    humanoid = humanoid_joints(motion, _side) if any(m.target == "smpl22" for m in maps) else {}
+    results = {}
+    for m in maps:
+        mine = {joint: called[(m.target, joint)] for joint in m.joints}
+        results[m.name] = _scaffold(m, names, mine, humanoid if m.target == "smpl22" else {})
+
+    def fewest_todo(m: JointMap) -> tuple:
+        chosen, guessed = results[m.name]
+        return len(m.joints) - len(chosen), bool(guessed), -len(m.joints), len(guessed) - len(chosen), m.name
+
+    closest = min(maps, key=fewest_todo)
+    chosen, guessed = results[closest.name]
     where = motion.source or motion.name
     counts = {"matched": len(chosen) - len(guessed), "guessed": len(guessed),
               "todo": len(closest.joints) - len(chosen)}
@@ -256,13 +282,17 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
              "# or delete the line: a joint between two mapped ones is filled in). Then pass it as --joint_map FILE.",
              f"target: {closest.target}", f"category: {closest.category}",
              "joints:  # target joint: the rig's joint (<joint>_end: its end site)"]
+    sided = any(j.startswith(("left_", "right_")) for j in humanoid)
     for joint in closest.joints:
         key = f"{joint}:".ljust(width)
         if joint not in chosen:
+            why = "" if closest.target != "smpl22" else ", and its rest pose shows no standing biped" \
+                if not humanoid else ", and its rest pose does not tell left from right" \
+                if joint.startswith(("left_", "right_")) and not sided else ", nor a joint there by its structure"
             lines.append(f"  {key} {TODO}  # {closest.name} maps it to {json.dumps(closest.joints[joint])}; "
-                         "the rig has no such joint")
+                         f"the rig has no such joint{why}")
         elif joint in guessed:
-            lines.append(f"  {key} {json.dumps(chosen[joint])}  # guessed: like {json.dumps(guessed[joint])}; check")
+            lines.append(f"  {key} {json.dumps(chosen[joint])}  # guessed: {guessed[joint]}; check")
         else:
             lines.append(f"  {key} {json.dumps(chosen[joint])}")
     return "\n".join(lines) + "\n", counts

@@ -39,7 +39,8 @@ ARCHITECTURE = ROOT / "docs" / "architecture.md"  # its Layout section lists eve
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("foundation", ("omg", "omg.errors", "omg.files", "omg.rotations", "omg.skeleton", "omg.kinematics",
                     "omg.registry", "omg.settings")),
-    ("formats", ("omg.motion", "omg.text", "omg.io", "omg.retarget", "omg.export", "omg.joint_maps")),
+    ("formats", ("omg.motion", "omg.text", "omg.io", "omg.retarget", "omg.rig_structure", "omg.export",
+                 "omg.joint_maps")),
     ("data", ("omg.data",)),
     ("models", ("omg.models", "omg.diffusion", "omg.samplers", "omg.losses", "omg.metrics")),
     ("training", ("omg.lit", "omg.callbacks", "omg.evaluation")),

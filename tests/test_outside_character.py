@@ -1,8 +1,9 @@
 """Motion onto a character made outside the project: Khronos' "Rigged Figure" sample (tests/data/characters/,
 CC BY 4.0, © Cesium; its README says where from), a skinned, meshed figure whose joint names are no registered
-map's (``torso_joint_1``, ``leg_joint_L_5``). ``omg joint-map`` starts its map; RiggedFigure.joints.yaml is
-that map finished by hand. Motion goes onto it from ``omg generate`` and ``omg export``, as the glTF it is
-and as the FBX Blender makes of it (its importer, then its exporter, in the test).
+map's (``torso_joint_1``, ``leg_joint_L_5``). ``omg joint-map`` proposes its map from the figure's structure;
+RiggedFigure.joints.yaml is that map as a user finished it by hand. Motion goes onto it from ``omg generate``
+and ``omg export``, as the glTF it is and as the FBX Blender makes of it (its importer, then its exporter, in
+the test).
 
 The glTF outputs are played by the tests' own forward kinematics and skinning (``helpers.characters.evaluate``),
 the FBX ones by Blender (``helpers.blender_scenes``' probe), and compared here with numpy.
@@ -88,17 +89,18 @@ def test_the_figure_is_the_sample_unchanged():
     assert len(gltf.skins[0].joints) == 19 and gltf.nodes[gltf.skins[0].joints[0]].name == "torso_joint_1"
 
 
-def test_the_joint_map_starts_from_the_scaffold_and_the_rig_needs_it(capsys):
-    """Without a map the rig is one line naming ``omg joint-map``; the scaffold leaves every joint TODO (no name
-    is like a built-in map's); the finished map gives each TODO one of the figure's joints."""
+def test_the_scaffold_proposes_the_hand_finished_map_and_the_rig_needs_one(capsys):
+    """Without a map the rig is one line naming ``omg joint-map``; no name is like a built-in map's, and the
+    scaffold finds every joint the hand-finished map names from the figure's hierarchy and rest pose, the same
+    joint, each marked a guess with its reason."""
     with pytest.raises(UsageError, match="omg joint-map .*RiggedFigure.gltf"):
         read_rig(FIGURE, "smpl22")
     main(["joint-map", str(FIGURE)])
-    scaffold = yaml.safe_load(capsys.readouterr().out)["joints"]
-    assert set(scaffold.values()) == {"TODO"}
-    finished = yaml.safe_load(MAP.read_text())["joints"]
-    names = set(read_rig(FIGURE, "smpl22", MAP).names)
-    assert set(scaffold) <= set(finished) and set(finished.values()) <= names
+    text = capsys.readouterr().out
+    assert yaml.safe_load(text)["joints"] == yaml.safe_load(MAP.read_text())["joints"]
+    assert "0 joints matched by name, 19 guessed (check them), 0 TODO" in text
+    assert '  left_knee:      "leg_joint_L_2"  # guessed: the left leg (+X side: its joints\' names say so; the rest ' \
+        "pose agrees): between its thigh and shin; check" in text
 
 
 def test_the_output_is_the_figure_with_one_animation_added(written):
