@@ -1118,35 +1118,51 @@ def test_the_page_plays_the_motions_on_an_outside_character_with_its_joint_map(s
     omg added, not the sample's own (its first); the download is the character as .glb."""
     context, page, errors, _ = _open_page(browser, server)
     page.select_option("#model", "human")
-    page.set_input_files("#character", [str(OUTSIDE / "RiggedFigure.gltf"), str(OUTSIDE / "RiggedFigure.joints.yaml")])
-    page.fill("#prompts", "a person walks forward")
-    page.fill("#length", "1.5")
-    page.fill("#steps", "3")
-    page.click("#generate")
-    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 1", timeout=120_000)
+    _generate_on_character(page, [OUTSIDE / "RiggedFigure.gltf", OUTSIDE / "RiggedFigure.joints.yaml"],
+                           ["a person walks forward"])
     assert "on RiggedFigure.gltf in" in page.locator("#status").inner_text()
-    page.click("#play")
-    page.uncheck("#follow")
-    shots = {}
-    for frame in (2, 20):
-        page.locator("#scrubber").fill(str(frame))
-        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
-        page.wait_for_timeout(500)  # a loaded machine draws late
-        shots[frame] = _canvas_pixels(page), page.evaluate("window.omgViewer.center")
-        path = tmp_path / f"outside_character_frame_{frame:02d}.png"
-        page.screenshot(path=path)
-        print(f"screenshot of Khronos' Rigged Figure at frame {frame}: {path}")
+    shots = _paused_frames(page, tmp_path / "outside_character", "Khronos' Rigged Figure", settle=500)
     # the camera fixed, what changed between the frames is the character: its mesh moved, and its root with the
     # motion (the sample's own animation keeps its root in place)
-    changed = np.abs(shots[2][0] - shots[20][0]).max(-1) > 40
+    changed = np.abs(shots[2]["pixels"] - shots[20]["pixels"]).max(-1) > 40
     assert changed.sum() > 200, changed.sum()  # a still view changes none (the tiny model's walk: 800 and more)
-    assert np.abs(np.subtract(shots[20][1], shots[2][1])).max() > 0.01
+    assert np.abs(np.subtract(shots[20]["center"], shots[2]["center"])).max() > 0.01
     with page.expect_download() as download:
         page.locator(".sample a.character").first.click()
     assert download.value.suggested_filename.endswith(".glb")
     assert len(_glb_document(httpx.get(download.value.url).content)["animations"]) == 2
     context.close()
     assert not errors, errors
+
+
+def _generate_on_character(page, files: list[Path], prompts: list[str], timeout: int = 120_000) -> None:
+    """``prompts`` (1.5 s, 3 steps) generated onto the character chosen on the page (its file, and its joint map
+    where it needs one); returns once each motion plays on it."""
+    page.set_input_files("#character", [str(f) for f in files])
+    page.fill("#prompts", "\n".join(prompts))
+    page.fill("#length", "1.5")
+    page.fill("#steps", "3")
+    page.click("#generate")
+    page.wait_for_function(f"window.omgViewer.results == 1 && window.omgViewer.characters == {len(prompts)}",
+                           timeout=timeout)
+
+
+def _paused_frames(page, stem: Path, what: str, settle: int = 200) -> dict[int, dict]:
+    """The view paused with its camera fixed, at frames 2 and 20: each frame's canvas pixels, the camera's target
+    and the motions' centre; a screenshot of each saved as ``STEM_frame_NN.png`` and its path printed."""
+    page.click("#play")
+    page.uncheck("#follow")
+    shots = {}
+    for frame in (2, 20):
+        page.locator("#scrubber").fill(str(frame))
+        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
+        page.wait_for_timeout(settle)  # a loaded machine draws late
+        shots[frame] = {"pixels": _canvas_pixels(page), "target": page.evaluate("window.omgViewer.target"),
+                        "center": page.evaluate("window.omgViewer.center")}
+        path = stem.with_name(f"{stem.name}_frame_{frame:02d}.png")
+        page.screenshot(path=path)
+        print(f"screenshot of {what} at frame {frame}: {path}")
+    return shots
 
 
 def _canvas_pixels(page) -> np.ndarray:
@@ -1181,12 +1197,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     from omg.tools.serve.app import character_suffixes
 
     assert page.get_attribute("#character", "accept") == ",".join([*character_suffixes(), ".yaml", ".yml"])
-    page.set_input_files("#character", str(character))
-    page.fill("#prompts", "a person walks forward\na person waves")
-    page.fill("#length", "1.5")
-    page.fill("#steps", "3")
-    page.click("#generate")
-    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 2", timeout=120_000)
+    _generate_on_character(page, [character], ["a person walks forward", "a person waves"])
     assert re.fullmatch(r"2 motion\(s\) in [\d.]+ s; on figure\.glb in [\d.]+ s", page.locator("#status").inner_text())
     # each motion labelled with its prompt, in the view, above its figure
     assert page.locator("#viewer .label").all_inner_texts() == ["a person walks forward", "a person waves"]
@@ -1203,25 +1214,14 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
         assert box["y"] + box["height"] <= 800, box
     assert page.evaluate("document.scrollingElement.scrollHeight") <= 800
     # the camera fixed: the mesh moves between two frames of its animation, nothing else does
-    page.click("#play")
-    page.uncheck("#follow")
+    shots = _paused_frames(page, tmp_path / "character", "the character")
     assert page.evaluate("window.omgViewer.follow") is False
-    shots = {}
-    for frame in (2, 20):
-        page.locator("#scrubber").fill(str(frame))
-        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
-        page.wait_for_timeout(200)
-        shots[frame] = (_canvas_pixels(page), page.evaluate("window.omgViewer.target"),
-                        page.evaluate("window.omgViewer.center"))
-        path = tmp_path / f"character_frame_{frame:02d}.png"
-        page.screenshot(path=path)
-        print(f"screenshot of the character at frame {frame}: {path}")
-    (before, target_before, center_before), (after, target_after, center_after) = shots[2], shots[20]
-    mesh_before, mesh_after = _coloured(before), _coloured(after)
+    before, after = shots[2], shots[20]
+    mesh_before, mesh_after = _coloured(before["pixels"]), _coloured(after["pixels"])
     assert mesh_before.sum() > 2000 and mesh_after.sum() > 2000  # the mesh is drawn (the grid is grey)
     assert (mesh_before ^ mesh_after).sum() > 0.3 * mesh_before.sum()  # and has moved
-    assert np.allclose(target_before, target_after, rtol=0, atol=1e-9)  # the camera stayed (to float noise)
-    assert np.abs(np.subtract(center_after, center_before)).max() > 0.01  # while the motions moved
+    assert np.allclose(before["target"], after["target"], rtol=0, atol=1e-9)  # the camera stayed (to float noise)
+    assert np.abs(np.subtract(after["center"], before["center"])).max() > 0.01  # while the motions moved
     # following: the camera's target keeps its place relative to the motions
     page.check("#follow")
     page.locator("#scrubber").fill("5")
@@ -1232,7 +1232,7 @@ def test_the_page_plays_the_motions_on_an_uploaded_character(server, browser, tm
     page.wait_for_function("window.omgViewer.frame == 25")
     page.wait_for_timeout(200)
     moved = np.subtract(page.evaluate("window.omgViewer.target"), page.evaluate("window.omgViewer.center"))
-    assert np.allclose(gap, moved, atol=1e-6) and page.evaluate("window.omgViewer.target") != target_after
+    assert np.allclose(gap, moved, atol=1e-6) and page.evaluate("window.omgViewer.target") != after["target"]
     # the download: the character whole, with one animation
     with page.expect_download() as download:
         page.locator(".sample a.character").first.click()
@@ -1276,26 +1276,11 @@ def test_the_page_plays_the_motions_on_an_uploaded_fbx_character(server, browser
     context, page, errors, _ = _open_page(browser, server)
     page.select_option("#model", "human")
     assert ".fbx" in page.get_attribute("#character", "accept").split(",")
-    page.set_input_files("#character", str(fbx_figure))
-    page.fill("#prompts", "a person walks forward")
-    page.fill("#length", "1.5")
-    page.fill("#steps", "3")
-    page.click("#generate")
-    page.wait_for_function("window.omgViewer.results == 1 && window.omgViewer.characters == 1", timeout=240_000)
+    _generate_on_character(page, [fbx_figure], ["a person walks forward"], timeout=240_000)
     assert re.fullmatch(r"1 motion\(s\) in [\d.]+ s; on figure\.fbx in [\d.]+ s", page.locator("#status").inner_text())
-    page.click("#play")
-    page.uncheck("#follow")
-    meshes = {}
-    for frame in (2, 20):
-        page.locator("#scrubber").fill(str(frame))
-        page.wait_for_function(f"window.omgViewer.frame == {frame} && window.omgViewer.drawn > 0")
-        page.wait_for_timeout(200)
-        meshes[frame] = _canvas_pixels(page)
-        path = tmp_path / f"fbx_character_frame_{frame:02d}.png"
-        page.screenshot(path=path)
-        print(f"screenshot of the FBX character at frame {frame}: {path}")
+    shots = _paused_frames(page, tmp_path / "fbx_character", "the FBX character")
     # the camera fixed, what changed between the frames is the character: its mesh (Blender's grey material) moved
-    changed = np.abs(meshes[2] - meshes[20]).max(-1) > 40
+    changed = np.abs(shots[2]["pixels"] - shots[20]["pixels"]).max(-1) > 40
     assert changed.sum() > 1000, changed.sum()
     with page.expect_download() as download:
         page.locator(".sample a.character").first.click()
