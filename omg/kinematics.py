@@ -2,7 +2,8 @@
 
 One home for three algorithms that several layers need:
 
-- ``kabsch``: the rotation that best turns a set of rest vectors onto observed ones;
+- ``kabsch``: the rotation that best turns a set of rest vectors onto observed ones (and
+  ``nearest_rotation``, its case of the three axes: the rotation nearest a matrix);
 - ``positions_to_rotations`` (with ``clip_offsets``): local joint rotations that reproduce
   joint positions by forward kinematics (inverse kinematics on a fixed skeleton);
 - ``foot_contacts``: HumanML3D's contact rule, a foot joint slower than a speed between two
@@ -50,6 +51,13 @@ def kabsch(rest: Tensor, observed: Tensor, weights: Tensor | None = None) -> Ten
     d = torch.sign(torch.linalg.det(V @ Ut))
     d = torch.where(d == 0, torch.ones_like(d), d)
     return V @ torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1)) @ Ut
+
+
+def nearest_rotation(m: Tensor) -> Tensor:
+    """(..., 3, 3) -> the rotation R nearest m in the Frobenius norm (the polar factor, det +1): Kabsch of the
+    identity's axes onto m's columns. The mean of rotation matrices is no rotation; this is the mean rotation."""
+    eye = torch.eye(3, dtype=m.dtype, device=m.device).expand_as(m)
+    return kabsch(eye, m.transpose(-1, -2))
 
 
 def clip_offsets(skeleton: Skeleton, positions: Tensor) -> Tensor:

@@ -63,7 +63,7 @@ import yaml
 from omg.errors import UsageError
 from omg.files import read_text
 from omg.io.rig import RigMotion
-from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, positions_to_rotations
+from omg.kinematics import GROUND_CONTACT_SPEED, ground_contacts, kabsch, nearest_rotation, positions_to_rotations
 from omg.motion.base import Clip
 from omg.registry import JOINT_MAPS
 from omg.rotations import (
@@ -543,9 +543,7 @@ def _rig_pose(rig: RigMotion, mapped: dict) -> _Pose:
     keep = [j for j in range(J) if j not in mapped]
     if rig.character is None and len(rig) and keep:
         held = torch.from_numpy(rig.rotations[_sampled(len(rig))][:, keep]).double()  # (t, K, 4)
-        turns = quat_to_matrix(held).mean(0)  # (K, 3, 3)
-        eye = torch.eye(3, dtype=torch.float64).expand(len(keep), 3, 3)
-        local[keep] = matrix_to_quat(kabsch(eye, turns.transpose(-1, -2)))
+        local[keep] = matrix_to_quat(nearest_rotation(quat_to_matrix(held).mean(0)))  # (K, 4)
     world = rig.skeleton().global_rotations(local[None])[0]
     translations = rig.offsets[None]
     positions = replace(rig, rotations=local[None].numpy(), translations=translations).positions_with_end_sites()[0]
@@ -585,13 +583,13 @@ def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets:
             elif j in frames:
                 m, kids_m, dirs, at_rest = frames[j]
                 now = kabsch(dirs, F.normalize(targets[:, kids_m] - targets[:, m, None], dim=-1))  # (T, 3, 3)
-                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(now @ at_rest.T))
+                local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(now @ at_rest))
             else:
                 # directions weighted by the rig's bone lengths: a long bone (the spine) says more about
                 # the joint's turn than a short stub (a tail root or hip joint sitting near the pelvis)
                 best = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (T, 3, 3)
                 if j in fits:
-                    best = best @ fits[j].T
+                    best = best @ fits[j]
                 local[:, j] = quat_mul(quat_conjugate(parent), matrix_to_quat(best))
         world[j] = quat_mul(parent, local[:, j])
     # the root goes where the top mapped joint (the pelvis) must be: the joints above it are rigid
@@ -602,7 +600,7 @@ def _solve_rig(rig: RigMotion, pose: _Pose, aims: list, model_of: dict, targets:
 def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims: list, model_of: dict,
                frames: dict, up: str | None) -> dict:
     """Per rig joint that ``_solve_rig`` turns by the best fit of its aims, the turn K that its own frames show
-    the fit misses: rig = fit @ K^T, K nearest the mean of fit^T @ rig over the rig's own frames (at most
+    the fit misses: rig = fit @ K, K nearest the mean of fit^T @ rig over the rig's own frames (at most
     ``FIT_FRAMES`` of them), the fit made on the model's places that the import (``retarget``) gives them.
 
     The model skeleton holds a joint's children where its template puts them, not where the rig has them: the
@@ -628,7 +626,7 @@ def _fit_turns(rig: RigMotion, skel: Skeleton, jmap: JointMap, pose: _Pose, aims
         w = model[:, [model_of[c] for c in kids]] - model[:, model_of[j], None]  # (t, C, 3)
         fit = kabsch(v, F.normalize(w, dim=-1) * v.norm(dim=-1, keepdim=True))  # (t, 3, 3)
         mean = (fit.transpose(-1, -2) @ quat_to_matrix(held[:, j])).mean(0)  # (3, 3)
-        fits[j] = kabsch(torch.eye(3, dtype=torch.float64), mean)
+        fits[j] = nearest_rotation(mean)
     return fits
 
 
@@ -672,10 +670,10 @@ def _joint_frames(rig: RigMotion, skel: Skeleton, plan: _Plan, pose: _Pose, aims
             # rig = model @ C, C nearest the mean of model^T @ rig over the rig's own frames
             seen = F.normalize(clip[:, kids_m] - clip[:, m, None], dim=-1)  # (T, K, 3)
             held = (kabsch(dirs, seen).transpose(-1, -2) @ quat_to_matrix(turns[:, r])).mean(0)  # (3, 3)
-            frames[r] = (m, kids_m, dirs, kabsch(torch.eye(3, dtype=torch.float64), held))
+            frames[r] = (m, kids_m, dirs, nearest_rotation(held))
         else:
             # rig = model @ R0^T @ W, W the rig joint's own frame in the pose
-            frames[r] = (m, kids_m, dirs, quat_to_matrix(quat_conjugate(pose.world[r])) @ kabsch(dirs, observed))
+            frames[r] = (m, kids_m, dirs, kabsch(dirs, observed).transpose(-1, -2) @ quat_to_matrix(pose.world[r]))
     return frames
 
 

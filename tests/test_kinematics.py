@@ -16,6 +16,7 @@ from omg.kinematics import (
     foot_contacts,
     ground_contacts,
     kabsch,
+    nearest_rotation,
     positions_to_rotations,
 )
 from omg.registry import JOINT_MAPS
@@ -52,6 +53,21 @@ def test_kabsch_returns_a_rotation_where_the_best_fit_is_a_reflection():
     torch.testing.assert_close(R @ R.T, torch.eye(3, dtype=torch.float64))
     # the best rotation keeps the two axes it can (x, y) and gives up on z
     torch.testing.assert_close(rest[:2] @ R.T, observed[:2])
+
+
+def test_nearest_rotation_is_the_rotation_itself_and_the_mean_of_a_symmetric_spread():
+    R = _rotations(4)  # (4, 3, 3)
+    torch.testing.assert_close(nearest_rotation(R), R)
+    # a rotation scaled and sheared a little: its polar factor, not its transpose
+    g = torch.Generator().manual_seed(2)
+    bent = 1.3 * R + 0.05 * torch.randn(4, 3, 3, generator=g, dtype=torch.float64)
+    near = nearest_rotation(bent)
+    torch.testing.assert_close(near @ near.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(4, 3, 3))
+    assert (torch.linalg.det(near) - 1).abs().max() < 1e-12
+    assert ((near - R).norm(dim=(-2, -1)) < 0.1).all() and ((near.transpose(-1, -2) - R).norm(dim=(-2, -1)) > 0.5).all()
+    # the matrix mean of R turned +-40 degrees about one axis is no rotation; the nearest one is R
+    turns = quat_to_matrix(axis_angle_to_quat(torch.tensor([[0.0, 0.0, 0.7], [0.0, 0.0, -0.7]], dtype=torch.float64)))
+    torch.testing.assert_close(nearest_rotation((R[0] @ turns).mean(0)), R[0])
 
 
 @pytest.fixture
