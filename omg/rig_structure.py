@@ -107,7 +107,7 @@ def _lateral(rest: np.ndarray, mirror: float = MIRROR) -> int | None:
         image[:, axis] = 2 * centre[axis] - image[:, axis]
         return float(np.linalg.norm(image[:, None] - rest[None], axis=-1).min(1).mean()) / size
 
-    axes = [a for a in range(3) if extent[a] > 0.1 * size]
+    axes = [a for a in range(3) if extent[a] > 0.05 * size]  # a dog rig is as narrow as a tenth of its length
     if size <= 0 or len(axes) < 2:
         return None
     lateral = min(axes, key=mirror_error)
@@ -512,5 +512,6 @@ def rig_structure(motion: RigMotion, side_of: Callable[[str], str | None]) -> St
     if not found[skeleton]:
         return Structure(None, {}, f"its rest pose (every rotation zero) and each of its {where}")
     t, joints = found[skeleton][0]
-    return Structure(skeleton, joints, f"its frame {t} (its rest pose, every rotation zero, stands on no legs; "
+    return Structure(skeleton, joints, f"its frame {t}, turned so that its mirror plane is normal to an axis (its "
+                                       "rest pose, every rotation zero, stands on no legs; "
                                        f"{len(found[skeleton])} of its {where} show the same skeleton)")
