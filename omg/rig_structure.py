@@ -47,7 +47,7 @@ LIMB_BONE = 0.6  # of a quadruped leg's longest bone: its first bone this long s
 LEGS_DOWN = 0.5  # cos 60 degrees: the least a standing quadruped's leg points down, girdle to tip
 GROUND = 0.4  # of a quadruped's mean leg: its paws' tips this close to the lowest one stand on the ground
 TAIL_CLEAR = 0.1  # of a quadruped's mean leg: a tail this far above the ground touches nothing (a leg would)
-SAMPLED = 64  # frames of a clip spread over it that a rig whose rest pose stands on no legs is looked at in
+SAMPLED = 32  # frames of a clip spread over it that a rig whose rest pose stands on no legs is looked at in
 FRAME_MIRROR = 0.08  # MIRROR in a clip's frame: a standing animal turns its head, sways its tail
 HEMISPHERE = 400  # directions a frame's mirror plane is first looked for among (about 6 degrees apart)
 
@@ -485,9 +485,9 @@ def rig_structure(motion: RigMotion, side_of: Callable[[str], str | None]) -> St
     """The skeleton and joints ``motion``'s rig is built as (``quadruped_joints``, ``humanoid_joints``), read in
     its rest pose (every rotation zero) where that stands; else in its own frames: ``SAMPLED`` frames spread over
     the clip, each turned to face along the axes, those mirror-symmetric to within ``FRAME_MIRROR``; the skeleton
-    most of them show wins (a quadruped on a tie), read in the most symmetric of them. A quadruped comes first in
-    each pose: a rig standing on four limbs is never taken for a biped, and a biped's arms do not reach the
-    ground."""
+    most of them show wins (a quadruped on a tie), read in the most symmetric of those that show most of its
+    joints. A quadruped comes first in each pose: a rig standing on four limbs is never taken for a biped, and a
+    biped's arms do not reach the ground."""
     rest = motion.rest_positions(end_sites=True)
     for skeleton, finder in (("smal35", quadruped_joints), ("smpl22", humanoid_joints)):
         if found := finder(motion, side_of, rest):
@@ -511,7 +511,7 @@ def rig_structure(motion: RigMotion, side_of: Callable[[str], str | None]) -> St
     where = f"{len(tried)} mirror-symmetric frames of {len(picked)} spread over its {len(motion)}"
     if not found[skeleton]:
         return Structure(None, {}, f"its rest pose (every rotation zero) and each of its {where}")
-    t, joints = found[skeleton][0]
+    t, joints = max(found[skeleton], key=lambda f: len(f[1]))  # the most symmetric of those telling most
     return Structure(skeleton, joints, f"its frame {t}, turned so that its mirror plane is normal to an axis (its "
                                        "rest pose, every rotation zero, stands on no legs; "
                                        f"{len(found[skeleton])} of its {where} show the same skeleton)")
