@@ -1,4 +1,5 @@
-"""A human rig's SMPL-22 joints found from its hierarchy and rest pose, whatever its joints are called.
+"""A human rig's SMPL-22 joints, or a quadruped's SMAL-35 joints, found from its hierarchy and standing pose,
+whatever its joints are called (``rig_structure``).
 
 Used by ``omg.retarget.scaffold_joint_map`` for the joints no name matches; every proposal comes with the
 reason it was made, and where the rest pose does not tell (a rig without mirror symmetry, feet that do not
@@ -20,10 +21,14 @@ turns what hangs from both. Then:
   leg's, the collar the joint before the shoulder.
 
 Left and right: by the joints' names where they say (``L``, ``left``, ``.l``: ``omg.retarget``'s side
-tokens), else from up and forward (left = up x forward). Quadrupeds (smal35) are not attempted: a dog's
-longest axis is its length, not its height, and its four legs hang from two girdles; a rig that is no
-upright biped fails the checks below and gets nothing, as does a rig whose rest pose (every rotation zero)
-is no standing pose (the Bandai-Namco BVHs': their offsets lie along each joint's own axes).
+tokens), else from up and forward (left = up x forward).
+
+A quadruped (``quadruped_joints``): a dog's longest axis is its length, and its four legs hang from two girdles;
+the legs are the two pairs of longest mirror-image limbs, the hind pair's girdle (the pelvis) an ancestor of the
+front pair's, up the way they hang, forward from the hind girdle to the front one; it stands where the legs hang
+down, their tips end near one ground and the spine runs along it (a biped's arms fail: they do not reach the
+ground). A rig whose rest pose (every rotation zero) stands on no legs (the Bandai-Namco and MANN dog BVHs: their
+offsets lie along each joint's own axes) is read in a frame of its own clip (``rig_structure``).
 """
 
 from __future__ import annotations
