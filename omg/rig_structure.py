@@ -51,9 +51,13 @@ SAME_PLACE = 1e-3  # of the rig's height: a joint this close to its parent is a 
 LIMB_BONE = 0.6  # of a quadruped leg's longest bone: its first bone this long starts the leg (a shoulder blade less)
 LEGS_DOWN = 0.5  # cos 60 degrees: the least a standing quadruped's leg points down, girdle to tip
 GROUND = 0.4  # of a quadruped's mean leg: its paws' tips this close to the lowest one stand on the ground
+PAIRED = 0.1  # of a limb's longest bone: the most two mirror-image limbs' bones differ in length
+STAND = 0.6  # the least a quadruped's leg's tip is below its top on average, of the leg's length: it stands
 TAIL_CLEAR = 0.1  # of a quadruped's mean leg: a tail this far above the ground touches nothing (a leg would)
-SAMPLED = 32  # frames of a clip spread over it that a rig whose rest pose stands on no legs is looked at in
-FRAME_MIRROR = 0.08  # MIRROR in a clip's frame: a standing animal turns its head, sways its tail
+SAMPLED = 64  # frames of a clip spread over it that a rig whose rest pose stands on no legs is looked at in
+FRAME_MIRROR = 0.15  # MIRROR in a clip's frame: a walking animal swings its legs, turns its head, sways its tail
+# the joints a frame's up is read along: from the first (the hind legs' lower joints, the pelvis) to the second
+UPRIGHT = {"smal35": (("LLegBack3", "RLegBack3"), "pelvis"), "smpl22": (("pelvis",), "spine3")}
 HEMISPHERE = 400  # directions a frame's mirror plane is first looked for among (about 6 degrees apart)
 
 
@@ -284,9 +288,10 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
                      mirror: float = MIRROR) -> dict[str, tuple[str, str]]:
     """SMAL-35 joint -> (the rig's joint or ``<joint>_end``, why) for what ``pose`` (J + E, 3: joints, then end
     sites; default the rest pose) shows; {} for a rig that is no mirror-symmetric quadruped standing on its four
-    legs. The legs are the two pairs of longest limbs (chains off the mirror plane to a tip) that branch from one
-    joint of the centre line each; the hind pair's (the pelvis) is the other's ancestor, as a spine runs from
-    the pelvis to the head; up is the way the four legs hang from, forward from the pelvis to the front legs."""
+    legs. The legs are the two pairs of longest limbs (two chains to a tip with bones of the same lengths, on
+    either side of the mirror plane) that branch from one joint each; the hind pair's (the pelvis) is the other's
+    ancestor, as a spine runs from the pelvis to the head; up is the way the four legs hang from, forward from the
+    pelvis to the front legs."""
     names = list(motion.names) + motion.end_site_names()
     parents = list(motion.parents) + [p for p, _ in motion.end_sites]
     pose = motion.rest_positions(end_sites=True) if pose is None else pose
@@ -301,28 +306,28 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
     def solid(chain: list[int]) -> list[int]:
         return [j for j in chain if np.linalg.norm(pose[j] - pose[parents[j]]) > SAME_PLACE * size]
 
-    def reach(chain: list[int], start: int) -> float:
-        return float(np.linalg.norm(np.diff(pose[[start, *chain]], axis=0), axis=1).sum())
-
-    # the limbs: pairs of tips each the nearest to the other's mirror image, on either side, hanging from the
-    # joint where their chains meet (their girdle); per girdle the pair reaching farthest
-    image = pose.copy()
-    image[:, lateral] -= 2 * side
+    # the limbs: pairs of tips whose chains from the joint where they meet (their girdle) have bones of the same
+    # lengths, whatever the pose, their joints on either side of the mirror plane; per girdle the pair reaching
+    # farthest
+    rest = motion.rest_positions(end_sites=True)
+    bones = np.linalg.norm(rest - rest[[max(p, 0) for p in parents]], axis=1)  # (P,) each joint's bone
     limbs: dict[tuple[int, int], tuple[list[int], float]] = {}  # (girdle, +1/-1) -> (chain, its length)
-    for t in tips:
-        u = min((j for j in tips if j != t), key=lambda j: np.linalg.norm(image[t] - pose[j]), default=None)
-        if u is None or not side[t] > 0 > side[u] or t != min(
-                (j for j in tips if j != u), key=lambda j: np.linalg.norm(image[u] - pose[j])):
-            continue
-        up_u = set(_ancestors(parents, u))
-        girdle = next((a for a in _ancestors(parents, t) if a in up_u), None)
-        if girdle is None or girdle in (t, u):
-            continue
-        chains = {1: _path(parents, t, girdle), -1: _path(parents, u, girdle)}
-        if (girdle, 1) not in limbs or min(reach(c, girdle) for c in chains.values()) > min(
-                limbs[(girdle, s)][1] for s in (1, -1)):
-            for s, c in chains.items():
-                limbs[(girdle, s)] = (c, reach(c, girdle))
+    for i, t in enumerate(tips):
+        for u in tips[i + 1:]:
+            up_u = set(_ancestors(parents, u))
+            girdle = next((a for a in _ancestors(parents, t) if a in up_u), None)
+            if girdle is None or girdle in (t, u):
+                continue
+            ct, cu = _path(parents, t, girdle), _path(parents, u, girdle)
+            if len(ct) != len(cu) or np.abs(bones[ct] - bones[cu]).max() > PAIRED * max(bones[ct].max(), 1e-9):
+                continue
+            if not side[ct].mean() * side[cu].mean() < 0:
+                continue  # both on one side: no mirror images
+            chains = {1: ct, -1: cu} if side[ct].mean() > 0 else {1: cu, -1: ct}
+            length = float(bones[ct].sum())
+            if (girdle, 1) not in limbs or length > limbs[(girdle, 1)][1]:
+                for s, c in chains.items():
+                    limbs[(girdle, s)] = (c, length)
     in_limbs = {j for chain, _ in limbs.values() for j in chain}
     pairs = sorted({g for g, _ in limbs}, key=lambda g: -min(limbs[(g, 1)][1], limbs[(g, -1)][1]))
     if len(pairs) < 2:
@@ -362,6 +367,7 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
     out: dict[str, tuple[str, str]] = {"pelvis": (names[hind], "where the hind legs branch (the spine runs from it "
                                                                "to where the front legs branch)")}
     legs_at: dict[tuple[int, int], tuple[int, int, int, int | None]] = {}  # (girdle, side) -> top, mid, low, tip
+    drops = []  # per leg: how far its tip is below its top, of the leg's length along its bones
     for key, chain in legs.items():
         chain = solid(chain)
         seg = np.linalg.norm(np.diff(pose[chain], axis=0), axis=1)  # (len - 1,)
@@ -369,6 +375,10 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
         if k is None or k + 2 >= len(chain):
             return {}
         legs_at[key] = (chain[k], chain[k + 1], chain[k + 2], chain[-1] if k + 3 < len(chain) else None)
+        below = chain[k:]
+        drops.append((h[below[0]] - h[below[-1]]) / np.linalg.norm(np.diff(pose[below], axis=0), axis=1).sum())
+    if np.mean(drops) < STAND:
+        return {}  # legs folded under the body or stretched along the ground: sitting, lying
 
     # the centre line from the pelvis through the front girdle to the head's tip (the farthest forward)
     heads = [j for j in tips if j not in in_limbs
@@ -439,13 +449,14 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
     return out
 
 
-def _mirror_turned(pose: np.ndarray) -> tuple[np.ndarray, float]:
+def _mirror_turned(pose: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """``pose`` (P, 3) about its centroid, turned so that the plane it is most mirror-symmetric across has the
-    nearest world axis as its normal; and its mirror error (the mean distance of each point's mirror image to
-    the nearest point, of the pose's size). A frame of a clip faces any way; the finders read axes."""
+    nearest world axis as its normal; its mirror error (the mean distance of each point's mirror image to the
+    nearest point, of the pose's size); and the turn (3, 3). A frame of a clip faces any way; the finders read
+    axes."""
     size = float((pose.max(0) - pose.min(0)).max())
     if size <= 0:
-        return pose, float("inf")
+        return pose, float("inf"), np.eye(3)
     x = pose - pose.mean(0)  # (P, 3)
 
     def error(normals: np.ndarray) -> np.ndarray:  # (D, 3) -> (D,)
@@ -472,7 +483,7 @@ def _mirror_turned(pose: np.ndarray) -> tuple[np.ndarray, float]:
     v, c = np.cross(n, e), float(n @ e)  # the least turn from n onto e (Rodrigues)
     k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     turn = np.eye(3) + k + k @ k / (1 + c)
-    return x @ turn.T, float(error(n[None])[0])
+    return x @ turn.T, float(error(n[None])[0]), turn
 
 
 @dataclass(frozen=True)
@@ -505,18 +516,26 @@ def rig_structure(motion: RigMotion, side_of: Callable[[str], str | None]) -> St
     if [c for c, p in enumerate(motion.parents) if p == 0] == [1] and not any(p == 0 for p, _ in motion.end_sites):
         poses[:, 0] = poses[:, 1]  # a root with one child (Bandai's on the floor) is left behind where a clip goes
     turned = [(*_mirror_turned(p), int(t)) for p, t in zip(poses, picked)]
-    tried = sorted(((err, t, p) for p, err, t in turned if err <= FRAME_MIRROR), key=lambda x: x[:2])
-    found: dict[str, list] = {"smal35": [], "smpl22": []}  # skeleton -> [(frame, joints)]
-    for _, t, p in tried:
+    tried = sorted(((err, t, p, turn) for p, err, turn, t in turned if err <= FRAME_MIRROR), key=lambda x: x[:2])
+    found: dict[str, list] = {"smal35": [], "smpl22": []}  # skeleton -> [(frame, joints, the file's axis up)]
+    index = {n: i for i, n in enumerate(list(motion.names) + motion.end_site_names())}
+    for _, t, p, turn in tried:
         for skeleton, finder in (("smal35", quadruped_joints), ("smpl22", humanoid_joints)):
             if joints := finder(motion, side_of, p, FRAME_MIRROR):
-                found[skeleton].append((t, joints))
+                low, high = UPRIGHT[skeleton]
+                low = p[[index[joints[j][0]] for j in low]].mean(0)
+                up = turn.T @ (p[index[joints[high][0]]] - low)  # in the file's axes
+                found[skeleton].append((t, joints, _axis_name(up)))
                 break
     skeleton = max(found, key=lambda s: len(found[s]))
     where = f"{len(tried)} mirror-symmetric frames of {len(picked)} spread over its {len(motion)}"
     if not found[skeleton]:
         return Structure(None, {}, f"its rest pose (every rotation zero) and each of its {where}")
-    t, joints = max(found[skeleton], key=lambda f: len(f[1]))  # the most symmetric of those telling most
-    return Structure(skeleton, joints, f"its frame {t}, turned so that its mirror plane is normal to an axis (its "
-                                       "rest pose, every rotation zero, stands on no legs; "
-                                       f"{len(found[skeleton])} of its {where} show the same skeleton)")
+    # the way up most of them stand (a dog sitting or a person lying is the same skeleton turned), then the most
+    # joints shown, then the most symmetric
+    ups = [f[2] for f in found[skeleton]]
+    t, joints, up = max(found[skeleton], key=lambda f: (ups.count(f[2]), len(f[1])))
+    return Structure(skeleton, joints, f"its frame {t} ({up} up), turned so that its mirror plane is normal to an "
+                                       "axis (its rest pose, every rotation zero, stands on no legs; "
+                                       f"{len(found[skeleton])} of its {where} show the same skeleton, "
+                                       f"{ups.count(up)} of them {up} up)")
