@@ -445,7 +445,9 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
         for s in (1, -1):
             ear = solid(limbs[(g, s)][0])
             if ear:
-                out[f"{'L' if s == left else 'R'}Ear"] = (names[ear[0]], f"a pair of limbs off the head ({how})")
+                which = "left" if s == left else "right"
+                out[f"{which[0].upper()}Ear"] = (names[ear[0]], f"the {which} one of a pair of limbs off the head "
+                                                                f"({how})")
     return out
 
 
