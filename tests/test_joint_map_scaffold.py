@@ -1,8 +1,10 @@
 """``omg joint-map RIG``: for a rig no registered map fits, the closest map with each joint matched by
 name, guessed (to check, with the reason) from the rig's hierarchy and rest pose or from what the registered
 maps call it, or TODO; finished, it maps the rig; unfinished, it is refused in one line; the error for an
-unfitted rig names the command. The rigs: the tests' own, their joints renamed (opaque ``j0``.., and other
-studios' conventions), so that only their structure tells the joints."""
+unfitted rig names the command. The rigs: the tests' own and real ones (CMU and Bandai-Namco mocap, the MANN and
+DeepMimic dogs), their joints renamed (opaque ``j0``.., and other studios' conventions), so that only their
+structure tells the joints; a quadruped gets SMAL-35 joints, a biped SMPL-22 ones, never the other's; a rig whose
+rest pose stands on no legs is read in a frame of its clip."""
 
 from __future__ import annotations
 

@@ -24,12 +24,21 @@ def joint_map(rig: Path, target: Literal["smpl22", "smal35"] | None = None, out:
     Returns:
         How many target joints were matched by name, guessed and left TODO.
     """
+    from omg.errors import UsageError
     from omg.files import atomic_write, check_output_dir
+    from omg.io.deepmimic import is_deepmimic_motion
     from omg.io.read import read_motion
     from omg.retarget import read_rig_file, scaffold_joint_map
 
-    motion = read_motion(rig, what="RIG") if rig.suffix.lower() in (".txt", ".json", ".amc") else \
-        read_rig_file(rig, what="RIG")
+    if rig.suffix.lower() not in (".txt", ".json", ".amc"):
+        motion = read_rig_file(rig, what="RIG")
+    elif not rig.is_file():
+        raise UsageError(f"RIG {rig}: no such file")
+    elif rig.suffix.lower() != ".amc" and not is_deepmimic_motion(rig):
+        raise UsageError(f'RIG {rig}: not a DeepMimic motion (a JSON object with "Frames"); give a rig (.bvh, .glb, '
+                         ".gltf, .fbx) or a motion file to import (DeepMimic .txt/.json, ASF/AMC .amc)")
+    else:
+        motion = read_motion(rig, what="RIG")
     text, counts = scaffold_joint_map(motion, target)
     if out is None:
         print(text, end="")
