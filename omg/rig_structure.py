@@ -381,8 +381,7 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
         return {}  # legs folded under the body or stretched along the ground: sitting, lying
 
     # the centre line from the pelvis through the front girdle to the head's tip (the farthest forward)
-    heads = [j for j in tips if j not in in_limbs
-             and front in _ancestors(parents, j)[1:]]
+    heads = [j for j in tips if j not in in_limbs and front in _ancestors(parents, j)[1:]]
     if not heads:
         return {}
     tip = max(heads, key=lambda j: pose[j] @ forward)
@@ -437,8 +436,8 @@ def quadruped_joints(motion: RigMotion, side_of: Callable[[str], str | None], po
         where = (f"the {'left' if s == left else 'right'} {'hind' if g == hind else 'front'} leg "
                  f"({'+-'[int(s < 0)]}{lat} side: {how})")
         out[f"{L}Leg{end}1"] = (names[top], f"{where}: where its first long bone starts")
-        out[f"{L}Leg{end}2"] = (names[mid], f"{where}: the joint after")
-        out[f"{L}Leg{end}3"] = (names[low], f"{where}: the next joint after")
+        out[f"{L}Leg{end}2"] = (names[mid], f"{where}: where its first long bone ends")
+        out[f"{L}Leg{end}3"] = (names[low], f"{where}: where its second bone from there ends")
         if paw is not None:
             out[f"{L}Foot{end}"] = (names[paw], f"{where}: its tip")
     for g in ears[:1]:
