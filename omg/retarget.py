@@ -244,13 +244,15 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
     """A joint map to finish for a rig no registered map fits, started from the registered map (onto
     ``target``, or any) that leaves the fewest joints TODO (then: one the rig's names fit, most joints, most
     matched by name). Each target joint is written out with the rig's joint of the same name; else the one the rig's
-    hierarchy and rest pose show (``omg.rig_structure``: SMPL-22 joints of a biped, whatever the names);
+    hierarchy and standing pose show (``omg.rig_structure``: SMPL-22 joints of a biped, SMAL-35 joints of a
+    quadruped, whatever the names; the pose is the rest pose, or the rig's own frames where that stands on no
+    legs; joints the map leaves to be filled in that the structure shows, a quadruped's neck and ears, are added);
     else the rig's joint whose name is closest to what the registered maps call it (same side, difflib
     ratio of the names' cores >= ``SIMILAR``); those two marked as a guess to check, with the reason;
     else ``TODO``. Returns the YAML text and the counts (matched, guessed, todo)."""
     import json
 
-    from omg.rig_structure import humanoid_joints
+    from omg.rig_structure import Structure, rig_structure
 
     names = source_names(motion)
     maps = [m for m in registered_joint_maps() if target is None or m.target == target]
@@ -260,11 +262,12 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
     for m in registered_joint_maps():
         for joint, source in m.joints.items():
             called.setdefault((m.target, joint), {joint}).add(source)
-    humanoid = humanoid_joints(motion, _side) if any(m.target == "smpl22" for m in maps) else {}
+    shows = rig_structure(motion, _side) if any(m.target in ("smpl22", "smal35") for m in maps) else \
+        Structure(None, {}, "")
     results = {}
     for m in maps:
         mine = {joint: called[(m.target, joint)] for joint in m.joints}
-        results[m.name] = _scaffold(m, names, mine, humanoid if m.target == "smpl22" else {})
+        results[m.name] = _scaffold(m, names, mine, shows.joints if m.target == shows.skeleton else {})
 
     def fewest_todo(m: JointMap) -> tuple:
         chosen, guessed = results[m.name]
@@ -272,22 +275,33 @@ def scaffold_joint_map(motion: RigMotion, target: str | None = None) -> tuple[st
 
     closest = min(maps, key=fewest_todo)
     chosen, guessed = results[closest.name]
+    mine = shows.joints if closest.target == shows.skeleton else {}
+    extra = [j for j in get_skeleton(closest.target).names if j in mine and j not in closest.joints
+             and mine[j][0] not in chosen.values()]  # joints the map leaves to be filled in that the rig has
+    chosen, guessed = {**chosen, **{j: mine[j][0] for j in extra}}, {**guessed, **{j: mine[j][1] for j in extra}}
     where = motion.source or motion.name
     counts = {"matched": len(chosen) - len(guessed), "guessed": len(guessed),
-              "todo": len(closest.joints) - len(chosen)}
-    width = max(map(len, closest.joints)) + 1
+              "todo": len(closest.joints) - len(chosen) + len(extra)}
+    width = max(map(len, [*closest.joints, *extra])) + 1
+    kinds = {"smpl22": "standing biped", "smal35": "quadruped standing on four legs"}
+    found = (f"# Its structure shows a {kinds[shows.skeleton]} ({shows.skeleton}) in {shows.pose}."
+             if shows.skeleton else f"# Its structure shows no standing biped nor quadruped in {shows.pose}."
+             if shows.pose else "")
     lines = [f"# A joint map of {where} onto {closest.target}, started from the registered map {closest.name!r}:",
              f"# {counts['matched']} joints matched by name, {counts['guessed']} guessed (check them), "
              f"{counts['todo']} {TODO} (write the rig's joint,",
              "# or delete the line: a joint between two mapped ones is filled in). Then pass it as --joint_map FILE.",
+             *([found] if found else []),
              f"target: {closest.target}", f"category: {closest.category}",
              "joints:  # target joint: the rig's joint (<joint>_end: its end site)"]
-    sided = any(j.startswith(("left_", "right_")) for j in humanoid)
-    for joint in closest.joints:
+    sided = any(j.startswith(("left_", "right_")) for j in mine)
+    for joint in [*closest.joints, *extra]:
         key = f"{joint}:".ljust(width)
         if joint not in chosen:
-            why = "" if closest.target != "smpl22" else ", and its rest pose shows no standing biped" \
-                if not humanoid else ", and its rest pose does not tell left from right" \
+            why = "" if closest.target not in kinds else \
+                f", and its structure shows a {shows.skeleton} rig, no {kinds[closest.target]}" \
+                if not mine and shows.skeleton else f", and its structure shows no {kinds[closest.target]}" \
+                if not mine else ", and its pose does not tell left from right" \
                 if joint.startswith(("left_", "right_")) and not sided else ", nor a joint there by its structure"
             lines.append(f"  {key} {TODO}  # {closest.name} maps it to {json.dumps(closest.joints[joint])}; "
                          f"the rig has no such joint{why}")

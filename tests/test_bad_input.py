@@ -430,6 +430,8 @@ ROWS = [
     ("joint-map-rig-missing", ["joint-map", "{in}/nope.bvh"]),
     ("joint-map-rig-not-bvh", ["joint-map", "{in}/afile"]),
     ("joint-map-target-banana", ["joint-map", "{in}/nope.bvh", "--target", "banana"]),
+    ("joint-map-motion-missing", ["joint-map", "{in}/nope.txt"]),
+    ("joint-map-motion-not-deepmimic", ["joint-map", "{in}/latin1.txt"]),
     ("plot-run-missing", ["plot", "{in}/nope"]),
     ("plot-run-without-metrics", ["plot", "{in}"]),
 ]
@@ -710,6 +712,8 @@ SAYS = {
     "joint-map-rig-missing": "RIG {in}/nope.bvh: no such file",
     "joint-map-rig-not-bvh": "RIG {in}/afile: the rig must be a .bvh file (its HIERARCHY is the rig), a skinned glTF",
     "joint-map-target-banana": "target: expected one of smpl22, smal35",
+    "joint-map-motion-missing": "RIG {in}/nope.txt: no such file",
+    "joint-map-motion-not-deepmimic": 'RIG {in}/latin1.txt: not a DeepMimic motion (a JSON object with "Frames")',
     "plot-run-missing": "RUN {in}/nope: no such folder; give a run folder",
     "plot-run-without-metrics": "RUN {in}: no metrics.csv in it or in a version_N folder of it",
 }
