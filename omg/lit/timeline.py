@@ -195,25 +195,58 @@ def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], fra
 
 
 TextDenoiser = Callable[[Sequence[str], Tensor, "float | None"], Denoiser]  # (texts, mask, guidance) -> denoiser
+TextEstimates = Callable[[Tensor, Tensor], Tensor]  # (K·B rows x_t, t) -> (K, B, T, D) each text's x̂0 of its rows
+
+
+def join(estimates: Tensor, weights: Tensor) -> Tensor:
+    """(K, B, T, D) each text's estimate (or each chain's sample) -> (B, T, D): each feature of each frame from
+    the texts by ``weights`` (K, 1, T, D), the timeline's shares. The joint blend, the separate chains' composed
+    estimate and their returned motion are all this join."""
+    return (weights.to(device=estimates.device, dtype=estimates.dtype) * estimates).sum(0)
+
+
+def text_estimates(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> TextEstimates:
+    """Each text's x̂0 of its own K·B rows (text k's at rows k·B..(k+1)·B, ``mask`` (B, T) the motions' real
+    frames), the K texts in one denoiser call. With ``timeline.windows`` text k's denoiser sees only its window
+    of its rows: frames start..end cut out and moved to the start of a row of the longest window's length, so a
+    text cannot read another text's stretch of the motion (a run 6 s later) into its own, and the K passes cost
+    their windows' frames instead of K whole sequences; its estimate is 0 outside the window, where it has no
+    share."""
+    k, (b, frames) = len(timeline.texts), mask.shape
+    if timeline.weights.shape[1] != frames:
+        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
+    texts = [text for text in timeline.texts for _ in range(b)]
+    windows = timeline.windows
+    if windows is None:
+        denoise = denoiser(texts, mask.repeat(k, 1), guidance)
+        return lambda x, t: denoise(x, t).unflatten(0, (k, b))
+    denoise = denoiser(texts, window_mask(mask, windows), guidance)
+    length = max(end - start for start, end in windows)
+
+    def windowed(x: Tensor, t: Tensor) -> Tensor:
+        rows = x.unflatten(0, (k, b))  # (K, B, T, D)
+        cut = x.new_zeros(k, b, length, x.shape[-1])  # (K, B, L, D)
+        for i, (start, end) in enumerate(windows):
+            cut[i, :, :end - start] = rows[i, :, start:end]
+        estimates = denoise(cut.flatten(0, 1), t).unflatten(0, (k, b))  # (K, B, L, D)
+        x0 = torch.zeros_like(rows)
+        for i, (start, end) in enumerate(windows):
+            x0[i, :, start:end] = estimates[i, :, :end - start]
+        return x0
+
+    return windowed
 
 
 def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
     """The blended x̂0 of ``timeline`` for a batch of B motions (``mask`` (B, T)), each following the whole
     timeline: ``denoiser`` (a module's ``denoiser(texts, mask, guidance)``: guidance as it does it) runs once
-    per step on the K texts' copies of the batch, batched as K·B rows."""
-    k, (b, frames) = len(timeline.texts), mask.shape
-    if timeline.weights.shape[1] != frames:
-        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
-    texts = [text for text in timeline.texts for _ in range(b)]
+    per step on the K texts' copies of the batch, batched as K·B rows (over their windows with ``context``)."""
+    k = len(timeline.texts)
+    estimates = text_estimates(denoiser, timeline, mask, guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
-    if timeline.windows is not None:
-        return windowed_denoiser(denoiser(texts, window_mask(mask, timeline.windows), guidance), weights,
-                                 timeline.windows)
-    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
 
     def blended(x: Tensor, t: Tensor) -> Tensor:
-        x0 = denoise(x.repeat(k, 1, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, T, D)
-        return (weights.to(x0.dtype) * x0).sum(0)
+        return join(estimates(x.repeat(k, 1, 1), t.repeat(k)), weights)
 
     return blended
 
@@ -222,17 +255,13 @@ def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, gu
     """Separate chains (the module docstring): x (K·B rows, chain k of motion b at row k·B + b) -> each chain's
     x̂0, its own text's estimate pulled towards the composed one by ``timeline.coupling``. ``denoiser`` runs
     once per step on the K·B rows, each with its chain's text; ``mask`` (B, T) the motions' real frames."""
-    k, (b, frames) = len(timeline.texts), mask.shape
-    if timeline.weights.shape[1] != frames:
-        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
-    texts = [text for text in timeline.texts for _ in range(b)]
+    estimates = text_estimates(denoiser, timeline, mask, guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
-    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
     coupling = timeline.coupling
 
     def chained(x: Tensor, t: Tensor) -> Tensor:
-        x0 = denoise(x, t).unflatten(0, (k, b))  # (K, B, T, D) each chain by its own text
-        composed = (weights.to(x0.dtype) * x0).sum(0)  # (B, T, D) each part from its own text's chain
+        x0 = estimates(x, t)  # (K, B, T, D) each chain by its own text
+        composed = join(x0, weights)  # (B, T, D) each part from its own text's chain
         # lerp is exact at both ends: 0 leaves a chain its own estimate, 1 gives it the composed one
         return torch.lerp(x0, composed.expand_as(x0), coupling).flatten(0, 1)
 
@@ -242,9 +271,7 @@ def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, gu
 def compose_chains(x: Tensor, timeline: Timeline) -> Tensor:
     """(K·B, T, D) the separate chains' samples -> (B, T, D) the motion: each feature of each frame from its
     texts' chains by the timeline's weights."""
-    k = len(timeline.texts)
-    chains = x.unflatten(0, (k, x.shape[0] // k))  # (K, B, T, D)
-    return (timeline.weights.to(device=x.device, dtype=x.dtype)[:, None] * chains).sum(0)
+    return join(x.unflatten(0, (len(timeline.texts), -1)), timeline.weights[:, None])
 
 
 def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:
@@ -255,27 +282,6 @@ def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:
     for k, (start, end) in enumerate(windows):
         out[k, :, :end - start] = mask[:, start:end]
     return out.flatten(0, 1)
-
-
-def windowed_denoiser(denoise: Denoiser, weights: Tensor, windows: Sequence[tuple[int, int]]) -> Denoiser:
-    """The blended x̂0 with each text's denoiser (``denoise``, over ``window_mask``'s K·B rows) seeing only its
-    own window of the sequence: text k's frames start..end, cut out and moved to the start of its rows. A text
-    then cannot read another text's stretch of the motion (a run 6 s later) into its own, and the K passes
-    cost their windows' frames instead of K whole sequences."""
-    k, length = len(windows), max(end - start for start, end in windows)
-
-    def blended(x: Tensor, t: Tensor) -> Tensor:
-        b = x.shape[0]
-        cut = x.new_zeros(k, b, length, x.shape[-1])  # (K, B, L, D)
-        for i, (start, end) in enumerate(windows):
-            cut[i, :, :end - start] = x[:, start:end]
-        estimates = denoise(cut.flatten(0, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, L, D)
-        x0 = torch.zeros_like(x)
-        for i, (start, end) in enumerate(windows):  # a text has no share outside its window
-            x0[:, start:end] += weights[i, :, start:end].to(x.dtype) * estimates[i, :, :end - start]
-        return x0
-
-    return blended
 
 
 def check_timeline(timeline: Timeline, text_conditional: bool, dim: int, module: str) -> None:
