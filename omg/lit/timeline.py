@@ -8,7 +8,8 @@ the texts. Where two segments of a timeline meet, the weights cross over smoothl
 overlap, or over ``transition`` seconds centred on the boundary where they only touch), so every step moves
 the whole sequence towards one motion that changes from one text to the next; a body part takes the features
 of its joints (``Representation.channel_joints``: the root's features carry the trajectory) from its own
-text. Away from every crossing a frame's estimate is its own text's alone.
+text. Away from every crossing a frame's estimate is its own text's alone. With windows (a file's
+``context``) each text's pass sees only its own frames and that much on either side (``text_estimates``).
 
 With ``chains="separate"`` each text keeps its own sampling chain instead (SINC's splice, coupled): the
 sampler's state is K chains of the B motions (K·B rows, all starting from the same noise), chain k denoised
@@ -16,7 +17,9 @@ by text k alone, reading its own estimate of every part, so a walk's pass denois
 walk's legs under another text's waving arms. At every step the chains' estimates are joined by the same
 weights (the composed x̂0) and each chain's estimate is pulled towards it by ``coupling`` (0: the chains
 independent, each exactly its text sampled alone; 1: every chain given the composed estimate, the joint
-blend above); the motion returned is the chains' samples joined by the weights (``compose_chains``).
+blend above); the motion returned is the chains' samples joined by the weights (``compose_chains``). With
+windows, chain k's text denoises only its window of the chain; inside it the chain's estimate is pulled towards
+the composed one as above, outside it the chain carries the composed estimate (``chains_denoiser``).
 
 ``resolve_timeline`` turns seconds and body-part names into the tensor-level ``Timeline`` that
 ``SamplingSettings.timeline`` carries; reading and checking a user's file is ``omg.generation.timeline``.
@@ -65,10 +68,10 @@ class PartText:
 class Timeline:
     """What a sampler blends: ``texts`` (K distinct captions) and ``weights`` (K, T, D), the share of text k's
     denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere. ``windows``: the
-    frames [start, end) each text's denoiser sees (None: every text sees the whole sequence); a window holds
-    every frame its text has a share in. ``chains``: ``joint`` (one chain, the texts' estimates blended) or
-    ``separate`` (one chain per text, each pulled towards the blend by ``coupling`` in [0, 1]; the module
-    docstring)."""
+    frames [start, end) each text's denoiser sees (None: every text sees the whole sequence; with separate
+    chains, of its own chain); a window holds every frame its text has a share in. ``chains``: ``joint`` (one
+    chain, the texts' estimates blended) or ``separate`` (one chain per text, each pulled towards the blend by
+    ``coupling`` in [0, 1]; the module docstring)."""
 
     texts: tuple[str, ...]
     weights: Tensor  # (K, T, D)
@@ -81,8 +84,6 @@ class Timeline:
             raise ValueError(f"timeline chains {self.chains!r}; one of {', '.join(CHAINS)}")
         if not 0.0 <= self.coupling <= 1.0:
             raise ValueError(f"timeline coupling {self.coupling!r} outside [0, 1]")
-        if self.separate and self.windows is not None:
-            raise ValueError("separate chains read each text's whole motion: no windows")
         w = self.weights
         if w.ndim != 3 or w.shape[0] != len(self.texts) or not self.texts:
             raise ValueError(f"timeline weights (K, T, D) for {len(self.texts)} texts, got {tuple(w.shape)}")
@@ -254,14 +255,24 @@ def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, 
 def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
     """Separate chains (the module docstring): x (K·B rows, chain k of motion b at row k·B + b) -> each chain's
     x̂0, its own text's estimate pulled towards the composed one by ``timeline.coupling``. ``denoiser`` runs
-    once per step on the K·B rows, each with its chain's text; ``mask`` (B, T) the motions' real frames."""
+    once per step on the K·B rows, each with its chain's text (with ``context``, over the chain's own window);
+    ``mask`` (B, T) the motions' real frames. Outside its window a chain has no estimate of its own: it carries
+    the composed one there, frames that have no share in the motion but that ``stance_root`` and spatial
+    control read as the rest of the chain's body."""
     estimates = text_estimates(denoiser, timeline, mask, guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
+    inside = None
+    if timeline.windows is not None:
+        frames = torch.arange(mask.shape[1], device=mask.device)
+        inside = torch.stack([(frames >= start) & (frames < end) for start, end in timeline.windows])  # (K, T)
+        inside = inside[:, None, :, None]  # (K, 1, T, 1)
     coupling = timeline.coupling
 
     def chained(x: Tensor, t: Tensor) -> Tensor:
         x0 = estimates(x, t)  # (K, B, T, D) each chain by its own text
         composed = join(x0, weights)  # (B, T, D) each part from its own text's chain
+        if inside is not None:
+            x0 = torch.where(inside, x0, composed)
         # lerp is exact at both ends: 0 leaves a chain its own estimate, 1 gives it the composed one
         return torch.lerp(x0, composed.expand_as(x0), coupling).flatten(0, 1)
 
