@@ -194,6 +194,10 @@ def test_generate_follows_a_timeline_in_the_body(client, server):
     cards = {m["name"]: m["card"] for m in client.get("/v1/models").json()["models"]}
     assert cards["human"]["timeline"] == ["timeline", "parts"]
     assert cards["animal"]["timeline"] == cards["habit"]["timeline"] == cards["pretrain"]["timeline"] == []
+    parts = {m["name"]: m["body_parts"] for m in client.get("/v1/models").json()["models"]}  # what the page offers
+    assert parts["human"] == ["root", "torso", "left_arm", "right_arm", "left_leg", "right_leg", "legs", "arms",
+                              "upper_body"]
+    assert parts["animal"] == parts["habit"] == parts["pretrain"] == []
 
 
 def test_animal_from_text_through_the_human_chain_and_unconditional(client):
@@ -1388,6 +1392,61 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
     page.close()
     assert errors == ["Failed to load resource: the server responded with a status of 422 (Unprocessable Entity)"]
+
+
+def test_the_page_composes_body_parts_in_separate_chains(server, browser, tmp_path):
+    """The Control panel's body-part composition: rows of part names and texts, sent as the timeline's ``parts``
+    with the joint blend; its *separate chains* switch sends ``chains: "separate"`` with the coupling given, the
+    motion comes back sampled so (its recorded settings) and a screenshot of it is saved (its path printed); a
+    coupling out of range is the API's one line on the page. A model whose card takes no parts disables it."""
+    from omg.generation.timeline import parse_timeline
+
+    context, page, errors, _ = _open_page(browser, server)
+    sent, answers = [], []
+    page.on("request", lambda r: sent.append(r.post_data_json) if r.url.endswith("/v1/generate") else None)
+    page.on("response", lambda r: answers.append(r) if r.url.endswith("/v1/generate") else None)
+    page.select_option("#model", "animal")
+    assert page.locator("#parts-add").is_disabled() and page.locator("#parts-separate").is_disabled()
+    page.select_option("#model", "human")
+    assert page.locator("#parts-add").is_enabled() and page.locator("#parts-coupling").is_disabled()
+    assert "parts (smpl22): root, torso, left_arm" in page.locator("#parts-names").inner_text()
+    for names, text, start in (("legs, root", "a person walks forward", ""), ("arms", "a person waves", "0.5")):
+        page.click("#parts-add")
+        row = page.locator("#parts-rows .part").last
+        row.locator(".part-parts").fill(names)
+        row.locator(".part-text").fill(text)
+        row.locator(".part-start").fill(start)
+    parts = [{"parts": ["legs", "root"], "text": "a person walks forward"},
+             {"parts": ["arms"], "text": "a person waves", "start": 0.5}]
+    page.fill("#length", "1.5")
+    page.fill("#steps", "2")
+    page.click("#generate")  # the joint blend: parts alone, no chains
+    page.wait_for_function("window.omgViewer.results == 1", timeout=60_000)
+    assert sent[-1]["timeline"] == {"parts": parts} and sent[-1]["prompts"] == [] and sent[-1]["length"] == 1.5
+    page.check("#parts-separate")
+    page.fill("#parts-coupling", "0.25")
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 2", timeout=60_000)
+    assert sent[-1]["timeline"] == {"parts": parts, "chains": "separate", "coupling": 0.25}
+    assert parse_timeline(sent[-1]["timeline"]).chains == "separate"  # the documented format, as the CLI reads it
+    result = answers[-1].json()
+    assert [m["frames"] for m in result["motions"]] == [30]
+    recorded = httpx.get(server.url + result["settings"]).json()["timeline"]
+    assert recorded["chains"] == "separate" and recorded["coupling"] == 0.25 and recorded["parts"][1]["start"] == 0.5
+    assert page.evaluate("window.omgViewer.motions.length") == 1 and _canvas_colours(page) > 1
+    shot = tmp_path / "separate_chains.png"
+    page.screenshot(path=shot)
+    print(f"screenshot of the page after separate chains: {shot}")
+    assert not errors, errors
+    page.fill("#parts-coupling", "2")
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').classList.contains('error')")
+    assert page.locator("#status").inner_text() == "timeline: coupling must be a number in [0, 1], got 2"
+    page.uncheck("#parts-separate")  # joint again: the coupling is not sent
+    page.click("#generate")
+    page.wait_for_function("window.omgViewer.results == 3", timeout=60_000)
+    assert sent[-1]["timeline"] == {"parts": parts}
+    context.close()
 
 
 def test_a_character_rig_gets_each_motion_onto_the_character(serve_ckpts, tmp_path):

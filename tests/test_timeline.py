@@ -398,8 +398,7 @@ def test_bench_timeline_scores_each_segment_on_its_own_frames(controlnet_ckpt, t
     assert split["compositions"][0]["parts"]["skating"] >= 0 and "parts" in split["seconds_per_motion_second"]
     for chains, coupling, context, message in (("split", 0.0, None, "--chains must be one of joint, separate"),
                                                ("joint", 0.5, None, "--coupling 0.5: a number in [0, 1], with "
-                                                                    "--chains separate"),
-                                               ("separate", 0.0, 0.5, "give --chains or --context")):
+                                                                    "--chains separate")):
         with pytest.raises(UsageError, match=re.escape(message)):
             bench_timeline(controlnet_ckpt["controlnet"], str(tmp_path / "val"), chains=chains, coupling=coupling,
                            context=context)
@@ -475,10 +474,12 @@ def test_chains_in_the_file_are_checked_in_one_line_and_recorded():
     assert "chains" not in parse_timeline({"parts": parts}).to_dict()  # the joint blend, recorded as before
     rep = get_representation("humanml3d263", SMPL22)
     assert spans.resolve(40, FPS, rep).separate and not parse_timeline({"parts": parts}).resolve(40, FPS, rep).separate
+    cut = parse_timeline({"parts": [*parts[:1], {**parts[1], "start": 1}], "chains": "separate", "context": 0.25})
+    assert cut.to_dict()["context"] == 0.25 and parse_timeline(cut.to_dict()) == cut
+    assert cut.resolve(40, FPS, rep).separate and cut.resolve(40, FPS, rep).windows == ((0, 40), (11, 40))
     for extra, message in (({"chains": "split"}, "timeline: chains must be one of joint, separate, got 'split'"),
                            ({"chains": "separate", "coupling": 2}, "coupling must be a number in [0, 1], got 2"),
-                           ({"coupling": 0.5}, "coupling pulls separate chains together"),
-                           ({"chains": "separate", "context": 0}, "give one of chains or context")):
+                           ({"coupling": 0.5}, "coupling pulls separate chains together")):
         with pytest.raises(UsageError) as e:
             parse_timeline({"parts": parts, **extra})
         assert message in str(e.value) and "\n" not in str(e.value)
@@ -489,10 +490,89 @@ def test_omg_generate_takes_separate_chains_from_the_file(controlnet_ckpt, tmp_p
 
     path = tmp_path / "t.json"
     timeline = {"parts": [{"parts": ["legs", "root"], "text": WALK}, {"parts": ["left_arm"], "text": WAVE}],
-                "chains": "separate", "coupling": 0.5}
+                "chains": "separate", "coupling": 0.5, "context": 0.25}
     path.write_text(json.dumps(timeline))
     main(["generate", "--ckpt", str(controlnet_ckpt["controlnet"]), "--timeline", str(path), "--num_samples", "2",
           "--steps", "2", "--length", "2", "--no_preview", "--out", str(tmp_path / "out")])
     recorded = json.loads((tmp_path / "out/generation.json").read_text())["timeline"]
-    assert recorded["chains"] == "separate" and recorded["coupling"] == 0.5
+    assert recorded["chains"] == "separate" and recorded["coupling"] == 0.5 and recorded["context"] == 0.25
     assert np.load(tmp_path / "out/sample_000.features.npy").shape == (40, 263)
+
+
+# -- separate chains with a context --------------------------------------------------------------------------------
+
+SPANS = [Segment(0, 1, WALK), Segment(1, 2, WAVE)]
+
+
+def test_separate_chains_whose_context_covers_the_motion_are_the_chains_without_one(controlnet):
+    """Bitwise: a window of every frame cuts out the whole chain (a copy of its frames and real-frame mask), puts
+    the estimate back in full and leaves no frame outside it, so every step computes the same numbers. Likewise
+    context 0 on a composition of parts that each hold the whole motion: their windows are the whole motion."""
+    frames = 40
+    settings = SamplingSettings(steps=3, seed=7, use_ema=False, stance_root=0.5)
+    rep, chains = controlnet.representation, {"chains": "separate", "coupling": 0.25}
+    whole_parts = [PartText(("legs", "root"), WALK), PartText(("arms",), WAVE)]
+    for segments, parts, context in ((SPANS, [], frames / FPS), ([], whole_parts, 0.0)):
+        windowed = resolve_timeline(segments, parts, frames, FPS, rep, context=context, **chains)
+        assert windowed.windows == ((0, frames),) * 2
+        alike = [controlnet.sample(None, [frames, frames - 6], replace(settings, timeline=t))
+                 for t in (windowed, resolve_timeline(segments, parts, frames, FPS, rep, **chains))]
+        assert torch.equal(*alike), context
+
+
+def test_with_a_context_each_chain_sees_only_its_own_window_and_carries_the_join_outside_it(controlnet):
+    """``chains_denoiser`` with windows: chain k's text denoises only its window of chain k (what the chain
+    holds outside it cannot change its estimate there, coupling 0); outside its window a chain's estimate is
+    the composed one; inside it, its own pulled towards the composed by the coupling."""
+    from omg.lit.timeline import chains_denoiser, join
+
+    frames, rep = 80, controlnet.representation
+    segments = [Segment(0, 2, WALK), Segment(2, 4, WAVE)]
+    apart, half = (resolve_timeline(segments, [], frames, FPS, rep, context=0.5, chains="separate", coupling=c)
+                   for c in (0.0, 0.5))
+    assert apart.windows == ((0, 55), (26, 80))
+    mask = length_mask([frames, frames])
+    gen = torch.Generator().manual_seed(8)
+    x, t = torch.randn(4, frames, 263, generator=gen), torch.tensor([400, 800] * 2)  # chain k of motion b: k·2+b
+    later = x.clone()
+    later[:2, 60:] = torch.randn(2, 20, 263, generator=gen)  # the walk's chain past its window
+    with torch.no_grad():
+        step = chains_denoiser(controlnet.denoiser, apart, mask, None)
+        a, b = step(x, t).unflatten(0, (2, 2)), step(later, t).unflatten(0, (2, 2))
+        walk_cut = _estimates(controlnet, [WALK] * 2, length_mask([55, 55]), x[:2, :55], t[:2])
+        wave_cut = _estimates(controlnet, [WAVE] * 2, length_mask([54, 54]), x[2:, 26:], t[2:])
+        assert torch.allclose(a[0, :, :55], walk_cut, atol=1e-5) and torch.allclose(a[1, :, 26:], wave_cut,
+                                                                                     atol=1e-5)
+        assert torch.equal(a[0, :, :55], b[0, :, :55])  # blind to its chain's frames 60..79
+        composed = join(torch.stack([torch.cat([walk_cut, torch.zeros(2, 25, 263)], 1),
+                                     torch.cat([torch.zeros(2, 26, 263), wave_cut], 1)]), apart.weights[:, None])
+        assert torch.allclose(a[0, :, 55:], composed[:, 55:], atol=1e-5)  # outside its window: the join
+        assert torch.allclose(a[1, :, :26], composed[:, :26], atol=1e-5)
+        pulled = chains_denoiser(controlnet.denoiser, half, mask, None)(x, t).unflatten(0, (2, 2))
+        assert torch.allclose(pulled[0, :, :55], 0.5 * (walk_cut + composed[:, :55]), atol=1e-5)
+
+
+def test_fully_coupled_chains_with_a_context_are_the_joint_blend_with_it(controlnet):
+    frames, rep = 40, controlnet.representation
+    settings = SamplingSettings(steps=4, seed=3, use_ema=False)
+    joint, coupled, apart = (controlnet.sample(None, [frames] * 2, replace(settings, timeline=resolve_timeline(
+        SPANS, [], frames, FPS, rep, context=0.25, **how))) for how in (
+            {}, {"chains": "separate", "coupling": 1.0}, {"chains": "separate", "coupling": 0.0}))
+    assert torch.allclose(coupled, joint, atol=1e-5) and not torch.allclose(apart, joint, atol=1e-3)
+
+
+def test_separate_chains_with_a_context_sample_with_every_sampler(controlnet):
+    from omg.registry import SAMPLERS
+
+    frames = 40
+    rep = controlnet.representation
+    timeline = resolve_timeline(SPANS, [PartText(("left_arm",), "a person raises the left arm", start=0.5)], frames,
+                                FPS, rep, context=0.25, chains="separate", coupling=0.25)
+    assert timeline.windows == ((0, 30), (11, 40), (1, 40))  # each text its own stretch (+ 0.25 s)
+    without = replace(timeline, windows=None)
+    for sampler in SAMPLERS.names():
+        settings = SamplingSettings(steps=3, sampler=sampler, use_ema=True, stance_root=0.5, guidance=2.0, seed=1)
+        motion = controlnet.sample(None, [frames, frames - 6], replace(settings, timeline=timeline))
+        assert motion.shape == (2, frames, 263) and torch.isfinite(motion).all(), sampler
+        assert not torch.allclose(motion, controlnet.sample(None, [frames, frames - 6],
+                                                            replace(settings, timeline=without)), atol=1e-4), sampler

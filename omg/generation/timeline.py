@@ -150,9 +150,6 @@ def parse_timeline(data: Any, where: str = "timeline",
         raise UsageError(f"{where}: coupling must be a number in [0, 1], got {coupling!r}")
     if "coupling" in data and chains != "separate":
         raise UsageError(f"{where}: coupling pulls separate chains together; give it with \"chains\": \"separate\"")
-    if chains == "separate" and context is not None:
-        raise UsageError(f"{where}: context limits what one chain's denoiser sees; separate chains each read their "
-                         "own whole motion: give one of chains or context")
     segments = tuple(_segment(s, f"{where}: timeline[{i}]", check_text) for i, s in enumerate(raw_segments))
     for i, (a, b) in enumerate(zip(segments, segments[1:])):
         if b.start < a.start:

@@ -8,7 +8,8 @@ the texts. Where two segments of a timeline meet, the weights cross over smoothl
 overlap, or over ``transition`` seconds centred on the boundary where they only touch), so every step moves
 the whole sequence towards one motion that changes from one text to the next; a body part takes the features
 of its joints (``Representation.channel_joints``: the root's features carry the trajectory) from its own
-text. Away from every crossing a frame's estimate is its own text's alone.
+text. Away from every crossing a frame's estimate is its own text's alone. With windows (a file's
+``context``) each text's pass sees only its own frames and that much on either side (``text_estimates``).
 
 With ``chains="separate"`` each text keeps its own sampling chain instead (SINC's splice, coupled): the
 sampler's state is K chains of the B motions (K·B rows, all starting from the same noise), chain k denoised
@@ -16,7 +17,9 @@ by text k alone, reading its own estimate of every part, so a walk's pass denois
 walk's legs under another text's waving arms. At every step the chains' estimates are joined by the same
 weights (the composed x̂0) and each chain's estimate is pulled towards it by ``coupling`` (0: the chains
 independent, each exactly its text sampled alone; 1: every chain given the composed estimate, the joint
-blend above); the motion returned is the chains' samples joined by the weights (``compose_chains``).
+blend above); the motion returned is the chains' samples joined by the weights (``compose_chains``). With
+windows, chain k's text denoises only its window of the chain; inside it the chain's estimate is pulled towards
+the composed one as above, outside it the chain carries the composed estimate (``chains_denoiser``).
 
 ``resolve_timeline`` turns seconds and body-part names into the tensor-level ``Timeline`` that
 ``SamplingSettings.timeline`` carries; reading and checking a user's file is ``omg.generation.timeline``.
@@ -65,10 +68,10 @@ class PartText:
 class Timeline:
     """What a sampler blends: ``texts`` (K distinct captions) and ``weights`` (K, T, D), the share of text k's
     denoised estimate in each feature of each frame; they sum to 1 over the texts everywhere. ``windows``: the
-    frames [start, end) each text's denoiser sees (None: every text sees the whole sequence); a window holds
-    every frame its text has a share in. ``chains``: ``joint`` (one chain, the texts' estimates blended) or
-    ``separate`` (one chain per text, each pulled towards the blend by ``coupling`` in [0, 1]; the module
-    docstring)."""
+    frames [start, end) each text's denoiser sees (None: every text sees the whole sequence; with separate
+    chains, of its own chain); a window holds every frame its text has a share in. ``chains``: ``joint`` (one
+    chain, the texts' estimates blended) or ``separate`` (one chain per text, each pulled towards the blend by
+    ``coupling`` in [0, 1]; the module docstring)."""
 
     texts: tuple[str, ...]
     weights: Tensor  # (K, T, D)
@@ -81,8 +84,6 @@ class Timeline:
             raise ValueError(f"timeline chains {self.chains!r}; one of {', '.join(CHAINS)}")
         if not 0.0 <= self.coupling <= 1.0:
             raise ValueError(f"timeline coupling {self.coupling!r} outside [0, 1]")
-        if self.separate and self.windows is not None:
-            raise ValueError("separate chains read each text's whole motion: no windows")
         w = self.weights
         if w.ndim != 3 or w.shape[0] != len(self.texts) or not self.texts:
             raise ValueError(f"timeline weights (K, T, D) for {len(self.texts)} texts, got {tuple(w.shape)}")
@@ -195,25 +196,58 @@ def resolve_timeline(segments: Sequence[Segment], parts: Sequence[PartText], fra
 
 
 TextDenoiser = Callable[[Sequence[str], Tensor, "float | None"], Denoiser]  # (texts, mask, guidance) -> denoiser
+TextEstimates = Callable[[Tensor, Tensor], Tensor]  # (K·B rows x_t, t) -> (K, B, T, D) each text's x̂0 of its rows
+
+
+def join(estimates: Tensor, weights: Tensor) -> Tensor:
+    """(K, B, T, D) each text's estimate (or each chain's sample) -> (B, T, D): each feature of each frame from
+    the texts by ``weights`` (K, 1, T, D), the timeline's shares. The joint blend, the separate chains' composed
+    estimate and their returned motion are all this join."""
+    return (weights.to(device=estimates.device, dtype=estimates.dtype) * estimates).sum(0)
+
+
+def text_estimates(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> TextEstimates:
+    """Each text's x̂0 of its own K·B rows (text k's at rows k·B..(k+1)·B, ``mask`` (B, T) the motions' real
+    frames), the K texts in one denoiser call. With ``timeline.windows`` text k's denoiser sees only its window
+    of its rows: frames start..end cut out and moved to the start of a row of the longest window's length, so a
+    text cannot read another text's stretch of the motion (a run 6 s later) into its own, and the K passes cost
+    their windows' frames instead of K whole sequences; its estimate is 0 outside the window, where it has no
+    share."""
+    k, (b, frames) = len(timeline.texts), mask.shape
+    if timeline.weights.shape[1] != frames:
+        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
+    texts = [text for text in timeline.texts for _ in range(b)]
+    windows = timeline.windows
+    if windows is None:
+        denoise = denoiser(texts, mask.repeat(k, 1), guidance)
+        return lambda x, t: denoise(x, t).unflatten(0, (k, b))
+    denoise = denoiser(texts, window_mask(mask, windows), guidance)
+    length = max(end - start for start, end in windows)
+
+    def windowed(x: Tensor, t: Tensor) -> Tensor:
+        rows = x.unflatten(0, (k, b))  # (K, B, T, D)
+        cut = x.new_zeros(k, b, length, x.shape[-1])  # (K, B, L, D)
+        for i, (start, end) in enumerate(windows):
+            cut[i, :, :end - start] = rows[i, :, start:end]
+        estimates = denoise(cut.flatten(0, 1), t).unflatten(0, (k, b))  # (K, B, L, D)
+        x0 = torch.zeros_like(rows)
+        for i, (start, end) in enumerate(windows):
+            x0[i, :, start:end] = estimates[i, :, :end - start]
+        return x0
+
+    return windowed
 
 
 def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
     """The blended x̂0 of ``timeline`` for a batch of B motions (``mask`` (B, T)), each following the whole
     timeline: ``denoiser`` (a module's ``denoiser(texts, mask, guidance)``: guidance as it does it) runs once
-    per step on the K texts' copies of the batch, batched as K·B rows."""
-    k, (b, frames) = len(timeline.texts), mask.shape
-    if timeline.weights.shape[1] != frames:
-        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
-    texts = [text for text in timeline.texts for _ in range(b)]
+    per step on the K texts' copies of the batch, batched as K·B rows (over their windows with ``context``)."""
+    k = len(timeline.texts)
+    estimates = text_estimates(denoiser, timeline, mask, guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
-    if timeline.windows is not None:
-        return windowed_denoiser(denoiser(texts, window_mask(mask, timeline.windows), guidance), weights,
-                                 timeline.windows)
-    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
 
     def blended(x: Tensor, t: Tensor) -> Tensor:
-        x0 = denoise(x.repeat(k, 1, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, T, D)
-        return (weights.to(x0.dtype) * x0).sum(0)
+        return join(estimates(x.repeat(k, 1, 1), t.repeat(k)), weights)
 
     return blended
 
@@ -221,18 +255,24 @@ def timeline_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, 
 def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, guidance: float | None) -> Denoiser:
     """Separate chains (the module docstring): x (K·B rows, chain k of motion b at row k·B + b) -> each chain's
     x̂0, its own text's estimate pulled towards the composed one by ``timeline.coupling``. ``denoiser`` runs
-    once per step on the K·B rows, each with its chain's text; ``mask`` (B, T) the motions' real frames."""
-    k, (b, frames) = len(timeline.texts), mask.shape
-    if timeline.weights.shape[1] != frames:
-        raise ValueError(f"a timeline of {timeline.weights.shape[1]} frames for motions of {frames}")
-    texts = [text for text in timeline.texts for _ in range(b)]
+    once per step on the K·B rows, each with its chain's text (with ``context``, over the chain's own window);
+    ``mask`` (B, T) the motions' real frames. Outside its window a chain has no estimate of its own: it carries
+    the composed one there, frames that have no share in the motion but that ``stance_root`` and spatial
+    control read as the rest of the chain's body."""
+    estimates = text_estimates(denoiser, timeline, mask, guidance)
     weights = timeline.weights.to(mask.device)[:, None]  # (K, 1, T, D)
-    denoise = denoiser(texts, mask.repeat(k, 1), guidance)
+    inside = None
+    if timeline.windows is not None:
+        frames = torch.arange(mask.shape[1], device=mask.device)
+        inside = torch.stack([(frames >= start) & (frames < end) for start, end in timeline.windows])  # (K, T)
+        inside = inside[:, None, :, None]  # (K, 1, T, 1)
     coupling = timeline.coupling
 
     def chained(x: Tensor, t: Tensor) -> Tensor:
-        x0 = denoise(x, t).unflatten(0, (k, b))  # (K, B, T, D) each chain by its own text
-        composed = (weights.to(x0.dtype) * x0).sum(0)  # (B, T, D) each part from its own text's chain
+        x0 = estimates(x, t)  # (K, B, T, D) each chain by its own text
+        composed = join(x0, weights)  # (B, T, D) each part from its own text's chain
+        if inside is not None:
+            x0 = torch.where(inside, x0, composed)
         # lerp is exact at both ends: 0 leaves a chain its own estimate, 1 gives it the composed one
         return torch.lerp(x0, composed.expand_as(x0), coupling).flatten(0, 1)
 
@@ -242,9 +282,7 @@ def chains_denoiser(denoiser: TextDenoiser, timeline: Timeline, mask: Tensor, gu
 def compose_chains(x: Tensor, timeline: Timeline) -> Tensor:
     """(K·B, T, D) the separate chains' samples -> (B, T, D) the motion: each feature of each frame from its
     texts' chains by the timeline's weights."""
-    k = len(timeline.texts)
-    chains = x.unflatten(0, (k, x.shape[0] // k))  # (K, B, T, D)
-    return (timeline.weights.to(device=x.device, dtype=x.dtype)[:, None] * chains).sum(0)
+    return join(x.unflatten(0, (len(timeline.texts), -1)), timeline.weights[:, None])
 
 
 def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:
@@ -255,27 +293,6 @@ def window_mask(mask: Tensor, windows: Sequence[tuple[int, int]]) -> Tensor:
     for k, (start, end) in enumerate(windows):
         out[k, :, :end - start] = mask[:, start:end]
     return out.flatten(0, 1)
-
-
-def windowed_denoiser(denoise: Denoiser, weights: Tensor, windows: Sequence[tuple[int, int]]) -> Denoiser:
-    """The blended x̂0 with each text's denoiser (``denoise``, over ``window_mask``'s K·B rows) seeing only its
-    own window of the sequence: text k's frames start..end, cut out and moved to the start of its rows. A text
-    then cannot read another text's stretch of the motion (a run 6 s later) into its own, and the K passes
-    cost their windows' frames instead of K whole sequences."""
-    k, length = len(windows), max(end - start for start, end in windows)
-
-    def blended(x: Tensor, t: Tensor) -> Tensor:
-        b = x.shape[0]
-        cut = x.new_zeros(k, b, length, x.shape[-1])  # (K, B, L, D)
-        for i, (start, end) in enumerate(windows):
-            cut[i, :, :end - start] = x[:, start:end]
-        estimates = denoise(cut.flatten(0, 1), t.repeat(k)).unflatten(0, (k, b))  # (K, B, L, D)
-        x0 = torch.zeros_like(x)
-        for i, (start, end) in enumerate(windows):  # a text has no share outside its window
-            x0[:, start:end] += weights[i, :, start:end].to(x.dtype) * estimates[i, :, :end - start]
-        return x0
-
-    return blended
 
 
 def check_timeline(timeline: Timeline, text_conditional: bool, dim: int, module: str) -> None:

@@ -124,8 +124,6 @@ def bench_timeline(
 
     SAMPLERS.get(sampler)
     check_chains(chains, "--chains")
-    if chains == "separate" and context is not None:
-        raise UsageError("--chains separate: each chain reads its own whole motion; give --chains or --context")
     if coupling is not None and (not 0 <= coupling <= 1 or chains != "separate"):
         raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")
     how = {"context": context, "chains": chains, **({} if coupling is None else {"coupling": coupling})}

@@ -60,7 +60,7 @@ from omg.generation.timeline import parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
 from omg.registry import SAMPLERS
 from omg.retarget import RIG_SUFFIXES
-from omg.skeleton import get_skeleton
+from omg.skeleton import body_parts, get_skeleton
 from omg.tools.generate import check_plain_text, read_prompts
 
 log = logging.getLogger("omg.serve")
@@ -89,6 +89,8 @@ class Model:
         skeleton = get_skeleton(self.card.skeleton)  # the checkpoint's file name: no path of the server leaves it
         return {"name": self.name, "ckpt": Path(self.ckpt).name, "module": type(self.generator.module).__name__,
                 "card": self.card.to_dict(), "parents": list(skeleton.parents), "joints": list(skeleton.names),
+                # the names a body-part composition's entries take, for a card that takes them
+                "body_parts": list(body_parts(skeleton)) if "parts" in self.card.timeline else [],
                 "source_generator": self.source_module is not None,
                 "examples": EXAMPLES["species" if "species" in self.card.inputs else "text"]
                 if "text" in self.card.inputs else []}

@@ -1,5 +1,5 @@
 // The page's Control panel: a root path drawn on the ground grid, keyframes taken from a frame of an uploaded take,
-// a prompt timeline. The request carries them as `constraints` and `timeline` in the documented JSON format
+// a prompt timeline and a body-part composition (sampled in one chain or in separate chains). The request carries them as `constraints` and `timeline` in the documented JSON format
 // (docs/guide/control.md, docs/guide/timelines.md); the chosen model's card decides what the panel offers. The
 // viewer shows the constraints beside each motion (markers at the targets, the path as a line on the ground) and
 // each motion's control error from its record.
@@ -73,7 +73,8 @@ function constraintObjects(constraints, parents, color) {
 }
 
 export function createControl({ scene, camera, canvas, $ }) {
-  const state = { model: null, path: [], pathKind: 'path', take: null, keyframes: [], timeline: [], sent: null };
+  const state = { model: null, path: [], pathKind: 'path', take: null, keyframes: [], timeline: [], parts: [],
+                  sent: null };
   const editing = new THREE.Group();  // the path and the keyframe being chosen, in the model's world
   scene.add(editing);
 
@@ -119,8 +120,25 @@ export function createControl({ scene, camera, canvas, $ }) {
                                                       'their texts replace the prompts, the last end sets the length' }),
     rows, button('Add segment', () => addSegment(), 'timeline-add')]);
 
+  // body parts that follow their own text at the same time, and how the texts are sampled: one chain of blended
+  // estimates (the default) or separate chains pulled together by the coupling (the timeline file's chains)
+  const partRows = element('div', { id: 'parts-rows' });
+  const partNames = element('div', { id: 'parts-names', className: 'note' });
+  const separate = element('input', { id: 'parts-separate', type: 'checkbox' });
+  const coupling = element('input', { id: 'parts-coupling', type: 'number', min: 0, max: 1, step: 0.05,
+                                      placeholder: 'default', title: 'each chain\u2019s pull towards the composed ' +
+                                      'motion, 0..1 (empty: the default)', disabled: true });
+  separate.onchange = () => { coupling.disabled = !separate.checked; };
+  const partsBox = element('fieldset', { id: 'parts-box' }, [
+    element('legend', { textContent: 'Body-part composition' }), partNames, partRows,
+    button('Add part', () => addPart(), 'parts-add'),
+    element('div', { className: 'chains' }, [
+      element('label', { className: 'toggle', title: 'each text samples its own chain (body-part compositions ' +
+                                                     'pass both parts more often)' }, [separate, ' separate chains']),
+      element('label', { className: 'toggle' }, ['coupling ', coupling])])]);
+
   const panel = element('details', { id: 'control', open: true }, [element('summary', { textContent: 'Control' }),
-                                                                   why, pathBox, keyBox, timeBox]);
+                                                                   why, pathBox, keyBox, timeBox, partsBox]);
   $('control-box').append(panel);
 
   // -- the path: clicks on the ground plane ---------------------------------------------------------------------
@@ -198,6 +216,46 @@ export function createControl({ scene, camera, canvas, $ }) {
     });
   }
 
+  // -- the body-part composition: rows of part names (space or comma separated), text, optional start and end --
+  function addPart() {
+    state.parts.push({ parts: '', text: '', start: '', end: '' });
+    listParts();
+  }
+
+  function listParts() {
+    partRows.innerHTML = '';
+    state.parts.forEach((p, i) => {
+      const field = (key, type, placeholder) => {
+        const input = element('input', { type, value: p[key], placeholder, className: `part-${key}` });
+        if (type === 'number') { input.step = 0.1; input.min = 0; }
+        input.oninput = () => { p[key] = input.value; };
+        return input;
+      };
+      partRows.append(element('div', { className: 'part' }, [
+        field('parts', 'text', 'legs root'), field('start', 'number', 'start'), field('end', 'number', 'end'),
+        button('×', () => { state.parts.splice(i, 1); listParts(); }), field('text', 'text', 'its text')]));
+    });
+  }
+
+  // The timeline as the API takes it: the bare list of segments, or with parts or separate chains the mapping
+  // {timeline, parts, chains, coupling}; a part without start or end holds from the motion's start or to its end.
+  function timelineBody() {
+    const segments = timeBox.disabled ? [] : state.timeline.map(({ start, end, text }) => ({ start, end, text }));
+    const parts = partsBox.disabled ? [] : state.parts.map((p) => ({
+      parts: p.parts.split(/[\s,]+/).filter(Boolean), text: p.text,
+      ...(p.start === '' ? {} : { start: Number(p.start) }), ...(p.end === '' ? {} : { end: Number(p.end) }) }));
+    const split = !partsBox.disabled && separate.checked;
+    if (!parts.length && !split) return segments;
+    const out = {};
+    if (segments.length) out.timeline = segments;
+    if (parts.length) out.parts = parts;
+    if (split) {
+      out.chains = 'separate';
+      if (coupling.value.trim() !== '') out.coupling = Number(coupling.value);
+    }
+    return out;
+  }
+
   // -- what is drawn while editing --------------------------------------------------------------------------
   function redraw() {
     editing.clear();
@@ -247,7 +305,10 @@ export function createControl({ scene, camera, canvas, $ }) {
       pathBox.disabled = !pathKind.options.length;
       keyBox.disabled = !c.constraints.includes('keyframes');
       timeBox.disabled = !c.timeline.includes('timeline');
-      const none = pathBox.disabled && keyBox.disabled && timeBox.disabled;
+      partsBox.disabled = !c.timeline.includes('parts');
+      partNames.textContent = partsBox.disabled ? 'this model takes no body-part composition'
+        : `parts (${c.skeleton}): ${model.body_parts.join(', ')}`;
+      const none = pathBox.disabled && keyBox.disabled && timeBox.disabled && partsBox.disabled;
       panel.classList.toggle('disabled', none);
       const takes = [c.constraints.length ? `constraints (${c.constraints.join(', ')})` : 'no constraints',
                      c.timeline.length ? `a timeline (${c.timeline.join(', ')})` : 'no timeline'];
@@ -255,16 +316,19 @@ export function createControl({ scene, camera, canvas, $ }) {
         'lists none' : `this model takes ${takes.join(' and ')}`;
       redraw();
     },
-    hasTimeline() { return !timeBox.disabled && state.timeline.length > 0; },
-    // Puts the panel's constraints and, with `timeline`, its timeline into a /v1/generate body (the timeline's
-    // texts are its prompts, its last end its length), and remembers the constraints to draw them beside the result.
+    hasTimeline() {
+      return (!timeBox.disabled && state.timeline.length > 0) || (!partsBox.disabled && state.parts.length > 0);
+    },
+    // Puts the panel's constraints and, with `timeline`, its timeline and body-part composition into a
+    // /v1/generate body (their texts are its prompts; with segments, the last end is its length), and remembers
+    // the constraints to draw them beside the result.
     apply(body, timeline) {
       state.sent = current();
       if (state.sent) body.constraints = state.sent;
       if (timeline) {
-        body.timeline = state.timeline.map(({ start, end, text }) => ({ start, end, text }));
+        body.timeline = timelineBody();
         body.prompts = [];
-        delete body.length;
+        if (!timeBox.disabled && state.timeline.length) delete body.length;
       }
       return body;
     },
