@@ -160,8 +160,10 @@ def test_option_is_checked_against_the_card(pretrain_ckpt, tmp_path, capsys):
     from omg.cli import main
 
     for option, message in (("bogus=1", f"{pretrain_ckpt} (PretrainModule) takes no option bogus; its options: "
-                                        "stance_root"),
+                                        "stance_root, smoothing"),
                             ("stance_root=2", "--option stance_root=2: give a number in [0, 1]"),
+                            ("smoothing=11", "--option smoothing=11: give a number in [0, 10]"),
+                            ("smoothing=nan", "--option smoothing=nan: give a number in [0, 10]"),
                             ("stance_root", "--option 'stance_root': give KEY=VALUE, e.g. --option stance_root=VALUE")):
         with pytest.raises(SystemExit) as e:
             main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--option", option, "--out", str(tmp_path / "bad")])
@@ -178,6 +180,14 @@ def test_option_is_checked_against_the_card(pretrain_ckpt, tmp_path, capsys):
     plain = np.load(tmp_path / "f/sample_000.features.npy")
     main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--out", str(tmp_path / "p")])
     assert not np.array_equal(np.load(tmp_path / "p/sample_000.features.npy"), plain)  # the option did something
+    assert "smoothing" not in settings  # off unless given
+    # --option smoothing=F: the same noise, every estimate smoothed over time, recorded
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--option", "smoothing=2", "--length", "2", "--out",
+          str(tmp_path / "s")])
+    main([*GENERATE, "--ckpt", str(pretrain_ckpt), "--length", "2", "--out", str(tmp_path / "r")])
+    assert json.loads((tmp_path / "s/generation.json").read_text())["smoothing"] == 2.0
+    rough, smooth = (np.load(tmp_path / f"{d}/sample_000.joints.npy") for d in ("r", "s"))
+    assert np.abs(np.diff(smooth, n=3, axis=0)).mean() < 0.5 * np.abs(np.diff(rough, n=3, axis=0)).mean()
 
 
 def test_a_prior_checkpoint_is_refused_by_a_family_without_one(pretrain_ckpt, tmp_path, capsys):

@@ -191,7 +191,12 @@ def test_generate_follows_a_timeline_in_the_body(client, server):
                          num_samples=1, steps=2, seed=3)  # one chain per text, the motion joined from them
     recorded = client.get(separate["settings"]).json()["timeline"]
     assert recorded["chains"] == "separate" and recorded["coupling"] == 0.25
+    smoothed = _generate(client, model="human", timeline=timeline, num_samples=2, steps=2, seed=3, smoothing=2)
+    assert client.get(smoothed["settings"]).json()["smoothing"] == 2.0  # the same noise, smoothed over time
+    rough, smooth = (np.asarray(r["motions"][0]["joints"]) for r in (result, smoothed))
+    assert np.abs(np.diff(smooth, n=3, axis=0)).mean() < 0.5 * np.abs(np.diff(rough, n=3, axis=0)).mean()
     cards = {m["name"]: m["card"] for m in client.get("/v1/models").json()["models"]}
+    assert "smoothing" in cards["human"]["options"] and "smoothing" in cards["pretrain"]["options"]
     assert cards["human"]["timeline"] == ["timeline", "parts"]
     assert cards["animal"]["timeline"] == cards["habit"]["timeline"] == cards["pretrain"]["timeline"] == []
     parts = {m["name"]: m["body_parts"] for m in client.get("/v1/models").json()["models"]}  # what the page offers
@@ -390,6 +395,9 @@ def test_the_families_without_sampler_steps_report_each_motion(server, shared_mo
     (dict(model="human", prompts=["a person walks"], num_samples=9), 422, "9 motions asked for; at most 8"),
     (dict(model="human", prompts=["a person walks"], steps=5000), 422, "steps must be in 1..1000"),
     (dict(model="human", prompts=["a person walks"], num_sample=2), 422, "num_sample: Extra inputs are not permitted"),
+    (dict(model="human", prompts=["a person walks"], smoothing=-1), 422, "smoothing: Input should be greater than or"),
+    (dict(model="human", prompts=["a person walks"], smoothing=11), 422, "smoothing: Input should be less than or"),
+    (dict(model="animal", prompts=["a dog walks"], smoothing=1), 422, "model 'animal' takes no option smoothing"),
     (dict(model="human", prompt="a person walks"), 422, "prompt: Extra inputs are not permitted"),
     (dict(model="human", timeline=[{"start": 0, "end": 1, "txt": "a person walks"}]), 422,
      "timeline: timeline[0]: unknown key 'txt'; a segment has start, end, text"),

@@ -576,3 +576,61 @@ def test_separate_chains_with_a_context_sample_with_every_sampler(controlnet):
         assert motion.shape == (2, frames, 263) and torch.isfinite(motion).all(), sampler
         assert not torch.allclose(motion, controlnet.sample(None, [frames, frames - 6],
                                                             replace(settings, timeline=without)), atol=1e-4), sampler
+
+
+# -- smoothing ---------------------------------------------------------------------------------------------------
+
+
+def _jerk(x: torch.Tensor) -> float:
+    return float(torch.diff(x, n=3, dim=1).abs().mean())
+
+
+def test_smoothing_removes_frame_to_frame_shake_and_keeps_slow_motion_contacts_and_padding():
+    """``omg.lit.control.smoothed``: a jittery estimate loses most of its jerk, a slow one barely moves, the
+    contact channels and the frames past a motion's length stay as they are, and a motion smooths alike alone or
+    beside a longer one."""
+    from omg.lit.control import smoothed
+
+    frames, torch_gen = 60, torch.Generator().manual_seed(0)
+    t = torch.arange(frames, dtype=torch.float32)[None, :, None]  # (1, T, 1)
+    slow = torch.sin(2 * torch.pi * t / 40).expand(2, frames, 6).clone()  # 0.5 Hz at 20 fps
+    shaky = slow + 0.1 * torch.randn(2, frames, 6, generator=torch_gen)
+    mask = length_mask([frames, frames - 10])
+    fixed = (5,)
+    for x0 in (slow, shaky):
+        x0[1, frames - 10:] = 0.0  # padding, as the sampler keeps it
+    out = {name: smoothed(lambda x, t: x, 1.5, mask, fixed)(x0, torch.zeros(2)) for name, x0 in
+           (("slow", slow), ("shaky", shaky))}
+    assert _jerk(out["shaky"][:, :frames - 10, :5]) < 0.05 * _jerk(shaky[:, :frames - 10, :5])
+    inner = slice(5, frames - 15)  # away from the edges, where the Gaussian is cut
+    assert (out["slow"][:, inner] - slow[:, inner]).abs().max() < 0.03
+    assert torch.equal(out["shaky"][..., 5], shaky[..., 5])  # a contact channel
+    assert torch.equal(out["shaky"][1, frames - 10:], shaky[1, frames - 10:])  # padding
+    alone = smoothed(lambda x, t: x, 1.5, length_mask([frames - 10]), fixed)(shaky[1:, :frames - 10], torch.zeros(1))
+    assert torch.allclose(alone[0], out["shaky"][1, :frames - 10], atol=1e-6)
+    assert smoothed(lambda x, t: x, 0.0, mask, fixed)(shaky, torch.zeros(2)) is shaky  # 0: off
+
+
+def test_smoothing_lowers_a_samples_jerk_with_every_sampler_a_timeline_and_stance_root(controlnet):
+    """``SamplingSettings(smoothing=...)``: every registered sampler, plain, on a timeline and with stance_root,
+    gives a motion whose joints shake less than the same sample without it; 0 is the plain path, bitwise."""
+    from omg.registry import SAMPLERS
+
+    frames, rep = 40, controlnet.representation
+    two = resolve_timeline([Segment(0, 1, WALK), Segment(1, 2, WAVE)], [], frames, FPS, rep)
+    plain = SamplingSettings(steps=3, seeds=(1, 2), use_ema=False)
+    assert torch.equal(controlnet.sample([WALK, WAVE], [frames] * 2, plain),
+                       controlnet.sample([WALK, WAVE], [frames] * 2, replace(plain, smoothing=0.0)))
+    for sampler in SAMPLERS.names():
+        for texts, how in (([WALK, WAVE], {}), (None, {"timeline": two, "stance_root": 0.5})):
+            rough, smooth = (controlnet.sample(texts, [frames, frames - 6], replace(
+                plain, sampler=sampler, smoothing=s, **how)) for s in (0.0, 1.5))
+            assert torch.isfinite(smooth).all() and smooth.shape == (2, frames, 263)
+            jerk = [_jerk(rep.decode(m[:1]).flatten(2)) for m in (rough, smooth)]
+            assert jerk[1] < 0.5 * jerk[0], (sampler, how.keys(), jerk)
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), 10.5, True, "2"])
+def test_a_bad_smoothing_is_one_line(value):
+    with pytest.raises(UsageError, match=r"^EvalCallback.smoothing must be a number of frames in \[0, 10\] \(0: off\)"):
+        SamplingSettings(smoothing=value, key="EvalCallback")

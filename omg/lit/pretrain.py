@@ -20,7 +20,7 @@ from torch import Tensor
 from omg.diffusion import Denoiser, Diffusion, StepProgress
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
-from omg.lit.control import Control, steered
+from omg.lit.control import Control, smoothed, steered
 from omg.lit.sampling import SamplingSettings, check_stance_root
 from omg.lit.timeline import chains_denoiser, check_timeline, compose_chains, timeline_denoiser
 from omg.losses import GeometricLoss
@@ -230,7 +230,9 @@ class MotionDiffusionModule(OmgModule):
         the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
         stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``); with
         its separate chains, each text samples its own chain (K·B rows from the same x_T, stance_root and control
-        applied to each chain), the chains joined at every step and in the motion returned.
+        applied to each chain), the chains joined at every step and in the motion returned. ``smoothing`` smooths
+        every estimate over time after the stance step and before the control's (``omg.lit.control.smoothed``), so
+        that constraints are met on the smoothed motion.
         ``progress`` (a watcher of this call, not a setting) hears the solver's (step, steps) after each step.
         """
         settings = settings or SamplingSettings()
@@ -271,6 +273,8 @@ class MotionDiffusionModule(OmgModule):
             strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
+            if settings.smoothing:  # after the stance step: a root stepped by alternating feet shakes too
+                denoise = smoothed(denoise, settings.smoothing, mask, self.representation.contact_features())
             if settings.control is not None:  # with separate chains, every chain steered to the targets
                 denoise = self.control_denoiser(denoise, mask, settings.control.tiled(chains), settings.steps)
             if progress is not None:  # passed only when watched: a plugin sampler need not take it

@@ -33,6 +33,16 @@ def check_stance_root(strength: float, key: str) -> float:
     return float(strength)
 
 
+MAX_SMOOTHING = 10.0  # frames: half a second at 20 fps, past which a gesture itself is smoothed away
+
+
+def check_smoothing(sigma: float, key: str) -> float:
+    """``sigma`` (frames) when it is a number in [0, ``MAX_SMOOTHING``] (0: off), else one line naming ``key``."""
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 <= sigma <= MAX_SMOOTHING:
+        raise UsageError(f"{key} must be a number of frames in [0, {MAX_SMOOTHING:g}] (0: off), got {sigma!r}")
+    return float(sigma)
+
+
 @dataclass(frozen=True)
 class SamplingSettings:
     """How a ``Sampler`` samples.
@@ -46,7 +56,9 @@ class SamplingSettings:
     the settings in the one-line errors (``EvalCallback``); a family takes the settings that apply to it
     (OmniMotionGPT passes steps, sampler and guidance to its human generator). ``timeline``
     (``omg.lit.timeline.Timeline``): every motion follows its texts, by stretches of frames and by body
-    parts, sampled with ``texts=None`` (a text-conditioned module's)."""
+    parts, sampled with ``texts=None`` (a text-conditioned module's). ``smoothing`` (frames, 0: off) smooths
+    every denoised estimate over time by a Gaussian of that sigma (``omg.lit.control.smoothed``): the
+    frame-to-frame shake of a guided sample."""
 
     steps: int = 200
     sampler: str = "ddim"
@@ -60,6 +72,7 @@ class SamplingSettings:
     control: Control | None = None
     key: str = ""
     timeline: Timeline | None = None
+    smoothing: float = 0.0
 
     def __post_init__(self) -> None:
         where = f"{self.key}." if self.key else ""
@@ -68,15 +81,18 @@ class SamplingSettings:
         SAMPLERS.get(self.sampler)  # an unknown name is one line naming the known ones
         if self.stance_root is not None:
             object.__setattr__(self, "stance_root", check_stance_root(self.stance_root, f"{where}stance_root"))
+        object.__setattr__(self, "smoothing", check_smoothing(self.smoothing, f"{where}smoothing"))
         if self.seeds is not None:
             object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
 
     def report(self) -> dict[str, Any]:
-        """What an evaluation report records: steps, guidance, use_ema, sampler, and stance_root and the
-        constraints' names when set."""
+        """What an evaluation report records: steps, guidance, use_ema, sampler, and stance_root, smoothing and
+        the constraints' names when set."""
         shown = {"steps": self.steps, "guidance": self.guidance, "use_ema": self.use_ema, "sampler": self.sampler}
         if self.control is not None:
             shown["control"] = list(self.control.names)
+        if self.smoothing:
+            shown["smoothing"] = self.smoothing
         return shown if self.stance_root is None else {**shown, "stance_root": self.stance_root}
 
 

@@ -115,6 +115,11 @@ class Representation(ABC):
         """(..., T', F) contact labels in [0, 1] for ``skeleton.feet``, if the features carry them."""
         return None
 
+    def contact_features(self) -> tuple[int, ...]:
+        """The feature channels that are flags, not quantities (foot contacts): sampling's ``smoothing`` keeps
+        them as they are (``omg.lit.control.smoothed``)."""
+        return ()
+
     def integrated_features(self) -> tuple[int, ...]:
         """The feature channels whose running sum ``decode`` takes (a root velocity, a yaw rate): row t moves
         frame t to t + 1. Spatial control changes them by differences of a change per frame (``omg.lit.control``),

@@ -235,6 +235,9 @@ class HumanML3D263(Representation):
     def foot_contacts(self, features: torch.Tensor) -> torch.Tensor:
         return features[..., 259:263]
 
+    def contact_features(self) -> tuple[int, ...]:
+        return (259, 260, 261, 262)
+
     def integrated_features(self) -> tuple[int, ...]:
         return (0, 1, 2)  # the yaw rate and the root's XZ velocity
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from omg.tools.args import NonNegativeInt, PositiveInt
+from omg.tools.args import FiniteFloat, NonNegativeInt, PositiveInt
 
 
 def bench_control(
@@ -23,6 +23,7 @@ def bench_control(
     iterations: NonNegativeInt | None = None,
     final_iterations: NonNegativeInt | None = None,
     smooth: float | None = None,
+    smoothing: FiniteFloat = 0.0,
     contacts: bool = True,
     evaluator: str | None = None,
     seed: NonNegativeInt = 0,
@@ -46,6 +47,8 @@ def bench_control(
         wrist: the joint whose positions are constrained at every frame
         batch_size: motions sampled at once
         iterations, final_iterations, smooth: the steering's (``omg.lit.control.Control``; default its own)
+        smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's smoothing,
+            ``omg.lit.control.smoothed``; 0: off), with and without the constraints
         contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
         evaluator: an evaluator checkpoint (as ``omg bench quality --evaluator``): adds FID and R-precision; the
             R-precision pool is every take (at most 32)
@@ -57,10 +60,12 @@ def bench_control(
     from omg.lit.checkpoint import load_module
     from omg.lit.control import Control, distances
     from omg.lit.pretrain import MotionDiffusionModule
-    from omg.lit.sampling import SamplingSettings
+    from omg.lit.sampling import SamplingSettings, check_smoothing
     from omg.metrics.joints import FootSkating
     from omg.motion import length_mask
+    from omg.tools.bench.timeline import joint_jerk
 
+    check_smoothing(smoothing, "--smoothing")
     module = load_module(ckpt, expect=MotionDiffusionModule).eval()
     data = MotionDataModule(val=val, max_len=max_len, clips="whole")
     judge = None
@@ -70,6 +75,9 @@ def bench_control(
     chosen = prompt_set(data.val_clips().samples, takes, seed, data.windows)
     rep, skeleton, fps = module.representation, module.representation.skeleton, module.spec.fps
     hand = skeleton.index(wrist)
+
+    def jerk_of(joints: torch.Tensor) -> float:  # (N, T, J, 3) -> the mean of each take's joint jerk on its frames
+        return float(sum(joint_jerk(j[:n], fps).mean() for j, n in zip(joints, chosen.lengths.tolist())) / len(joints))
     real = rep.decode(chosen.motions)  # (N, T, J, 3) the takes in the model's world
     mask = length_mask(chosen.lengths, real.shape[1])  # (N, T)
     N, T, J = real.shape[:3]
@@ -99,7 +107,7 @@ def bench_control(
             began = time.perf_counter()
             motion = module.sample(None if texts is None else list(texts[rows]), chosen.lengths[rows],
                                    SamplingSettings(steps=steps, sampler=sampler, seed=seed + start, use_ema=False,
-                                                    control=part))
+                                                    control=part, smoothing=smoothing))
             seconds += time.perf_counter() - began
             motions.append(torch.nn.functional.pad(motion, (0, 0, 0, T - motion.shape[1])))
         features = torch.cat(motions)
@@ -108,7 +116,7 @@ def bench_control(
         skating.update(joints, mask)
         dist = distances(joints, control)[weights > 0] * 100  # cm at every constrained joint and frame
         path = (joints[:, :, 0, [0, 2]] - real[:, :, 0, [0, 2]]).norm(dim=-1)[mask] * 100
-        results[name] = {"mean_cm": float(dist.mean()), "max_cm": float(dist.max()),
+        results[name] = {"mean_cm": float(dist.mean()), "max_cm": float(dist.max()), "jerk": jerk_of(joints),
                          "within_5cm": float((dist <= 5).double().mean()),
                          "within_10cm": float((dist <= 10).double().mean()), "path_cm": float(path.mean()),
                          "foot_skating": float(skating.compute()), "s_per_motion": seconds / N}
@@ -120,17 +128,19 @@ def bench_control(
                               "real_r_precision_top3": scores.get("real/r_precision/top3", float("nan"))}
     real_skating = FootSkating(skeleton, fps)
     real_skating.update(real, mask)
+    real_jerk = jerk_of(real)
     print(f"`{command}`: {N} held-out takes of {val}, {steps} {sampler} steps, keyframes every {keyframe_every:g} s, "
           f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}; real takes' "
-          f"foot skating {float(real_skating.compute()):.3f}")
+          f"foot skating {float(real_skating.compute()):.3f}, joint jerk {real_jerk:.1f} m/s³")
     realism = " FID | R-precision top 3 |" if judge is not None else ""
-    print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating |"
+    print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating | jerk m/s³ |"
           f"{realism} s / motion |")
-    print("|---|---|---|---|---|---|---|" + "---|" * (3 if judge is not None else 1))
+    print("|---|---|---|---|---|---|---|---|" + "---|" * (3 if judge is not None else 1))
     for name, r in results.items():
         scored = f" {r['fid']:.3f} | {r['r_precision_top3']:.3f} |" if judge is not None else ""
         print(f"| {name} | {r['mean_cm']:.2f} | {r['max_cm']:.2f} | {r['within_5cm']:.3f} | {r['within_10cm']:.3f} "
-              f"| {r['path_cm']:.2f} | {r['foot_skating']:.3f} |{scored} {r['s_per_motion']:.2f} |", flush=True)
+              f"| {r['path_cm']:.2f} | {r['foot_skating']:.3f} | {r['jerk']:.1f} |{scored} {r['s_per_motion']:.2f} |",
+              flush=True)
     free, steered = results["unconstrained"], results["constrained"]
     skating = steered["foot_skating"] / max(free["foot_skating"], 1e-9)
     fid = f"FID {steered['fid'] / max(free['fid'], 1e-9):.2f}x, " if judge is not None else ""

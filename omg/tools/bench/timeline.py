@@ -59,6 +59,7 @@ def bench_timeline(
     steps: PositiveInt = 50,
     sampler: str = "ddim",
     guidance: FiniteFloat | None = None,
+    smoothing: FiniteFloat = 0.0,
     seed: NonNegativeInt = 0,
     prompts: Path | None = None,
     label: str = "content",
@@ -101,6 +102,8 @@ def bench_timeline(
         steps: sampling steps
         sampler: a registered sampler
         guidance: the guidance scale (default: the checkpoint's)
+        smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's
+            smoothing, ``omg.lit.control.smoothed``; 0: off), for every motion the bench samples
         seed: the seed of the choice of captions and of the first motion
         prompts: the prompt file whose ``labels:`` give the targets (default: the built-in set)
         label: the clip label that names the action (a Bandai-Namco take's ``content``)
@@ -116,13 +119,14 @@ def bench_timeline(
     from omg.generation.timeline import check_chains, parse_timeline
     from omg.lit.checkpoint import load_module
     from omg.lit.pretrain import MotionDiffusionModule
-    from omg.lit.sampling import SamplingSettings
+    from omg.lit.sampling import SamplingSettings, check_smoothing
     from omg.metrics.following import Joints, check_target, passes
     from omg.metrics.joints import FootSkating
     from omg.motion import get_representation
     from omg.registry import SAMPLERS
 
     SAMPLERS.get(sampler)
+    check_smoothing(smoothing, "--smoothing")
     check_chains(chains, "--chains")
     if coupling is not None and (not 0 <= coupling <= 1 or chains != "separate"):
         raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")
@@ -148,7 +152,7 @@ def bench_timeline(
         """``samples`` motions (n, T, J, 3) of ``texts`` (one per motion) or of a timeline, timed under ``what``."""
         timeline = None if spans is None else spans.resolve(frames, fps, rep)
         settings = SamplingSettings(steps=steps, sampler=sampler, guidance=guidance, seeds=seeds, use_ema=False,
-                                    timeline=timeline)
+                                    timeline=timeline, smoothing=smoothing)
         start = time.perf_counter()
         features = module.sample(None if spans is not None else list(texts), [frames] * samples, settings)
         clock[what][0] += time.perf_counter() - start

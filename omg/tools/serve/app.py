@@ -58,6 +58,7 @@ from omg.generation.protocol import (
 )
 from omg.generation.timeline import parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
+from omg.lit.sampling import MAX_SMOOTHING
 from omg.registry import SAMPLERS
 from omg.retarget import RIG_SUFFIXES
 from omg.skeleton import body_parts, get_skeleton
@@ -207,7 +208,8 @@ def _key(job: Job) -> tuple | None:
     if (not job.model.card.row_seeds or r.source is not None or r.source_module is not None or r.timeline is not None
             or r.control is not None):
         return None
-    return (job.model.name, r.frames, r.steps, r.sampler, r.guidance, r.species, bool(r.prompts))
+    return (job.model.name, r.frames, r.steps, r.sampler, r.guidance, r.species, bool(r.prompts),
+            tuple(sorted(r.options.items())))
 
 
 def _groups(jobs: list[Job], max_batch: int) -> list[list[Job]]:
@@ -271,6 +273,9 @@ class GenerateBody(BaseModel):
                                          "timeline)")
     constraints: dict[str, Any] | None = Field(None, description="spatial constraints, as a constraints file's JSON "
                                                "(docs/guide/control.md; keyframes give joints or positions, no file)")
+    smoothing: float | None = Field(None, ge=0, le=MAX_SMOOTHING, allow_inf_nan=False,
+                                    description="frames of the Gaussian every denoised estimate is smoothed over time "
+                                    "by (models whose card lists the smoothing option; default 0: off)")
 
 
 def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
@@ -396,7 +401,8 @@ def create_app(models: list[Model], out: Path, limits: Limits | None = None, rem
         request = GenerationRequest(prompts=prompts or None, frames=round(length * card.fps),
                                     num_samples=body.num_samples, seed=body.seed, steps=body.steps,
                                     sampler=body.sampler, guidance=body.guidance, species=body.species,
-                                    batch_size=limits.max_batch, timeline=spans)
+                                    batch_size=limits.max_batch, timeline=spans,
+                                    options={} if body.smoothing is None else {"smoothing": body.smoothing})
         if model.source_module is not None and prompts:
             request.source_module = model.source_module
         _check(card, request, model, length)
