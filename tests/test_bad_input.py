@@ -377,6 +377,7 @@ ROWS = [
     ("bench-data-clips-below-batch", [*BENCH_DATA, "--clips", "3"]),
     ("bench-data-feature-dim-zero", [*BENCH_DATA, "--feature_dim", "0"]),
     ("bench-data-workers-neg", [*BENCH_DATA, "--workers", "-1"]),
+    ("bench-data-sample-interval-zero", [*BENCH_DATA, "--sample_interval", "0"]),
     ("bench-data-max-len-zero", [*BENCH_DATA, "--max_len", "0"]),
     ("bench-data-max-len-below-window", [*BENCH_DATA, "--max_len", "40"]),
     ("bench-data-shards-missing", [*BENCH_DATA, "--shards", "{in}/nope"]),
@@ -649,6 +650,7 @@ SAYS = {
     "bench-data-clips-below-batch": "--clips gives 3 clips, fewer than --batch_size 4",
     "bench-data-feature-dim-zero": "feature_dim: expected an integer >= 1, got '0'",
     "bench-data-workers-neg": "workers: expected an integer >= 0, got '-1'",
+    "bench-data-sample-interval-zero": "sample_interval: expected a finite number > 0, got '0'",
     "bench-data-max-len-zero": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark cuts), "
                                "got '0'",
     "bench-data-max-len-below-window": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark "

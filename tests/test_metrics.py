@@ -10,9 +10,9 @@ import pytest
 import scipy.linalg
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 from scipy.ndimage import uniform_filter1d
 
+from helpers.forked import spawn_ranks
 from omg.metrics import (
     FID,
     FIDOOD,
@@ -364,9 +364,8 @@ def _rank_main(rank: int, world: int, port: int, out: str) -> None:
     dist.destroy_process_group()
 
 
-@pytest.mark.slow  # two gloo processes that each import Lightning
 def test_two_gloo_ranks_equal_one_process(tmp_path):
-    mp.spawn(_rank_main, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    spawn_ranks(_rank_main, (2, _free_port(), str(tmp_path)), 2)  # two gloo processes, forked
     whole = single_process_results()
     for rank in range(2):
         results = torch.load(tmp_path / f"rank{rank}.pt")

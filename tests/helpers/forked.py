@@ -96,3 +96,12 @@ class OmgProcess:
 
     def kill(self) -> None:
         self.send_signal(signal.SIGKILL)
+
+
+def spawn_ranks(fn, args: tuple, nprocs: int) -> None:
+    """``torch.multiprocessing.spawn(fn, args, nprocs)`` with the rank processes forked from the same server:
+    each imports only what the server has not (``fn``'s test module), where a spawned rank imports torch and
+    Lightning again. A test whose point is what a fresh rank inherits (nothing) spawns its ranks itself."""
+    import torch.multiprocessing as mp
+
+    mp.start_processes(fn, args=args, nprocs=nprocs, join=True, start_method="forkserver")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from omg.errors import UsageError
-from omg.tools.args import NonNegativeInt, PositiveInt, number_type
+from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt, number_type
 from omg.tools.bench.measure import USAGE_ERROR, run_measured, tree_pss
 from omg.tools.common import last_line
 
@@ -92,6 +92,7 @@ def bench_data(
     workers: NonNegativeInt = 2,
     max_len: WindowFrames = 196,
     shards: str | None = None,
+    sample_interval: PositiveFiniteFloat = 0.05,
     command: str = "omg bench data",
 ) -> dict[str, tuple[float, float, float]]:
     """Streaming vs in-memory loader: windows/s and peak memory.
@@ -104,6 +105,9 @@ def bench_data(
         workers: loader worker processes (0: load in the main process)
         max_len: longest window in frames
         shards: an existing shard directory (or URL pattern) to read instead of a random set
+        sample_interval: seconds between two samples of the process tree's memory (each sample costs
+            about 40 ms of CPU, beside the loader's own: a longer interval leaves the loader more of a small
+            machine and may miss a short peak)
         command: the command line, printed with the results
 
     Returns:
@@ -120,7 +124,7 @@ def bench_data(
         for kind in ("streaming", "in-memory"):
             cmd = [sys.executable, "-m", "omg.tools.bench", kind, shards, str(batch_size), str(workers), str(batches),
                    str(max_len)]
-            result, peak = run_measured(cmd, f"the {kind} loader")
+            result, peak = run_measured(cmd, f"the {kind} loader", sample_interval)
             rows[kind] = (result["windows_per_s"], peak / 2**20, (peak - result["baseline"]) / 2**20)
     print("| loader | windows/s | peak PSS, whole process tree (MiB) | of which the loader (MiB) | command |")
     print("|---|---|---|---|---|")
