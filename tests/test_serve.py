@@ -1406,7 +1406,8 @@ def test_the_page_composes_body_parts_in_separate_chains(server, browser, tmp_pa
     """The Control panel's body-part composition: rows of part names and texts, sent as the timeline's ``parts``
     with the joint blend; its *separate chains* switch sends ``chains: "separate"`` with the coupling given, the
     motion comes back sampled so (its recorded settings) and a screenshot of it is saved (its path printed); a
-    coupling out of range is the API's one line on the page. A model whose card takes no parts disables it."""
+    coupling out of range is the API's one line on the page. A model whose card takes no parts disables it. The
+    smoothing field (sampling's ``smoothing``) shows where the card lists it and is sent, and recorded, when given."""
     from omg.generation.timeline import parse_timeline
 
     context, page, errors, _ = _open_page(browser, server)
@@ -1415,7 +1416,9 @@ def test_the_page_composes_body_parts_in_separate_chains(server, browser, tmp_pa
     page.on("response", lambda r: answers.append(r) if r.url.endswith("/v1/generate") else None)
     page.select_option("#model", "animal")
     assert page.locator("#parts-add").is_disabled() and page.locator("#parts-separate").is_disabled()
+    assert not page.locator("#smoothing").is_visible()  # an OmniMotionGPT card: no smoothing option
     page.select_option("#model", "human")
+    assert page.locator("#smoothing").is_visible()
     assert page.locator("#parts-add").is_enabled() and page.locator("#parts-coupling").is_disabled()
     assert "parts (smpl22): root, torso, left_arm" in page.locator("#parts-names").inner_text()
     for names, text, start in (("legs, root", "a person walks forward", ""), ("arms", "a person waves", "0.5")):
@@ -1450,10 +1453,13 @@ def test_the_page_composes_body_parts_in_separate_chains(server, browser, tmp_pa
     page.click("#generate")
     page.wait_for_function("document.querySelector('#status').classList.contains('error')")
     assert page.locator("#status").inner_text() == "timeline: coupling must be a number in [0, 1], got 2"
+    assert "smoothing" not in sent[-1]  # an empty field: the model's default, nothing sent
     page.uncheck("#parts-separate")  # joint again: the coupling is not sent
+    page.fill("#smoothing", "1.5")
     page.click("#generate")
     page.wait_for_function("window.omgViewer.results == 3", timeout=60_000)
-    assert sent[-1]["timeline"] == {"parts": parts}
+    assert sent[-1]["timeline"] == {"parts": parts} and sent[-1]["smoothing"] == 1.5
+    assert httpx.get(server.url + answers[-1].json()["settings"]).json()["smoothing"] == 1.5
     context.close()
 
 

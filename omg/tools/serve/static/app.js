@@ -38,6 +38,7 @@ function onModel() {
   show('length-box', !c.source_fixes_length);
   show('diffusion-box', c.samplers.length > 0);
   show('guidance-box', c.guidance !== null);
+  show('smoothing-box', 'smoothing' in c.options);  // sampling's smoothing, where the card lists it
   $('examples').innerHTML = '';
   for (const text of current.examples) {
     const b = document.createElement('button');
@@ -91,6 +92,7 @@ async function generate() {
     if (!c.source_fixes_length && number('length') !== null) body.length = number('length');
     if (c.samplers.length) { body.sampler = $('sampler').value; body.steps = number('steps'); }
     if (c.guidance !== null) body.guidance = number('guidance');
+    if ('smoothing' in c.options && number('smoothing') !== null) body.smoothing = number('smoothing');
     if (species) body.species = species;
     control.apply(body, timeline);
     request = fetch('/v1/generate', { method: 'POST', headers: { 'content-type': 'application/json' },
