@@ -4,6 +4,7 @@ whose transfers carry the target's habits and keep the source's path, and `omg t
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import sys
@@ -721,4 +722,9 @@ def test_the_default_order_under_ddp_asks_for_unused_parameters(tmp_path):
             else:
                 module.on_fit_start()
     finally:
+        # the DDP wrappers (each a reducer holding the gloo group) sit in cycles with their module and trainer:
+        # collected here, while the group's threads exist; a process forked from this worker later (a shard
+        # build's pool) would otherwise collect them without those threads and hang in the group's destructor
+        module = None
+        gc.collect()
         dist.destroy_process_group()
