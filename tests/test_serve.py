@@ -1399,7 +1399,10 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     markers = page.evaluate("window.omgControl.markers().result")
     assert markers == {"path": 2, "waypoint": 6, "keyframe": 44, "keyframe-bones": 2}, markers
     assert not errors, errors
-    # waypoints instead of a dense path, and a bad timeline is one line on the page
+    # waypoints instead of a dense path, and a bad timeline is one line on the page; emptied, the transition and
+    # context fields leave the file's defaults: the bare list of segments is sent
+    page.fill("#timeline-transition", "")
+    page.fill("#timeline-context", "")
     page.select_option("#path-kind", "waypoints")
     page.locator("#timeline-rows .segment").last.locator(".segment-start").fill("1.5")
     page.locator("#timeline-rows .segment").first.locator(".segment-end").fill("1.2")
@@ -1408,6 +1411,8 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     assert "a gap between timeline[0] (ends at 1.2 s) and timeline[1] (starts at 1.5 s)" in \
         page.locator("#status").inner_text()
     assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
+    assert sent[-1]["timeline"] == [{"start": 0, "end": 1.2, "text": "a person walks forward"},
+                                    {"start": 1.5, "end": 2, "text": "a person bows"}]
     page.fill("#timeline-transition", "-1")  # the API reads transition before the segments: its line, not the gap's
     page.click("#generate")
     page.wait_for_function("document.querySelector('#status').textContent.includes('transition')")
