@@ -1304,24 +1304,29 @@ def test_the_page_plays_the_motions_on_an_uploaded_fbx_character(server, browser
 
 def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, browser, shared_motion):
     """The Control panel: a path clicked on the ground grid, a keyframe from a frame of an uploaded BVH (retargeted
-    by the server, /v1/keyframes), a timeline of two rows; the request holds them in the documented format, the
-    result shows each motion's control error and the constraints beside it; a model whose card takes none shows
-    the panel disabled with why."""
+    by the server, /v1/keyframes), a timeline of two rows with a transition and a context typed (sent in the
+    timeline's mapping and recorded as sampled); the request holds them in the documented format, the result
+    shows each motion's control error and the constraints beside it; a bad timeline or a negative transition is
+    the API's one line on the page; a model whose card takes none shows the panel disabled with why."""
     from omg.generation.control import read_constraints
-    from omg.generation.timeline import parse_timeline
+    from omg.generation.timeline import DEFAULT_TRANSITION, parse_timeline
 
     page = browser.new_page(viewport={"width": 1200, "height": 900})
     errors, sent = [], []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     page.on("request", lambda r: sent.append(r.post_data_json) if r.url.endswith("/v1/generate") else None)
+    answers = []
+    page.on("response", lambda r: answers.append(r) if r.url.endswith("/v1/generate") else None)
     page.goto(server.url + "/")
     page.wait_for_function("document.querySelectorAll('#model option').length == 4")
     page.select_option("#model", "animal")
-    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    timeline_fields = ("#timeline-add", "#timeline-transition", "#timeline-context")
+    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", *timeline_fields))
     assert "animal (omgpt) takes no constraints and no timeline" in page.locator("#control-why").inner_text()
     page.select_option("#model", "human")
-    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", "#timeline-add"))
+    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", *timeline_fields))
+    assert page.get_attribute("#timeline-transition", "placeholder") == f"{DEFAULT_TRANSITION:g} (default)"
     # the path: three clicks on the ground in front of the origin, a drag between them adds none
     page.click("#path-draw")
     box = page.locator("#viewer canvas").bounding_box()
@@ -1359,14 +1364,19 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
         row.locator(".segment-start").fill(str(start))
         row.locator(".segment-end").fill(str(end))
         row.locator(".segment-text").fill(text)
+    page.fill("#timeline-transition", "0.25")  # not the default: the recorded value is the page's
+    page.fill("#timeline-context", "0.5")
     page.fill("#steps", "2")
     page.fill("#num_samples", "2")
     page.click("#generate")
     page.wait_for_function("window.omgViewer.results == 1", timeout=60_000)
     body = sent[-1]
     assert body["prompts"] == [] and "length" not in body
-    assert body["timeline"] == [{"start": 0, "end": 1, "text": "a person walks forward"},
-                                {"start": 1, "end": 2, "text": "a person bows"}]
+    assert body["timeline"] == {"timeline": [{"start": 0, "end": 1, "text": "a person walks forward"},
+                                             {"start": 1, "end": 2, "text": "a person bows"}],
+                                "transition": 0.25, "context": 0.5}
+    recorded = httpx.get(server.url + answers[-1].json()["settings"]).json()["timeline"]
+    assert recorded["transition"] == 0.25 and recorded["context"] == 0.5
     assert set(body["constraints"]) == {"path", "keyframes"}
     assert body["constraints"]["path"] == {"points": [[0, 0], *path]}
     expected = httpx.post(server.url + "/v1/keyframes", data={"model": "human"},
@@ -1389,7 +1399,10 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     markers = page.evaluate("window.omgControl.markers().result")
     assert markers == {"path": 2, "waypoint": 6, "keyframe": 44, "keyframe-bones": 2}, markers
     assert not errors, errors
-    # waypoints instead of a dense path, and a bad timeline is one line on the page
+    # waypoints instead of a dense path, and a bad timeline is one line on the page; emptied, the transition and
+    # context fields leave the file's defaults: the bare list of segments is sent
+    page.fill("#timeline-transition", "")
+    page.fill("#timeline-context", "")
     page.select_option("#path-kind", "waypoints")
     page.locator("#timeline-rows .segment").last.locator(".segment-start").fill("1.5")
     page.locator("#timeline-rows .segment").first.locator(".segment-end").fill("1.2")
@@ -1398,8 +1411,16 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     assert "a gap between timeline[0] (ends at 1.2 s) and timeline[1] (starts at 1.5 s)" in \
         page.locator("#status").inner_text()
     assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
+    assert sent[-1]["timeline"] == [{"start": 0, "end": 1.2, "text": "a person walks forward"},
+                                    {"start": 1.5, "end": 2, "text": "a person bows"}]
+    page.fill("#timeline-transition", "-1")  # the API reads transition before the segments: its line, not the gap's
+    page.click("#generate")
+    page.wait_for_function("document.querySelector('#status').textContent.includes('transition')")
+    assert page.locator("#status").inner_text() == \
+        "timeline: transition must be a finite number of seconds >= 0, got -1"
+    assert "error" in page.get_attribute("#status", "class")
     page.close()
-    assert errors == ["Failed to load resource: the server responded with a status of 422 (Unprocessable Entity)"]
+    assert errors == ["Failed to load resource: the server responded with a status of 422 (Unprocessable Entity)"] * 2
 
 
 def test_the_page_composes_body_parts_in_separate_chains(server, browser, tmp_path):

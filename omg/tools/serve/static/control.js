@@ -114,11 +114,24 @@ export function createControl({ scene, camera, canvas, $ }) {
   frame.oninput = redraw;
 
   const rows = element('div', { id: 'timeline-rows' });
+  // the timeline file's transition and context, for the segments and the body parts alike; an empty field is the
+  // file's default and is not sent (DEFAULT_TRANSITION in omg/generation/timeline.py; the page's test holds the
+  // placeholder to it)
+  const transition = element('input', { id: 'timeline-transition', type: 'number', min: 0, step: 0.1,
+                                        placeholder: '0.5 (default)', title: 'seconds over which two segments that ' +
+                                        'only touch cross over, centred on their boundary; a body part with a ' +
+                                        'start or end crosses in and out over it too (empty: the default, 0.5 s)' });
+  const context = element('input', { id: 'timeline-context', type: 'number', min: 0, step: 0.1,
+                                     placeholder: 'whole motion', title: 'seconds each text\u2019s denoiser sees on ' +
+                                     'either side of its own frames, for segments and body parts (0: its own ' +
+                                     'frames and crossings only; empty: the whole motion, the default)' });
   const timeBox = element('fieldset', { id: 'timeline-box' }, [
     element('legend', { textContent: 'Prompt timeline' }),
     element('div', { className: 'note', textContent: 'segments in seconds, each meeting or overlapping the next; ' +
                                                       'their texts replace the prompts, the last end sets the length' }),
-    rows, button('Add segment', () => addSegment(), 'timeline-add')]);
+    rows, button('Add segment', () => addSegment(), 'timeline-add'),
+    element('div', { className: 'timing' }, [element('label', {}, ['transition (s) ', transition]),
+                                             element('label', {}, ['context (s) ', context])])]);
 
   // body parts that follow their own text at the same time, and how the texts are sampled: one chain of blended
   // estimates (the default) or separate chains pulled together by the coupling (the timeline file's chains)
@@ -237,18 +250,26 @@ export function createControl({ scene, camera, canvas, $ }) {
     });
   }
 
-  // The timeline as the API takes it: the bare list of segments, or with parts or separate chains the mapping
-  // {timeline, parts, chains, coupling}; a part without start or end holds from the motion's start or to its end.
+  // The timeline as the API takes it: the bare list of segments, or with parts, a transition or context given or
+  // separate chains the mapping {timeline, parts, transition, context, chains, coupling}; a part without start or
+  // end holds from the motion's start or to its end.
   function timelineBody() {
     const segments = timeBox.disabled ? [] : state.timeline.map(({ start, end, text }) => ({ start, end, text }));
     const parts = partsBox.disabled ? [] : state.parts.map((p) => ({
       parts: p.parts.split(/[\s,]+/).filter(Boolean), text: p.text,
       ...(p.start === '' ? {} : { start: Number(p.start) }), ...(p.end === '' ? {} : { end: Number(p.end) }) }));
+    const timing = {};
+    if (!timeBox.disabled) {
+      for (const [key, input] of [['transition', transition], ['context', context]]) {
+        if (input.value.trim() !== '') timing[key] = Number(input.value);
+      }
+    }
     const split = !partsBox.disabled && separate.checked;
-    if (!parts.length && !split) return segments;
+    if (!parts.length && !split && !Object.keys(timing).length) return segments;
     const out = {};
     if (segments.length) out.timeline = segments;
     if (parts.length) out.parts = parts;
+    Object.assign(out, timing);
     if (split) {
       out.chains = 'separate';
       if (coupling.value.trim() !== '') out.coupling = Number(coupling.value);
