@@ -110,6 +110,34 @@ def test_a_helpers_failure_stops_the_build(tmp_path):
     assert not (tmp_path / "failed").exists()  # a failed build removes the folders it created
 
 
+class _Finalized:
+    """Garbage (it holds itself) that adds a line with the pid of each process whose collector finalizes it."""
+
+    def __init__(self, record: Path):
+        self.record, self.itself = record, self
+
+    def __del__(self):
+        with self.record.open("a") as lines:
+            lines.write(f"{os.getpid()}\n")
+
+
+def test_the_build_collects_its_garbage_before_it_forks_its_workers(tmp_path):
+    """A worker forked with this process's uncollected garbage would finalize it itself, where a finalizer
+    that waits on one of this process's threads (a DDP wrapper ending its gloo group) waits for ever: the
+    build collects first, so nothing of it is finalized in a worker (whose collector runs here before it
+    reads each item)."""
+    import gc
+
+    record = tmp_path / "finalized_by"
+    gc.disable()  # the garbage stays uncollected up to the build: only explicit collections run
+    try:
+        _Finalized(record)
+        _build(tmp_path / "out", workers=2, options={"num_clips": 8, "collect": True})
+    finally:
+        gc.enable()
+    assert record.read_text().split() == [str(os.getpid())]  # here, once, and in no worker
+
+
 def test_killed_parallel_build_resumes(one_worker, tmp_path):
     out = tmp_path / "killed"
     code = f"from pathlib import Path; from helpers.lazy_walks import build; build(Path({str(out)!r}), workers=2, " \

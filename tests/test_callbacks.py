@@ -127,9 +127,13 @@ def test_controlnet_samples_follow_lengths_and_guidance():
     assert dtypes[0] == torch.bfloat16 and dtypes[-1] == torch.float32
     assert mixed.dtype == torch.float32 and torch.isfinite(mixed).all()
     assert (mixed - reference).abs().max() < 0.05 * reference.abs().max()
-    # torch.compile: the same sample, compiled once for these shapes
-    compiled = module.sample(texts, full, SamplingSettings(seed=1, steps=4, compile=True))
-    torch.testing.assert_close(compiled, reference, rtol=0, atol=1e-4)
+    # torch.compile (sample()'s one compile step, the same for every OMG diffusion model): the same sample,
+    # compiled once for these shapes. Checked on the prior alone: inductor compiles every distinct kernel with a
+    # C++ compiler on the CPU, and the ControlNet's kernels would double what this test spends on it
+    prior = _module(data).eval()
+    eager = prior.sample(None, full, SamplingSettings(seed=1, steps=4))
+    compiled = prior.sample(None, full, SamplingSettings(seed=1, steps=4, compile=True))
+    torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-4)
 
     # sample() switches to eval mode and gives every submodule its own mode back (the frozen prior stays in eval)
     module.train()

@@ -24,6 +24,7 @@ from torch.serialization import get_unsafe_globals_in_checkpoint
 
 from helpers import REPO, TINY_DIT, TINY_DIT_ARG
 from helpers.checkpoints import SPEC, save_module, write_zero2_checkpoint, zero_tensor_bytes
+from helpers.forked import OmgProcess
 from omg.cli import main as omg
 from omg.errors import UsageError
 from omg.lit.checkpoint import LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module
@@ -344,8 +345,9 @@ def test_a_killed_checkpoint_write_keeps_the_old_file_and_its_temp_file_is_clean
     last = tmp_path / "ck" / "last.ckpt"
     AtomicCheckpointIO().save_checkpoint({"state_dict": {"w": torch.ones(3)}, "global_step": 7}, last)
     assert [p.name for p in last.parent.iterdir()] == ["last.ckpt"]
-    killed = subprocess.run([sys.executable, "-c", KILLED_SAVE, str(last)], cwd=REPO)
-    assert killed.returncode == -9
+    script = tmp_path / "killed_save.py"  # a real process, forked from the tests' preloaded server (helpers.forked)
+    script.write_text(KILLED_SAVE)
+    assert OmgProcess([str(last)], script=script).wait(timeout=120) == -9
     temp = [p for p in last.parent.iterdir() if p != last]
     assert len(temp) == 1 and temp[0].name.startswith(".last.") and temp[0].name.endswith(".tmp.ckpt")
     assert torch.load(last, weights_only=True)["global_step"] == 7  # the old checkpoint, whole

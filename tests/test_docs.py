@@ -6,16 +6,15 @@ family pages show is one the CLI accepts.
 The command check is what a user would run, short of running it: the subcommand is one ``omg.cli``
 knows; a tool command's flags appear in its own ``--help``; a Lightning command's config files exist
 and ``omg <fit|test|...> --config ... --KEY VALUE ... --print_config`` accepts its keys. All of it runs
-in one child process (the CLI's imports once, then each command in-process), so the check takes
-seconds, not a Python start-up per command."""
+in one child process forked from the tests' preloaded server (``helpers.forked``: the CLI's imports
+are there already; each command runs in-process), so the check takes seconds, not a Python start-up per
+command."""
 
 from __future__ import annotations
 
 import json
 import re
 import shlex
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -233,7 +232,7 @@ import contextlib, io, json, sys
 from omg.cli import main
 
 results = []
-for argv in json.load(sys.stdin):
+for argv in json.loads(open(sys.argv[1]).read()):
     out, err = io.StringIO(), io.StringIO()
     code = 0
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -244,16 +243,20 @@ for argv in json.load(sys.stdin):
         except Exception as e:  # a traceback is a failure of the command's check, reported with the others
             code, err = 1, io.StringIO(f"{type(e).__name__}: {e}")
     results.append({"code": code, "stdout": out.getvalue(), "stderr": err.getvalue()[-2000:]})
-json.dump(results, sys.__stdout__)
+print(json.dumps(results))
 """
 
 
-def run_in_child(argvs: list[tuple[str, ...]]) -> dict[tuple[str, ...], dict]:
+def run_in_child(argvs: list[tuple[str, ...]], folder: Path) -> dict[tuple[str, ...], dict]:
     """Each argv through ``omg.cli.main`` in one child process (in the repository, as a user runs them)."""
-    done = subprocess.run([sys.executable, "-c", CHILD], input=json.dumps(argvs), capture_output=True, text=True,
-                          cwd=ROOT, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return dict(zip(argvs, json.loads(done.stdout.strip().splitlines()[-1])))
+    from helpers.forked import OmgProcess
+
+    (folder / "check.py").write_text(CHILD)
+    (folder / "argvs.json").write_text(json.dumps(argvs))
+    out, err = folder / "results.out", folder / "check.err"
+    child = OmgProcess([str(folder / "argvs.json")], script=folder / "check.py", cwd=ROOT, stdout=out, stderr=err)
+    assert child.wait(timeout=600) == 0, err.read_text()[-3000:]
+    return dict(zip(argvs, json.loads(out.read_text().strip().splitlines()[-1])))
 
 
 # a renamed flag and a misspelt key, as a page would show them: the check must catch both
@@ -282,12 +285,12 @@ def shown() -> list[Shown]:
 
 
 @pytest.fixture(scope="session")
-def checked(shown) -> dict[tuple[str, ...], dict]:
+def checked(shown, tmp_path_factory) -> dict[tuple[str, ...], dict]:
     """Each tool parser's --help and each Lightning command's --print_config, run once."""
     argvs = sorted({help_argv(c.argv) for c in shown if c.argv[0] in COMMANDS}
                    | {print_config_argv(c) for c in shown if c.argv[0] in LIGHTNING}
                    | {help_argv(c.argv) if c.argv[0] in COMMANDS else print_config_argv(c) for c in BROKEN})
-    return run_in_child(argvs)
+    return run_in_child(argvs, tmp_path_factory.mktemp("docs_commands"))
 
 
 def test_shown_commands_name_a_command_of_the_cli(shown):

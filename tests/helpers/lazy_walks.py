@@ -3,6 +3,7 @@ processes with --workers), with bad items, items of another domain and NaN clips
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 from dataclasses import replace
@@ -21,11 +22,14 @@ FAIL_AT = 23
 
 
 def _item(i: int, fps: float, fail_flag: str | None, delay: float = 0.0,
-          readers: str | None = None) -> Clip | Exception | None:
+          readers: str | None = None, collect: bool = False) -> Clip | Exception | None:
     """Source item i, read lazily (in a helper process with --workers): a walk, a bad item, an
     item of another domain, or a clip whose features are NaN. ``readers``: a folder where each
-    process that reads an item leaves a file named by its pid."""
+    process that reads an item leaves a file named by its pid; ``collect``: the reading process's
+    garbage collector runs first (as it may at any allocation)."""
     time.sleep(delay)
+    if collect:
+        gc.collect()
     if readers:
         (Path(readers) / str(os.getpid())).touch()
     if fail_flag and i == FAIL_AT and Path(fail_flag).exists():
@@ -42,9 +46,9 @@ def _item(i: int, fps: float, fail_flag: str | None, delay: float = 0.0,
 
 @DATA_SOURCES.register(SOURCE)
 def lazy_walks(input, skeleton, fps, num_clips: int = 48, fail_flag: str | None = None,
-               delay: float = 0.0, readers: str | None = None) -> list[LazyItem]:
+               delay: float = 0.0, readers: str | None = None, collect: bool = False) -> list[LazyItem]:
     """Walks read when the build gets to them (a test source)."""
-    return [LazyItem(_item, (i, fps, fail_flag, delay, readers)) for i in range(num_clips)]
+    return [LazyItem(_item, (i, fps, fail_flag, delay, readers, collect)) for i in range(num_clips)]
 
 
 def build(out: Path, **kw) -> list:

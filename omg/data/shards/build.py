@@ -70,12 +70,17 @@ def _encoded(items: Iterable, start: int, representation: Representation, fps: f
             if position > start:
                 yield position, encode_item(item, representation, fps)
         return
+    import gc
     import multiprocessing
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
     context = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+    # A forked worker inherits this process's uncollected garbage, and its collector would finalize it there,
+    # where an object whose finalizer waits on one of this process's threads (a DDP wrapper's gloo group, left
+    # by a training in the same process) waits for ever: collected here, where those threads are
+    gc.collect()
     window: deque[tuple[int, Future | EncodedClip | Exception | None]] = deque()
     pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker)
     try:
