@@ -318,3 +318,31 @@ def test_bench_control_scores_realism_with_an_evaluator(pretrain_ckpt, h263_shar
         assert np.isfinite(r["fid"]) and r["fid"] > 0 and 0 <= r["r_precision_top3"] <= 1, r
     table = capsys.readouterr().out
     assert "| FID | R-precision top 3 |" in table and "constrained / unconstrained: FID " in table
+
+
+def test_training_hints_are_the_clips_own_joints_on_the_kinds_and_shares_drawn():
+    """A ControlNet trained with hints sees each clip's own joints where a drawn constraint states them, nothing
+    on padded frames, and the kinds in their shares: no hint in free_share of the clips, root paths on the ground
+    alone in ground_share of them, full-body keyframes; the same generator state draws the same hints."""
+    from omg.lit.control import HintTraining, draw_hints
+
+    B, T, J = 400, 60, 22
+    joints = torch.randn(B, T, J, 3)
+    mask = torch.arange(T)[None] < torch.randint(20, T + 1, (B,))[:, None]
+    hints = HintTraining(enabled=True, free_share=0.25, ground_share=0.5)
+    drawn = draw_hints(joints, mask, hints, torch.Generator().manual_seed(3)).view(B, T, J, 6)
+    assert torch.equal(drawn, draw_hints(joints, mask, hints, torch.Generator().manual_seed(3)).view(B, T, J, 6))
+    values, stated = drawn[..., :3], drawn[..., 3:].bool()
+    assert torch.equal(values, joints * stated) and not stated[~mask].any()
+    per_clip = stated.flatten(1).any(1)
+    assert 0.18 < 1 - per_clip.double().mean() < 0.32  # free_share, a few draws of a span aside
+    root = stated[:, :, 0]  # (B, T, 3)
+    paths = root.any(-1).any(-1)
+    ground = paths & ~root[..., 1].any(-1)
+    assert 0.3 < ground.sum() / paths.sum() < 0.7 and torch.equal(root[..., 0], root[..., 2])
+    keyframes = stated.all(-1).all(-1).any(-1)  # a frame with every joint's every axis
+    assert 0.1 < keyframes.double().mean() < 0.35
+    heights = (stated[:, :, 1:, 1] & ~stated[:, :, 1:, 0]).any(-1).any(-1)  # a joint's height alone
+    assert heights.any()
+    with pytest.raises(UsageError, match="hints.free_share must be a probability"):
+        HintTraining(free_share=1.5)

@@ -336,25 +336,26 @@ def trained_like(layers=None, **overrides) -> MotionControlNet:
     return randomize_zeros(net).eval()
 
 
-def reference_fig3(net: MotionControlNet, x, t, tokens, text_mask, eot, mask):
+def reference_fig3(net: MotionControlNet, x, t, tokens, text_mask, eot, mask, hint=None):
     """Paper Fig. 3, written out: layer l's copy reads h_l (the main stream entering frozen
-    layer l), the MoC turns the copy's output into token-masked residuals (the loop-based MoC
-    reference), and they are added to the frozen layer's output h_{l+1}."""
+    layer l; with a hint, h_l + H(hint)), the MoC turns the copy's output into token-masked residuals (the
+    loop-based MoC reference), and they are added to the frozen layer's output h_{l+1}."""
     base = net.base
     h, c, mod, rope = base.embed(x, t)
+    e = 0 if hint is None else net.hint_embed(hint)
     for layer, frozen in enumerate(base.blocks):
         h_next = frozen(h, mod, rope, mask)
         if str(layer) in net.mocs:
-            g = net.copy_blocks[str(layer)](h, mod, rope, mask)
+            g = net.copy_blocks[str(layer)](h + e, mod, rope, mask)
             h_next = h_next + reference_moc(net.mocs[str(layer)], g, tokens, text_mask, eot, mask)[0]
         h = h_next
     return base.final_layer(h, c)
 
 
-def reference_parallel_stream(net: MotionControlNet, x, t, tokens, text_mask, eot, mask):
+def reference_parallel_stream(net: MotionControlNet, x, t, tokens, text_mask, eot, mask, hint=None):
     base = net.base
     h, c, mod, rope = base.embed(x, t)
-    h_c = h
+    h_c = h if hint is None else h + net.hint_embed(hint)
     for layer, frozen in enumerate(base.blocks):
         h_c = net.copy_blocks[str(layer)](h_c, mod, rope, mask)
         if str(layer) in net.mocs:
@@ -386,6 +387,38 @@ def test_controlnet_matches_loop_reference(wiring, layers):
             control = net.controller(h, mod, rope, mask, net.text_terms(tokens, text_mask, eot))
             skipped = [i for i in range(4) if str(i) not in net.mocs]
             assert all(control(i, h) is None for i in skipped)
+
+
+@pytest.mark.parametrize("wiring", WIRINGS)
+def test_a_hint_starts_as_no_change_and_is_read_by_every_copy(wiring):
+    """Spatial hints (OmniControl's realism branch): a network given hint channels, with the trained controllers of
+    one without, is that network bit for bit whatever the hint; once its hint embedding has weights, each copy reads
+    h_l + H(hint) (the references above), and guidance mixes the frozen model with the hinted D_c."""
+    net = trained_like(layers=[0, 2], wiring=wiring).double()
+    hinted = MotionControlNet(net.base, MoCConfig(**SMALL_MOC, layers=[0, 2], wiring=wiring, hint_channels=12))
+    missing, unexpected = hinted.double().load_state_dict(net.state_dict(), strict=False)
+    assert sorted(missing) == ["hint_embed.0.bias", "hint_embed.0.weight", "hint_embed.2.bias", "hint_embed.2.weight"]
+    assert not unexpected
+    x, t = motion_batch(2, 9)
+    x, mask = x.double(), frame_mask([9, 6], 9)
+    tokens, text_mask, eot = text_batch([5, 3])
+    tokens, hint = tokens.double(), torch.randn(2, 9, 12, dtype=torch.float64)
+    reference = reference_fig3 if wiring == "per_layer" else reference_parallel_stream
+    with torch.no_grad():
+        plain = net(x, t, tokens, text_mask, eot, mask)
+        assert torch.equal(hinted(x, t, tokens, text_mask, eot, mask, hint), plain)
+        hinted.hint_embed[-1].weight.normal_(std=0.05)
+        out = hinted(x, t, tokens, text_mask, eot, mask, hint)
+        torch.testing.assert_close(out, reference(hinted, x, t, tokens, text_mask, eot, mask, hint), rtol=1e-9,
+                                   atol=1e-9)
+        assert not torch.allclose(out, plain, atol=1e-4)
+        assert torch.equal(hinted(x, t, tokens, text_mask, eot, mask), plain)  # no hint: as without hints
+        e = hinted.embed_hint(hint, x)
+        guided = hinted.forward_guided(x, t, hinted.text_terms(tokens, text_mask, eot), 2.5, mask, e)
+        torch.testing.assert_close(guided, -1.5 * hinted.forward_uncond(x, t, mask) + 2.5 * out, rtol=1e-9,
+                                   atol=1e-9)
+        with pytest.raises(UsageError, match="not trained with spatial hints"):
+            net.embed_hint(hint, x)
 
 
 def test_layers_choose_where_controllers_sit():

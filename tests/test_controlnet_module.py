@@ -185,3 +185,67 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
         main(["bench", "quality", "--ckpt", str(finetuned), "--evaluator", str(tmp_path / "evaluator.ckpt"),
               "--val", str(MINI / "val"), "--samplers", "[plms]"])
     assert "unknown sampler 'plms'" in capsys.readouterr().err
+
+
+def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_read_when_sampling(finetuned,
+                                                                                                  tmp_path):
+    """Spatial hints fine-tuned onto a trained text ControlNet (``start_from``): at the start it is that ControlNet
+    (its EMA weights) whatever the hint; training reaches the hint embedding and nothing frozen; the checkpoint
+    loads with its hints; sampling with a control hands its targets to the network (the same control on the text
+    ControlNet steers alone)."""
+    from omg.lit.checkpoint import load_module
+    from omg.lit.control import Control, control_hint
+    from omg.motion import length_mask
+
+    source = load_module(finetuned).eval()
+    torch.manual_seed(0)
+    module = ControlNetModule(start_from=str(finetuned), text_encoder="hash", moc=MOC, spec=_data().spec,
+                              hints={"enabled": True}, ema_decay=0.99, optim={"lr": 1e-3, "warmup_steps": 2})
+    assert module.controlnet.config.hint_channels == 6 * 22 and module.hparams["hints"]["enabled"]
+    x, t = torch.randn(2, 30, 263), torch.tensor([10, 900])
+    texts = ["a person walks forward", "a person jumps in place"]
+    text = module.encode_text(texts)
+    hint = torch.randn(2, 30, 6 * 22)
+    with torch.no_grad(), source.ema_weights(True):
+        expected = source.controlnet(x, t, text.tokens, text.mask, text.eot)
+        assert torch.equal(module.eval().controlnet(x, t, text.tokens, text.mask, text.eot, hint=hint), expected)
+    frozen = {k: v.clone() for k, v in module.model.state_dict().items()}
+    trainer = _fit(module.train(), _data(), 3, tmp_path)
+    assert module.controlnet.hint_embed[-1].weight.abs().sum() > 0  # the hints reach the loss
+    assert all(torch.equal(module.model.state_dict()[k], v) for k, v in frozen.items())
+    trainer.save_checkpoint(tmp_path / "hints.ckpt")
+    loaded = load_module(tmp_path / "hints.ckpt").eval()
+    assert loaded.hints.enabled and loaded.controlnet.config.hint_channels == 6 * 22
+
+    frames, J = 30, 22
+    mask = length_mask([frames, frames])
+    targets = torch.zeros(1, frames, J, 3)
+    targets[0, :, 0, 2] = torch.linspace(0, 2, frames)
+    axes = torch.zeros(1, frames, J, 3, dtype=torch.bool)
+    axes[0, :, 0] = True
+    weights = axes.any(-1).float()
+    control = Control(targets=targets, axes=axes, weights=weights, tolerance=torch.zeros_like(weights),
+                      groups=torch.where(weights > 0, 0, -1), names=("path",))
+    with torch.no_grad():
+        plain, hinted = loaded.denoiser(texts, mask, None)(x, t), loaded.denoiser(texts, mask, None, control)(x, t)
+        words = loaded.encode_text(texts)
+        terms = loaded.controlnet.text_terms(words.tokens, words.mask, words.eot, fold_biases=True)
+        by_hand = loaded.controlnet.forward_guided(x, t, terms, loaded.guidance_scale, mask,
+                                                   loaded.controlnet.embed_hint(control_hint(control), x))
+        assert not torch.allclose(plain, hinted, atol=1e-6)
+        torch.testing.assert_close(hinted, by_hand, rtol=0, atol=0)
+        assert torch.equal(source.denoiser(texts, mask, None, control)(x, t), source.denoiser(texts, mask, None)(x, t))
+
+
+def test_start_from_refuses_what_does_not_fit_in_one_line(pretrained, finetuned):
+    from omg.errors import UsageError
+
+    spec = _data().spec
+    for kwargs, message in (
+        ({"start_from": str(finetuned), "pretrained": str(pretrained)}, "start_from holds its own frozen model"),
+        ({"start_from": str(pretrained)}, "is expected"),
+        ({"start_from": str(finetuned), "moc": {"d_c": 16}}, "model.init_args.moc must be the start_from"),
+        ({"start_from": str(finetuned), "text_encoder": "minilm"}, "model.init_args.text_encoder must be"),
+    ):
+        with pytest.raises(UsageError, match=message):
+            ControlNetModule(**{"text_encoder": "hash", "moc": MOC, "spec": spec, **kwargs})

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omg.diffusion import Denoiser
+from omg.errors import UsageError
 from omg.motion.base import Representation
 from omg.skeleton import Skeleton
 
@@ -100,6 +101,97 @@ class Control:
                                                       "contacts", "facing")}
         return replace(self, **{key: None if v is None else v.repeat(k, *[1] * (v.ndim - 1))
                                 for key, v in moved.items()})
+
+
+@dataclass(frozen=True)
+class HintTraining:
+    """A ControlNet trained to read spatial hints (OmniControl's realism branch, Xie et al. ICLR 2024, Sec. 3.3;
+    ``omg.models.controlnet``): ``enabled`` gives the network its hint input (``hint_features``, 6 channels a
+    joint) and training draws each motion's hints from its own joints (``draw_hints``). OmniControl draws one
+    random joint at a random density of frames; here the kinds a constraints file states are drawn, so the
+    network sees what users give: a motion without hints with probability ``free_share`` (text alone, as when
+    sampled without constraints), else its root path with probability ``root_share`` (on the ground alone, x and
+    z, in ``ground_share`` of them), 1 to ``max_joints`` other joints with ``joint_share`` (a joint's height alone in
+    a fifth of them), full-body keyframes with ``keyframe_share``, at least one of the three. Each is stated on
+    every frame, on one random span or on a random sparse set of frames, a third of the time each; keyframes
+    every 10 to 60 frames from a random first one."""
+
+    enabled: bool = False
+    free_share: float = 0.1
+    root_share: float = 0.5
+    ground_share: float = 0.5
+    joint_share: float = 0.5
+    max_joints: int = 3
+    keyframe_share: float = 0.25
+
+    def __post_init__(self) -> None:
+        for name in ("free_share", "root_share", "ground_share", "joint_share", "keyframe_share"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= 1:
+                raise UsageError(f"model.init_args.hints.{name} must be a probability in [0, 1], got {value!r}")
+        if isinstance(self.max_joints, bool) or not isinstance(self.max_joints, int) or self.max_joints < 1:
+            raise UsageError(f"model.init_args.hints.max_joints must be an integer >= 1, got {self.max_joints!r}")
+
+
+def hint_channels(skeleton: Skeleton) -> int:
+    """Channels of a hint per frame: each joint's stated position and whether each axis is stated."""
+    return 6 * len(skeleton.names)
+
+
+def hint_features(targets: Tensor, stated: Tensor) -> Tensor:
+    """targets (N, T, J, 3) metres in the model's world, stated (N, T, J, 3) bool -> hint (N, T, 6·J): per joint its
+    stated coordinates (0 where not stated) and 1 on each stated axis."""
+    stated = stated.to(targets.dtype)
+    return torch.cat([targets * stated, stated], dim=-1).flatten(2)
+
+
+def control_hint(control: Control) -> Tensor:
+    """The hint (N, T, 6·J) of a control's targets: the axes each target states where its weight is above 0."""
+    return hint_features(control.targets, control.axes & (control.weights > 0)[..., None])
+
+
+def draw_hints(joints: Tensor, mask: Tensor, hints: HintTraining, generator: torch.Generator) -> Tensor:
+    """Random hints (B, T, 6·J) of a training batch from its own joints (B, T, J, 3) on its real frames (B, T), as
+    ``HintTraining`` describes; every draw from ``generator`` (a run's noise RNG, so a resumed run draws the same)."""
+    B, T, J, _ = joints.shape
+    device = joints.device
+    # per motion: 4 values for each of 4 constraint slots (the root, up to 3 joint slots: frames' kind, span start,
+    # span length or density, height alone), then which kinds, free, ground, joint count, keyframe spacing and start
+    u = torch.rand(B, 24, generator=generator, device=device).tolist()
+    order = (torch.rand(B, J - 1, generator=generator, device=device).argsort(dim=1) + 1).tolist()  # joints, not root
+    sparse = torch.rand(B, 4, T, generator=generator, device=device)  # a sparse frame set per slot
+    stated = torch.zeros(B, T, J, 3, dtype=torch.bool, device=device)
+    frame = torch.arange(T, device=device)
+
+    def frames(b: int, slot: int, n: int) -> Tensor:  # (T,) bool: all n real frames, a span or a sparse set
+        kind, start, size = u[b][4 * slot:4 * slot + 3]
+        if kind < 1 / 3:
+            return frame < n
+        if kind < 2 / 3:
+            first = int(start * n)
+            return (frame >= first) & (frame < first + max(1, int(size * (n - first))))
+        chosen = (sparse[b, slot] < 0.02 + 0.18 * size) & (frame < n)
+        return chosen if bool(chosen.any()) else frame == int(start * n)  # one frame at least
+
+    for b, n in enumerate(int(n) for n in mask.sum(dim=1).tolist()):
+        r = u[b]
+        if n == 0 or r[19] < hints.free_share:
+            continue
+        root, joint, key = r[16] < hints.root_share, r[17] < hints.joint_share, r[18] < hints.keyframe_share
+        if not (root or joint or key):
+            root = True
+        if root:  # the root's path, on the ground alone or with its height
+            stated[b, frames(b, 0, n), 0] = torch.tensor([True, r[20] >= hints.ground_share, True], device=device)
+        if joint:  # 1 to max_joints other joints, each on its own frames; a fifth of them by their height alone
+            for slot, j in enumerate(order[b][:1 + min(int(r[21] * hints.max_joints), J - 2)]):
+                slot = 1 + slot % 3
+                height_only = r[4 * slot + 3] < 0.2
+                stated[b, frames(b, slot, n), j] = torch.tensor([not height_only, True, not height_only], device=device)
+        if key:  # full-body poses every 10 to 60 frames from a random first one
+            every = 10 + int(r[22] * 51)
+            first = int(r[23] * every)
+            stated[b, (frame >= first) & ((frame - first) % every == 0) & (frame < n)] = True
+    return hint_features(joints, stated & mask[:, :, None, None])
 
 
 def distances(joints: Tensor, control: Control) -> Tensor:

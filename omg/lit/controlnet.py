@@ -17,6 +17,7 @@ from torch import Tensor
 from omg.diffusion import Denoiser
 from omg.errors import UsageError
 from omg.lit.base import OptimSettings
+from omg.lit.control import Control, HintTraining, control_hint, draw_hints, hint_channels
 from omg.lit.pretrain import DiffusionLossWeights, MotionDiffusionModule, PretrainModule
 from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
 from omg.models.dit import DiTOverrides
@@ -62,6 +63,12 @@ class ControlNetModule(MotionDiffusionModule):
             copies and the MoC blocks in backward; applied by ``configure_model``.
         stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
             in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
+        hints: spatial hints (``omg.lit.control.HintTraining``; OmniControl's realism branch, not OMG's: off):
+            with ``enabled`` the block copies read the constraints a motion is sampled with, and training draws
+            them from each clip's own joints.
+        start_from: a ControlNet checkpoint this one starts from, in place of ``pretrained`` (its frozen model,
+            copies and controllers; the hint embedding from zero): hints fine-tuned onto a trained ControlNet. Its
+            text encoder and ``moc`` must be this run's.
         base: the pretrained model's flavor, DiT overrides and spec (``PretrainedBase``); filled from
             ``pretrained`` and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
@@ -70,7 +77,7 @@ class ControlNetModule(MotionDiffusionModule):
     text_conditional = True
     frozen_prefixes = ("text_encoder.",)  # rebuilt from its own weights, never saved with ours
     # the weights' own (the frozen model's flavor, DiT and spec are in `base`); text_encoder_args may move its files
-    architecture_hparams = ("text_encoder", "moc", "base", "spec")
+    architecture_hparams = ("text_encoder", "moc", "hints", "base", "spec")
     settings_groups = {"moc": MoCOverrides, "text_encoder_args": TextEncoderArgs}
     clip_sampling = "whole"  # a caption describes its whole clip (HumanML3D: up to 196 frames)
 
@@ -87,12 +94,19 @@ class ControlNetModule(MotionDiffusionModule):
         ema_decay: float = 0.9999,
         activation_checkpointing: bool = False,
         stance_root: float = 0.0,
+        hints: HintTraining = HintTraining(),
+        start_from: str | None = None,
         base: PretrainedBase | None = None,
         spec: DataSpec | dict | None = None,
     ):
-        pretrained_weights = None
+        pretrained_weights = started = None
         if base is not None:  # the checkpoint's description (a mapping), or a config's
             base = settings(PretrainedBase, base, "model.init_args.base").plain("model.init_args.base")
+        elif start_from is not None:
+            if pretrained is not None:
+                raise UsageError("model.init_args.start_from holds its own frozen model: leave "
+                                 "model.init_args.pretrained out")
+            base, started = _read_start(start_from, text_encoder, moc)
         else:
             if pretrained is None:
                 raise UsageError("ControlNetModule needs model.init_args.pretrained: a stage-1 checkpoint")
@@ -104,12 +118,22 @@ class ControlNetModule(MotionDiffusionModule):
                          activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
         self.eot_drop, self.guidance_scale = eot_drop, guidance_scale
+        self.hints = self.value_group("hints", hints)
         if pretrained_weights is not None:
             self.model.load_state_dict(pretrained_weights)
         self.model.requires_grad_(False)
         self.text_encoder = build_text_encoder(text_encoder, **text_encoder_kwargs(text_encoder_args))
-        moc_config = MoCConfig(text_dim=self.text_encoder.dim, **set_fields(MoCOverrides, moc, "model.init_args.moc"))
+        moc_config = MoCConfig(text_dim=self.text_encoder.dim, **set_fields(MoCOverrides, moc, "model.init_args.moc"),
+                               hint_channels=hint_channels(self.representation.skeleton) if self.hints.enabled else 0)
         self.controlnet = MotionControlNet(self.model, moc_config)
+        if started is not None:  # the hint embedding, which the started-from ControlNet lacks, stays at zero
+            missing, _ = self.load_state_dict(started, strict=False)
+            if unexpected := sorted(set(started) - set(self.state_dict())):
+                raise UsageError(f"model.init_args.start_from: its weights do not fit this ControlNet "
+                                 f"(unexpected {unexpected[:3]})")
+            if left := [k for k in missing if not k.startswith("controlnet.hint_embed.")]:
+                raise UsageError(f"model.init_args.start_from: its weights do not fit this ControlNet "
+                                 f"(missing {left[:3]})")
         self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:
             # a motion prior learns velocities per frame: fine-tuning it at another rate, or
@@ -153,22 +177,34 @@ class ControlNetModule(MotionDiffusionModule):
         drop = None
         if self.training:
             drop = torch.rand(len(batch["text"]), generator=self.noise_generator(), device=self.device) < self.eot_drop
-        return {**batch, "motion": x, "text_features": self.encode_text(batch["text"], drop)}
+        prepared = {**batch, "motion": x, "text_features": self.encode_text(batch["text"], drop)}
+        if self.hints.enabled:  # drawn from the clips' own joints, in the model's world (omg.lit.control)
+            joints = self.representation.decode(self.denormalize(x).float())  # (B, T, J, 3)
+            prepared["hint"] = draw_hints(joints, mask.bool(), self.hints, self.noise_generator())
+        return prepared
 
     def denoise(self, x_t: Tensor, t: Tensor, mask: Tensor | None, batch: dict) -> Tensor:
         text = batch["text_features"]
-        return self.controlnet(x_t, t, text.tokens.to(x_t.dtype), text.mask, text.eot, mask)
+        return self.controlnet(x_t, t, text.tokens.to(x_t.dtype), text.mask, text.eot, mask, batch.get("hint"))
 
     # -- sampling ------------------------------------------------------------------------
-    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
+    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None,
+                 control: Control | None = None) -> Denoiser:
         """(1 − s)·D_u + s·D_c for ``texts`` (s = ``guidance``, default ``guidance_scale``); the
-        frozen prior D_u alone for texts=None. The text is encoded once, not at every step."""
+        frozen prior D_u alone for texts=None. The text is encoded once, not at every step, and so is the hint of
+        ``control``'s targets that a ControlNet trained with hints reads (one without steers alone)."""
         if texts is None:
-            return super().denoiser(texts, mask, guidance)
+            return super().denoiser(texts, mask, guidance, control)
         scale = self.guidance_scale if guidance is None else guidance
         text = self.encode_text(list(texts))
         terms = self.controlnet.text_terms(text.tokens, text.mask, text.eot, fold_biases=True)  # once, not per step
-        return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask)
+        hint = None
+        if control is not None and self.hints.enabled:
+            if control.frames != mask.shape[1]:
+                raise ValueError(f"a control of {control.frames} frames for motions of up to {mask.shape[1]}")
+            dtype = next(self.controlnet.parameters()).dtype
+            hint = self.controlnet.embed_hint(control_hint(control.to(self.device, dtype)), text.tokens.to(dtype))
+        return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask, hint)
 
 
 def rate_hint(prior_fps: float, data_fps: float) -> str:
@@ -179,6 +215,30 @@ def rate_hint(prior_fps: float, data_fps: float) -> str:
     return (f"pretrain the prior on shards built at the fine-tuning data's {data_fps:g} fps (`omg shards build ... "
             f"--fps {data_fps:g}`) with data.max_len {round(300 * data_fps / 30)} (OMG's L = 300 frames at 30 fps, the "
             f"same 10 s), or fine-tune on shards built at the prior's --fps {prior_fps:g}")
+
+
+def _read_start(path: str, text_encoder: str, moc: MoCOverrides | dict | None) -> tuple[dict, dict[str, Tensor]]:
+    """(the frozen model's description, every weight: the EMA's where kept) of the ControlNet checkpoint at
+    ``path``, whose text encoder and controllers must be this run's."""
+    from omg.lit.checkpoint import class_path, load_checkpoint, resolve_class
+
+    ckpt = load_checkpoint(path, default_class=ControlNetModule)
+    cls = resolve_class(ckpt["module_class"], path)
+    if not issubclass(cls, ControlNetModule):
+        raise UsageError(f"model.init_args.start_from: {path} holds a {class_path(cls)} checkpoint, where a "
+                         f"{class_path(ControlNetModule)} checkpoint is expected")
+    hp = ckpt["hyper_parameters"]
+    ours = set_fields(MoCOverrides, moc, "model.init_args.moc") or None
+    for key, theirs, mine in (("text_encoder", hp.get("text_encoder", "minilm"), text_encoder),
+                              ("moc", hp.get("moc") or None, ours)):
+        if theirs != mine:
+            raise UsageError(f"model.init_args.{key} must be the start_from checkpoint's {theirs!r} (its weights "
+                             f"were made with it), got {mine!r}")
+    weights = dict(ckpt["state_dict"])
+    if ckpt.get("ema") and not ckpt.get("ema_weights"):
+        weights.update({f"controlnet.{k}": v for k, v in ckpt["ema"]["shadow"].items()})
+    base = settings(PretrainedBase, hp["base"], f"{path}: base").plain(f"{path}: base")
+    return base, weights
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:

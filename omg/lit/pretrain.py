@@ -254,8 +254,8 @@ class MotionDiffusionModule(OmgModule):
             timeline, chains = settings.timeline, 1  # chains: K with separate chains (K·B rows), else 1
             shape = (*mask.shape, self.config.input_dim)
             given = {} if settings.seeds is None else {"noise": row_noise(settings.seeds, mask, shape[-1], dtype)}
-            if timeline is None:
-                denoise = self.denoiser(texts, mask, settings.guidance)
+            if timeline is None:  # a ControlNet trained with hints reads the control's targets (a timeline: steered)
+                denoise = self.denoiser(texts, mask, settings.guidance, settings.control)
             elif timeline.separate:  # one chain per text, joined at every step (omg.lit.timeline)
                 denoise = chains_denoiser(self.denoiser, timeline, mask, settings.guidance)
                 chains = len(timeline.texts)
@@ -300,8 +300,10 @@ class MotionDiffusionModule(OmgModule):
         return steered(denoise, control.to(self.device, dtype), self.representation, self.std.to(dtype),
                        self.mean.to(dtype), mask, self.diffusion.num_timesteps, steps)
 
-    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None) -> Denoiser:
-        """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames."""
+    def denoiser(self, texts: Sequence[str] | None, mask: Tensor, guidance: float | None,
+                 control: Control | None = None) -> Denoiser:
+        """The (x_t, t) -> x̂0 function ``sample`` steps with, for these texts and frames (and ``control``, which a
+        network that reads constraints reads; the prior steers alone, ``control_denoiser``)."""
         return lambda x, t: self.model(x, t, mask)
 
     def checked_stance_root(self, strength: float, key: str) -> float:

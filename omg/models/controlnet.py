@@ -38,6 +38,14 @@ batch [x; x] (2B rows): each frozen block runs on all 2B rows, the copy + MoC of
 the conditional half's main stream h_l[B:] (B rows), and its residual is added to the
 conditional half only.
 
+Spatial hints (``MoCConfig.hint_channels`` > 0; OmniControl's realism branch, Xie et al. ICLR 2024, Sec. 3.3):
+a hint (B, T, C) per frame, the targets a user stated (``omg.lit.control.hint_features``), is embedded once,
+e = H(hint) (B, T, d) with H = Linear(C, d) -> SiLU -> Linear(d, d), its last layer zero-initialised, and every
+block copy reads h_l + e instead of h_l (the parallel stream: h^c_0 = h_0 + e). OmniControl's branch reads its
+hint at its input alone, but its copies form one stream; here each copy reads the main stream, so each gets the
+hint. At initialisation e = 0 and the network is the text ControlNet it was, so hints are fine-tuned onto a
+trained ControlNet (``ControlNetModule.start_from``), and a network trained with hints, given none, reads e = 0.
+
 Text arrives as three tensors (the fields of ``omg.text``'s features): tokens (B, L, D_text)
 per-token embeddings, text_mask (B, L) bool, True = real token, and eot (B,) long, the index of
 the end-of-text token. Padded tokens never reach the output (they are zeroed, masked out of the
@@ -120,6 +128,7 @@ class MoCConfig:
     zero_init: bool = True  # ablation "w/o zero initialisation" when False
     experts: str = "moc"  # "moc" (K blended experts per token) | "single_ffn" (ablation)
     wiring: str = "per_layer"  # "per_layer" (paper) | "parallel_stream" (comparison)
+    hint_channels: int = 0  # C: spatial-hint channels a frame, read by the block copies (0: none; MotionControlNet)
 
     def __post_init__(self) -> None:
         if self.expert_hidden is None:
@@ -130,6 +139,8 @@ class MoCConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise UsageError(f"MoCConfig.{name}={value!r} must be a positive integer")
+        if isinstance(self.hint_channels, bool) or not isinstance(self.hint_channels, int) or self.hint_channels < 0:
+            raise UsageError(f"MoCConfig.hint_channels={self.hint_channels!r} must be an integer >= 0")
         gamma = self.gamma
         if not (isinstance(gamma, (int, float)) and math.isfinite(gamma) and gamma > 0):
             raise UsageError(f"MoCConfig.gamma={gamma!r} must be a positive number (paper: 24)")
@@ -176,6 +187,8 @@ class MoCConfig:
             moc_frame += 4 * K * H * (c + L) + 2 * L * c
             moc_sample += 2 * L * (D * G + G * G + G * K) + 2 * L * K * (H + c)
         per_frame = copies * block + controlled * moc_frame
+        if self.hint_channels:  # the hint embedding, once per frame
+            per_frame += 2 * (self.hint_channels * d + d * d)
         if self.wiring == "parallel_stream":
             per_frame += dit.n_layers * 2 * d * d
         return batch * (seq_len * per_frame + controlled * moc_sample)
@@ -360,9 +373,9 @@ class MoCBlock(nn.Module):
         return self.up(self.experts(f, text, masks))  # (B, T, d)
 
 
-# model.init_args.moc of ControlNetModule: MoCConfig's fields but text_dim (the text encoder's), each
-# None (unset) MoCConfig's default
-MoCOverrides = overrides(MoCConfig, "MoCOverrides", __name__, exclude=("text_dim",),
+# model.init_args.moc of ControlNetModule: MoCConfig's fields but text_dim (the text encoder's) and hint_channels
+# (the skeleton's, with model.init_args.hints), each None (unset) MoCConfig's default
+MoCOverrides = overrides(MoCConfig, "MoCOverrides", __name__, exclude=("text_dim", "hint_channels"),
                          doc="MoCConfig fields to override (unset: MoCConfig's default).")
 
 
@@ -386,6 +399,8 @@ class MotionControlNet(nn.Module):
         self.mocs = nn.ModuleDict({str(i): MoCBlock(d, config) for i in self.controlled})
         if parallel:
             self.zero_projs = nn.ModuleList(nn.Linear(d, d) for _ in range(n_layers))
+        if config.hint_channels:
+            self.hint_embed = nn.Sequential(nn.Linear(config.hint_channels, d), nn.SiLU(), nn.Linear(d, d))
         self.base = base.requires_grad_(False).eval()
         for p in self.trainable_parameters():
             p.requires_grad_(True)
@@ -405,6 +420,12 @@ class MotionControlNet(nn.Module):
             if self.config.zero_init:
                 nn.init.zeros_(proj.weight)
                 nn.init.zeros_(proj.bias)
+        if self.config.hint_channels:  # always from zero, whatever zero_init says: hints start as no change
+            for layer in self.hint_embed:
+                if isinstance(layer, nn.Linear):
+                    layer.reset_parameters()
+            nn.init.zeros_(self.hint_embed[-1].weight)
+            nn.init.zeros_(self.hint_embed[-1].bias)
 
     def trainable_parameters(self) -> Iterator[nn.Parameter]:
         """What the optimiser gets: everything but the frozen ``base``."""
@@ -435,6 +456,18 @@ class MotionControlNet(nn.Module):
         eot_emb = tokens[torch.arange(tokens.shape[0], device=tokens.device), eot]  # (B, D_text)
         return {i: moc.text_terms(tokens, text_mask, eot_emb, fold_biases) for i, moc in self.mocs.items()}
 
+    def embed_hint(self, hint: Tensor | None, like: Tensor) -> Tensor | None:
+        """hint (B or 1, T, C) -> e (B or 1, T, d) that the block copies add to what they read; None without one.
+        A network without hint channels refuses a hint (it would be ignored)."""
+        if hint is None:
+            return None
+        if not self.config.hint_channels:
+            raise UsageError("this ControlNet was not trained with spatial hints (model.init_args.hints): "
+                             "its constraints are met by steering alone")
+        if hint.shape[-1] != self.config.hint_channels:
+            raise ValueError(f"a hint of {hint.shape[-1]} channels for a ControlNet of {self.config.hint_channels}")
+        return self.hint_embed(hint.to(like.dtype))
+
     def _layer_residual(
         self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText
     ) -> Tensor:
@@ -450,22 +483,24 @@ class MotionControlNet(nn.Module):
             h = h + self.mocs[str(i)](h, text[str(i)], mask)
         return h
 
-    def controller(self, h0: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText) -> ResidualFn:
+    def controller(self, h0: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText,
+                   hint: Tensor | None = None) -> ResidualFn:
         """The ``residual_fn(i, h_i)`` that ``MotionDiT.forward_embedded`` calls after block i:
         block i's residual (B, T, d) from its input h_i (B, T, d), or None for a layer without
         a controller. h0, mod, rope come from ``base.embed`` (h0 only feeds the parallel
         stream, whose function keeps the stream's state and must be called for i = 0, 1, ...);
-        ``text`` from ``text_terms``."""
+        ``text`` from ``text_terms``; ``hint`` the embedded hint (B or 1, T, d) the copies add to what they
+        read (``embed_hint``), or None."""
         if self.config.wiring == "per_layer":
 
             def residual(i: int, h: Tensor) -> Tensor | None:
                 if str(i) not in self.mocs:
                     return None
-                return self._layer_residual(i, h, mod, rope, mask, text)
+                return self._layer_residual(i, h if hint is None else h + hint, mod, rope, mask, text)
 
             return residual
 
-        stream = [h0]
+        stream = [h0 if hint is None else h0 + hint]
 
         def stream_residual(i: int, h: Tensor) -> Tensor:
             stream[0] = self._stream_layer(i, stream[0], mod, rope, mask, text)
@@ -483,11 +518,14 @@ class MotionControlNet(nn.Module):
         text_mask: Tensor,
         eot: Tensor,
         mask: Tensor | None = None,
+        hint: Tensor | None = None,
     ) -> Tensor:
         """D_c: x (B, T, D_in) noisy motion, t (B,), text_tokens (B, L, D_text), text_mask
-        (B, L) bool, eot (B,) long, mask (B, T) bool real frames -> x̂0 (B, T, D_in)."""
+        (B, L) bool, eot (B,) long, mask (B, T) bool real frames, hint (B, T, C) spatial hints
+        (``MoCConfig.hint_channels``; None: none) -> x̂0 (B, T, D_in)."""
         h0, c, mod, rope = self.base.embed(x, t)
-        control = self.controller(h0, mod, rope, mask, self.text_terms(text_tokens, text_mask, eot))
+        control = self.controller(h0, mod, rope, mask, self.text_terms(text_tokens, text_mask, eot),
+                                  self.embed_hint(hint, h0))
         return self.base.forward_embedded(h0, c, mod, rope, mask, control)
 
     def forward_uncond(self, x: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
@@ -495,11 +533,13 @@ class MotionControlNet(nn.Module):
         return self.base(x, t, mask)
 
     def forward_guided(
-        self, x: Tensor, t: Tensor, text: ControlText, scale: float | Tensor, mask: Tensor | None = None
+        self, x: Tensor, t: Tensor, text: ControlText, scale: float | Tensor, mask: Tensor | None = None,
+        hint: Tensor | None = None,
     ) -> Tensor:
         """(1 − s)·D_u + s·D_c (B, T, D_in) for the caption terms ``text = text_terms(tokens,
         text_mask, eot)``, computed once per caption by the sampler; scale s is a number or one
-        per sample (B,).
+        per sample (B,); ``hint`` (B or 1, T, d) an embedded hint (``embed_hint``) for D_c, computed once per
+        request too (the frozen D_u reads none).
 
         One embed on B rows, then one pass over the doubled batch [x; x] (2B rows): the frozen
         blocks run on all rows, each controller on the conditional half's main stream
@@ -507,7 +547,7 @@ class MotionControlNet(nn.Module):
         """
         B = x.shape[0]
         h0, c, mod, rope = self.base.embed(x, t)
-        control = self.controller(h0, mod, rope, mask, text)
+        control = self.controller(h0, mod, rope, mask, text, hint)
 
         def residual(i: int, h: Tensor) -> Tensor | None:  # h (2B, T, d) = [uncond; cond]
             r = control(i, h[B:])  # (B, T, d)

@@ -129,8 +129,10 @@ def bench_control(
     real_skating = FootSkating(skeleton, fps)
     real_skating.update(real, mask)
     real_jerk = jerk_of(real)
+    reads = getattr(module, "hints", None) is not None and module.hints.enabled  # a ControlNet trained with hints
     print(f"`{command}`: {N} held-out takes of {val}, {steps} {sampler} steps, keyframes every {keyframe_every:g} s, "
-          f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}; real takes' "
+          f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}"
+          f"{', read by the network (hints)' if reads else ''}; real takes' "
           f"foot skating {float(real_skating.compute()):.3f}, joint jerk {real_jerk:.1f} m/s³")
     realism = " FID | R-precision top 3 |" if judge is not None else ""
     print("| sampling | mean cm | max cm | within 5 cm | within 10 cm | path cm | foot skating | jerk m/s³ |"
