@@ -160,6 +160,49 @@ def test_health_and_models_come_from_the_cards(client):
                                                                   "/healthz"}
 
 
+def test_models_list_the_number_bounds_and_defaults_the_server_checks_with(client, server):
+    """Each card's ``ranges`` (steps, guidance, the family's number options) and, where it takes a timeline, the
+    timeline's numbers are the constants the server and ``--option`` check with: the page sets its fields from
+    them (``GET /v1/models``), so it repeats none of them."""
+    from omg.errors import UsageError
+    from omg.generation.habit import TEMPERATURE
+    from omg.generation.timeline import DEFAULT_TRANSITION, parse_timeline
+    from omg.lit.sampling import MAX_SMOOTHING, MAX_STANCE_ROOT
+    from omg.lit.timeline import DEFAULT_COUPLING
+
+    def bounds(low, high=None, default=None, low_open=False):
+        return {"low": low, "high": high, "default": default, "low_open": low_open}
+
+    models = {m["name"]: m for m in client.get("/v1/models").json()["models"]}
+    human, animal, habit = models["human"]["card"], models["animal"]["card"], models["habit"]["card"]
+    module = server.models["human"].generator.module
+    assert human["ranges"] == {"steps": bounds(1, human["max_steps"], human["default_steps"]),
+                               "guidance": bounds(0, None, human["guidance"]),
+                               "stance_root": bounds(0, MAX_STANCE_ROOT, module.stance_root),
+                               "smoothing": bounds(0, MAX_SMOOTHING, 0)}
+    assert human["max_steps"] == module.diffusion.num_timesteps and human["guidance"] == module.guidance_scale
+    assert set(human["options"]) == {"stance_root", "smoothing"} and "option_ranges" not in human  # as it was
+    assert animal["ranges"] == {"steps": bounds(1)}  # the human chain's steps: no bound of its own, no default
+    assert habit["ranges"] == {"temperature": bounds(0, None, TEMPERATURE.default, low_open=True)}
+    timeline = {"transition": bounds(0, None, DEFAULT_TRANSITION), "context": bounds(0),
+                "coupling": bounds(0, 1, DEFAULT_COUPLING)}
+    assert models["human"]["timeline_ranges"] == timeline
+    assert models["animal"]["timeline_ranges"] == models["habit"]["timeline_ranges"] == {}
+    # the same bounds refuse a value past them: --option, the timeline file, the API
+    generator = server.models["human"].generator
+    assert generator.option("smoothing", str(MAX_SMOOTHING)) == MAX_SMOOTHING
+    for key, past in (("smoothing", MAX_SMOOTHING + 0.5), ("stance_root", MAX_STANCE_ROOT + 0.5)):
+        with pytest.raises(UsageError, match=rf"give a number in \[0, {human['ranges'][key]['high']:g}\]"):
+            generator.option(key, str(past))
+    with pytest.raises(UsageError, match=r"coupling must be a number in \[0, 1\]"):
+        parse_timeline({"timeline": [{"start": 0, "end": 1, "text": "a person walks"}], "chains": "separate",
+                        "coupling": timeline["coupling"]["high"] + 0.5})
+    assert parse_timeline([{"start": 0, "end": 1, "text": "a person walks"}]).transition == DEFAULT_TRANSITION
+    response = client.post("/v1/generate", json={"model": "human", "prompts": ["a person walks"],
+                                                 "smoothing": MAX_SMOOTHING + 0.5})
+    assert response.status_code == 422 and "smoothing" in response.json()["detail"]
+
+
 def test_generate_answers_joints_and_the_files_omg_generate_writes(client):
     result = _generate(client, model="human", prompts=["a person walks forward"], length=1.5, num_samples=2,
                        steps=3, seed=5)
@@ -1307,9 +1350,12 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     by the server, /v1/keyframes), a timeline of two rows with a transition and a context typed (sent in the
     timeline's mapping and recorded as sampled); the request holds them in the documented format, the result
     shows each motion's control error and the constraints beside it; a bad timeline or a negative transition is
-    the API's one line on the page; a model whose card takes none shows the panel disabled with why."""
+    the API's one line on the page; a model whose card takes none shows the panel disabled with why. The number
+    fields' bounds and defaults are the server's constants, read from ``GET /v1/models`` when a model is chosen."""
     from omg.generation.control import read_constraints
     from omg.generation.timeline import DEFAULT_TRANSITION, parse_timeline
+    from omg.lit.sampling import MAX_SMOOTHING
+    from omg.lit.timeline import DEFAULT_COUPLING
 
     page = browser.new_page(viewport={"width": 1200, "height": 900})
     errors, sent = [], []
@@ -1327,6 +1373,11 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     page.select_option("#model", "human")
     assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", *timeline_fields))
     assert page.get_attribute("#timeline-transition", "placeholder") == f"{DEFAULT_TRANSITION:g} (default)"
+    assert float(page.get_attribute("#smoothing", "max")) == MAX_SMOOTHING
+    assert float(page.get_attribute("#parts-coupling", "placeholder")) == DEFAULT_COUPLING
+    card = server.models["human"].card
+    assert int(page.get_attribute("#steps", "max")) == card.max_steps
+    assert float(page.get_attribute("#length", "min")) == card.min_frames / card.fps
     # the path: three clicks on the ground in front of the origin, a drag between them adds none
     page.click("#path-draw")
     box = page.locator("#viewer canvas").bounding_box()
@@ -1382,7 +1433,6 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     expected = httpx.post(server.url + "/v1/keyframes", data={"model": "human"},
                           files={"file": ("bow.bvh", take)}).json()["poses"][30]
     assert body["constraints"]["keyframes"] == [{"time": 1.5, "positions": expected}]
-    card = server.models["human"].card
     parse_timeline(body["timeline"])  # the documented formats, as the CLI reads them
     read_constraints(body["constraints"], card, 40)
     # each motion's control error, and the constraints drawn beside each of the two motions

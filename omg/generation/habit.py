@@ -8,7 +8,6 @@ category's posterior; ``HabitVQModule.transfer`` re-encodes and decodes the moti
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from omg.generation.protocol import (
     GenerationCard,
     GenerationRequest,
     ModuleGenerator,
-    number_option,
+    NumberRange,
 )
 from omg.generation.read import read_quadruped
 from omg.generation.registry import register_generator
@@ -31,6 +30,7 @@ from omg.lit.habit import HabitPriorModule, HabitVQModule
 from omg.text.base import text_encoder_kwargs
 
 QUANTIZERS = ("soft", "nearest")
+TEMPERATURE = NumberRange(0.0, None, default=1.0, low_open=True)  # the prior's base Gaussian's scale
 
 
 @register_generator(HabitVQModule)
@@ -71,16 +71,17 @@ class HabitGenerator(ModuleGenerator):
             species=tuple(vq.categories), open_species=True, source_fixes_length=True,
             options={"temperature": "scale of the prior's base Gaussian (with a prior)",
                      "quantizer": "soft or nearest (default: the checkpoint's)",
-                     "species_file": "a YAML of extra species descriptions (name: description)"})
+                     "species_file": "a YAML of extra species descriptions (name: description)"},
+            option_ranges={"temperature": TEMPERATURE})
 
     def option(self, key: str, value: str) -> Any:
-        if key == "temperature":
-            return number_option(key, value, 0.0, math.inf, low_open=True)
         if key == "quantizer":
             if value not in QUANTIZERS:
                 raise UsageError(f"--option quantizer={value}: give one of {', '.join(QUANTIZERS)}")
             return value
-        return Path(value)  # species_file, read when a species needs it
+        if key == "species_file":  # read when a species needs it
+            return Path(value)
+        return super().option(key, value)  # temperature
 
     def read_source(self, path: Path, joint_map: str | None = None) -> dict[str, Any]:
         """A quadruped motion file as the model's features: BVH or DeepMimic retargeted onto its skeleton, or a
@@ -147,7 +148,7 @@ class HabitGenerator(ModuleGenerator):
             seed = request.seed + repeat
             torch.manual_seed(seed)
             if prior is not None:
-                z = prior.habit_latents(k, 1, seed=seed, temperature=options.get("temperature", 1.0))
+                z = prior.habit_latents(k, 1, seed=seed, temperature=options.get("temperature", TEMPERATURE.default))
             else:
                 z = vq.mean_habit(k)[None]
             result = vq.transfer(features, k, z, seed=seed, quantizer=options.get("quantizer"),
@@ -173,6 +174,6 @@ class HabitGenerator(ModuleGenerator):
             "description": condition.get("description"),
             "condition": "its own description" if condition["retrieved"] else f"{condition['category']}'s description",
             "habit": "prior sample" if prior is not None else "posterior mean", "habit_order": vq.habit_order,
-            "temperature": request.options.get("temperature", 1.0),
+            "temperature": request.options.get("temperature", TEMPERATURE.default),
             "quantizer": request.options.get("quantizer") or vq.vqvae.quantizer.mode,
             "frames": len(request.source["features"]), "target_offsets": vq.category_offsets(k).tolist()}

@@ -17,13 +17,15 @@ from omg.generation.protocol import (
     GenerationCard,
     GenerationRequest,
     ModuleGenerator,
-    number_option,
+    NumberRange,
 )
 from omg.generation.registry import register_generator
 from omg.lit.control import constraint_errors
 from omg.lit.pretrain import MotionDiffusionModule
-from omg.lit.sampling import MAX_SMOOTHING, SamplingSettings
+from omg.lit.sampling import MAX_SMOOTHING, MAX_STANCE_ROOT, SamplingSettings
 from omg.registry import SAMPLERS
+
+SMOOTHING = NumberRange(0.0, MAX_SMOOTHING, default=SamplingSettings.smoothing)  # frames; 0: off
 
 
 @register_generator(MotionDiffusionModule)
@@ -40,16 +42,15 @@ class OmgGenerator(ModuleGenerator):
             max_frames=round(MAX_SECONDS * m.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=m.diffusion.num_timesteps, default_steps=min(200, m.diffusion.num_timesteps),
             guidance=getattr(m, "guidance_scale", None), row_seeds=True, timeline=timeline_kinds(m), constraints=KINDS,
-            options={**({"stance_root": "step the root by the stance foot while sampling, 0..1 (removes foot sliding)"}
-                        if m.representation.stance_root else {}),
+            options={**({"stance_root": f"step the root by the stance foot while sampling, 0..{MAX_STANCE_ROOT:g} "
+                                        "(removes foot sliding)"} if m.representation.stance_root else {}),
                      "smoothing": f"smooth every denoised estimate over time, a Gaussian of this many frames, "
-                                  f"0..{MAX_SMOOTHING:g} (removes frame-to-frame shake)"})
+                                  f"0..{SMOOTHING.high:g} (removes frame-to-frame shake)"},
+            option_ranges={**({"stance_root": NumberRange(0.0, MAX_STANCE_ROOT, default=m.stance_root)}
+                              if m.representation.stance_root else {}), "smoothing": SMOOTHING})
 
     def read_source(self, path, joint_map: str | None = None):
         raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
-
-    def option(self, key: str, value: str) -> Any:
-        return number_option(key, value, 0.0, MAX_SMOOTHING if key == "smoothing" else 1.0)  # or stance_root
 
     def generate(self, request: GenerationRequest) -> list[GeneratedMotion]:
         """``num_samples`` motions per prompt (in total when unconditional), sampled ``batch_size`` at a time,
@@ -64,7 +65,7 @@ class OmgGenerator(ModuleGenerator):
         sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
                                     use_ema=False, autocast=request.autocast, compile=request.compile,
                                     stance_root=request.options.get("stance_root"), timeline=timeline,
-                                    smoothing=request.options.get("smoothing", 0.0),
+                                    smoothing=request.options.get("smoothing", SMOOTHING.default),
                                     control=request.control)
         untitled = "unconditional" if timeline is None else "timeline: " + " | ".join(timeline.texts)
         if request.row_seeds is not None and len(request.row_seeds) != len(jobs):

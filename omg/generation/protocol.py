@@ -12,7 +12,7 @@ these, never the module's class, and write what it returns with one writer
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -26,6 +26,21 @@ MAX_SECONDS = 60.0  # the longest motion one generation call makes
 
 
 @dataclass(frozen=True)
+class NumberRange:
+    """A number a request may set: within [``low``, ``high``] (``low_open``: (low, high]; ``high`` None: no
+    upper bound), ``default`` where it is not given (None: none to name, or the model's own)."""
+
+    low: float
+    high: float | None = None
+    default: float | None = None
+    low_open: bool = False
+
+    def read(self, key: str, value: str) -> float:
+        """``value`` (text) as a number within the range, else one line naming ``key`` (``number_option``)."""
+        return number_option(key, value, self.low, math.inf if self.high is None else self.high, self.low_open)
+
+
+@dataclass(frozen=True)
 class GenerationCard:
     """What a module generates and from what; the page, the API and the CLI read their options here.
 
@@ -36,7 +51,9 @@ class GenerationCard:
     ``open_species``: any other species or description is answered too (by retrieval).
     ``source_generator``: a checkpoint may make the source motion from the prompt (OmniMotionGPT's
     OMG → animal chain). ``timeline``: what ``GenerationRequest.timeline`` may hold (``timeline``: prompt
-    segments in time; ``parts``: body parts each with its own text; ``omg.generation.timeline``)."""
+    segments in time; ``parts``: body parts each with its own text; ``omg.generation.timeline``).
+    ``option_ranges``: the bounds and defaults of the ``options`` that are numbers, which ``option`` reads a
+    value within; ``ranges`` adds the sampler's steps and guidance."""
 
     family: str
     skeleton: str
@@ -60,9 +77,26 @@ class GenerationCard:
     timeline: tuple[str, ...] = ()  # what a request's timeline may hold: "timeline" (segments), "parts" (body parts)
     # the kinds of spatial constraint ``generate`` takes (``GenerationRequest.control``; omg.generation.control)
     constraints: tuple[str, ...] = ()
+    option_ranges: dict[str, NumberRange] = field(default_factory=dict)  # of ``options``: name -> its range
+
+    def __post_init__(self):
+        if unlisted := sorted(set(self.option_ranges) - set(self.options)):
+            raise ValueError(f"option_ranges of options the card does not list: {', '.join(unlisted)}")
+
+    def ranges(self) -> dict[str, NumberRange]:
+        """Every number a request may set, by its name in a request, with its bounds and default: the sampler's
+        ``steps`` (1..``max_steps``) and ``guidance`` where the card has them, and ``option_ranges``."""
+        sampling = {}
+        if self.samplers:
+            sampling["steps"] = NumberRange(1, self.max_steps or None, self.default_steps or None)
+        if self.guidance is not None:
+            sampling["guidance"] = NumberRange(0.0, None, self.guidance)
+        return {**sampling, **self.option_ranges}
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
+        """The card as ``GET /v1/models`` lists it: its fields, ``option_ranges`` within ``ranges``."""
+        plain = {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items() if k != "option_ranges"}
+        return {**plain, "ranges": {name: asdict(r) for name, r in self.ranges().items()}}
 
 
 @dataclass
@@ -159,8 +193,10 @@ class ModuleGenerator:
         raise UsageError(f"a {self.generation_card().family} checkpoint takes no source motion")
 
     def option(self, key: str, value: str) -> Any:
-        """The value of family option ``key`` given as text (``--option KEY=VALUE``), checked."""
-        return value
+        """The value of family option ``key`` given as text (``--option KEY=VALUE``), checked: a number within
+        its range where the card gives one (``GenerationCard.option_ranges``), else the text."""
+        bounds = self.generation_card().option_ranges.get(key)
+        return value if bounds is None else bounds.read(key, value)
 
     def with_prior(self, prior: Any) -> None:
         """Draw from ``prior``, a second checkpoint's module (``--prior_ckpt``), where ``takes_prior``."""

@@ -21,6 +21,7 @@ from typing import Any
 
 from omg.errors import UsageError
 from omg.files import read_text
+from omg.generation.protocol import NumberRange
 from omg.lit.timeline import CHAINS, DEFAULT_COUPLING, PartText, Segment, Timeline, resolve_timeline
 from omg.motion.base import Representation
 from omg.skeleton import body_parts, get_skeleton
@@ -29,6 +30,10 @@ DEFAULT_TRANSITION = 0.5  # seconds two segments that only touch cross over in
 MAX_ENTRIES = 32  # segments and parts in one file: each distinct text is one more denoiser pass per step
 SEGMENT_KEYS = ("start", "end", "text")
 PART_KEYS = ("parts", "text", "start", "end")
+# the numbers a timeline file may give (seconds; coupling a weight), with their bounds and defaults (context None:
+# the whole motion): ``parse_timeline`` reads the file by them, ``GET /v1/models`` lists them for the page
+TIMELINE_RANGES = {"transition": NumberRange(0.0, default=DEFAULT_TRANSITION), "context": NumberRange(0.0),
+                   "coupling": NumberRange(0.0, 1.0, default=DEFAULT_COUPLING)}
 
 
 @dataclass(frozen=True)
@@ -145,9 +150,10 @@ def parse_timeline(data: Any, where: str = "timeline",
     transition = _seconds(data.get("transition", DEFAULT_TRANSITION), f"{where}: transition")
     context = None if data.get("context") is None else _seconds(data["context"], f"{where}: context")
     chains = check_chains(data.get("chains", "joint"), f"{where}: chains")
-    coupling = data.get("coupling", DEFAULT_COUPLING)
-    if isinstance(coupling, bool) or not isinstance(coupling, int | float) or not 0 <= coupling <= 1:
-        raise UsageError(f"{where}: coupling must be a number in [0, 1], got {coupling!r}")
+    coupling, bounds = data.get("coupling", DEFAULT_COUPLING), TIMELINE_RANGES["coupling"]
+    if isinstance(coupling, bool) or not isinstance(coupling, int | float) or \
+            not bounds.low <= coupling <= bounds.high:
+        raise UsageError(f"{where}: coupling must be a number in [{bounds.low:g}, {bounds.high:g}], got {coupling!r}")
     if "coupling" in data and chains != "separate":
         raise UsageError(f"{where}: coupling pulls separate chains together; give it with \"chains\": \"separate\"")
     segments = tuple(_segment(s, f"{where}: timeline[{i}]", check_text) for i, s in enumerate(raw_segments))

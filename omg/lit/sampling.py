@@ -25,11 +25,14 @@ if TYPE_CHECKING:
     from omg.lit.control import Control
 
 
+MAX_STANCE_ROOT = 1.0  # the whole step of the root by the stance foot
+
+
 def check_stance_root(strength: float, key: str) -> float:
-    """``strength`` when it is in [0, 1] (0: off), else one line naming ``key``: the one range check of the
-    module's, a callback's and a sampling call's stance_root."""
-    if not 0 <= strength <= 1:
-        raise UsageError(f"{key} must be in [0, 1] (0: off), got {strength!r}")
+    """``strength`` when it is in [0, ``MAX_STANCE_ROOT``] (0: off), else one line naming ``key``: the one range
+    check of the module's, a callback's and a sampling call's stance_root."""
+    if not 0 <= strength <= MAX_STANCE_ROOT:
+        raise UsageError(f"{key} must be in [0, {MAX_STANCE_ROOT:g}] (0: off), got {strength!r}")
     return float(strength)
 
 

@@ -33,7 +33,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -56,7 +56,7 @@ from omg.generation.protocol import (
     card_inputs,
     check_request,
 )
-from omg.generation.timeline import parse_timeline
+from omg.generation.timeline import TIMELINE_RANGES, parse_timeline
 from omg.generation.write import check_finite_motions, write_generation
 from omg.lit.sampling import MAX_SMOOTHING
 from omg.registry import SAMPLERS
@@ -92,6 +92,9 @@ class Model:
                 "card": self.card.to_dict(), "parents": list(skeleton.parents), "joints": list(skeleton.names),
                 # the names a body-part composition's entries take, for a card that takes them
                 "body_parts": list(body_parts(skeleton)) if "parts" in self.card.timeline else [],
+                # a timeline's numbers with their bounds and defaults (the page's fields), for a card that takes one
+                "timeline_ranges": {name: asdict(r) for name, r in TIMELINE_RANGES.items()}
+                if self.card.timeline else {},
                 "source_generator": self.source_module is not None,
                 "examples": EXAMPLES["species" if "species" in self.card.inputs else "text"]
                 if "text" in self.card.inputs else []}

@@ -1,7 +1,7 @@
 // omg serve's page: the form follows the chosen model's generation card (GET /v1/models); results play in the
 // three.js viewer of static/viewer.js, on the skeleton the server sends or on a character the user uploads.
 import { COLORS, Viewer } from '/static/viewer.js';
-import { createControl } from '/static/control.js';
+import { createControl, limit } from '/static/control.js';
 
 const $ = (id) => document.getElementById(id);
 let models = [];
@@ -51,9 +51,9 @@ function onModel() {
   $('unconditional').onchange = () => { $('prompts').disabled = $('unconditional').checked; };
   $('sampler').innerHTML = '';
   for (const s of c.samplers) $('sampler').add(new Option(s, s));
-  $('steps').placeholder = c.default_steps || '';
-  $('steps').max = c.max_steps || '';
-  $('guidance').placeholder = c.guidance ?? '';
+  // the number fields' bounds and defaults as the card lists them (its `ranges`): the server's, not the page's
+  for (const name of ['steps', 'guidance', 'smoothing']) limit($(name), c.ranges[name]);
+  $('length').min = c.min_frames / c.fps;
   $('length').max = c.max_frames / c.fps;
   const inputs = c.inputs.map((i) => (c.needs.includes(i) ? `${i} (needed)` : i)).join(', ');
   $('card').textContent = `${c.family}: ${c.skeleton} at ${c.fps} fps, ${(c.min_frames / c.fps).toFixed(1)}–` +

@@ -17,6 +17,14 @@ function element(tag, props = {}, children = []) {
   return e;
 }
 
+// A number field's bounds and placeholder from a range the server lists (GET /v1/models: a card's `ranges`, a
+// model's `timeline_ranges`): `show` words the default (null: none); no range, no bounds.
+export function limit(input, range, show = (value) => value ?? '') {
+  input.min = range?.low ?? '';
+  input.max = range?.high ?? '';
+  input.placeholder = range ? show(range.default) : '';
+}
+
 function button(text, onclick, id) {
   const b = element('button', { type: 'button', textContent: text, onclick });
   if (id) b.id = id;
@@ -115,16 +123,15 @@ export function createControl({ scene, camera, canvas, $ }) {
 
   const rows = element('div', { id: 'timeline-rows' });
   // the timeline file's transition and context, for the segments and the body parts alike; an empty field is the
-  // file's default and is not sent (DEFAULT_TRANSITION in omg/generation/timeline.py; the page's test holds the
-  // placeholder to it)
-  const transition = element('input', { id: 'timeline-transition', type: 'number', min: 0, step: 0.1,
-                                        placeholder: '0.5 (default)', title: 'seconds over which two segments that ' +
-                                        'only touch cross over, centred on their boundary; a body part with a ' +
-                                        'start or end crosses in and out over it too (empty: the default, 0.5 s)' });
-  const context = element('input', { id: 'timeline-context', type: 'number', min: 0, step: 0.1,
-                                     placeholder: 'whole motion', title: 'seconds each text\u2019s denoiser sees on ' +
-                                     'either side of its own frames, for segments and body parts (0: its own ' +
-                                     'frames and crossings only; empty: the whole motion, the default)' });
+  // file's default and is not sent (their bounds and defaults: the model's timeline_ranges, set in onModel)
+  const transition = element('input', { id: 'timeline-transition', type: 'number', step: 0.1,
+                                        title: 'seconds over which two segments that only touch cross over, ' +
+                                        'centred on their boundary; a body part with a start or end crosses in ' +
+                                        'and out over it too (empty: the default shown)' });
+  const context = element('input', { id: 'timeline-context', type: 'number', step: 0.1,
+                                     title: 'seconds each text\u2019s denoiser sees on either side of its own ' +
+                                     'frames, for segments and body parts (0: its own frames and crossings only; ' +
+                                     'empty: the whole motion, the default)' });
   const timeBox = element('fieldset', { id: 'timeline-box' }, [
     element('legend', { textContent: 'Prompt timeline' }),
     element('div', { className: 'note', textContent: 'segments in seconds, each meeting or overlapping the next; ' +
@@ -138,9 +145,9 @@ export function createControl({ scene, camera, canvas, $ }) {
   const partRows = element('div', { id: 'parts-rows' });
   const partNames = element('div', { id: 'parts-names', className: 'note' });
   const separate = element('input', { id: 'parts-separate', type: 'checkbox' });
-  const coupling = element('input', { id: 'parts-coupling', type: 'number', min: 0, max: 1, step: 0.05,
-                                      placeholder: 'default', title: 'each chain\u2019s pull towards the composed ' +
-                                      'motion, 0..1 (empty: the default)', disabled: true });
+  const coupling = element('input', { id: 'parts-coupling', type: 'number', step: 0.05, disabled: true,
+                                      title: 'each chain\u2019s pull towards the composed motion (empty: the ' +
+                                      'default shown)' });
   separate.onchange = () => { coupling.disabled = !separate.checked; };
   const partsBox = element('fieldset', { id: 'parts-box' }, [
     element('legend', { textContent: 'Body-part composition' }), partNames, partRows,
@@ -327,6 +334,10 @@ export function createControl({ scene, camera, canvas, $ }) {
       keyBox.disabled = !c.constraints.includes('keyframes');
       timeBox.disabled = !c.timeline.includes('timeline');
       partsBox.disabled = !c.timeline.includes('parts');
+      const ranges = model.timeline_ranges;
+      limit(transition, ranges.transition, (value) => `${value} (default)`);
+      limit(context, ranges.context, (value) => value ?? 'whole motion');
+      limit(coupling, ranges.coupling);
       partNames.textContent = partsBox.disabled ? 'this model takes no body-part composition'
         : `parts (${c.skeleton}): ${model.body_parts.join(', ')}`;
       const none = pathBox.disabled && keyBox.disabled && timeBox.disabled && partsBox.disabled;
