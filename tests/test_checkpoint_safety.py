@@ -231,6 +231,18 @@ def _fit_error(capsys, *argv: str) -> str:
     return err
 
 
+def test_a_controlnet_written_by_omg_fit_loads_without_its_pretrained_file(runs, tmp_path):
+    """A ControlNet checkpoint holds the frozen model's description (``base``) as well as its weights, so it loads
+    where the stage-1 checkpoint it was fine-tuned on is gone; LightningCLI hands the module its own config to save,
+    in which that description is unset."""
+    ckpt = torch.load(runs["cn"], weights_only=True)
+    assert ckpt["hyper_parameters"]["base"]["flavor"] == "mini"
+    ckpt["hyper_parameters"]["pretrained"] = str(tmp_path / "gone.ckpt")
+    torch.save(ckpt, tmp_path / "moved.ckpt")
+    moved, there = load_module(tmp_path / "moved.ckpt"), load_module(runs["cn"])
+    assert all(torch.equal(a, b) for a, b in zip(moved.state_dict().values(), there.state_dict().values()))
+
+
 def test_ckpt_path_of_another_class_or_unreadable_is_one_line(runs, tiny, tmp_path, capsys):
     pretrain = [*PRETRAIN, "--trainer.max_steps=3", f"--trainer.default_root_dir={tmp_path}",
                 f"--trainer.callbacks.dirpath={tmp_path}/ck"]

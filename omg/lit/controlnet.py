@@ -117,6 +117,8 @@ class ControlNetModule(MotionDiffusionModule):
                          loss_weighting="uniform",
                          activation_checkpointing=activation_checkpointing, stance_root=stance_root)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
+        if self.hparams.get("base") is None:  # LightningCLI hands save_hyperparameters its config, where base is unset
+            self.save_hyperparameters({"base": base})
         self.eot_drop, self.guidance_scale = eot_drop, guidance_scale
         self.hints = self.value_group("hints", hints)
         if pretrained_weights is not None:
@@ -237,8 +239,11 @@ def _read_start(path: str, text_encoder: str, moc: MoCOverrides | dict | None) -
     weights = dict(ckpt["state_dict"])
     if ckpt.get("ema") and not ckpt.get("ema_weights"):
         weights.update({f"controlnet.{k}": v for k, v in ckpt["ema"]["shadow"].items()})
-    base = settings(PretrainedBase, hp["base"], f"{path}: base").plain(f"{path}: base")
-    return base, weights
+    if hp.get("base") is None:  # written by `omg fit` before checkpoints kept it: its pretrained file describes it
+        if not hp.get("pretrained"):
+            raise UsageError(f"model.init_args.start_from: {path} describes no frozen model (no base, no pretrained)")
+        return _read_pretrained(hp["pretrained"])[0], weights
+    return settings(PretrainedBase, hp["base"], f"{path}: base").plain(f"{path}: base"), weights
 
 
 def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:
