@@ -321,8 +321,8 @@ def test_bench_control_scores_realism_with_an_evaluator(pretrain_ckpt, h263_shar
 
 
 def test_training_hints_are_the_clips_own_joints_on_the_kinds_and_shares_drawn():
-    """A ControlNet trained with hints sees each clip's own joints where a drawn constraint states them, nothing
-    on padded frames, and the kinds in their shares: no hint in free_share of the clips, root paths on the ground
+    """A ControlNet trained with hints sees each clip's own joints (and their velocities) where a drawn constraint
+    states them, nothing on padded frames, and the kinds in their shares: no hint in free_share of the clips, root paths on the ground
     alone in ground_share of them, full-body keyframes; the same generator state draws the same hints."""
     from omg.lit.control import HintTraining, draw_hints
 
@@ -330,10 +330,14 @@ def test_training_hints_are_the_clips_own_joints_on_the_kinds_and_shares_drawn()
     joints = torch.randn(B, T, J, 3)
     mask = torch.arange(T)[None] < torch.randint(20, T + 1, (B,))[:, None]
     hints = HintTraining(enabled=True, free_share=0.25, ground_share=0.5)
-    drawn = draw_hints(joints, mask, hints, torch.Generator().manual_seed(3)).view(B, T, J, 6)
-    assert torch.equal(drawn, draw_hints(joints, mask, hints, torch.Generator().manual_seed(3)).view(B, T, J, 6))
-    values, stated = drawn[..., :3], drawn[..., 3:].bool()
+    drawn = draw_hints(joints, mask, hints, torch.Generator().manual_seed(3), 20.0).view(B, T, J, 9)
+    again = draw_hints(joints, mask, hints, torch.Generator().manual_seed(3), 20.0).view(B, T, J, 9)
+    assert torch.equal(drawn, again)
+    values, stated, velocity = drawn[..., :3], drawn[..., 3:6].bool(), drawn[..., 6:]
     assert torch.equal(values, joints * stated) and not stated[~mask].any()
+    both = stated[:, 1:] & stated[:, :-1]  # a velocity where a frame and the next state the axis, in m/s
+    torch.testing.assert_close(velocity[:, :-1], (joints[:, 1:] - joints[:, :-1]) * 20.0 * both)
+    assert not velocity[:, -1].any() and both.any()
     per_clip = stated.flatten(1).any(1)
     assert 0.18 < 1 - per_clip.double().mean() < 0.32  # free_share, a few draws of a span aside
     root = stated[:, :, 0]  # (B, T, 3)

@@ -391,18 +391,26 @@ def test_controlnet_matches_loop_reference(wiring, layers):
 
 @pytest.mark.parametrize("wiring", WIRINGS)
 def test_a_hint_starts_as_no_change_and_is_read_by_every_copy(wiring):
-    """Spatial hints (OmniControl's realism branch): a network given hint channels, with the trained controllers of
-    one without, is that network bit for bit whatever the hint; once its hint embedding has weights, each copy reads
-    h_l + H(hint) (the references above), and guidance mixes the frozen model with the hinted D_c."""
+    """Spatial hints (OmniControl's realism branch): a new hinted ControlNet is the frozen model whatever the hint
+    (W_up = 0); one given the trained controllers of a network without hints, its hint embedding silenced (as
+    ``start_from`` does), is that network bit for bit; once the embedding has weights, each copy reads h_l + H(hint)
+    (the references above), and guidance mixes the frozen model with the hinted D_c."""
     net = trained_like(layers=[0, 2], wiring=wiring).double()
-    hinted = MotionControlNet(net.base, MoCConfig(**SMALL_MOC, layers=[0, 2], wiring=wiring, hint_channels=12))
-    missing, unexpected = hinted.double().load_state_dict(net.state_dict(), strict=False)
-    assert sorted(missing) == ["hint_embed.0.bias", "hint_embed.0.weight", "hint_embed.2.bias", "hint_embed.2.weight"]
-    assert not unexpected
     x, t = motion_batch(2, 9)
     x, mask = x.double(), frame_mask([9, 6], 9)
     tokens, text_mask, eot = text_batch([5, 3])
     tokens, hint = tokens.double(), torch.randn(2, 9, 12, dtype=torch.float64)
+    config = MoCConfig(**SMALL_MOC, layers=[0, 2], wiring=wiring, hint_channels=12)
+    hinted = MotionControlNet(net.base, config).double()
+    with torch.no_grad():
+        assert hinted.hint_embed[-1].weight.any()  # PyTorch's init: the MoC's zero W_up silences it
+        if wiring == "per_layer":  # (the parallel stream's zero projections do the same)
+            torch.testing.assert_close(hinted(x, t, tokens, text_mask, eot, mask, hint), net.forward_uncond(x, t, mask),
+                                       rtol=0, atol=1e-12)
+    missing, unexpected = hinted.load_state_dict(net.state_dict(), strict=False)
+    assert sorted(missing) == ["hint_embed.0.bias", "hint_embed.0.weight", "hint_embed.2.bias", "hint_embed.2.weight"]
+    assert not unexpected
+    hinted.silence_hints()
     reference = reference_fig3 if wiring == "per_layer" else reference_parallel_stream
     with torch.no_grad():
         plain = net(x, t, tokens, text_mask, eot, mask)

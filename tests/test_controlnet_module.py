@@ -201,11 +201,11 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
     torch.manual_seed(0)
     module = ControlNetModule(start_from=str(finetuned), text_encoder="hash", moc=MOC, spec=_data().spec,
                               hints={"enabled": True}, ema_decay=0.99, optim={"lr": 1e-3, "warmup_steps": 2})
-    assert module.controlnet.config.hint_channels == 6 * 22 and module.hparams["hints"]["enabled"]
+    assert module.controlnet.config.hint_channels == 9 * 22 and module.hparams["hints"]["enabled"]
     x, t = torch.randn(2, 30, 263), torch.tensor([10, 900])
     texts = ["a person walks forward", "a person jumps in place"]
     text = module.encode_text(texts)
-    hint = torch.randn(2, 30, 6 * 22)
+    hint = torch.randn(2, 30, 9 * 22)
     with torch.no_grad(), source.ema_weights(True):
         expected = source.controlnet(x, t, text.tokens, text.mask, text.eot)
         assert torch.equal(module.eval().controlnet(x, t, text.tokens, text.mask, text.eot, hint=hint), expected)
@@ -215,7 +215,7 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
     assert all(torch.equal(module.model.state_dict()[k], v) for k, v in frozen.items())
     trainer.save_checkpoint(tmp_path / "hints.ckpt")
     loaded = load_module(tmp_path / "hints.ckpt").eval()
-    assert loaded.hints.enabled and loaded.controlnet.config.hint_channels == 6 * 22
+    assert loaded.hints.enabled and loaded.controlnet.config.hint_channels == 9 * 22
 
     frames, J = 30, 22
     mask = length_mask([frames, frames])
@@ -230,10 +230,14 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
         plain, hinted = loaded.denoiser(texts, mask, None)(x, t), loaded.denoiser(texts, mask, None, control)(x, t)
         words = loaded.encode_text(texts)
         terms = loaded.controlnet.text_terms(words.tokens, words.mask, words.eot, fold_biases=True)
-        by_hand = loaded.controlnet.forward_guided(x, t, terms, loaded.guidance_scale, mask,
-                                                   loaded.controlnet.embed_hint(control_hint(control), x))
+        def by_hand(hint):
+            e = loaded.controlnet.embed_hint(hint, x)
+            return loaded.controlnet.forward_guided(x, t, terms, loaded.guidance_scale, mask, e)
+
         assert not torch.allclose(plain, hinted, atol=1e-6)
-        torch.testing.assert_close(hinted, by_hand, rtol=0, atol=0)
+        torch.testing.assert_close(hinted, by_hand(control_hint(control, 20.0)), rtol=0, atol=0)
+        # without constraints it reads the empty hint, as the clips drawn without hints trained it to
+        torch.testing.assert_close(plain, by_hand(torch.zeros(1, frames, 9 * J)), rtol=0, atol=0)
         assert torch.equal(source.denoiser(texts, mask, None, control)(x, t), source.denoiser(texts, mask, None)(x, t))
 
 

@@ -106,7 +106,7 @@ class Control:
 @dataclass(frozen=True)
 class HintTraining:
     """A ControlNet trained to read spatial hints (OmniControl's realism branch, Xie et al. ICLR 2024, Sec. 3.3;
-    ``omg.models.controlnet``): ``enabled`` gives the network its hint input (``hint_features``, 6 channels a
+    ``omg.models.controlnet``): ``enabled`` gives the network its hint input (``hint_features``, 9 channels a
     joint) and training draws each motion's hints from its own joints (``draw_hints``). OmniControl draws one
     random joint at a random density of frames; here the kinds a constraints file states are drawn, so the
     network sees what users give: a motion without hints with probability ``free_share`` (text alone, as when
@@ -134,24 +134,29 @@ class HintTraining:
 
 
 def hint_channels(skeleton: Skeleton) -> int:
-    """Channels of a hint per frame: each joint's stated position and whether each axis is stated."""
-    return 6 * len(skeleton.names)
+    """Channels of a hint per frame: each joint's stated position, whether each axis is stated, and its stated
+    step to the next frame."""
+    return 9 * len(skeleton.names)
 
 
-def hint_features(targets: Tensor, stated: Tensor) -> Tensor:
-    """targets (N, T, J, 3) metres in the model's world, stated (N, T, J, 3) bool -> hint (N, T, 6·J): per joint its
-    stated coordinates (0 where not stated) and 1 on each stated axis."""
+def hint_features(targets: Tensor, stated: Tensor, fps: float) -> Tensor:
+    """targets (N, T, J, 3) metres in the model's world, stated (N, T, J, 3) bool -> hint (N, T, 9·J): per joint its
+    stated coordinates (0 where not stated), 1 on each stated axis, and its velocity to the next frame's target in
+    m/s where both frames state that axis (0 elsewhere, and at the last frame). The velocity is what the
+    representation's root features are made of: a path given at every frame says the root's speed outright."""
     stated = stated.to(targets.dtype)
-    return torch.cat([targets * stated, stated], dim=-1).flatten(2)
+    both = stated[:, 1:] * stated[:, :-1]  # (N, T-1, J, 3)
+    velocity = F.pad((targets[:, 1:] - targets[:, :-1]) * both * fps, (0, 0, 0, 0, 0, 1))  # (N, T, J, 3)
+    return torch.cat([targets * stated, stated, velocity], dim=-1).flatten(2)
 
 
-def control_hint(control: Control) -> Tensor:
-    """The hint (N, T, 6·J) of a control's targets: the axes each target states where its weight is above 0."""
-    return hint_features(control.targets, control.axes & (control.weights > 0)[..., None])
+def control_hint(control: Control, fps: float) -> Tensor:
+    """The hint (N, T, 9·J) of a control's targets: the axes each target states where its weight is above 0."""
+    return hint_features(control.targets, control.axes & (control.weights > 0)[..., None], fps)
 
 
-def draw_hints(joints: Tensor, mask: Tensor, hints: HintTraining, generator: torch.Generator) -> Tensor:
-    """Random hints (B, T, 6·J) of a training batch from its own joints (B, T, J, 3) on its real frames (B, T), as
+def draw_hints(joints: Tensor, mask: Tensor, hints: HintTraining, generator: torch.Generator, fps: float) -> Tensor:
+    """Random hints (B, T, 9·J) of a training batch from its own joints (B, T, J, 3) on its real frames (B, T), as
     ``HintTraining`` describes; every draw from ``generator`` (a run's noise RNG, so a resumed run draws the same)."""
     B, T, J, _ = joints.shape
     device = joints.device
@@ -191,7 +196,7 @@ def draw_hints(joints: Tensor, mask: Tensor, hints: HintTraining, generator: tor
             every = 10 + int(r[22] * 51)
             first = int(r[23] * every)
             stated[b, (frame >= first) & ((frame - first) % every == 0) & (frame < n)] = True
-    return hint_features(joints, stated & mask[:, :, None, None])
+    return hint_features(joints, stated & mask[:, :, None, None], fps)
 
 
 def distances(joints: Tensor, control: Control) -> Tensor:

@@ -67,8 +67,8 @@ class ControlNetModule(MotionDiffusionModule):
             with ``enabled`` the block copies read the constraints a motion is sampled with, and training draws
             them from each clip's own joints.
         start_from: a ControlNet checkpoint this one starts from, in place of ``pretrained`` (its frozen model,
-            copies and controllers; the hint embedding from zero): hints fine-tuned onto a trained ControlNet. Its
-            text encoder and ``moc`` must be this run's.
+            copies and controllers; the hint embedding's last layer from zero): hints fine-tuned onto a trained
+            ControlNet. Its text encoder and ``moc`` must be this run's.
         base: the pretrained model's flavor, DiT overrides and spec (``PretrainedBase``); filled from
             ``pretrained`` and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
@@ -128,7 +128,9 @@ class ControlNetModule(MotionDiffusionModule):
         moc_config = MoCConfig(text_dim=self.text_encoder.dim, **set_fields(MoCOverrides, moc, "model.init_args.moc"),
                                hint_channels=hint_channels(self.representation.skeleton) if self.hints.enabled else 0)
         self.controlnet = MotionControlNet(self.model, moc_config)
-        if started is not None:  # the hint embedding, which the started-from ControlNet lacks, stays at zero
+        if started is not None:  # the hint embedding, which the started-from ControlNet lacks, starts at zero
+            if self.hints.enabled:
+                self.controlnet.silence_hints()
             missing, _ = self.load_state_dict(started, strict=False)
             if unexpected := sorted(set(started) - set(self.state_dict())):
                 raise UsageError(f"model.init_args.start_from: its weights do not fit this ControlNet "
@@ -182,7 +184,7 @@ class ControlNetModule(MotionDiffusionModule):
         prepared = {**batch, "motion": x, "text_features": self.encode_text(batch["text"], drop)}
         if self.hints.enabled:  # drawn from the clips' own joints, in the model's world (omg.lit.control)
             joints = self.representation.decode(self.denormalize(x).float())  # (B, T, J, 3)
-            prepared["hint"] = draw_hints(joints, mask.bool(), self.hints, self.noise_generator())
+            prepared["hint"] = draw_hints(joints, mask.bool(), self.hints, self.noise_generator(), self.spec.fps)
         return prepared
 
     def denoise(self, x_t: Tensor, t: Tensor, mask: Tensor | None, batch: dict) -> Tensor:
@@ -201,11 +203,15 @@ class ControlNetModule(MotionDiffusionModule):
         text = self.encode_text(list(texts))
         terms = self.controlnet.text_terms(text.tokens, text.mask, text.eot, fold_biases=True)  # once, not per step
         hint = None
-        if control is not None and self.hints.enabled:
-            if control.frames != mask.shape[1]:
-                raise ValueError(f"a control of {control.frames} frames for motions of up to {mask.shape[1]}")
+        if self.hints.enabled:  # the control's targets, or the empty hint the clips trained without hints read
             dtype = next(self.controlnet.parameters()).dtype
-            hint = self.controlnet.embed_hint(control_hint(control.to(self.device, dtype)), text.tokens.to(dtype))
+            if control is None:
+                features = torch.zeros(1, mask.shape[1], self.controlnet.config.hint_channels, device=self.device)
+            elif control.frames != mask.shape[1]:
+                raise ValueError(f"a control of {control.frames} frames for motions of up to {mask.shape[1]}")
+            else:
+                features = control_hint(control.to(self.device, dtype), self.spec.fps)
+            hint = self.controlnet.embed_hint(features, text.tokens.to(dtype))
         return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask, hint)
 
 

@@ -40,11 +40,14 @@ conditional half only.
 
 Spatial hints (``MoCConfig.hint_channels`` > 0; OmniControl's realism branch, Xie et al. ICLR 2024, Sec. 3.3):
 a hint (B, T, C) per frame, the targets a user stated (``omg.lit.control.hint_features``), is embedded once,
-e = H(hint) (B, T, d) with H = Linear(C, d) -> SiLU -> Linear(d, d), its last layer zero-initialised, and every
-block copy reads h_l + e instead of h_l (the parallel stream: h^c_0 = h_0 + e). OmniControl's branch reads its
-hint at its input alone, but its copies form one stream; here each copy reads the main stream, so each gets the
-hint. At initialisation e = 0 and the network is the text ControlNet it was, so hints are fine-tuned onto a
-trained ControlNet (``ControlNetModule.start_from``), and a network trained with hints, given none, reads e = 0.
+e = H(hint) (B, T, d) with H = Linear(C, d) -> SiLU -> Linear(d, d), and every block copy reads h_l + e instead of
+h_l (the parallel stream: h^c_0 = h_0 + e). OmniControl's branch reads its hint at its input alone, but its
+copies form one stream; here each copy reads the main stream, so each gets the hint. H starts at PyTorch's init,
+not zero: W_up = 0 already makes D_c the frozen model at initialisation, and a zero H learns too slowly to be
+read within a short run. Hints fine-tuned onto a trained ControlNet (``ControlNetModule.start_from``) start with
+H's last layer at zero (``silence_hints``), so that the network starts as the text ControlNet it was. A motion
+without constraints reads the empty hint (zeros, whose e is not 0 once trained), as the clips trained without
+hints did (``ControlNetModule.denoiser``); given None, the copies read h_l alone.
 
 Text arrives as three tensors (the fields of ``omg.text``'s features): tokens (B, L, D_text)
 per-token embeddings, text_mask (B, L) bool, True = real token, and eot (B,) long, the index of
@@ -420,12 +423,16 @@ class MotionControlNet(nn.Module):
             if self.config.zero_init:
                 nn.init.zeros_(proj.weight)
                 nn.init.zeros_(proj.bias)
-        if self.config.hint_channels:  # always from zero, whatever zero_init says: hints start as no change
-            for layer in self.hint_embed:
-                if isinstance(layer, nn.Linear):
-                    layer.reset_parameters()
-            nn.init.zeros_(self.hint_embed[-1].weight)
-            nn.init.zeros_(self.hint_embed[-1].bias)
+        for layer in getattr(self, "hint_embed", ()):  # PyTorch's init: W_up = 0 keeps D_c = D_u whatever it reads
+            if isinstance(layer, nn.Linear):
+                layer.reset_parameters()
+
+    @torch.no_grad()
+    def silence_hints(self) -> None:
+        """Zero the hint embedding's last layer, so that a hint changes nothing: the start of hints fine-tuned onto a
+        trained ControlNet, whose W_up is no longer zero."""
+        nn.init.zeros_(self.hint_embed[-1].weight)
+        nn.init.zeros_(self.hint_embed[-1].bias)
 
     def trainable_parameters(self) -> Iterator[nn.Parameter]:
         """What the optimiser gets: everything but the frozen ``base``."""
