@@ -15,8 +15,8 @@ from omg.errors import UsageError
 from omg.tools.bench.measure import run_measured
 
 TRAIN = str(MINI / "human263" / "train")  # the committed mini shards: 90 clips
-# the memory sampler's interval (s): at the default 0.05 its reads of /proc took as much CPU as a worker's own
-# start-up (12 s of CPU per worker, on the two cores the worker shares); the figures are not what is checked
+# the memory sampler's interval (s): at the default 0.05 its reads of /proc take CPU from the worker it samples,
+# on the two cores the worker shares; the figures are not what is checked
 SAMPLE_S = "0.5"
 
 
