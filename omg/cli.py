@@ -81,7 +81,7 @@ def lightning_main(argv: list[str]) -> None:
     from lightning.fabric.utilities.exceptions import MisconfigurationException
     from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-    from omg.data.datamodule import TooManyBadSamples
+    from omg.data.loaders import TooManyBadSamples
     from omg.tools.args import check_config_files, explain, file_arguments, is_utf8
     from omg.tools.common import last_line
     from omg.tools.lightning import FIT_HINT, OmgLightningCLI

@@ -4,6 +4,7 @@ its figures come back as the table, and its bad input comes back as one line."""
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import pytest
@@ -14,8 +15,8 @@ from omg.errors import UsageError
 from omg.tools.bench.measure import run_measured
 
 TRAIN = str(MINI / "human263" / "train")  # the committed mini shards: 90 clips
-# the memory sampler's interval (s): at the default 0.05 its reads of /proc took as much CPU as a worker's own
-# start-up (12 s of CPU per worker, on the two cores the worker shares); the figures are not what is checked
+# the memory sampler's interval (s): at the default 0.05 its reads of /proc take CPU from the worker it samples,
+# on the two cores the worker shares; the figures are not what is checked
 SAMPLE_S = "0.5"
 
 
@@ -33,3 +34,15 @@ def test_the_data_benchmark_runs_its_workers_by_module_path(capsys):
     worker = [sys.executable, "-m", "omg.tools.bench", "in-memory", TRAIN, "100000", "0", "2", "60"]
     with pytest.raises(UsageError, match=r"^the in-memory loader: a whole pass yields no batch of 100000"):
         run_measured(worker, "the in-memory loader", float(SAMPLE_S))
+
+
+def test_a_data_only_process_imports_no_lightning():
+    """Processes that only read data: the data benchmark's worker (``python -m omg.tools.bench`` runs the package,
+    then its ``__main__``), ``omg shards``, and a loader worker started by spawn or forkserver, which unpickles the
+    training stream from ``omg.data.loaders``. None imports Lightning, nor what Lightning's start-up pulls in
+    (torchmetrics, and through it torchvision and transformers)."""
+    heavy = ("lightning", "torchmetrics", "torchvision", "transformers")
+    code = ("import sys, omg.tools.bench.__main__, omg.tools.shards, omg.data.loaders; "
+            f"print(sorted(m for m in {heavy} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from omg.data.datamodule import ClipDataset, MotionDataModule
+from omg.data.datamodule import MotionDataModule
+from omg.data.loaders import ClipDataset
 from omg.errors import UsageError
 from omg.tools.shards import build, shuffled
 

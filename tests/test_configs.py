@@ -181,7 +181,7 @@ def test_mini_whole_clip_configs_train_on_every_committed_clip(path):
     """data.min_len drops whole clips shorter than it: a mini config that trains on whole clips keeps every
     clip of the committed shards, as docs/results/mini_eval.md's figures were measured (mini/evaluator.yaml's old 60
     dropped 5 of 90)."""
-    from omg.data.datamodule import ClipDataset
+    from omg.data.loaders import ClipDataset
     from omg.data.windows import WindowSampler
 
     cfg = yaml.safe_load(path.read_text())

@@ -14,7 +14,8 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from helpers import rewrite_member, toy_clip, write_toy_shards
-from omg.data.datamodule import MotionDataModule, StreamLoader, TooManyBadSamples
+from omg.data.datamodule import MotionDataModule
+from omg.data.loaders import StreamLoader, TooManyBadSamples
 from omg.data.shards import Manifest
 from omg.data.windows import WindowSampler
 from omg.errors import UsageError
@@ -222,7 +223,7 @@ def test_captioned_clips_are_used_whole_up_to_the_cap(toy_shards):
         for clip_id, n in zip(batch["id"], batch["lengths"].tolist()):
             assert n == min(lengths[clip_id], 60)
     # the evaluation's real motions: the clip its caption describes
-    from omg.data.datamodule import ClipDataset
+    from omg.data.loaders import ClipDataset
 
     samples = ClipDataset.from_shards(dm.train_urls, dm.feature_dim, dm.windows).samples
     prompts = prompt_set(samples, 40, seed=0, windows=dm.windows)
@@ -233,7 +234,7 @@ def test_captioned_clips_are_used_whole_up_to_the_cap(toy_shards):
 def test_whole_clips_shorter_than_min_len_are_not_trained_on(toy_shards):
     """min_len filters whole clips, in the stream and in memory (the papers' length filters: the toy
     clips have 20..79 frames); a set with no clip that long is one line, not an endless loop."""
-    from omg.data.datamodule import in_memory_loader
+    from omg.data.loaders import in_memory_loader
 
     lengths = {f"clip.{i:04d}": len(toy_clip(i)) for i in range(40)}
     dm = _datamodule(toy_shards, clips="whole", max_len=60, min_len=50, batches_per_epoch=20)

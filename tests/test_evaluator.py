@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from helpers import REPO
-from omg.data.datamodule import ClipDataset, MotionDataModule
+from omg.data.datamodule import MotionDataModule
+from omg.data.loaders import ClipDataset
 from omg.data.shards import Manifest
 from omg.data.windows import Collate, WindowSampler
 from omg.errors import UsageError

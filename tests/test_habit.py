@@ -229,7 +229,8 @@ def habit_flow_run(tmp_path_factory):
 @pytest.mark.parametrize("order", ["kl_then_flows", "flow_prior"])
 def test_transfer_carries_the_target_habits_and_keeps_the_path(habit_run, order, request):
     from omg.callbacks.habit import crops
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.loaders import ClipDataset
 
     vq, prior, evaluator = habit_run["vq"], habit_run["prior"], habit_run["evaluator"]
     if order == "flow_prior":  # the paper's order: the VQ-VAE's own flows, pretrained with its encoders
@@ -414,7 +415,8 @@ def test_the_habit_evaluation_has_one_mode_and_a_named_diagnostic(tmp_path):
 
 def _train_crops() -> list[dict]:
     from omg.callbacks.habit import crops
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.loaders import ClipDataset
 
     data = MotionDataModule(str(QUATVEL / "train"), max_len=64, min_len=64, clips="windows", verify_shards=False)
     return [c for c in crops(ClipDataset.from_shards(data.train_urls, data.feature_dim, data.windows).samples, 64)
@@ -516,7 +518,8 @@ def test_transfer_writes_the_model_rotations_and_omg_generate_makes_the_same_tra
     the habit prior answers `omg generate` through the one generation interface with the motion
     `omg transfer` makes."""
     from omg.cli import main
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.loaders import ClipDataset
     from omg.io.bvh import read_bvh
     from omg.tools.habit import transfer
 

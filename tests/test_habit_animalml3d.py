@@ -81,7 +81,8 @@ def test_the_animalml3d_config_trains_the_habit_model_on_animalml3d_layout_shard
     configs/habit_vqvae.yaml --config configs/habit_animalml3d.yaml` (tiny, a few steps of both phases), then
     `omg transfer --to "milk cow"`: the model knows AnimalML3D's categories by their captions' words."""
     from omg.cli import main
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.loaders import ClipDataset
 
     release, shards = tmp_path / "AnimalML3D", tmp_path / "shards"
     identities = {"milkcow10L": "a milk cow", "foxXAT": "a fox", "bearPDD": "a pig", "deerA4K": "a deer"}

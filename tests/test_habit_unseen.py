@@ -11,7 +11,8 @@ from helpers.habit import fit as _fit
 
 
 def test_unseen_species_keeps_its_own_description_and_borrows_only_the_habit_latent(tmp_path):
-    from omg.data.datamodule import ClipDataset, MotionDataModule
+    from omg.data.datamodule import MotionDataModule
+    from omg.data.loaders import ClipDataset
     from omg.lit.habit import HabitVQModule
     from omg.tools.habit import transfer
 

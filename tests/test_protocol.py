@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from helpers import REPO
-from omg.data.datamodule import ClipDataset, MotionDataModule
+from omg.data.datamodule import MotionDataModule
+from omg.data.loaders import ClipDataset
 from omg.errors import UsageError
 from omg.evaluation import (
     EvalSettings,

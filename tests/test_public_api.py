@@ -57,16 +57,16 @@ ALLOWED: dict[tuple[str, str], str] = {
         "nowhere public), so that parameter names and checkpoints stay as they are; the public "
         "torch.utils.checkpoint.checkpoint wraps a forward call, which would need a wrapper module (renamed "
         "parameters) or a forward override in every block",
-    ("omg/data/datamodule.py", "_utils"):
+    ("omg/data/loaders.py", "_utils"):
         "stop_workers ends a DataLoader iterator's worker processes with SIGCONT and SIGKILL as well (a stopped "
         "worker never exits on torch's SIGTERM, and Python's exit waits for it forever): torch's SIGCHLD handler "
         "must first forget their pids (torch.utils.data._utils.signal_handling), as torch's own shutdown does",
-    ("omg/data/datamodule.py", "_remove_worker_pids"):
+    ("omg/data/loaders.py", "_remove_worker_pids"):
         "the call that makes torch's SIGCHLD handler forget the workers stop_workers ends (see _utils)",
-    ("omg/data/datamodule.py", "_worker_pids_set"):
+    ("omg/data/loaders.py", "_worker_pids_set"):
         "whether the iterator's worker pids are registered with torch's SIGCHLD handler, read and cleared as "
         "torch's own shutdown does (see _utils)",
-    ("omg/data/datamodule.py", "_workers"):
+    ("omg/data/loaders.py", "_workers"):
         "a DataLoader iterator's worker processes: torch offers no public handle on them, and stop_workers must "
         "signal each (see _utils)",
 }

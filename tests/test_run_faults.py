@@ -67,7 +67,7 @@ def _stall(self, rng):
 
 
 def test_a_stalled_data_worker_stops_the_run_with_one_line(h263_shards, tmp_path, capsys, monkeypatch):
-    from omg.data.datamodule import MotionStream
+    from omg.data.loaders import MotionStream
 
     monkeypatch.setattr(MotionStream, "_samples", _stall)  # the forked worker inherits it
     config = write_config(tmp_path / "c.yaml", h263_shards / "train", tmp_path / "run", num_workers=1, timeout=2)

@@ -25,7 +25,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from omg.callbacks.eval import EvalCallback
 from omg.callbacks.run import run_dir
-from omg.data.datamodule import ClipDataset, resolve_shards
+from omg.data.loaders import ClipDataset, resolve_shards
 from omg.data.windows import WindowSampler
 from omg.errors import UsageError
 from omg.evaluation import PromptSet, markdown_table, write_report

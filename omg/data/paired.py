@@ -19,7 +19,8 @@ from collections.abc import Iterator
 
 from lightning.pytorch.utilities.combined_loader import CombinedLoader
 
-from omg.data.datamodule import ClipDataset, MotionDataModule, StreamLoader
+from omg.data.datamodule import MotionDataModule
+from omg.data.loaders import ClipDataset, StreamLoader
 from omg.data.omgpt import category_offsets, scan_metas
 from omg.errors import UsageError
 from omg.settings import arguments, set_fields

@@ -394,21 +394,22 @@ def batch_composition(shard_dir: str | Path, batch_size: int, shuffle_buffer: in
     """How fair a sample of the set a training batch is: the distinct captions, and the distinct
     values of each clip label (e.g. a take's content), in batches drawn as the training stream
     draws them, against the whole set's."""
-    from omg.data.datamodule import ClipDataset, MotionDataModule, MotionStream
+    from omg.data.loaders import ClipDataset, MotionStream, resolve_shards
     from omg.data.windows import WindowSampler
 
-    data = MotionDataModule(str(shard_dir), verify_shards=False)
+    urls, manifest, _ = resolve_shards(str(shard_dir))  # unverified: `inspect` has just checked every shard
+    feature_dim = manifest["feature_dim"]
     windows = WindowSampler(min_len=1, mode="whole")  # every clip
     # `inspect` has reported every bad sample once already; the stream would warn at each of its visits
     data_log = logging.getLogger(MotionStream.__module__)
     level = data_log.level
     data_log.setLevel(logging.ERROR)
     try:
-        samples = ClipDataset.from_shards(data.train_urls, data.feature_dim, windows, max_bad_fraction=1.0).samples
+        samples = ClipDataset.from_shards(urls, feature_dim, windows, max_bad_fraction=1.0).samples
         # a small set's mixing shows in two passes over it as well as in more (each pass re-reads every shard)
         batches = max(1, min(batches, -(-2 * len(samples) // batch_size)))
-        stream = MotionStream(data.train_urls, rank=0, batches=batches, batch_size=batch_size, windows=windows,
-                              feature_dim=data.feature_dim, shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
+        stream = MotionStream(urls, rank=0, batches=batches, batch_size=batch_size, windows=windows,
+                              feature_dim=feature_dim, shuffle_buffer=shuffle_buffer, max_bad_fraction=1.0)
         items = list(stream)
     finally:
         data_log.setLevel(level)

@@ -19,7 +19,6 @@ LONGEST: dict[str, float] = {
     "habit": 130,
     "ddp_resume": 45,
     "omgpt": 90,
-    "test_bench.py::test_the_data_benchmark_runs_its_workers_by_module_path": 60,
     "evaluator": 60,
     "test_plan.py::test_activation_estimate_matches_the_measured_peak[8-512-True]": 50,
     "test_callbacks.py::test_controlnet_samples_follow_lengths_and_guidance": 45,
@@ -34,6 +33,7 @@ LONGEST: dict[str, float] = {
     "docs": 20,
     "retarget": 20,
     "test_plan.py::test_controlnet_activation_estimate_matches_the_measured_peak": 16,
+    "test_bench.py::test_the_data_benchmark_runs_its_workers_by_module_path": 15,
     "test_gpu_check.py::test_dry_run_resolves_every_command_and_trains_nothing": 12,
     "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 10,
 }

@@ -57,14 +57,24 @@ def loader_worker(argv: list[str]) -> None:
     import os
 
     kind, shards, batch_size, workers, batches, max_len = argv[0], argv[1], *map(int, argv[2:6])
-    from omg.data.datamodule import MotionDataModule, in_memory_loader
+    # the loaders without Lightning's data module: a data-only process imports no Lightning
+    from omg.data.loaders import DEFAULT_TIMEOUT_S, in_memory_loader, stream_loader
+    from omg.data.mixture import load_mixture
+    from omg.data.windows import Collate, WindowSampler
 
     baseline = tree_pss(os.getpid())  # the interpreter with torch and omg imported, before any data
 
-    dm = MotionDataModule(shards, batch_size=batch_size, max_len=max_len, min_len=60, num_workers=workers,
-                          batches_per_epoch=batches + 10, shuffle_buffer=500)
-    loader = dm.train_dataloader() if kind == "streaming" else in_memory_loader(
-        dm.train_urls, dm.feature_dim, dm.windows, batch_size, workers, dm.collate)
+    mixture = load_mixture(shards, "--shards")
+    spec = mixture.spec()
+    collate = Collate(np.asarray(spec.mean, np.float32), np.asarray(spec.std, np.float32))
+    windows = WindowSampler(max_len, MIN_WINDOW, "windows")
+    if kind == "streaming":  # the training stream as `omg fit` reads it (data.verify_shards, data.timeout)
+        loader = stream_loader(mixture, 0, 1, windows, batches + 10, batch_size, collate, num_workers=workers,
+                               shuffle_buffer=500, checks=mixture.checks, timeout=DEFAULT_TIMEOUT_S)
+    else:
+        loader = in_memory_loader(mixture.urls, mixture.manifest["feature_dim"], windows, batch_size, workers,
+                                  collate)
+
     def endless():
         while True:  # the in-memory loader's epoch is one pass over the clips
             empty = True
@@ -141,7 +151,7 @@ def _check_data_args(clips: int, batch_size: int, shards: str | None) -> None:
     if shards is None:
         where = "--clips"
     else:
-        from omg.data.datamodule import resolve_shards
+        from omg.data.loaders import resolve_shards
 
         try:
             _, manifest, _ = resolve_shards(shards)
@@ -156,7 +166,7 @@ def _check_data_args(clips: int, batch_size: int, shards: str | None) -> None:
 def worker_main(argv: list[str]) -> None:
     """``python -m omg.tools.bench KIND ...`` (``loader_worker``): bad input ends as one JSON line
     on stdout and exit code 2, which the parent (``run_measured``) turns back into a UsageError."""
-    from omg.data.datamodule import TooManyBadSamples
+    from omg.data.loaders import TooManyBadSamples
 
     try:
         loader_worker(argv)
