@@ -322,8 +322,8 @@ def test_bench_control_scores_realism_with_an_evaluator(pretrain_ckpt, h263_shar
 
 def test_training_hints_are_the_clips_own_joints_on_the_kinds_and_shares_drawn():
     """A ControlNet trained with hints sees each clip's own joints (and their velocities) where a drawn constraint
-    states them, nothing on padded frames, and the kinds in their shares: no hint in free_share of the clips, root paths on the ground
-    alone in ground_share of them, full-body keyframes; the same generator state draws the same hints."""
+    states them, nothing on padded frames, and the kinds in their shares: no hint in free_share of the clips, root
+    paths on the ground alone in ground_share of them, full-body keyframes; the same generator draws the same."""
     from omg.lit.control import HintTraining, draw_hints
 
     B, T, J = 400, 60, 22
