@@ -40,12 +40,14 @@ conditional half only.
 
 Spatial hints (``MoCConfig.hint_channels`` > 0; OmniControl's realism branch, Xie et al. ICLR 2024, Sec. 3.3):
 a hint (B, T, C) per frame, the targets a user stated (``omg.lit.control.hint_features``), is embedded once,
-e = H(hint) (B, T, d) with H = Linear(C, d) -> SiLU -> Linear(d, d), and every block copy reads h_l + e instead of
-h_l (the parallel stream: h^c_0 = h_0 + e). OmniControl's branch reads its hint at its input alone, but its
-copies form one stream; here each copy reads the main stream, so each gets the hint. H starts at PyTorch's init,
-not zero: W_up = 0 already makes D_c the frozen model at initialisation, and a zero H learns too slowly to be
-read within a short run. Hints fine-tuned onto a trained ControlNet (``ControlNetModule.start_from``) start with
-H's last layer at zero (``silence_hints``), so that the network starts as the text ControlNet it was. A motion
+e = H(hint) (B, T, d) with H = Linear(C, d) -> SiLU -> Linear(d, d) -> LayerNorm(d), and every block copy reads
+h_l + e instead of h_l (the parallel stream: h^c_0 = h_0 + e). OmniControl's branch reads its hint at its input
+alone, but its copies form one stream; here each copy reads the main stream, so each gets the hint. H starts at
+PyTorch's init, not zero, and ends in a LayerNorm, so that a hint weighs in what a copy reads about as much as the
+motion does from the first step: W_up = 0 already makes D_c the frozen model at initialisation, and a hint
+embedded at a thirtieth of the stream's size (a zero or a plain MLP's output) was not read within a CPU run.
+Hints fine-tuned onto a trained ControlNet (``ControlNetModule.start_from``) start with H's output at zero
+(``silence_hints``), so that the network starts as the text ControlNet it was. A motion
 without constraints reads the empty hint (zeros, whose e is not 0 once trained), as the clips trained without
 hints did (``ControlNetModule.denoiser``); given None, the copies read h_l alone.
 
@@ -403,7 +405,8 @@ class MotionControlNet(nn.Module):
         if parallel:
             self.zero_projs = nn.ModuleList(nn.Linear(d, d) for _ in range(n_layers))
         if config.hint_channels:
-            self.hint_embed = nn.Sequential(nn.Linear(config.hint_channels, d), nn.SiLU(), nn.Linear(d, d))
+            self.hint_embed = nn.Sequential(nn.Linear(config.hint_channels, d), nn.SiLU(), nn.Linear(d, d),
+                                            nn.LayerNorm(d))
         self.base = base.requires_grad_(False).eval()
         for p in self.trainable_parameters():
             p.requires_grad_(True)
@@ -424,13 +427,13 @@ class MotionControlNet(nn.Module):
                 nn.init.zeros_(proj.weight)
                 nn.init.zeros_(proj.bias)
         for layer in getattr(self, "hint_embed", ()):  # PyTorch's init: W_up = 0 keeps D_c = D_u whatever it reads
-            if isinstance(layer, nn.Linear):
+            if isinstance(layer, (nn.Linear, nn.LayerNorm)):
                 layer.reset_parameters()
 
     @torch.no_grad()
     def silence_hints(self) -> None:
-        """Zero the hint embedding's last layer, so that a hint changes nothing: the start of hints fine-tuned onto a
-        trained ControlNet, whose W_up is no longer zero."""
+        """Zero the hint embedding's output (its LayerNorm's gain and shift), so that a hint changes nothing: the
+        start of hints fine-tuned onto a trained ControlNet, whose W_up is no longer zero."""
         nn.init.zeros_(self.hint_embed[-1].weight)
         nn.init.zeros_(self.hint_embed[-1].bias)
 
