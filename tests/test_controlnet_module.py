@@ -189,17 +189,17 @@ def test_bench_quality_writes_the_curve(finetuned, tmp_path, capsys):
 
 def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_read_when_sampling(finetuned,
                                                                                                   tmp_path):
-    """Spatial hints fine-tuned onto a trained text ControlNet (``start_from``): at the start it is that ControlNet
-    (its EMA weights) whatever the hint; training reaches the hint embedding and nothing frozen; the checkpoint
-    loads with its hints; sampling with a control hands its targets to the network (the same control on the text
-    ControlNet steers alone)."""
+    """Spatial hints fine-tuned onto a trained text ControlNet (its checkpoint as ``pretrained``): at the start it is
+    that ControlNet (its EMA weights) whatever the hint; training reaches the hint embedding and nothing frozen; the
+    checkpoint loads with its hints; sampling with a control hands its targets to the network (the same control on
+    the text ControlNet steers alone)."""
     from omg.lit.checkpoint import load_module
     from omg.lit.control import Control, control_hint
     from omg.motion import length_mask
 
     source = load_module(finetuned).eval()
     torch.manual_seed(0)
-    module = ControlNetModule(start_from=str(finetuned), text_encoder="hash", moc=MOC, spec=_data().spec,
+    module = ControlNetModule(pretrained=str(finetuned), text_encoder="hash", moc=MOC, spec=_data().spec,
                               hints={"enabled": True}, ema_decay=0.99, optim={"lr": 1e-3, "warmup_steps": 2})
     assert module.controlnet.config.hint_channels == 9 * 22 and module.hparams["hints"]["enabled"]
     x, t = torch.randn(2, 30, 263), torch.tensor([10, 900])
@@ -241,15 +241,17 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
         assert torch.equal(source.denoiser(texts, mask, None, control)(x, t), source.denoiser(texts, mask, None)(x, t))
 
 
-def test_start_from_refuses_what_does_not_fit_in_one_line(pretrained, finetuned):
+def test_a_pretrained_checkpoint_that_does_not_fit_is_one_line(tmp_path, finetuned):
+    from helpers.checkpoints import save_module
     from omg.errors import UsageError
+    from omg.lit.evaluator import EvaluatorModule
 
     spec = _data().spec
+    other = save_module(EvaluatorModule(text_encoder="hash", spec=spec), tmp_path / "evaluator.ckpt")
     for kwargs, message in (
-        ({"start_from": str(finetuned), "pretrained": str(pretrained)}, "start_from holds its own frozen model"),
-        ({"start_from": str(pretrained)}, "is expected"),
-        ({"start_from": str(finetuned), "moc": {"d_c": 16}}, "model.init_args.moc must be the start_from"),
-        ({"start_from": str(finetuned), "text_encoder": "minilm"}, "model.init_args.text_encoder must be"),
+        ({"pretrained": str(other)}, r"PretrainModule \(stage-1\) or omg.lit.controlnet.ControlNetModule checkpoint"),
+        ({"pretrained": str(finetuned), "moc": {"d_c": 16}}, "model.init_args.moc must be the pretrained ControlNet"),
+        ({"pretrained": str(finetuned), "text_encoder": "minilm"}, "model.init_args.text_encoder must be"),
     ):
         with pytest.raises(UsageError, match=message):
             ControlNetModule(**{"text_encoder": "hash", "moc": MOC, "spec": spec, **kwargs})

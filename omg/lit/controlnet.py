@@ -50,7 +50,10 @@ class ControlNetModule(MotionDiffusionModule):
 
     Args:
         pretrained: the stage-1 checkpoint: a Lightning .ckpt, a DeepSpeed directory or a
-            safetensors file from ``omg convert-ckpt`` (its EMA weights are used when present).
+            safetensors file from ``omg convert-ckpt`` (its EMA weights are used when present); or a ControlNet's,
+            which this one then starts as (its frozen model, copies and controllers, the EMA's where kept; its text
+            encoder and ``moc`` must be this run's): hints fine-tuned onto a trained ControlNet, whose hint
+            embedding starts silenced (``MotionControlNet.silence_hints``).
         text_encoder: registered name (``clip-vit-l-14``, ``minilm``, ``hash``).
         text_encoder_args: the encoder's arguments (``TextEncoderArgs``, e.g. ``pretrained: /path/ViT-L-14.pt``).
         moc: MoCConfig fields to override (``MoCOverrides``; d_c, num_experts, gamma, beta, layers, ...; the
@@ -66,9 +69,6 @@ class ControlNetModule(MotionDiffusionModule):
         hints: spatial hints (``omg.lit.control.HintTraining``; OmniControl's realism branch, not OMG's: off):
             with ``enabled`` the block copies read the constraints a motion is sampled with, and training draws
             them from each clip's own joints.
-        start_from: a ControlNet checkpoint this one starts from, in place of ``pretrained`` (its frozen model,
-            copies and controllers; the hint embedding's last layer from zero): hints fine-tuned onto a trained
-            ControlNet. Its text encoder and ``moc`` must be this run's.
         base: the pretrained model's flavor, DiT overrides and spec (``PretrainedBase``); filled from
             ``pretrained`` and stored in checkpoints, so that a fine-tuned checkpoint needs no other file.
         spec: the fine-tuning data's spec, linked from the data by ``omg fit``.
@@ -95,22 +95,17 @@ class ControlNetModule(MotionDiffusionModule):
         activation_checkpointing: bool = False,
         stance_root: float = 0.0,
         hints: HintTraining = HintTraining(),
-        start_from: str | None = None,
         base: PretrainedBase | None = None,
         spec: DataSpec | dict | None = None,
     ):
         pretrained_weights = started = None
         if base is not None:  # the checkpoint's description (a mapping), or a config's
             base = settings(PretrainedBase, base, "model.init_args.base").plain("model.init_args.base")
-        elif start_from is not None:
-            if pretrained is not None:
-                raise UsageError("model.init_args.start_from holds its own frozen model: leave "
-                                 "model.init_args.pretrained out")
-            base, started = _read_start(start_from, text_encoder, moc)
         else:
             if pretrained is None:
                 raise UsageError("ControlNetModule needs model.init_args.pretrained: a stage-1 checkpoint")
-            base, pretrained_weights = _read_pretrained(pretrained)
+            base, weights, whole = _read_pretrained(pretrained, text_encoder, moc)
+            started, pretrained_weights = (weights, None) if whole else (None, weights)
         if not 0.0 <= eot_drop <= 1.0:
             raise UsageError(f"model.eot_drop must be in [0, 1], got {eot_drop}")
         super().__init__(base["flavor"], base["dit"], base["spec"], optim=optim, loss=loss, ema_decay=ema_decay,
@@ -128,15 +123,15 @@ class ControlNetModule(MotionDiffusionModule):
         moc_config = MoCConfig(text_dim=self.text_encoder.dim, **set_fields(MoCOverrides, moc, "model.init_args.moc"),
                                hint_channels=hint_channels(self.representation.skeleton) if self.hints.enabled else 0)
         self.controlnet = MotionControlNet(self.model, moc_config)
-        if started is not None:  # the hint embedding, which the started-from ControlNet lacks, starts at zero
+        if started is not None:  # a ControlNet's weights; the hint embedding, which it may lack, starts silenced
             if self.hints.enabled:
                 self.controlnet.silence_hints()
             missing, _ = self.load_state_dict(started, strict=False)
             if unexpected := sorted(set(started) - set(self.state_dict())):
-                raise UsageError(f"model.init_args.start_from: its weights do not fit this ControlNet "
+                raise UsageError(f"model.init_args.pretrained: its ControlNet's weights do not fit this one "
                                  f"(unexpected {unexpected[:3]})")
             if left := [k for k in missing if not k.startswith("controlnet.hint_embed.")]:
-                raise UsageError(f"model.init_args.start_from: its weights do not fit this ControlNet "
+                raise UsageError(f"model.init_args.pretrained: its ControlNet's weights do not fit this one "
                                  f"(missing {left[:3]})")
         self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:
@@ -225,46 +220,45 @@ def rate_hint(prior_fps: float, data_fps: float) -> str:
             f"same 10 s), or fine-tune on shards built at the prior's --fps {prior_fps:g}")
 
 
-def _read_start(path: str, text_encoder: str, moc: MoCOverrides | dict | None) -> tuple[dict, dict[str, Tensor]]:
-    """(the frozen model's description, every weight: the EMA's where kept) of the ControlNet checkpoint at
-    ``path``, whose text encoder and controllers must be this run's."""
+def _read_pretrained(path: str, text_encoder: str, moc: MoCOverrides | dict | None,
+                     ) -> tuple[dict, dict[str, Tensor], bool]:
+    """(the frozen model's flavor, DiT overrides and spec; the weights, the EMA's where kept; whether they are a
+    ControlNet's, the whole module's, else the stage-1 model's alone)."""
     from omg.lit.checkpoint import class_path, load_checkpoint, resolve_class
 
-    ckpt = load_checkpoint(path, default_class=ControlNetModule)
+    ckpt = load_checkpoint(path, default_class=PretrainModule)
     cls = resolve_class(ckpt["module_class"], path)
-    if not issubclass(cls, ControlNetModule):
-        raise UsageError(f"model.init_args.start_from: {path} holds a {class_path(cls)} checkpoint, where a "
-                         f"{class_path(ControlNetModule)} checkpoint is expected")
+    hp = ckpt["hyper_parameters"]
+    if issubclass(cls, ControlNetModule):
+        return (*_controlnet_start(ckpt, path, text_encoder, moc), True)
+    if not issubclass(cls, PretrainModule):  # another model's weights would fail as a state-dict mismatch
+        raise UsageError(f"model.init_args.pretrained: {path} holds a {class_path(cls)} checkpoint, where a "
+                         f"{class_path(PretrainModule)} (stage-1) or {class_path(ControlNetModule)} checkpoint is "
+                         "expected")
+    if "flavor" not in hp or "spec" not in hp:
+        raise UsageError(f"{path} is not a stage-1 (PretrainModule) checkpoint: its hyper-parameters lack flavor/spec")
+    weights = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    if ckpt.get("ema") and not ckpt.get("ema_weights"):
+        weights.update(ckpt["ema"]["shadow"])
+    return {"flavor": hp["flavor"], "dit": hp.get("dit"), "spec": hp["spec"]}, weights, False
+
+
+def _controlnet_start(ckpt: dict, path: str, text_encoder: str, moc: MoCOverrides | dict | None,
+                      ) -> tuple[dict, dict[str, Tensor]]:
+    """(the frozen model's description, every weight: the EMA's where kept) of the ControlNet checkpoint ``ckpt``
+    read from ``path``, whose text encoder and controllers must be this run's."""
     hp = ckpt["hyper_parameters"]
     ours = set_fields(MoCOverrides, moc, "model.init_args.moc") or None
     for key, theirs, mine in (("text_encoder", hp.get("text_encoder", "minilm"), text_encoder),
                               ("moc", hp.get("moc") or None, ours)):
         if theirs != mine:
-            raise UsageError(f"model.init_args.{key} must be the start_from checkpoint's {theirs!r} (its weights "
+            raise UsageError(f"model.init_args.{key} must be the pretrained ControlNet's {theirs!r} (its weights "
                              f"were made with it), got {mine!r}")
     weights = dict(ckpt["state_dict"])
     if ckpt.get("ema") and not ckpt.get("ema_weights"):
         weights.update({f"controlnet.{k}": v for k, v in ckpt["ema"]["shadow"].items()})
     if hp.get("base") is None:  # written by `omg fit` before checkpoints kept it: its pretrained file describes it
         if not hp.get("pretrained"):
-            raise UsageError(f"model.init_args.start_from: {path} describes no frozen model (no base, no pretrained)")
-        return _read_pretrained(hp["pretrained"])[0], weights
+            raise UsageError(f"model.init_args.pretrained: {path} describes no frozen model (no base, no pretrained)")
+        return _read_pretrained(hp["pretrained"], text_encoder, moc)[0], weights
     return settings(PretrainedBase, hp["base"], f"{path}: base").plain(f"{path}: base"), weights
-
-
-def _read_pretrained(path: str) -> tuple[dict, dict[str, Tensor]]:
-    """(the stage-1 model's flavor, DiT overrides and spec; its weights, the EMA where kept)."""
-    from omg.lit.checkpoint import class_path, load_checkpoint, resolve_class
-
-    ckpt = load_checkpoint(path, default_class=PretrainModule)
-    cls = resolve_class(ckpt["module_class"], path)
-    if not issubclass(cls, PretrainModule):  # another model's weights would fail as a state-dict mismatch
-        raise UsageError(f"model.init_args.pretrained: {path} holds a {class_path(cls)} checkpoint, where a "
-                         f"{class_path(PretrainModule)} (stage-1) checkpoint is expected")
-    hp = ckpt["hyper_parameters"]
-    if "flavor" not in hp or "spec" not in hp:
-        raise UsageError(f"{path} is not a stage-1 (PretrainModule) checkpoint: its hyper-parameters lack flavor/spec")
-    weights = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    if ckpt.get("ema") and not ckpt.get("ema_weights"):
-        weights.update(ckpt["ema"]["shadow"])
-    return {"flavor": hp["flavor"], "dit": hp.get("dit"), "spec": hp["spec"]}, weights

@@ -46,7 +46,7 @@ alone, but its copies form one stream; here each copy reads the main stream, so 
 PyTorch's init, not zero, and ends in a LayerNorm, so that a hint weighs in what a copy reads about as much as the
 motion does from the first step: W_up = 0 already makes D_c the frozen model at initialisation, and a hint
 embedded at a thirtieth of the stream's size (a zero or a plain MLP's output) was not read within a CPU run.
-Hints fine-tuned onto a trained ControlNet (``ControlNetModule.start_from``) start with H's output at zero
+Hints fine-tuned onto a trained ControlNet (``ControlNetModule``'s ``pretrained``) start with H's output at zero
 (``silence_hints``), so that the network starts as the text ControlNet it was. A motion
 without constraints reads the empty hint (zeros, whose e is not 0 once trained), as the clips trained without
 hints did (``ControlNetModule.denoiser``); given None, the copies read h_l alone.
