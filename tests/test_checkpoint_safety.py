@@ -389,4 +389,4 @@ def test_a_checkpoint_of_the_wrong_kind_says_what_it_is(tiny, tmp_path, capsys):
         ControlNetModule(pretrained=str(tmp_path / "evaluator.ckpt"), text_encoder="hash")
     assert str(error.value) == (f"model.init_args.pretrained: {tmp_path / 'evaluator.ckpt'} holds a "
                                 "omg.lit.evaluator.EvaluatorModule checkpoint, where a omg.lit.pretrain.PretrainModule "
-                                "(stage-1) checkpoint is expected")
+                                "(stage-1) or omg.lit.controlnet.ControlNetModule checkpoint is expected")

@@ -241,15 +241,12 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
         assert torch.equal(source.denoiser(texts, mask, None, control)(x, t), source.denoiser(texts, mask, None)(x, t))
 
 
-def test_a_pretrained_checkpoint_that_does_not_fit_is_one_line(tmp_path, finetuned):
-    from helpers.checkpoints import save_module
+def test_a_pretrained_controlnet_that_does_not_fit_is_one_line(finetuned):
+    """(A checkpoint of another kind: test_checkpoint_safety.py.)"""
     from omg.errors import UsageError
-    from omg.lit.evaluator import EvaluatorModule
 
     spec = _data().spec
-    other = save_module(EvaluatorModule(text_encoder="hash", spec=spec), tmp_path / "evaluator.ckpt")
     for kwargs, message in (
-        ({"pretrained": str(other)}, r"PretrainModule \(stage-1\) or omg.lit.controlnet.ControlNetModule checkpoint"),
         ({"pretrained": str(finetuned), "moc": {"d_c": 16}}, "model.init_args.moc must be the pretrained ControlNet"),
         ({"pretrained": str(finetuned), "text_encoder": "minilm"}, "model.init_args.text_encoder must be"),
     ):
