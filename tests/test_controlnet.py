@@ -392,9 +392,9 @@ def test_controlnet_matches_loop_reference(wiring, layers):
 @pytest.mark.parametrize("wiring", WIRINGS)
 def test_a_hint_starts_as_no_change_and_is_read_by_every_copy(wiring):
     """Spatial hints (OmniControl's realism branch): a new hinted ControlNet is the frozen model whatever the hint
-    (W_up = 0); one given the trained controllers of a network without hints, its hint embedding silenced (as
-    ``start_from`` does), is that network bit for bit; once the embedding has weights, each copy reads h_l + H(hint)
-    (the references above), and guidance mixes the frozen model with the hinted D_c."""
+    (W_up = 0); one given the trained controllers of a network without hints, its hint embedding silenced (as a
+    ControlNet given as ``pretrained`` does), is that network bit for bit; once the embedding has weights, each
+    copy reads h_l + H(hint) (the references above), and guidance mixes the frozen model with the hinted D_c."""
     net = trained_like(layers=[0, 2], wiring=wiring).double()
     x, t = motion_batch(2, 9)
     x, mask = x.double(), frame_mask([9, 6], 9)
