@@ -421,12 +421,12 @@ def test_a_hint_starts_as_no_change_and_is_read_by_every_copy(wiring):
                                    atol=1e-9)
         assert not torch.allclose(out, plain, atol=1e-4)
         assert torch.equal(hinted(x, t, tokens, text_mask, eot, mask), plain)  # no hint: as without hints
-        e = hinted.embed_hint(hint, x)
+        e = hinted.embed_hint(hint, x.dtype)
         guided = hinted.forward_guided(x, t, hinted.text_terms(tokens, text_mask, eot), 2.5, mask, e)
         torch.testing.assert_close(guided, -1.5 * hinted.forward_uncond(x, t, mask) + 2.5 * out, rtol=1e-9,
                                    atol=1e-9)
         with pytest.raises(UsageError, match="not trained with spatial hints"):
-            net.embed_hint(hint, x)
+            net.embed_hint(hint, x.dtype)
 
 
 def test_layers_choose_where_controllers_sit():

@@ -231,7 +231,7 @@ def test_hints_start_from_a_trained_controlnet_train_their_embedding_and_are_rea
         words = loaded.encode_text(texts)
         terms = loaded.controlnet.text_terms(words.tokens, words.mask, words.eot, fold_biases=True)
         def by_hand(hint):
-            e = loaded.controlnet.embed_hint(hint, x)
+            e = loaded.controlnet.embed_hint(hint, x.dtype)
             return loaded.controlnet.forward_guided(x, t, terms, loaded.guidance_scale, mask, e)
 
         assert not torch.allclose(plain, hinted, atol=1e-6)

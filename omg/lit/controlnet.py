@@ -126,13 +126,11 @@ class ControlNetModule(MotionDiffusionModule):
         if started is not None:  # a ControlNet's weights; the hint embedding, which it may lack, starts silenced
             if self.hints.enabled:
                 self.controlnet.silence_hints()
-            missing, _ = self.load_state_dict(started, strict=False)
-            if unexpected := sorted(set(started) - set(self.state_dict())):
+            missing, unexpected = self.load_state_dict(started, strict=False)
+            missing = [k for k in missing if not k.startswith("controlnet.hint_embed.")]
+            if missing or unexpected:
                 raise UsageError(f"model.init_args.pretrained: its ControlNet's weights do not fit this one "
-                                 f"(unexpected {unexpected[:3]})")
-            if left := [k for k in missing if not k.startswith("controlnet.hint_embed.")]:
-                raise UsageError(f"model.init_args.pretrained: its ControlNet's weights do not fit this one "
-                                 f"(missing {left[:3]})")
+                                 f"(missing {missing[:3]}, unexpected {sorted(unexpected)[:3]})")
         self.data_spec = None if spec is None else DataSpec.coerce(spec, "the fine-tuning data")
         if self.data_spec is not None:
             # a motion prior learns velocities per frame: fine-tuning it at another rate, or
@@ -206,7 +204,7 @@ class ControlNetModule(MotionDiffusionModule):
                 raise ValueError(f"a control of {control.frames} frames for motions of up to {mask.shape[1]}")
             else:
                 features = control_hint(control.to(self.device, dtype), self.spec.fps)
-            hint = self.controlnet.embed_hint(features, text.tokens.to(dtype))
+            hint = self.controlnet.embed_hint(features, dtype)
         return lambda x, t: self.controlnet.forward_guided(x, t, terms, scale, mask, hint)
 
 

@@ -466,7 +466,7 @@ class MotionControlNet(nn.Module):
         eot_emb = tokens[torch.arange(tokens.shape[0], device=tokens.device), eot]  # (B, D_text)
         return {i: moc.text_terms(tokens, text_mask, eot_emb, fold_biases) for i, moc in self.mocs.items()}
 
-    def embed_hint(self, hint: Tensor | None, like: Tensor) -> Tensor | None:
+    def embed_hint(self, hint: Tensor | None, dtype: torch.dtype) -> Tensor | None:
         """hint (B or 1, T, C) -> e (B or 1, T, d) that the block copies add to what they read; None without one.
         A network without hint channels refuses a hint (it would be ignored)."""
         if hint is None:
@@ -476,7 +476,7 @@ class MotionControlNet(nn.Module):
                              "its constraints are met by steering alone")
         if hint.shape[-1] != self.config.hint_channels:
             raise ValueError(f"a hint of {hint.shape[-1]} channels for a ControlNet of {self.config.hint_channels}")
-        return self.hint_embed(hint.to(like.dtype))
+        return self.hint_embed(hint.to(dtype))
 
     def _layer_residual(
         self, i: int, h: Tensor, mod: Tensor, rope: Rope, mask: Tensor | None, text: ControlText
@@ -535,7 +535,7 @@ class MotionControlNet(nn.Module):
         (``MoCConfig.hint_channels``; None: none) -> x̂0 (B, T, D_in)."""
         h0, c, mod, rope = self.base.embed(x, t)
         control = self.controller(h0, mod, rope, mask, self.text_terms(text_tokens, text_mask, eot),
-                                  self.embed_hint(hint, h0))
+                                  self.embed_hint(hint, h0.dtype))
         return self.base.forward_embedded(h0, c, mod, rope, mask, control)
 
     def forward_uncond(self, x: Tensor, t: Tensor, mask: Tensor | None = None) -> Tensor:
