@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import logging
 import shutil
+import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -178,3 +180,44 @@ def test_pipe_shard_names_are_shell_quoted_and_a_hanging_manifest_command_stops(
     with pytest.raises(OSError, match="the command did not end within 1 s and was stopped"):
         read_url("pipe:echo '{}'; sleep 30", timeout=1)
     assert time.monotonic() - start < 10
+
+
+def test_ctrl_c_that_interrupts_no_wait_still_ends_a_pipe_command_read(tmp_path):
+    """A Ctrl-C whose handler runs just before the wait for a `pipe:` command begins interrupts nothing (the
+    CI saw `omg fit` ignore one for a minute while a manifest command stalled). Sent to another thread here,
+    which reproduces that: its handler runs there, and the main thread's wait goes on. The read returns to
+    Python every SIGNAL_CHECK_S, so the Ctrl-C still ends it, and the command is killed."""
+    import threading
+    import time
+
+    from omg.data.shards import read_url
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    marker = tmp_path / "started"
+
+    def ctrl_c_elsewhere():
+        deadline = time.monotonic() + 30
+        while not marker.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # its C handler runs on this thread
+
+    helper = threading.Thread(target=ctrl_c_elsewhere)
+    helper.start()
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        read_url(f"pipe:touch {marker}; sleep 40; echo '{{}}'", timeout=60)
+    helper.join()
+    assert time.monotonic() - start < 20, "the Ctrl-C was acted on only when the command ended"
+    assert not _command_lines_naming(str(marker)), "the command outlived the read"
+
+
+def _command_lines_naming(text: str) -> list[str]:
+    found = []
+    for entry in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            line = entry.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:  # ended meanwhile
+            continue
+        if text in line:
+            found.append(line)
+    return found

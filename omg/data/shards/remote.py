@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -15,6 +16,7 @@ from omg.data.shards.schema import MANIFEST
 from omg.errors import UsageError
 
 PIPE_TIMEOUT_S = 600.0  # a pipe: command that prints a manifest (a few MB at most) and has not ended by then hangs
+SIGNAL_CHECK_S = 0.5  # how often a wait for a pipe: command returns to Python, to act on a signal it missed
 
 # The shell that runs a pipe: command ($1) in a process group of its own: the command in the background,
 # waited for (its exit status is the shell's); on SIGTERM, the parent-death signal it is given, the whole
@@ -116,10 +118,19 @@ def read_url(url: str, timeout: float = PIPE_TIMEOUT_S) -> bytes:
         import subprocess
 
         # its own process group: on a timeout the shell and everything it started are stopped
+        ends = time.monotonic() + timeout
         with subprocess.Popen(pipe_command(url[len("pipe:"):]), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               start_new_session=True, preexec_fn=dies_with_parent(signal.SIGTERM)) as process:
             try:
-                out, err = process.communicate(timeout=timeout)
+                while True:
+                    # in slices: a Ctrl-C whose handler ran just before the wait began (or on another thread)
+                    # interrupts nothing, and Python acts on it only when the wait returns
+                    try:
+                        out, err = process.communicate(timeout=min(SIGNAL_CHECK_S, max(0.0, ends - time.monotonic())))
+                        break
+                    except subprocess.TimeoutExpired:  # nothing is lost: communicate goes on where it stopped
+                        if time.monotonic() >= ends:
+                            raise
             except subprocess.TimeoutExpired:
                 _kill_group(process)
                 raise OSError(f"the command did not end within {timeout:g} s and was stopped") from None
