@@ -192,7 +192,7 @@ def test_ctrl_c_that_interrupts_no_wait_still_ends_a_pipe_command_read(tmp_path)
 
     from omg.data.shards import read_url
 
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    ctrl_c = signal.signal(signal.SIGINT, signal.default_int_handler)  # Python's own, as a terminal starts omg
     marker = tmp_path / "started"
 
     def ctrl_c_elsewhere():
@@ -204,9 +204,12 @@ def test_ctrl_c_that_interrupts_no_wait_still_ends_a_pipe_command_read(tmp_path)
     helper = threading.Thread(target=ctrl_c_elsewhere)
     helper.start()
     start = time.monotonic()
-    with pytest.raises(KeyboardInterrupt):
-        read_url(f"pipe:touch {marker}; sleep 40; echo '{{}}'", timeout=60)
-    helper.join()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            read_url(f"pipe:touch {marker}; sleep 40; echo '{{}}'", timeout=60)
+    finally:
+        helper.join()
+        signal.signal(signal.SIGINT, ctrl_c)
     assert time.monotonic() - start < 20, "the Ctrl-C was acted on only when the command ended"
     assert not _command_lines_naming(str(marker)), "the command outlived the read"
 

@@ -112,9 +112,19 @@ class InterruptCheckpoint(Callback):
             trainer._signal_connector.received_sigterm = True
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        # after a Ctrl-C the process is on its way out: a second one still aborts at once
+        self._give_back_ctrl_c(trainer)
+
+    def _give_back_ctrl_c(self, trainer: L.Trainer) -> None:
+        """The Ctrl-C handler the fit found, back, however the fit ends: else a later Ctrl-C in the same
+        process (a notebook's) would only set a flag on a finished trainer. Lightning took its own copy of
+        the handlers after ``setup`` (this one among them) and puts that back at its teardown, which comes
+        after this one's or, when the fit raised, after ``on_exception``: the copy is corrected too.
+        After a Ctrl-C the process is on its way out: a second one still aborts at once."""
         if self._pid == os.getpid() and self._previous_sigint is not None and self.signal != "SIGINT":
             signal.signal(signal.SIGINT, self._previous_sigint)
+            lightnings = getattr(trainer._signal_connector, "_original_handlers", {})
+            if lightnings.get(signal.SIGINT) == self._on_sigint:
+                lightnings[signal.SIGINT] = self._previous_sigint
         self._trainer, self._pid, self._previous_sigint = None, None, None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
@@ -123,6 +133,7 @@ class InterruptCheckpoint(Callback):
             self.saved_step = trainer.global_step
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._give_back_ctrl_c(trainer)
         if not isinstance(exception, SIGTERMException) or trainer.state.fn != "fit":
             return
         if self.saved_step is not None:
