@@ -996,8 +996,19 @@ def _open_page(browser, server, width: int = 1280):
     return context, page, errors, requests
 
 
+def _draws_per_second(page, seconds: float = 2.0) -> float:
+    start = page.evaluate("[window.omgViewer.draws, performance.now()]")
+    page.wait_for_timeout(seconds * 1000)
+    end = page.evaluate("[window.omgViewer.draws, performance.now()]")
+    return (end[0] - start[0]) / ((end[1] - start[1]) / 1000)
+
+
 def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, tmp_path):
     context, page, errors, requests = _open_page(browser, server, width=1200)
+    # nothing shown and nothing done: the scene is drawn a few times a second (IDLE_DRAW_MS), not on every
+    # animation frame (a software renderer's core, a laptop's battery); below, a result plays at the full rate
+    page.wait_for_timeout(1200)  # the loading's own second of full-rate drawing
+    assert _draws_per_second(page) <= 6
     page.select_option("#model", "human")
     assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
     # an empty box asks for nothing: the page says so instead of sampling unconditional motion

@@ -6,8 +6,8 @@ import { createControl, limit } from '/static/control.js';
 const $ = (id) => document.getElementById(id);
 let models = [];
 let current = null;
-// read by the page's test: the frame shown, the frames drawn since the last result
-const state = { motions: [], parents: [], frame: 0, frames: 0, fps: 20, playing: true, drawn: 0, results: 0 };
+// read by the page's test: the frame shown, the frames drawn since the last result, every drawing since the start
+const state = { motions: [], parents: [], frame: 0, frames: 0, fps: 20, playing: true, drawn: 0, results: 0, draws: 0 };
 window.omgViewer = state;
 
 function show(id, visible) { $(id).classList.toggle('hidden', !visible); }
@@ -222,12 +222,27 @@ function listSamples(result) {
   });
 }
 
+// Drawing the scene is what the page costs while nothing moves (a software renderer's CPU, a laptop's battery):
+// every animation frame while a result plays and for ACTIVE_MS after the user did anything, else IDLE_DRAW_MS
+// apart, which still shows within a moment what an answer or a loaded file changed in the scene
+const ACTIVE_MS = 1000;
+const IDLE_DRAW_MS = 250;
+let activeUntil = 0;
+let lastDraw = -Infinity;
+for (const kind of ['pointerdown', 'pointermove', 'pointerup', 'wheel', 'keydown', 'input', 'change', 'resize']) {
+  window.addEventListener(kind, () => { activeUntil = performance.now() + ACTIVE_MS; }, { capture: true, passive: true });
+}
+
 let last = performance.now();
 let clock = 0;
 function animate(now) {
   requestAnimationFrame(animate);
   const dt = (now - last) / 1000;
   last = now;
+  const playing = state.frames > 0 && state.playing;
+  if (!playing && now > activeUntil && now - lastDraw < IDLE_DRAW_MS) return;
+  lastDraw = now;
+  state.draws += 1;
   if (state.frames > 0) {
     if (state.playing) {
       clock = (clock + dt * state.fps) % state.frames;

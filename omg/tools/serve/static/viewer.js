@@ -189,6 +189,9 @@ export class Viewer {
     this.labels.setSize(w, h);
     this.camera.aspect = w / Math.max(h, 1);
     this.camera.updateProjectionMatrix();
+    // a resized canvas is blank until drawn, and an idle page draws only now and then (app.js): at once
+    this.renderer.render(this.scene, this.camera);
+    this.labels.render(this.scene, this.camera);
   }
 
   setFollow(on) {
