@@ -499,12 +499,18 @@ def test_a_non_finite_loss_names_the_batch_clips_in_one_line(h263_shards, tmp_pa
         for key in keys:
             rewrite_member(path, f"{key}.motion.npy", huge.getvalue())
     config = write_config(tmp_path / "c.yaml", shards, tmp_path / "run", max_steps=2, verify_shards=False)
-    ctrl_c = signal.getsignal(signal.SIGINT)
-    with pytest.raises(SystemExit) as e:
-        main(["fit", "--config", config])
-    assert e.value.code == 2
-    # a run that ends in an exception gets no teardown: its Ctrl-C handler is given back all the same
-    assert signal.getsignal(signal.SIGINT) is ctrl_c
+    pressed = []
+    ctrl_c = signal.signal(signal.SIGINT, lambda *_: pressed.append("Ctrl-C"))  # as a notebook's
+    try:
+        with pytest.raises(SystemExit) as e:
+            main(["fit", "--config", config])
+        assert e.value.code == 2
+        # after a fit that raised, Ctrl-C does what it did before it (Lightning's teardown put omg's handler
+        # back after on_exception had given the previous one back)
+        signal.raise_signal(signal.SIGINT)
+        assert pressed == ["Ctrl-C"]
+    finally:
+        signal.signal(signal.SIGINT, ctrl_c)
     line = one_error_line(capsys)
     assert "non-finite loss" in line and "at step 0" in line
     assert re.search(r"on the batch of clips walk\d+, walk\d+, walk\d+, walk\d+;", line), line  # batch_size 4

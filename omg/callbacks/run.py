@@ -92,14 +92,25 @@ class InterruptCheckpoint(Callback):
         self.started, self.saved_step = time.time(), None
         self.signal = "SIGTERM"  # what stopped the run, when something did
         self._trainer: L.Trainer | None = None
-        self._pid, self._previous_sigint = None, None
+        self._pid, self._previous_sigint, self._outside_fit = None, None, None
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage == "fit" and threading.current_thread() is threading.main_thread():
             self._trainer, self._pid = trainer, os.getpid()
             self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
+            self._outside_fit = self._previous_sigint  # what Ctrl-C does when no fit runs (kept after the fit)
 
     def _on_sigint(self, signum, frame) -> None:
+        if self._trainer is None:
+            # no fit runs: a fit that raised ends with Lightning putting back the handlers it saw after `setup`,
+            # this one among them (after `on_exception` gave the previous one back), so it hands on
+            previous = self._outside_fit if self._outside_fit is not None else signal.SIG_DFL
+            signal.signal(signal.SIGINT, previous)
+            if callable(previous):
+                previous(signum, frame)
+            elif previous == signal.SIG_DFL:
+                signal.raise_signal(signal.SIGINT)
+            return
         if os.getpid() != self._pid:
             return  # a forked data worker: the main process stops the run
         signal.signal(signal.SIGINT, signal.SIG_DFL)  # a second Ctrl-C aborts at once
@@ -112,19 +123,15 @@ class InterruptCheckpoint(Callback):
             trainer._signal_connector.received_sigterm = True
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        self._give_back_ctrl_c(trainer)
+        self._give_back_ctrl_c()
 
-    def _give_back_ctrl_c(self, trainer: L.Trainer) -> None:
+    def _give_back_ctrl_c(self) -> None:
         """The Ctrl-C handler the fit found, back, however the fit ends: else a later Ctrl-C in the same
-        process (a notebook's) would only set a flag on a finished trainer. Lightning took its own copy of
-        the handlers after ``setup`` (this one among them) and puts that back at its teardown, which comes
-        after this one's or, when the fit raised, after ``on_exception``: the copy is corrected too.
-        After a Ctrl-C the process is on its way out: a second one still aborts at once."""
+        process (a notebook's) would only set a flag on a finished trainer (``_on_sigint`` hands on where
+        Lightning puts this one back). After a Ctrl-C the process is on its way out: a second one still
+        aborts at once."""
         if self._pid == os.getpid() and self._previous_sigint is not None and self.signal != "SIGINT":
             signal.signal(signal.SIGINT, self._previous_sigint)
-            lightnings = getattr(trainer._signal_connector, "_original_handlers", {})
-            if lightnings.get(signal.SIGINT) == self._on_sigint:
-                lightnings[signal.SIGINT] = self._previous_sigint
         self._trainer, self._pid, self._previous_sigint = None, None, None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
@@ -133,7 +140,7 @@ class InterruptCheckpoint(Callback):
             self.saved_step = trainer.global_step
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
-        self._give_back_ctrl_c(trainer)
+        self._give_back_ctrl_c()
         if not isinstance(exception, SIGTERMException) or trainer.state.fn != "fit":
             return
         if self.saved_step is not None:
