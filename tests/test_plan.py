@@ -71,11 +71,11 @@ def peak_step_bytes(batch: int, frames: int, checkpointing: bool, text_tokens: i
 @pytest.mark.parametrize("batch, frames, checkpointing", [(4, 256, False), (8, 256, True)])
 def test_activation_estimate_matches_the_measured_peak(batch, frames, checkpointing):
     """The planner's activations (fitted at 16-64 frames, batch 1-2, scaled to 4 layers and the
-    size here) against the measured peak of a real step 8-16x larger (with checkpointing at 8 x 256,
-    measured/planned 1.07). The estimate is what backward keeps; the peak also holds backward's
-    transient tensors (the gradients of one block's widest intermediates, the GEGLU's 2·ffn = 4·d
-    wide fc1 output among them), so it may exceed the estimate by up to 30%, and never fall below
-    it by more than the page rounding of the measurement (5%)."""
+    size here) against the measured peak of a real step 8-16x larger. The estimate is what backward
+    keeps; the peak also holds backward's transient tensors (the gradients of one block's widest
+    intermediates, the GEGLU's 2·ffn = 4·d wide fc1 output among them), so it may exceed the
+    estimate by up to 30%, and never fall below it by more than the page rounding of the
+    measurement (5%)."""
     estimate = measure_activations("mini", "fp32-autocast").bytes(4, batch, frames, checkpointing)
     measured = peak_step_bytes(batch, frames, checkpointing)
     assert 0.95 <= measured / estimate <= 1.3, (measured, estimate)

@@ -183,10 +183,10 @@ def test_pipe_shard_names_are_shell_quoted_and_a_hanging_manifest_command_stops(
 
 
 def test_ctrl_c_that_interrupts_no_wait_still_ends_a_pipe_command_read(tmp_path):
-    """A Ctrl-C whose handler runs just before the wait for a `pipe:` command begins interrupts nothing (the
-    CI saw `omg fit` ignore one for a minute while a manifest command stalled). Sent to another thread here,
-    which reproduces that: its handler runs there, and the main thread's wait goes on. The read returns to
-    Python every SIGNAL_CHECK_S, so the Ctrl-C still ends it, and the command is killed."""
+    """A Ctrl-C whose handler runs just before the wait for a `pipe:` command begins interrupts nothing: `omg
+    fit` would ignore it for as long as a manifest command stalls. Sent to another thread here, which does the
+    same: its handler runs there, and the main thread's wait goes on. The read returns to Python every
+    SIGNAL_CHECK_S, so the Ctrl-C still ends it, and the command is killed."""
     import threading
     import time
 
