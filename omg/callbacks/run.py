@@ -92,19 +92,19 @@ class InterruptCheckpoint(Callback):
         self.started, self.saved_step = time.time(), None
         self.signal = "SIGTERM"  # what stopped the run, when something did
         self._trainer: L.Trainer | None = None
-        self._pid, self._previous_sigint, self._outside_fit = None, None, None
+        self._pid, self._previous_sigint = None, None
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage == "fit" and threading.current_thread() is threading.main_thread():
             self._trainer, self._pid = trainer, os.getpid()
+            # what Ctrl-C does when no fit runs: kept after the fit, for `_on_sigint` to hand on to
             self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
-            self._outside_fit = self._previous_sigint  # what Ctrl-C does when no fit runs (kept after the fit)
 
     def _on_sigint(self, signum, frame) -> None:
         if self._trainer is None:
             # no fit runs: a fit that raised ends with Lightning putting back the handlers it saw after `setup`,
             # this one among them (after `on_exception` gave the previous one back), so it hands on
-            previous = self._outside_fit if self._outside_fit is not None else signal.SIG_DFL
+            previous = self._previous_sigint if self._previous_sigint is not None else signal.SIG_DFL
             signal.signal(signal.SIGINT, previous)
             if callable(previous):
                 previous(signum, frame)
@@ -132,7 +132,7 @@ class InterruptCheckpoint(Callback):
         aborts at once."""
         if self._pid == os.getpid() and self._previous_sigint is not None and self.signal != "SIGINT":
             signal.signal(signal.SIGINT, self._previous_sigint)
-        self._trainer, self._pid, self._previous_sigint = None, None, None
+        self._trainer, self._pid = None, None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args) -> None:
         if trainer.received_sigterm and trainer.world_size == 1 and self.saved_step is None:

@@ -235,9 +235,7 @@ def _read_pretrained(path: str, text_encoder: str, moc: MoCOverrides | dict | No
                          "expected")
     if "flavor" not in hp or "spec" not in hp:
         raise UsageError(f"{path} is not a stage-1 (PretrainModule) checkpoint: its hyper-parameters lack flavor/spec")
-    weights = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    if ckpt.get("ema") and not ckpt.get("ema_weights"):
-        weights.update(ckpt["ema"]["shadow"])
+    weights = {k.removeprefix("model."): v for k, v in _with_ema(ckpt, "model").items() if k.startswith("model.")}
     return {"flavor": hp["flavor"], "dit": hp.get("dit"), "spec": hp["spec"]}, weights, False
 
 
@@ -252,11 +250,18 @@ def _controlnet_start(ckpt: dict, path: str, text_encoder: str, moc: MoCOverride
         if theirs != mine:
             raise UsageError(f"model.init_args.{key} must be the pretrained ControlNet's {theirs!r} (its weights "
                              f"were made with it), got {mine!r}")
-    weights = dict(ckpt["state_dict"])
-    if ckpt.get("ema") and not ckpt.get("ema_weights"):
-        weights.update({f"controlnet.{k}": v for k, v in ckpt["ema"]["shadow"].items()})
+    weights = _with_ema(ckpt, "controlnet")
     if hp.get("base") is None:  # written by `omg fit` before checkpoints kept it: its pretrained file describes it
         if not hp.get("pretrained"):
             raise UsageError(f"model.init_args.pretrained: {path} describes no frozen model (no base, no pretrained)")
         return _read_pretrained(hp["pretrained"], text_encoder, moc)[0], weights
     return settings(PretrainedBase, hp["base"], f"{path}: base").plain(f"{path}: base"), weights
+
+
+def _with_ema(ckpt: dict, trainable: str) -> dict[str, Tensor]:
+    """A checkpoint's weights with the EMA's in place of those of its trainable module (``trainable``, the
+    attribute the EMA tracks), where it kept an EMA and its weights are not the EMA already."""
+    weights = dict(ckpt["state_dict"])
+    if ckpt.get("ema") and not ckpt.get("ema_weights"):
+        weights.update({f"{trainable}.{k}": v for k, v in ckpt["ema"]["shadow"].items()})
+    return weights

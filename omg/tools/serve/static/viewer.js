@@ -189,7 +189,10 @@ export class Viewer {
     this.labels.setSize(w, h);
     this.camera.aspect = w / Math.max(h, 1);
     this.camera.updateProjectionMatrix();
-    // a resized canvas is blank until drawn, and an idle page draws only now and then (app.js): at once
+    this.render();  // a resized canvas is blank until drawn, and an idle page draws only now and then (app.js)
+  }
+
+  render() {
     this.renderer.render(this.scene, this.camera);
     this.labels.render(this.scene, this.camera);
   }
@@ -286,7 +289,6 @@ export class Viewer {
       this.state.target = this.controls.target.toArray();
     }
     this.controls.update();
-    this.renderer.render(this.scene, this.camera);
-    this.labels.render(this.scene, this.camera);
+    this.render();
   }
 }
