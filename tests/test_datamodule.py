@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
-import torch.multiprocessing as mp
 
 from helpers import rewrite_member, toy_clip, write_toy_shards
+from helpers.forked import spawn_ranks
 from omg.data.datamodule import MotionDataModule
 from omg.data.loaders import StreamLoader, TooManyBadSamples
 from omg.data.shards import Manifest
@@ -199,10 +199,11 @@ def _rank_main(rank, world, port, shards, start_method, out):
 
 
 def test_two_ranks_read_disjoint_shards_and_equal_batch_counts(tmp_path):
-    # rank processes are spawned (nothing inherited), their loader workers forked
+    # the rank processes start from the tests' fork server (nothing inherited from this process), their loader
+    # workers are forked
     shards = write_toy_shards(tmp_path / "s", num_clips=40, max_clips=5)  # 8 shards
     out = tmp_path / "gathered.pt"
-    mp.spawn(_rank_main, args=(2, _free_port(), str(shards), "fork", str(out)), nprocs=2, join=True)
+    spawn_ranks(_rank_main, (2, _free_port(), str(shards), "fork", str(out)), 2)
     r0, r1 = torch.load(out)
     assert r0["batches"] == r1["batches"] == 5
 

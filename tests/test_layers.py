@@ -22,6 +22,7 @@ package of omg/ under its layer."""
 from __future__ import annotations
 
 import ast
+import functools
 import importlib
 import re
 from pathlib import Path
@@ -170,10 +171,20 @@ def imports(source: str, name: str, is_package: bool = False,
     ``from omg.registry import R`` imports the built-in modules of registry R as well (``REGISTRIES``),
     unless ``lookups`` is false. Each ``import_module`` with a computed name is appended to ``dynamic``
     as (scope, line)."""
+    found, computed = _imports(source, name, is_package, lookups)
+    if dynamic is not None:
+        dynamic.extend(computed)
+    return list(found)
+
+
+@functools.cache  # the tests below read every module's imports; each source is parsed once
+def _imports(source: str, name: str, is_package: bool,
+             lookups: bool) -> tuple[tuple[tuple[str, int], ...], tuple[tuple[str, int], ...]]:
+    """``imports``: (the imports, the computed ``import_module`` calls as (scope, line))."""
     package = name if is_package else name.rpartition(".")[0]
     tree = ast.parse(source)
     scopes = _scopes(tree)
-    found = []
+    found, dynamic = [], []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found += [(alias.name, node.lineno) for alias in node.names]
@@ -190,12 +201,12 @@ def imports(source: str, name: str, is_package: bool = False,
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "import_module" and node.args:
             if isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
                 found.append((node.args[0].value, node.lineno))
-            elif dynamic is not None:
+            else:
                 dynamic.append((scopes.get(node, ""), node.lineno))
     if name in DATA_TABLES:
         found += DATA_TABLES[name](tree)
-    return list(dict.fromkeys((module, line) for module, line in found
-                              if module == "omg" or module.startswith("omg.")))
+    return (tuple(dict.fromkeys((module, line) for module, line in found
+                                if module == "omg" or module.startswith("omg."))), tuple(dynamic))
 
 
 def all_imports() -> list[tuple[str, str, int, Path]]:

@@ -996,11 +996,14 @@ def _open_page(browser, server, width: int = 1280):
     return context, page, errors, requests
 
 
-def _draws_per_second(page, seconds: float = 2.0) -> float:
-    start = page.evaluate("[window.omgViewer.draws, performance.now()]")
+def _drawing(page, seconds: float = 2.0) -> tuple[float, float]:
+    """(draws, changes of the frame shown) a second, over ``seconds`` with nothing done."""
+    probe = "[window.omgViewer.draws, window.omgViewer.shownFrames, performance.now()]"
+    start = page.evaluate(probe)
     page.wait_for_timeout(seconds * 1000)
-    end = page.evaluate("[window.omgViewer.draws, performance.now()]")
-    return (end[0] - start[0]) / ((end[1] - start[1]) / 1000)
+    end = page.evaluate(probe)
+    elapsed = (end[2] - start[2]) / 1000
+    return (end[0] - start[0]) / elapsed, (end[1] - start[1]) / elapsed
 
 
 def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, tmp_path):
@@ -1008,7 +1011,7 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     # nothing shown and nothing done: the scene is drawn a few times a second (IDLE_DRAW_MS), not on every
     # animation frame (a software renderer's core, a laptop's battery); below, a result plays at the full rate
     page.wait_for_timeout(1200)  # the loading's own second of full-rate drawing
-    assert _draws_per_second(page) <= 6
+    assert _drawing(page)[0] <= 6
     page.select_option("#model", "human")
     assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
     # an empty box asks for nothing: the page says so instead of sampling unconditional motion
@@ -1035,6 +1038,9 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     assert _canvas_colours(page) > 3  # the grid and two coloured skeletons
     first = page.evaluate("window.omgViewer.frame")
     page.wait_for_function(f"window.omgViewer.frame != {first}")
+    # playing skeletons are drawn when their frame changes (20 a second), not on every animation frame (60)
+    draws, shown = _drawing(page)
+    assert shown > 3 and draws <= shown + 0.5, (draws, shown)  # at most one draw more in two seconds
     page.click("#play")  # pause, then scrub
     page.locator("#scrubber").fill("10")
     page.wait_for_function("window.omgViewer.frame == 10")

@@ -6,8 +6,10 @@ import { createControl, limit } from '/static/control.js';
 const $ = (id) => document.getElementById(id);
 let models = [];
 let current = null;
-// read by the page's test: the frame shown, the frames drawn since the last result, every drawing since the start
-const state = { motions: [], parents: [], frame: 0, frames: 0, fps: 20, playing: true, drawn: 0, results: 0, draws: 0 };
+// read by the page's test: the frame shown, the frames drawn since the last result, every drawing since the start,
+// how often the frame shown changed
+const state = { motions: [], parents: [], frame: 0, frames: 0, fps: 20, playing: true, drawn: 0, results: 0, draws: 0,
+  shownFrames: 0 };
 window.omgViewer = state;
 
 function show(id, visible) { $(id).classList.toggle('hidden', !visible); }
@@ -222,13 +224,17 @@ function listSamples(result) {
   });
 }
 
-// Drawing the scene is what the page costs while nothing moves (a software renderer's CPU, a laptop's battery):
-// every animation frame while a result plays and for ACTIVE_MS after the user did anything, else IDLE_DRAW_MS
-// apart, which still shows within a moment what an answer or a loaded file changed in the scene
+// Drawing the scene is what the page costs while nothing moves (a software renderer's CPU, a laptop's battery).
+// A skeleton shows whole frames, so while skeletons play it is drawn when the frame changes (a 20-fps motion:
+// 20 draws a second, not the display's 60); a character interpolates between frames and is drawn on every
+// animation frame. For ACTIVE_MS after the user did anything it is drawn on every animation frame (the camera
+// glides), and otherwise IDLE_DRAW_MS apart, which still shows within a moment what an answer or a loaded file
+// changed in the scene
 const ACTIVE_MS = 1000;
 const IDLE_DRAW_MS = 250;
 let activeUntil = 0;
 let lastDraw = -Infinity;
+let lastFrame = -1;
 for (const kind of ['pointerdown', 'pointermove', 'pointerup', 'wheel', 'keydown', 'input', 'change', 'resize']) {
   window.addEventListener(kind, () => { activeUntil = performance.now() + ACTIVE_MS; }, { capture: true, passive: true });
 }
@@ -240,15 +246,20 @@ function animate(now) {
   const dt = (now - last) / 1000;
   last = now;
   const playing = state.frames > 0 && state.playing;
-  if (!playing && now > activeUntil && now - lastDraw < IDLE_DRAW_MS) return;
+  if (playing) {
+    clock = (clock + dt * state.fps) % state.frames;
+    state.frame = Math.floor(clock);
+  }
+  // a new result is drawn at once; a playing one when its frame changes, or always where it interpolates
+  const moves = (state.frames > 0 && state.drawn === 0)
+    || (playing && (state.frame !== lastFrame || viewer.interpolates()));
+  if (!moves && now > activeUntil && now - lastDraw < IDLE_DRAW_MS) return;
   lastDraw = now;
   state.draws += 1;
   if (state.frames > 0) {
-    if (state.playing) {
-      clock = (clock + dt * state.fps) % state.frames;
-      state.frame = Math.floor(clock);
-      $('scrubber').value = state.frame;
-    }
+    if (state.frame !== lastFrame) state.shownFrames += 1;
+    lastFrame = state.frame;
+    if (state.playing) $('scrubber').value = state.frame;
     $('frame').textContent = `${state.frame + 1} / ${state.frames}`;
     state.drawn += 1;
   }

@@ -266,6 +266,11 @@ export class Viewer {
   }
 
   // clock: the page's playback time in frames (fractional while playing)
+  // whether what is drawn moves between whole frames: a character's animation interpolates, a skeleton does not
+  interpolates() {
+    return this.actors.some((actor, i) => actor !== this.skeletons[i]);
+  }
+
   draw(frame, clock) {
     if (this.actors.length) {
       this.sum.set(0, 0, 0);
