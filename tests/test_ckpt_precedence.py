@@ -62,8 +62,8 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
     root = tmp_path_factory.mktemp("precedence")
     torch.manual_seed(0)
     config = write_config(root / "pre.yaml", MINI / "human263/train", root / "pre", max_steps=2)
-    main(["fit", "--config", config, "--model.init_args.stance_root=0.25", "--model.init_args.loss.vel_weight=7",
-          "--model.init_args.loss.foot_weight=5"])
+    main(["fit", "--config", config, "--model.init_args.sampling.stance_root=0.25",
+          "--model.init_args.loss.vel_weight=7", "--model.init_args.loss.foot_weight=5"])
     paths = {"pretrain": str(root / "pre/ckpt/last.ckpt")}
 
     def save(module, name):
@@ -74,7 +74,7 @@ def ckpts(tmp_path_factory) -> dict[str, str]:
         return paths[name]
 
     save(ControlNetModule(pretrained=paths["pretrain"], text_encoder="hash", moc={"d_c": 16, "num_experts": 2},
-                          guidance_scale=2.0, eot_drop=0.3, stance_root=0.1, ema_decay=0), "controlnet")
+                          guidance_scale=2.0, eot_drop=0.3, sampling={"stance_root": 0.1}, ema_decay=0), "controlnet")
     maa = MotionDataModule(str(MINI / "animal_maa/train"), batch_size=2, num_workers=0).spec
     save(EvaluatorModule(text_encoder="hash", flavor="mini", evaluator={"n_layers": 1, "d_model": 32, "embed_dim": 32},
                          r_precision_pool=4, spec=maa, optim={"warmup_steps": 7}), "evaluator")
@@ -109,14 +109,15 @@ def _flags(values: dict) -> list[str]:
 # the command line's over the config's, the config's over the checkpoint's, the checkpoint's where neither says)
 CASES = {
     "pretrain": ("test", "PretrainModule", "h263",
-                 {"flavor": "mini", "dit": {"n_layers": 2}, "stance_root": 0.5, "loss": {"vel_weight": 10.0}},
+                 {"flavor": "mini", "dit": {"n_layers": 2}, "sampling": {"stance_root": 0.5},
+                  "loss": {"vel_weight": 10.0}},
                  {"loss.vel_weight": 20.0},
                  lambda m: {"stance_root": m.stance_root, "vel_weight": m.loss.vel_weight,
                             "foot_weight": m.loss.foot_weight},
                  {"stance_root": 0.5, "vel_weight": 20.0, "foot_weight": 5.0}),
     "controlnet": ("test", "ControlNetModule", "h263",
-                   {"guidance_scale": 3.0, "stance_root": 0.2, "text_encoder": "hash"},
-                   {"stance_root": 0.4},
+                   {"guidance_scale": 3.0, "sampling": {"stance_root": 0.2}, "text_encoder": "hash"},
+                   {"sampling.stance_root": 0.4},
                    lambda m: {"guidance_scale": m.guidance_scale, "stance_root": m.stance_root, "eot_drop": m.eot_drop},
                    {"guidance_scale": 3.0, "stance_root": 0.4, "eot_drop": 0.3}),
     "evaluator": ("validate", "EvaluatorModule", "maa",

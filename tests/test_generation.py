@@ -190,6 +190,33 @@ def test_option_is_checked_against_the_card(pretrain_ckpt, tmp_path, capsys):
     assert np.abs(np.diff(smooth, n=3, axis=0)).mean() < 0.5 * np.abs(np.diff(rough, n=3, axis=0)).mean()
 
 
+def test_a_checkpoints_own_smoothing_is_its_default(pretrain_ckpt, tmp_path):
+    """``model.sampling.smoothing`` (set in a config, kept in the checkpoint, as stance_root): `omg generate` smooths by
+    it where no --option says otherwise, records it, and the card shows it as the option's default; --option
+    smoothing=0 turns it off; a checkpoint without it (every earlier one) generates as before."""
+    from omg.cli import main
+    from omg.lit.checkpoint import load_module
+
+    ckpt = torch.load(pretrain_ckpt, map_location="cpu", weights_only=False)
+    hparams, written = dict(ckpt["hyper_parameters"]), {}
+    sampling = hparams.pop("sampling")
+    # one with model.sampling.smoothing 2; one as every earlier checkpoint is: stance_root flat, no smoothing
+    for name, changed in (("own", {"sampling": {**sampling, "smoothing": 2.0}}),
+                          ("earlier", {"stance_root": sampling["stance_root"]})):
+        torch.save({**ckpt, "hyper_parameters": {**hparams, **changed}},
+                   written.setdefault(name, tmp_path / f"{name}.ckpt"))
+    assert generator_for(load_module(written["own"])).generation_card().option_ranges["smoothing"].default == 2.0
+    runs = {"own": (written["own"],), "asked": (pretrain_ckpt, "--option", "smoothing=2"),
+            "off": (written["own"], "--option", "smoothing=0"), "plain": (pretrain_ckpt,),
+            "earlier": (written["earlier"],)}
+    for out, (path, *option) in runs.items():
+        main([*GENERATE, "--length", "2", "--ckpt", str(path), *option, "--out", str(tmp_path / out)])
+    features = {out: (tmp_path / out / "sample_000.features.npy").read_bytes() for out in runs}
+    assert features["own"] == features["asked"] != features["plain"] == features["off"] == features["earlier"]
+    settings = {out: json.loads((tmp_path / out / "generation.json").read_text()) for out in runs}
+    assert settings["own"]["smoothing"] == 2.0 and "smoothing" not in settings["off"]
+
+
 def test_a_prior_checkpoint_is_refused_by_a_family_without_one(pretrain_ckpt, tmp_path, capsys):
     from omg.cli import main
 

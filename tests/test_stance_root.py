@@ -114,7 +114,7 @@ def tiny_pretrain(stance_root: float = 0.0):
     mean[2], mean[259:263] = 0.05, [1.0] * 4
     torch.manual_seed(0)
     module = PretrainModule(flavor="mini", dit=TINY_DIT, spec={**SPEC, "mean": mean}, ema_decay=0,
-                            stance_root=stance_root)
+                            sampling={"stance_root": stance_root})
     with torch.no_grad():
         for p in module.parameters():
             p.add_(torch.randn_like(p) * 0.05)  # the zero-initialised output layer too
@@ -139,7 +139,7 @@ def test_a_sample_has_its_planted_feet_still():
 
 
 def test_the_option_is_checked_where_it_is_given():
-    with pytest.raises(UsageError, match=r"model.stance_root must be in \[0, 1\]"):
+    with pytest.raises(UsageError, match=r"model.sampling.stance_root must be in \[0, 1\]"):
         tiny_pretrain(stance_root=1.5)
     with pytest.raises(UsageError, match=r"^stance_root must be in \[0, 1\]"):  # one check, wherever it is given
         tiny_pretrain().sample(None, [8], SamplingSettings(steps=1, stance_root=-0.1))
@@ -173,13 +173,13 @@ def test_the_small_recipe_samples_with_it_and_the_paper_configs_do_not():
     """Contact-aware sampling is omg's: the small real-data recipe turns it on (measured in
     docs/results/small_recipe.md), OMG's own configs leave the module's default, off."""
     small = yaml.safe_load((REPO / "configs/small/controlnet.yaml").read_text())
-    assert small["model"]["init_args"]["stance_root"] == 1.0
+    assert small["model"]["init_args"]["sampling"]["stance_root"] == 1.0
     papers = sorted(REPO.glob("configs/controlnet*.yaml")) + sorted(REPO.glob("configs/pretrain*.yaml"))
     assert papers
     for path in papers:
-        assert "stance_root" not in path.read_text(), path
+        assert "stance_root" not in path.read_text() and "sampling:" not in path.read_text(), path
     from omg.lit.controlnet import ControlNetModule
     from omg.lit.pretrain import PretrainModule
 
     for cls in (ControlNetModule, PretrainModule):
-        assert inspect.signature(cls).parameters["stance_root"].default == 0.0
+        assert inspect.signature(cls).parameters["sampling"].default.stance_root == 0.0

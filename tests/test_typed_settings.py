@@ -93,7 +93,8 @@ def test_each_group_checks_its_ranges_once_in_one_line():
 
 def test_older_flat_keys_are_read_into_their_groups_with_one_warning_each(capsys, tmp_path):
     """A user's older YAML (``lr:`` under model.init_args) and command line (``--model.init_args.vel_weight``,
-    ``--model.lr``) keep working: each key is read as its group's field, with one warning naming the new key."""
+    ``--model.lr``, ``--model.init_args.stance_root``) keep working: each key is read as its group's field, with
+    one warning naming the new key."""
     old = yaml.safe_load((REPO / "configs/mini/pretrain.yaml").read_text())
     init_args = old["model"]["init_args"]
     init_args.update(init_args.pop("optim"))  # the older shape: lr and warmup_steps flat
@@ -102,14 +103,16 @@ def test_older_flat_keys_are_read_into_their_groups_with_one_warning_each(capsys
     path.write_text(yaml.safe_dump(old))
     with pytest.warns(UserWarning) as record:
         code, out, _ = _run(capsys, "fit", "--config", str(path), "--model.init_args.vel_weight", "7",
-                            "--model.weight_decay=0.25", "--print_config")
+                            "--model.weight_decay=0.25", "--model.init_args.stance_root=0.5", "--print_config")
     assert code == 0
     printed = yaml.safe_load(out)["model"]["init_args"]
     assert printed["optim"] == {"lr": 1e-3, "weight_decay": 0.25, "betas": [0.9, 0.999], "warmup_steps": 20}
     assert printed["loss"] == {"vel_weight": 7.0, "foot_weight": 30.0}
-    assert "lr" not in printed and "vel_weight" not in printed
+    assert printed["sampling"] == {"stance_root": 0.5, "smoothing": 0.0}
+    assert "lr" not in printed and "vel_weight" not in printed and "stance_root" not in printed
     warned = {str(w.message) for w in record}
-    for key, group in [("lr", "optim"), ("warmup_steps", "optim"), ("vel_weight", "loss"), ("weight_decay", "optim")]:
+    for key, group in [("lr", "optim"), ("warmup_steps", "optim"), ("vel_weight", "loss"), ("weight_decay", "optim"),
+                       ("stance_root", "sampling")]:
         assert f"model.init_args.{key} is read as model.init_args.{group}.{key}, where it is set now" in warned
     # both spellings of one field: one line
     both = tmp_path / "both.yaml"
@@ -120,7 +123,7 @@ def test_older_flat_keys_are_read_into_their_groups_with_one_warning_each(capsys
                                  "model.init_args.optim.lr only (model.init_args.lr is its older name)\n")
 
 
-VALUE_GROUPS = ("optim", "loss", "order", "codebook", "source", "species")
+VALUE_GROUPS = ("optim", "loss", "order", "codebook", "source", "species", "sampling")
 
 
 def _flat(hparams: dict) -> dict:
@@ -168,6 +171,30 @@ def test_a_checkpoint_with_flat_hyper_parameters_loads_into_the_groups(tmp_path)
     loaded = load_module(save(prior, hparams, "prior.ckpt"))
     assert loaded.optim == prior.optim and loaded.vq.optim == vq.optim and loaded.vq.loss == vq.loss
     assert loaded.vq.hparams["codebook"] == vq.hparams["codebook"] and loaded.vq.habit_order == "kl_then_flows"
+
+
+def test_a_diffusion_checkpoint_with_a_flat_stance_root_loads_it_into_its_sampling_defaults(tmp_path):
+    """A diffusion checkpoint written before ``sampling`` was a group holds ``stance_root`` flat: it loads as its
+    sampling default, smoothing off, and samples as the grouped checkpoint does."""
+    from helpers import TINY_DIT
+    from helpers.checkpoints import SPEC
+    from omg.lit.checkpoint import class_path, load_module
+    from omg.lit.pretrain import PretrainModule
+    from omg.lit.sampling import SamplingSettings
+
+    torch.manual_seed(0)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=SPEC, ema_decay=0, sampling={"stance_root": 0.5})
+    assert module.hparams["sampling"] == {"stance_root": 0.5, "smoothing": 0.0}
+    paths = {}
+    for name, hparams in (("grouped", dict(module.hparams)), ("flat", _flat(dict(module.hparams)))):
+        paths[name] = tmp_path / f"{name}.ckpt"
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": hparams,
+                    "module_class": class_path(type(module))}, paths[name])
+    assert torch.load(paths["flat"], weights_only=True)["hyper_parameters"]["stance_root"] == 0.5
+    flat, grouped = (load_module(paths[name]).eval() for name in ("flat", "grouped"))
+    assert (flat.stance_root, flat.smoothing, flat.hparams["sampling"]) == (0.5, 0.0, module.hparams["sampling"])
+    settings = SamplingSettings(steps=2, seed=3)
+    assert torch.equal(flat.sample(None, [12], settings), grouped.sample(None, [12], settings))
 
 
 ABBREVIATED = "unknown option (options are never abbreviated); did you mean"

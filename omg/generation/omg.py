@@ -25,8 +25,6 @@ from omg.lit.pretrain import MotionDiffusionModule
 from omg.lit.sampling import MAX_SMOOTHING, MAX_STANCE_ROOT, SamplingSettings
 from omg.registry import SAMPLERS
 
-SMOOTHING = NumberRange(0.0, MAX_SMOOTHING, default=SamplingSettings.smoothing)  # frames; 0: off
-
 
 @register_generator(MotionDiffusionModule)
 class OmgGenerator(ModuleGenerator):
@@ -45,9 +43,10 @@ class OmgGenerator(ModuleGenerator):
             options={**({"stance_root": f"step the root by the stance foot while sampling, 0..{MAX_STANCE_ROOT:g} "
                                         "(removes foot sliding)"} if m.representation.stance_root else {}),
                      "smoothing": f"smooth every denoised estimate over time, a Gaussian of this many frames, "
-                                  f"0..{SMOOTHING.high:g} (removes frame-to-frame shake)"},
+                                  f"0..{MAX_SMOOTHING:g} (removes frame-to-frame shake)"},
             option_ranges={**({"stance_root": NumberRange(0.0, MAX_STANCE_ROOT, default=m.stance_root)}
-                              if m.representation.stance_root else {}), "smoothing": SMOOTHING})
+                              if m.representation.stance_root else {}),
+                           "smoothing": NumberRange(0.0, MAX_SMOOTHING, default=m.smoothing)})  # frames; 0: off
 
     def read_source(self, path, joint_map: str | None = None):
         raise UsageError("an OMG checkpoint generates from prompts (or nothing), not from a source motion")
@@ -65,7 +64,7 @@ class OmgGenerator(ModuleGenerator):
         sampling = SamplingSettings(steps=steps, sampler=request.sampler or "ddim", guidance=request.guidance,
                                     use_ema=False, autocast=request.autocast, compile=request.compile,
                                     stance_root=request.options.get("stance_root"), timeline=timeline,
-                                    smoothing=request.options.get("smoothing", SMOOTHING.default),
+                                    smoothing=request.options.get("smoothing"),
                                     control=request.control)
         untitled = "unconditional" if timeline is None else "timeline: " + " | ".join(timeline.texts)
         if request.row_seeds is not None and len(request.row_seeds) != len(jobs):
@@ -101,7 +100,7 @@ class OmgGenerator(ModuleGenerator):
                 "guidance_scale": (request.guidance if request.guidance is not None else m.guidance_scale)
                 if texts else None, "batch_size": request.batch_size,
                 "stance_root": request.options.get("stance_root", m.stance_root),
-                **({"smoothing": request.options["smoothing"]} if request.options.get("smoothing") else {}),
+                **({"smoothing": smoothing} if (smoothing := request.options.get("smoothing", m.smoothing)) else {}),
                 **({} if request.timeline is None else {"timeline": request.timeline.to_dict()})}
 
 

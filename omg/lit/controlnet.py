@@ -19,6 +19,7 @@ from omg.errors import UsageError
 from omg.lit.base import OptimSettings
 from omg.lit.control import Control, HintTraining, control_hint, draw_hints, hint_channels
 from omg.lit.pretrain import DiffusionLossWeights, MotionDiffusionModule, PretrainModule
+from omg.lit.sampling import SamplingDefaults
 from omg.models.controlnet import MoCConfig, MoCOverrides, MotionControlNet
 from omg.models.dit import DiTOverrides
 from omg.motion import DataSpec
@@ -64,8 +65,8 @@ class ControlNetModule(MotionDiffusionModule):
         loss, ema_decay: as for ``PretrainModule``.
         activation_checkpointing: recompute the activations of the frozen blocks, their trainable
             copies and the MoC blocks in backward; applied by ``configure_model``.
-        stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
-            in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
+        sampling: the checkpoint's own sampling defaults, stance_root and smoothing (``SamplingDefaults``;
+            omg's, not OMG's: 0, off), which a sampling call's settings override.
         hints: spatial hints (``omg.lit.control.HintTraining``; OmniControl's realism branch, not OMG's: off):
             with ``enabled`` the block copies read the constraints a motion is sampled with, and training draws
             them from each clip's own joints.
@@ -93,7 +94,7 @@ class ControlNetModule(MotionDiffusionModule):
         loss: DiffusionLossWeights = DiffusionLossWeights(),
         ema_decay: float = 0.9999,
         activation_checkpointing: bool = False,
-        stance_root: float = 0.0,
+        sampling: SamplingDefaults = SamplingDefaults(),
         hints: HintTraining = HintTraining(),
         base: PretrainedBase | None = None,
         spec: DataSpec | dict | None = None,
@@ -110,7 +111,7 @@ class ControlNetModule(MotionDiffusionModule):
             raise UsageError(f"model.eot_drop must be in [0, 1], got {eot_drop}")
         super().__init__(base["flavor"], base["dit"], base["spec"], optim=optim, loss=loss, ema_decay=ema_decay,
                          loss_weighting="uniform",
-                         activation_checkpointing=activation_checkpointing, stance_root=stance_root)
+                         activation_checkpointing=activation_checkpointing, sampling=sampling)
         self.save_hyperparameters()  # `base` now holds the pretrained model's description
         if self.hparams.get("base") is None:  # LightningCLI hands save_hyperparameters its config, where base is unset
             self.save_hyperparameters({"base": base})

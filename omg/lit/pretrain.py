@@ -21,7 +21,7 @@ from omg.diffusion import Denoiser, Diffusion, StepProgress
 from omg.errors import UsageError
 from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
 from omg.lit.control import Control, smoothed, steered
-from omg.lit.sampling import SamplingSettings, check_stance_root
+from omg.lit.sampling import SamplingDefaults, SamplingSettings, check_smoothing, check_stance_root
 from omg.lit.timeline import chains_denoiser, check_timeline, compose_chains, timeline_denoiser
 from omg.losses import GeometricLoss
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
@@ -62,7 +62,8 @@ class MotionDiffusionModule(OmgModule):
 
     def __init__(self, flavor: str, dit: DiTOverrides | dict | None, spec: DataSpec | dict | None, *,
                  optim: OptimSettings | dict | None, loss: DiffusionLossWeights | dict | None, ema_decay: float,
-                 loss_weighting: str, activation_checkpointing: bool, stance_root: float = 0.0):
+                 loss_weighting: str, activation_checkpointing: bool,
+                 sampling: SamplingDefaults | dict | None = None):
         super().__init__()
         # checked here, when the module is built: the EMA would refuse it only at fit start
         if not 0 <= ema_decay < 1:
@@ -76,7 +77,9 @@ class MotionDiffusionModule(OmgModule):
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
         self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))
-        self.stance_root = self.checked_stance_root(stance_root, "model.stance_root")
+        self.sampling = self.value_group("sampling", sampling)
+        self.stance_root = self.checked_stance_root(self.sampling.stance_root, "model.sampling.stance_root")
+        self.smoothing = check_smoothing(self.sampling.smoothing, "model.sampling.smoothing")
         self.geometric_loss = GeometricLoss(self.representation, self.spec.fps)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)
@@ -230,7 +233,8 @@ class MotionDiffusionModule(OmgModule):
         the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
         stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``); with
         its separate chains, each text samples its own chain (K·B rows from the same x_T, stance_root and control
-        applied to each chain), the chains joined at every step and in the motion returned. ``smoothing`` smooths
+        applied to each chain), the chains joined at every step and in the motion returned. ``smoothing`` (default: the
+        module's) smooths
         every estimate over time after the stance step and before the control's (``omg.lit.control.smoothed``), so
         that constraints are met on the smoothed motion.
         ``progress`` (a watcher of this call, not a setting) hears the solver's (step, steps) after each step.
@@ -273,8 +277,9 @@ class MotionDiffusionModule(OmgModule):
             strength = self.stance_root if settings.stance_root is None else settings.stance_root
             if strength:
                 denoise = self.stance_denoiser(denoise, mask, strength)
-            if settings.smoothing:  # after the stance step: a root stepped by alternating feet shakes too
-                denoise = smoothed(denoise, settings.smoothing, mask, self.representation.contact_features())
+            sigma = self.smoothing if settings.smoothing is None else settings.smoothing
+            if sigma:  # after the stance step: a root stepped by alternating feet shakes too
+                denoise = smoothed(denoise, sigma, mask, self.representation.contact_features())
             if settings.control is not None:  # with separate chains, every chain steered to the targets
                 denoise = self.control_denoiser(denoise, mask, settings.control.tiled(chains), settings.steps)
             if progress is not None:  # passed only when watched: a plugin sampler need not take it
@@ -358,8 +363,8 @@ class PretrainModule(MotionDiffusionModule):
         loss_weighting: λ_t, "uniform" or "min_snr" (see omg.diffusion).
         activation_checkpointing: recompute each block's activations in backward (less memory,
             about a third more compute); applied by ``configure_model``.
-        stance_root: sampling: step the root of each denoised estimate by its stance foot, this much
-            in [0, 1] (``MotionDiffusionModule.stance_denoiser``; omg's, not OMG's: 0, off).
+        sampling: the checkpoint's own sampling defaults, stance_root and smoothing (``SamplingDefaults``;
+            omg's, not OMG's: 0, off), which a sampling call's settings override.
         spec: the data's representation, skeleton, fps and stats; linked from the data by ``omg fit``.
     """
 
@@ -375,9 +380,9 @@ class PretrainModule(MotionDiffusionModule):
         ema_decay: float = 0.9999,
         loss_weighting: str = "uniform",
         activation_checkpointing: bool = False,
-        stance_root: float = 0.0,
+        sampling: SamplingDefaults = SamplingDefaults(),
         spec: DataSpec | dict | None = None,
     ):
         super().__init__(flavor, dit, spec, optim=optim, loss=loss, ema_decay=ema_decay, loss_weighting=loss_weighting,
-                         activation_checkpointing=activation_checkpointing, stance_root=stance_root)
+                         activation_checkpointing=activation_checkpointing, sampling=sampling)
         self.save_hyperparameters()

@@ -47,6 +47,19 @@ def check_smoothing(sigma: float, key: str) -> float:
 
 
 @dataclass(frozen=True)
+class SamplingDefaults:
+    """A diffusion module's own sampling defaults (``model.init_args.sampling``), kept in its checkpoint: what
+    ``sample`` uses where ``SamplingSettings`` leave them unset (None). Both are omg's, not OMG's (0: off).
+
+    ``stance_root`` in [0, ``MAX_STANCE_ROOT``]: step the root of each denoised estimate by its stance foot
+    (``MotionDiffusionModule.stance_denoiser``); ``smoothing`` in [0, ``MAX_SMOOTHING``] frames: smooth each
+    denoised estimate over time by a Gaussian of that sigma (``omg.lit.control.smoothed``)."""
+
+    stance_root: float = 0.0
+    smoothing: float = 0.0
+
+
+@dataclass(frozen=True)
 class SamplingSettings:
     """How a ``Sampler`` samples.
 
@@ -59,9 +72,9 @@ class SamplingSettings:
     the settings in the one-line errors (``EvalCallback``); a family takes the settings that apply to it
     (OmniMotionGPT passes steps, sampler and guidance to its human generator). ``timeline``
     (``omg.lit.timeline.Timeline``): every motion follows its texts, by stretches of frames and by body
-    parts, sampled with ``texts=None`` (a text-conditioned module's). ``smoothing`` (frames, 0: off) smooths
-    every denoised estimate over time by a Gaussian of that sigma (``omg.lit.control.smoothed``): the
-    frame-to-frame shake of a guided sample."""
+    parts, sampled with ``texts=None`` (a text-conditioned module's). ``smoothing`` (frames, 0: off; None: the
+    module's) smooths every denoised estimate over time by a Gaussian of that sigma (``omg.lit.control.smoothed``):
+    the frame-to-frame shake of a guided sample."""
 
     steps: int = 200
     sampler: str = "ddim"
@@ -75,7 +88,7 @@ class SamplingSettings:
     control: Control | None = None
     key: str = ""
     timeline: Timeline | None = None
-    smoothing: float = 0.0
+    smoothing: float | None = None
 
     def __post_init__(self) -> None:
         where = f"{self.key}." if self.key else ""
@@ -84,7 +97,8 @@ class SamplingSettings:
         SAMPLERS.get(self.sampler)  # an unknown name is one line naming the known ones
         if self.stance_root is not None:
             object.__setattr__(self, "stance_root", check_stance_root(self.stance_root, f"{where}stance_root"))
-        object.__setattr__(self, "smoothing", check_smoothing(self.smoothing, f"{where}smoothing"))
+        if self.smoothing is not None:
+            object.__setattr__(self, "smoothing", check_smoothing(self.smoothing, f"{where}smoothing"))
         if self.seeds is not None:
             object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
 

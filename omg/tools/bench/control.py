@@ -23,7 +23,7 @@ def bench_control(
     iterations: NonNegativeInt | None = None,
     final_iterations: NonNegativeInt | None = None,
     smooth: float | None = None,
-    smoothing: FiniteFloat = 0.0,
+    smoothing: FiniteFloat | None = None,
     contacts: bool = True,
     evaluator: str | None = None,
     seed: NonNegativeInt = 0,
@@ -48,7 +48,7 @@ def bench_control(
         batch_size: motions sampled at once
         iterations, final_iterations, smooth: the steering's (``omg.lit.control.Control``; default its own)
         smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's smoothing,
-            ``omg.lit.control.smoothed``; 0: off), with and without the constraints
+            ``omg.lit.control.smoothed``; 0: off; default: the checkpoint's), with and without the constraints
         contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
         evaluator: an evaluator checkpoint (as ``omg bench quality --evaluator``): adds FID and R-precision; the
             R-precision pool is every take (at most 32)
@@ -65,7 +65,8 @@ def bench_control(
     from omg.motion import length_mask
     from omg.tools.bench.timeline import joint_jerk
 
-    check_smoothing(smoothing, "--smoothing")
+    if smoothing is not None:
+        check_smoothing(smoothing, "--smoothing")
     module = load_module(ckpt, expect=MotionDiffusionModule).eval()
     data = MotionDataModule(val=val, max_len=max_len, clips="whole")
     judge = None

@@ -59,7 +59,7 @@ def bench_timeline(
     steps: PositiveInt = 50,
     sampler: str = "ddim",
     guidance: FiniteFloat | None = None,
-    smoothing: FiniteFloat = 0.0,
+    smoothing: FiniteFloat | None = None,
     seed: NonNegativeInt = 0,
     prompts: Path | None = None,
     label: str = "content",
@@ -103,7 +103,8 @@ def bench_timeline(
         sampler: a registered sampler
         guidance: the guidance scale (default: the checkpoint's)
         smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's
-            smoothing, ``omg.lit.control.smoothed``; 0: off), for every motion the bench samples
+            smoothing, ``omg.lit.control.smoothed``; 0: off; default: the checkpoint's), for every motion the
+            bench samples
         seed: the seed of the choice of captions and of the first motion
         prompts: the prompt file whose ``labels:`` give the targets (default: the built-in set)
         label: the clip label that names the action (a Bandai-Namco take's ``content``)
@@ -126,7 +127,8 @@ def bench_timeline(
     from omg.registry import SAMPLERS
 
     SAMPLERS.get(sampler)
-    check_smoothing(smoothing, "--smoothing")
+    if smoothing is not None:
+        check_smoothing(smoothing, "--smoothing")
     check_chains(chains, "--chains")
     if coupling is not None and (not 0 <= coupling <= 1 or chains != "separate"):
         raise UsageError(f"--coupling {coupling:g}: a number in [0, 1], with --chains separate")

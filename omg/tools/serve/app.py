@@ -278,7 +278,8 @@ class GenerateBody(BaseModel):
                                                "(docs/guide/control.md; keyframes give joints or positions, no file)")
     smoothing: float | None = Field(None, ge=0, le=MAX_SMOOTHING, allow_inf_nan=False,
                                     description="frames of the Gaussian every denoised estimate is smoothed over time "
-                                    "by (models whose card lists the smoothing option; default 0: off)")
+                                    "by (models whose card lists the smoothing option; default: the model's, 0: off "
+                                    "unless its config sets model.sampling.smoothing)")
 
 
 def create_app(models: list[Model], out: Path, limits: Limits | None = None, remove_out: bool = False,
