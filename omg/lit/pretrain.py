@@ -233,10 +233,9 @@ class MotionDiffusionModule(OmgModule):
         the frames of ``max(lengths)``. ``timeline`` (texts=None): each motion follows the timeline's texts by
         stretches of frames and body parts, their estimates blended at every step (``omg.lit.timeline``); with
         its separate chains, each text samples its own chain (K·B rows from the same x_T, stance_root and control
-        applied to each chain), the chains joined at every step and in the motion returned. ``smoothing`` (default: the
-        module's) smooths
-        every estimate over time after the stance step and before the control's (``omg.lit.control.smoothed``), so
-        that constraints are met on the smoothed motion.
+        applied to each chain), the chains joined at every step and in the motion returned. ``smoothing`` (default:
+        the module's) smooths every estimate over time after the stance step and before the control's
+        (``omg.lit.control.smoothed``), so that constraints are met on the smoothed motion.
         ``progress`` (a watcher of this call, not a setting) hears the solver's (step, steps) after each step.
         """
         settings = settings or SamplingSettings()
