@@ -173,7 +173,7 @@ def test_the_small_recipe_samples_with_it_and_the_paper_configs_do_not():
     """Contact-aware sampling is omg's: the small real-data recipe turns it on (measured in
     docs/results/small_recipe.md), OMG's own configs leave the module's default, off."""
     small = yaml.safe_load((REPO / "configs/small/controlnet.yaml").read_text())
-    assert small["model"]["init_args"]["sampling"]["stance_root"] == 1.0
+    assert small["model"]["init_args"]["sampling"] == {"stance_root": 1.0, "smoothing": 1.0}
     papers = sorted(REPO.glob("configs/controlnet*.yaml")) + sorted(REPO.glob("configs/pretrain*.yaml"))
     assert papers
     for path in papers:
