@@ -152,6 +152,10 @@ def test_the_option_is_checked_where_it_is_given():
     unset = EvalCallback(metrics=["foot_skating"]).sampling
     assert unset.stance_root is None and "stance_root" not in unset.report()  # unset: other families as before
     assert EvalCallback(metrics=["foot_skating"], stance_root=1.0).sampling.stance_root == 1.0
+    # smoothing alike: the callbacks' own, else the model's (a checkpoint's sampling.smoothing)
+    with pytest.raises(UsageError, match=r"EvalCallback.smoothing must be a number of frames in \[0, 10\]"):
+        EvalCallback(metrics=["foot_skating"], smoothing=11.0)
+    assert unset.smoothing is None and RenderCallback(smoothing=0.0).sampling.smoothing == 0.0
 
 
 def test_generate_records_it(tmp_path):

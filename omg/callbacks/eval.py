@@ -53,11 +53,11 @@ def check_generative(module: L.LightningModule, key: str, sampling: SamplingSett
 
 
 def sampling_settings(key: str, steps: int, guidance: float | None, use_ema: bool, sampler: str,
-                      stance_root: float | None) -> SamplingSettings:
+                      stance_root: float | None, smoothing: float | None) -> SamplingSettings:
     """How a callback samples, checked when the callback is made (an unknown sampler fails here, not after
     training)."""
     return SamplingSettings(steps=steps, guidance=guidance, use_ema=use_ema, sampler=sampler, stance_root=stance_root,
-                            key=key)
+                            smoothing=smoothing, key=key)
 
 
 def conditioning(module: Sampler, texts: list[str]) -> list[str] | None:
@@ -84,9 +84,9 @@ class EvalCallback(Callback):
         replications: passes of the test protocol (T2M/MDM: 20).
         mm_prompts, mm_repeats: MultiModality generates each of the first mm_prompts prompts
             mm_repeats times (T2M: 100 × 30).
-        steps, guidance, use_ema, sampler, stance_root: sampling settings passed to the model's ``sample``
-            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler)
-            (guidance, stance_root None: the model's own).
+        steps, guidance, use_ema, sampler, stance_root, smoothing: sampling settings passed to the model's
+            ``sample`` (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler)
+            (guidance, stance_root, smoothing None: the model's own).
         batch_size: prompts generated at once on each rank.
         seed: seeds the prompt sets and the sampling; a run is deterministic for a seed.
         reference: also report the set-wise metrics of the real motions as ``real/<metric>``.
@@ -117,6 +117,7 @@ class EvalCallback(Callback):
         use_ema: bool = True,
         sampler: str = "ddim",
         stance_root: float | None = None,
+        smoothing: float | None = None,
         batch_size: int = 64,
         seed: int = 0,
         reference: bool = True,
@@ -151,7 +152,7 @@ class EvalCallback(Callback):
         self.every_n_steps, self.replications = every_n_steps, replications
         if self.prompt_file is None:
             self.num_prompts = num_prompts
-        self.sampling = sampling_settings(key, steps, guidance, use_ema, sampler, stance_root)
+        self.sampling = sampling_settings(key, steps, guidance, use_ema, sampler, stance_root, smoothing)
         self.settings = EvalSettings(batch_size=batch_size, mm_prompts=mm_prompts, mm_repeats=mm_repeats,
                                      reference=reference)
         self.seed = seed

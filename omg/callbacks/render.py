@@ -32,9 +32,9 @@ class RenderCallback(Callback):
         num_samples: samples per prompt, side by side.
         seconds: length of each sample.
         every_n_steps: render every this many optimizer steps; also once at the end of fit.
-        steps, guidance, use_ema, sampler, stance_root: sampling settings passed to the model's ``sample``
-            (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler; guidance, stance_root None:
-            the model's own).
+        steps, guidance, use_ema, sampler, stance_root, smoothing: sampling settings passed to the model's
+            ``sample`` (sampler: a registered name, ``omg.samplers``: ddim, dpmpp, euler; guidance, stance_root,
+            smoothing None: the model's own).
         seed: the sampling seed.
         max_frames, dpi: GIF size (frames are subsampled to at most max_frames).
     """
@@ -51,6 +51,7 @@ class RenderCallback(Callback):
         use_ema: bool = True,
         sampler: str = "ddim",
         stance_root: float | None = None,
+        smoothing: float | None = None,
         seed: int = 0,
         max_frames: int = 60,
         dpi: int = 60,
@@ -62,7 +63,7 @@ class RenderCallback(Callback):
             raise UsageError(f"RenderCallback.prompts must be a non-empty list of non-empty captions, got {prompts!r}")
         self.prompts, self.num_prompts, self.num_samples, self.seconds = prompts, num_prompts, num_samples, seconds
         self.every_n_steps, self.seed = every_n_steps, seed
-        self.sampling = sampling_settings("RenderCallback", steps, guidance, use_ema, sampler, stance_root)
+        self.sampling = sampling_settings("RenderCallback", steps, guidance, use_ema, sampler, stance_root, smoothing)
         self.max_frames, self.dpi = max_frames, dpi
         self._last_step = -1
 
