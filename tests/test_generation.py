@@ -203,8 +203,8 @@ def test_a_checkpoints_own_smoothing_is_its_default(pretrain_ckpt, tmp_path):
     # one with model.sampling.smoothing 2; one as every earlier checkpoint is: stance_root flat, no smoothing
     for name, changed in (("own", {"sampling": {**sampling, "smoothing": 2.0}}),
                           ("earlier", {"stance_root": sampling["stance_root"]})):
-        torch.save({**ckpt, "hyper_parameters": {**hparams, **changed}},
-                   written.setdefault(name, tmp_path / f"{name}.ckpt"))
+        written[name] = tmp_path / f"{name}.ckpt"
+        torch.save({**ckpt, "hyper_parameters": {**hparams, **changed}}, written[name])
     assert generator_for(load_module(written["own"])).generation_card().option_ranges["smoothing"].default == 2.0
     runs = {"own": (written["own"],), "asked": (pretrain_ckpt, "--option", "smoothing=2"),
             "off": (written["own"], "--option", "smoothing=0"), "plain": (pretrain_ckpt,),

@@ -77,9 +77,9 @@ class MotionDiffusionModule(OmgModule):
         self.model = MotionDiT(self.config)
         self.diffusion = Diffusion(loss_weighting=loss_weighting)
         self.representation = get_representation(self.spec.representation, get_skeleton(self.spec.skeleton))
-        self.sampling = self.value_group("sampling", sampling)
-        self.stance_root = self.checked_stance_root(self.sampling.stance_root, "model.sampling.stance_root")
-        self.smoothing = check_smoothing(self.sampling.smoothing, "model.sampling.smoothing")
+        defaults = self.value_group("sampling", sampling)  # kept in the hyper-parameters; read from these two
+        self.stance_root = self.checked_stance_root(defaults.stance_root, "model.sampling.stance_root")
+        self.smoothing = check_smoothing(defaults.smoothing, "model.sampling.smoothing")
         self.geometric_loss = GeometricLoss(self.representation, self.spec.fps)
         self.register_buffer("mean", torch.tensor(self.spec.mean, dtype=torch.float32), persistent=False)
         self.register_buffer("std", torch.tensor(self.spec.std, dtype=torch.float32), persistent=False)

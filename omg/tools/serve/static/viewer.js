@@ -265,12 +265,12 @@ export class Viewer {
     this.center = null;
   }
 
-  // clock: the page's playback time in frames (fractional while playing)
   // whether what is drawn moves between whole frames: a character's animation interpolates, a skeleton does not
   interpolates() {
     return this.actors.some((actor, i) => actor !== this.skeletons[i]);
   }
 
+  // clock: the page's playback time in frames (fractional while playing)
   draw(frame, clock) {
     if (this.actors.length) {
       this.sum.set(0, 0, 0);
