@@ -4,7 +4,8 @@ diffusion model samples with (``omg generate --constraints``, ``omg serve``'s ``
 The format is docs/guide/control.md's: ``keyframes`` (a pose at a time: joint positions, or a frame of a BVH /
 ``.npy`` take retargeted onto the model's skeleton), ``targets`` (a joint at a time or over a span, some axes),
 ``waypoints`` (the root on the ground, at times or with free timing) and a dense ``path``, ``facing``,
-``contacts`` (given feet planted over spans, or ``"model"``: the model's own contact channels); each constraint
+``contacts`` (given feet planted over spans, ``"model"``: the model's own contact channels, ``"ground"``: the
+feet each estimate puts on the ground); each constraint
 may carry ``weight`` and ``tolerance``. Positions are world metres, Y up, in the frame the model generates in:
 the motion's first frame has its root above the XZ origin, facing +Z. Every error is one line naming the
 constraint (``targets[1].joint``), and nothing is sampled or written after one.
@@ -120,6 +121,7 @@ class _Builder:
         self.names: list[str] = []
         self.contacts: np.ndarray | None = None
         self.own_contacts = False
+        self.ground_contacts = False
         self.facing_: np.ndarray | None = None
 
     # -- pieces -----------------------------------------------------------------------------------------------
@@ -305,31 +307,39 @@ class _Builder:
                 self.facing_[f] = direction / norm
 
     def add_contacts(self, value: Any) -> None:
-        if value == "model":
-            from omg.motion import get_representation
-
-            representation = get_representation(self.card.representation, self.skeleton)
-            if representation.foot_contacts(torch.zeros(1, 1, representation.dim)) is None:
-                raise UsageError(f"{self.what}: contacts: \"model\" needs contact channels, which representation "
-                                 f"{representation.name} has none of: give the feet's spans")
-            self.own_contacts = True
-            return
+        """``"model"`` (the model's own contact channels), ``"ground"`` (the feet each estimate puts on the
+        ground), or a list of given spans ``{joint, span}`` and those two words."""
         feet = self.skeleton.feet
         if not feet:
             raise UsageError(f"{self.what}: contacts: skeleton {self.skeleton.name} names no feet")
-        if not isinstance(value, list):
-            raise UsageError(f"{self.what}: contacts is \"model\" (the model's own contact channels) or a list of "
-                             "{joint, span}")
-        for where, item in self.items(value, "contacts"):
-            self.keys(item, where, ("joint", "time", "span"))
-            joint = self.joint(item.get("joint"), f"{where}.joint")
-            if joint not in feet:
-                names = ", ".join(self.skeleton.names[j] for j in feet)
-                raise UsageError(f"{self.what}: {where}.joint {self.skeleton.names[joint]!r} is no foot ({names})")
-            if self.contacts is None:
-                self.contacts = np.zeros((self.frames, len(feet)), bool)
-            for f in self.span(item, where):
-                self.contacts[f, feet.index(joint)] = True
+        listed = [value] if isinstance(value, str) else value
+        if not isinstance(listed, list):
+            listed = [None]  # refused below, with what it takes
+        for index, item in enumerate(listed):
+            where = "contacts" if isinstance(value, str) else f"contacts[{index}]"
+            if item == "model":
+                from omg.motion import get_representation
+
+                representation = get_representation(self.card.representation, self.skeleton)
+                if representation.foot_contacts(torch.zeros(1, 1, representation.dim)) is None:
+                    raise UsageError(f"{self.what}: {where}: \"model\" needs contact channels, which representation "
+                                     f"{representation.name} has none of: give the feet's spans or \"ground\"")
+                self.own_contacts = True
+            elif item == "ground":
+                self.ground_contacts = True
+            elif isinstance(item, dict):
+                self.keys(item, where, ("joint", "time", "span"))
+                joint = self.joint(item.get("joint"), f"{where}.joint")
+                if joint not in feet:
+                    names = ", ".join(self.skeleton.names[j] for j in feet)
+                    raise UsageError(f"{self.what}: {where}.joint {self.skeleton.names[joint]!r} is no foot ({names})")
+                if self.contacts is None:
+                    self.contacts = np.zeros((self.frames, len(feet)), bool)
+                for f in self.span(item, where):
+                    self.contacts[f, feet.index(joint)] = True
+            else:
+                raise UsageError(f"{self.what}: {where} is none of \"model\" (the model's own contact channels), "
+                                 "\"ground\" (the feet each estimate puts on the ground) or {joint, span}")
 
     def control(self, steering: dict[str, Any]) -> Control:
         def tensor(a: np.ndarray | None) -> torch.Tensor | None:
@@ -337,7 +347,8 @@ class _Builder:
 
         return Control(targets=tensor(self.targets), axes=tensor(self.axes), weights=tensor(self.weights),
                        tolerance=tensor(self.tolerance), groups=tensor(self.groups), names=tuple(self.names),
-                       contacts=tensor(self.contacts), own_contacts=self.own_contacts, facing=tensor(self.facing_),
+                       contacts=tensor(self.contacts), own_contacts=self.own_contacts,
+                       ground_contacts=self.ground_contacts, fps=self.card.fps, facing=tensor(self.facing_),
                        **steering)
 
 

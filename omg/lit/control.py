@@ -14,8 +14,9 @@ for the least change in the features' own spread; a few iterations per estimate,
 whose last is the sample). On all but the last estimates the change is smoothed over time by a Gaussian of
 ``smooth`` frames, the realism term: a target at one frame bends its neighbourhood instead of one frame's pose,
 and the network, which denoises the steered estimate at the next step, carries the unconstrained joints and
-frames along as its prior would; the last estimates are met exactly, frame by frame. Planted feet are residuals
-of the same solve: each planted frame's foot against one place per stretch of planted frames (``held_feet``).
+frames along as its prior would; the last estimates are met exactly, frame by frame. Planted feet (given spans,
+the model's own contact channels, the feet each estimate puts on the ground: ``planted_feet``) are residuals of
+the same solve: each planted frame's foot against one place per stretch of planted frames (``held_feet``).
 Features a target states outright (humanml3d263's root height) are written in (``Representation.inpaint``).
 Why x̂0 and not x_t: every registered sampler steps on x̂0 (``omg.samplers``), so one wrapper serves them all,
 and the estimate is in the space the targets are stated in after one decode, without a backward pass through
@@ -57,7 +58,9 @@ class Control:
     target counts as met and pulls no further; ``groups`` (N, T, J) long: the index in ``names`` of the
     constraint that set the target (-1: none), for the errors reported per constraint. ``contacts`` (N, T, F)
     bool: the skeleton's feet (``skeleton.feet`` order) planted at frame t; ``own_contacts``: keep still the
-    feet the model's own contact channels plant (``Representation.foot_contacts``). ``facing`` (N, T, 2): the
+    feet the model's own contact channels plant (``Representation.foot_contacts``); ``ground_contacts``: keep
+    still the feet each estimate puts on the ground, low and slow (``ground_feet``; needs ``fps``, the motion's
+    frames per second). ``facing`` (N, T, 2): the
     unit XZ direction the body faces (zero where free). Steering: ``iterations`` conjugate-gradient iterations
     per estimate, ``final_iterations`` on the estimates of the last ``final_share`` of the noise levels, met
     without smoothing; ``smooth``: the Gaussian's sigma in frames on the others (0: each frame moves alone);
@@ -71,12 +74,20 @@ class Control:
     names: tuple[str, ...] = ()
     contacts: Tensor | None = None
     own_contacts: bool = False
+    ground_contacts: bool = False
+    fps: float | None = None
     facing: Tensor | None = None
     iterations: int = 4
-    final_iterations: int = 16
+    # planted feet held along a path converge in about 64 (4 Gauss-Newton passes): with 16 the held-out takes' feet
+    # and targets were each left a compromise short of both (docs/results/control.md, "Planted feet held and met")
+    final_iterations: int = 64
     final_share: float = 0.1
     smooth: float = 2.0
     inpaint: bool = True
+
+    def __post_init__(self) -> None:
+        if self.ground_contacts and not (self.fps or 0) > 0:
+            raise ValueError("Control.ground_contacts needs the motion's fps")
 
     @property
     def frames(self) -> int:
@@ -88,9 +99,7 @@ class Control:
                                                "facing")}
         moved = {k: None if v is None else v.to(device, dtype if v.is_floating_point() else v.dtype)
                  for k, v in moved.items()}
-        return Control(**moved, names=self.names, own_contacts=self.own_contacts, iterations=self.iterations,
-                       final_iterations=self.final_iterations, final_share=self.final_share, smooth=self.smooth,
-                       inpaint=self.inpaint)
+        return replace(self, **moved)
 
     def tiled(self, k: int) -> Control:
         """The control of K copies of the motions (separate timeline chains: K·B rows), itself when N = 1 or
@@ -278,11 +287,34 @@ def leg_length(skeleton: Skeleton) -> float:
     return float(max((np.linalg.norm(rest[f] - rest[0]) for f in skeleton.feet), default=1.0))
 
 
-def planted_feet(features: Tensor, control: Control, representation: Representation) -> Tensor | None:
-    """(B, T, F) bool: the feet ``control`` plants, with those the features' own contact channels plant."""
-    planted = control.contacts
+def planted_feet(features: Tensor, joints: Tensor, control: Control, representation: Representation,
+                 mask: Tensor) -> Tensor | None:
+    """(B, T, F) bool: the feet ``control`` plants, with those the features' own contact channels plant and
+    those their joints (B, T, J, 3) put on the ground, on each motion's real frames (``mask``, (B, T))."""
+    found = [control.contacts] if control.contacts is not None else []
     if control.own_contacts and (own := representation.foot_contacts(features)) is not None:
-        planted = own > 0.5 if planted is None else planted | (own > 0.5)
+        found.append(own > 0.5)
+    if control.ground_contacts:
+        found.append(ground_feet(joints.detach(), mask, representation.skeleton, control.fps))
+    if not found:
+        return None
+    planted = found[0]
+    for more in found[1:]:
+        planted = planted | more
+    return planted.expand(mask.shape[0], -1, -1) & mask[..., None]
+
+
+def ground_feet(joints: Tensor, mask: Tensor, skeleton: Skeleton, fps: float) -> Tensor:
+    """(B, T, J, 3) positions -> (B, T, F) bool: each foot joint low and slow on each motion's real frames (the
+    house's ground contact, ``omg.kinematics.ground_contacts``, at the foot clean-up's speed: a generated foot
+    that lingers on the ground slides, and the clean-up pins what this holds)."""
+    from omg.io.contacts import CLEANUP_SPEED
+    from omg.kinematics import ground_contacts
+
+    planted = torch.zeros(*joints.shape[:2], len(skeleton.feet), dtype=torch.bool, device=joints.device)
+    for b, n in enumerate(mask.sum(1).tolist()):
+        if n > 1:
+            planted[b, :n] = ground_contacts(joints[b, :n], skeleton.feet, fps, max_speed=CLEANUP_SPEED)
     return planted
 
 
@@ -393,7 +425,8 @@ def steer(x0: Tensor, control: Control, representation: Representation, std: Ten
     turning[heading] = scale[heading]
     scale[heading] = 0.0
     if control.facing is not None and heading:
-        facing_only = replace(control, weights=torch.zeros_like(control.weights), contacts=None, own_contacts=False)
+        facing_only = replace(control, weights=torch.zeros_like(control.weights), contacts=None, own_contacts=False,
+                              ground_contacts=False)
         base = solve(base, facing_only, representation, turning, mask, iterations)
     return (solve(base, control, representation, scale, mask, iterations) - mean) / std
 
@@ -418,9 +451,7 @@ def solve(base: Tensor, control: Control, representation: Representation, scale:
         for start in range(0, iterations, PASS):
             now = features_of(change)
             joints = representation.decode(now)
-            planted = planted_feet(now, control, representation)
-            if planted is not None:  # each motion's own, on its real frames
-                planted = planted.expand(base.shape[0], -1, -1) & mask[..., None]
+            planted = planted_feet(now, joints, control, representation, mask)
             hold = None if planted is None else held_feet(joints, planted, control, feet, stride)
             pull = target_pull(joints, control)
 

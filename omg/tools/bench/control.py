@@ -25,6 +25,8 @@ def bench_control(
     smooth: float | None = None,
     smoothing: FiniteFloat | None = None,
     contacts: bool = True,
+    ground: bool = False,
+    inpaint: bool = True,
     evaluator: str | None = None,
     seed: NonNegativeInt = 0,
     command: str = "omg bench control",
@@ -50,6 +52,9 @@ def bench_control(
         smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's smoothing,
             ``omg.lit.control.smoothed``; 0: off; default: the checkpoint's), with and without the constraints
         contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
+        ground: keep still the feet each estimate puts on the ground, low and slow (``"contacts": "ground"``)
+        inpaint: write in the features a target states outright (the steering's ``inpaint``; --no_inpaint: the
+            solve alone moves them)
         evaluator: an evaluator checkpoint (as ``omg bench quality --evaluator``): adds FID and R-precision; the
             R-precision pool is every take (at most 32)
         seed: the prompt order's and the noise's seed
@@ -97,7 +102,8 @@ def bench_control(
     steering = {k: v for k, v in (("iterations", iterations), ("final_iterations", final_iterations),
                                   ("smooth", smooth)) if v is not None}
     control = Control(targets=real, axes=axes, weights=weights, tolerance=torch.zeros(N, T, J), groups=groups,
-                      names=("keyframes", wrist, "path"), own_contacts=contacts, **steering)
+                      names=("keyframes", wrist, "path"), own_contacts=contacts, ground_contacts=ground, fps=fps,
+                      inpaint=inpaint, **steering)
     texts = chosen.texts if module.text_conditional else None
     results: dict[str, dict] = {}
     for name, given in (("unconstrained", None), ("constrained", control)):
@@ -133,6 +139,7 @@ def bench_control(
     reads = getattr(module, "hints", None) is not None and module.hints.enabled  # a ControlNet trained with hints
     print(f"`{command}`: {N} held-out takes of {val}, {steps} {sampler} steps, keyframes every {keyframe_every:g} s, "
           f"{wrist} and the root path at every frame{', planted feet kept still' if contacts else ''}"
+          f"{', feet on the ground kept still' if ground else ''}{'' if inpaint else ', no inpainting'}"
           f"{', read by the network (hints)' if reads else ''}; real takes' "
           f"foot skating {float(real_skating.compute()):.3f}, joint jerk {real_jerk:.1f} m/s³")
     realism = " FID | R-precision top 3 |" if judge is not None else ""
