@@ -21,7 +21,7 @@ from omg.lit.pretrain import PretrainModule
 from omg.lit.sampling import SamplingSettings
 
 CARD = GenerationCard(family="omg", skeleton="smpl22", representation="humanml3d263", fps=20.0,
-                      inputs=("text", "unconditional"), constraints=KINDS)
+                      inputs=("text", "unconditional"), constraints=KINDS, contacts=("model", "ground"))
 FRAMES = 40  # 2 s at 20 fps
 BVH = Path(__file__).parent.parent / "../shared/data/motion/human/bandai1/dataset-1_bow_normal_001.bvh"
 TWO_JOINT_BVH = """HIERARCHY
@@ -131,8 +131,16 @@ def test_a_card_without_constraints_refuses_them_and_a_file_is_read_with_its_row
 
 
 def test_the_models_own_contacts_need_contact_channels():
+    """A card lists the feet a file may ask held (``contact_sources``): the model's contact channels where its
+    representation has them, the feet on the ground wherever its skeleton has feet."""
+    from omg.generation.control import contact_sources
+    from omg.motion import get_representation
+
+    assert contact_sources(get_representation("humanml3d263", "smpl22")) == CARD.contacts == ("model", "ground")
     quatvel = GenerationCard(family="omg", skeleton="smpl22", representation="quatvel", fps=20.0,
-                             inputs=("unconditional",), constraints=KINDS)
+                             inputs=("unconditional",), constraints=KINDS,
+                             contacts=contact_sources(get_representation("quatvel", "smpl22")))
+    assert quatvel.contacts == ("ground",)
     assert _error({"contacts": "model"}, quatvel) == ('constraints: contacts: "model" needs contact channels, which '
                                                       'representation quatvel has none of: give the feet\'s spans or '
                                                       '"ground"')

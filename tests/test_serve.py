@@ -1385,10 +1385,13 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     page.wait_for_function("document.querySelectorAll('#model option').length == 4")
     page.select_option("#model", "animal")
     timeline_fields = ("#timeline-add", "#timeline-transition", "#timeline-context")
-    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", *timeline_fields))
+    assert all(page.locator(b).is_disabled() for b in ("#path-draw", "#keyframe-file", "#hold-feet",
+                                                       *timeline_fields))
     assert "animal (omgpt) takes no constraints and no timeline" in page.locator("#control-why").inner_text()
     page.select_option("#model", "human")
-    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", *timeline_fields))
+    assert all(page.locator(b).is_enabled() for b in ("#path-draw", "#keyframe-file", "#hold-feet",
+                                                      *timeline_fields))
+    assert page.is_checked("#hold-feet")  # a path moves the root at its own pace: the feet held by default
     assert page.get_attribute("#timeline-transition", "placeholder") == f"{DEFAULT_TRANSITION:g} (default)"
     assert float(page.get_attribute("#smoothing", "max")) == MAX_SMOOTHING
     assert float(page.get_attribute("#parts-coupling", "placeholder")) == DEFAULT_COUPLING
@@ -1445,7 +1448,8 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
                                 "transition": 0.25, "context": 0.5}
     recorded = httpx.get(server.url + answers[-1].json()["settings"]).json()["timeline"]
     assert recorded["transition"] == 0.25 and recorded["context"] == 0.5
-    assert set(body["constraints"]) == {"path", "keyframes"}
+    assert set(body["constraints"]) == {"path", "keyframes", "contacts"}
+    assert body["constraints"]["contacts"] == list(card.contacts) == ["model", "ground"]
     assert body["constraints"]["path"] == {"points": [[0, 0], *path]}
     expected = httpx.post(server.url + "/v1/keyframes", data={"model": "human"},
                           files={"file": ("bow.bvh", take)}).json()["poses"][30]
@@ -1478,11 +1482,14 @@ def test_the_page_draws_a_path_drops_a_keyframe_and_edits_a_timeline(server, bro
     assert "a gap between timeline[0] (ends at 1.2 s) and timeline[1] (starts at 1.5 s)" in \
         page.locator("#status").inner_text()
     assert sent[-1]["constraints"]["waypoints"] == [{"position": p} for p in path]
+    assert sent[-1]["constraints"]["contacts"] == ["model", "ground"]
     assert sent[-1]["timeline"] == [{"start": 0, "end": 1.2, "text": "a person walks forward"},
                                     {"start": 1.5, "end": 2, "text": "a person bows"}]
     page.fill("#timeline-transition", "-1")  # the API reads transition before the segments: its line, not the gap's
+    page.uncheck("#hold-feet")
     page.click("#generate")
     page.wait_for_function("document.querySelector('#status').textContent.includes('transition')")
+    assert "contacts" not in sent[-1]["constraints"]  # the feet left free
     assert page.locator("#status").inner_text() == \
         "timeline: transition must be a finite number of seconds >= 0, got -1"
     assert "error" in page.get_attribute("#status", "class")

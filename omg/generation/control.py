@@ -24,12 +24,20 @@ import torch
 from omg.errors import UsageError
 from omg.generation.protocol import GenerationCard
 from omg.lit.control import Control
+from omg.motion.base import Representation
 from omg.skeleton import Skeleton, get_skeleton
 
 KINDS = ("keyframes", "targets", "waypoints", "path", "facing", "contacts")
 RESERVED = ("timeline", "parts")  # the prompt timeline's and the body-part composition's keys
 MET_MARGIN = 0.05  # metres beyond its tolerance at which a constraint counts as not met (a warning)
 STEERING = ("iterations", "final_iterations", "smooth", "inpaint")  # how hard to steer: the file's "steering"
+
+
+def contact_sources(representation: Representation) -> tuple[str, ...]:
+    """What a constraints file's ``contacts`` may name for a model of ``representation`` (its card's
+    ``contacts``): "model" where it has contact channels, "ground" where its skeleton has feet."""
+    channels = representation.foot_contacts(torch.zeros(1, 1, representation.dim)) is not None
+    return ("model",) * channels + ("ground",) * bool(representation.skeleton.feet)
 
 
 def read_constraints(source: Path | str | dict, card: GenerationCard, frames: int, what: str = "--constraints",
@@ -317,13 +325,12 @@ class _Builder:
             listed = [None]  # refused below, with what it takes
         for index, item in enumerate(listed):
             where = "contacts" if isinstance(value, str) else f"contacts[{index}]"
-            if item == "model":
-                from omg.motion import get_representation
-
-                representation = get_representation(self.card.representation, self.skeleton)
-                if representation.foot_contacts(torch.zeros(1, 1, representation.dim)) is None:
+            if item in ("model", "ground") and item not in self.card.contacts:
+                if item == "model":
                     raise UsageError(f"{self.what}: {where}: \"model\" needs contact channels, which representation "
-                                     f"{representation.name} has none of: give the feet's spans or \"ground\"")
+                                     f"{self.card.representation} has none of: give the feet's spans or \"ground\"")
+                raise UsageError(f"{self.what}: {where}: this model holds no \"{item}\" feet; give the feet's spans")
+            if item == "model":
                 self.own_contacts = True
             elif item == "ground":
                 self.ground_contacts = True

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from omg.errors import UsageError
-from omg.generation.control import KINDS, unmet
+from omg.generation.control import KINDS, contact_sources, unmet
 from omg.generation.progress import Batch
 from omg.generation.protocol import (
     MAX_SECONDS,
@@ -40,6 +40,7 @@ class OmgGenerator(ModuleGenerator):
             max_frames=round(MAX_SECONDS * m.spec.fps), samplers=tuple(SAMPLERS.names()),
             max_steps=m.diffusion.num_timesteps, default_steps=min(200, m.diffusion.num_timesteps),
             guidance=getattr(m, "guidance_scale", None), row_seeds=True, timeline=timeline_kinds(m), constraints=KINDS,
+            contacts=contact_sources(m.representation),
             options={**({"stance_root": f"step the root by the stance foot while sampling, 0..{MAX_STANCE_ROOT:g} "
                                         "(removes foot sliding)"} if m.representation.stance_root else {}),
                      "smoothing": f"smooth every denoised estimate over time, a Gaussian of this many frames, "

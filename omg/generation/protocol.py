@@ -77,6 +77,9 @@ class GenerationCard:
     timeline: tuple[str, ...] = ()  # what a request's timeline may hold: "timeline" (segments), "parts" (body parts)
     # the kinds of spatial constraint ``generate`` takes (``GenerationRequest.control``; omg.generation.control)
     constraints: tuple[str, ...] = ()
+    # the feet a constraints file's "contacts" may ask held besides given spans: "model" (the representation's
+    # contact channels plant them), "ground" (each estimate puts them on the ground); omg.generation.control
+    contacts: tuple[str, ...] = ()
     option_ranges: dict[str, NumberRange] = field(default_factory=dict)  # of ``options``: name -> its range
 
     def __post_init__(self):

@@ -94,11 +94,15 @@ export function createControl({ scene, camera, canvas, $ }) {
     draw.classList.toggle('on');
     draw.textContent = draw.classList.contains('on') ? 'Drawing: click the grid' : 'Draw on the ground';
   }, 'path-draw');
+  // with a path or keyframes the root moves at their pace, not the legs': held feet keep them from sliding
+  const feet = element('input', { id: 'hold-feet', type: 'checkbox', checked: true });
+  const feetLabel = element('label', { id: 'hold-feet-label' }, [feet, ' hold the feet still where they land']);
+  feet.onchange = () => redraw();
   const pathBox = element('fieldset', { id: 'path-box' }, [
     element('legend', { textContent: 'Root path' }),
     element('div', { className: 'note',
                      textContent: 'click points on the ground grid; the motion starts at the origin' }),
-    draw, element('label', {}, ['Timing ', pathKind]),
+    draw, element('label', {}, ['Timing ', pathKind]), feetLabel,
     element('div', { className: 'buttons' }, [
       button('Undo', () => { state.path.pop(); redraw(); }, 'path-undo'),
       button('Clear', () => { state.path = []; redraw(); }, 'path-clear')]),
@@ -315,6 +319,8 @@ export function createControl({ scene, camera, canvas, $ }) {
     if (state.keyframes.length && kinds.includes('keyframes')) {
       out.keyframes = state.keyframes.map((k) => ({ time: k.time, positions: k.positions }));
     }
+    const held = state.model?.card.contacts || [];
+    if (Object.keys(out).length && feet.checked && !feet.disabled && held.length) out.contacts = [...held];
     return Object.keys(out).length ? out : null;
   }
 
@@ -331,6 +337,8 @@ export function createControl({ scene, camera, canvas, $ }) {
       }
       state.pathKind = pathKind.value;
       pathBox.disabled = !pathKind.options.length;
+      feet.disabled = !c.constraints.includes('contacts') || !(c.contacts || []).length;
+      feetLabel.title = feet.disabled ? 'this model holds no feet' : `contacts: ${c.contacts.join(', ')}`;
       keyBox.disabled = !c.constraints.includes('keyframes');
       timeBox.disabled = !c.timeline.includes('timeline');
       partsBox.disabled = !c.timeline.includes('parts');
