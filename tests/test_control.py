@@ -105,6 +105,7 @@ def _error(spec, card: GenerationCard = CARD) -> str:
     ({"trajectory": []}, "constraints: unknown key 'trajectory'"),
     ({"targets": [{"joint": "right_wrist", "time": 1, "position": [0, 1, 0], "weight": -1}]},
      "constraints: targets[0].weight must be in [0, 1e+06], got -1"),
+    ({"steering": {"curvature": 2}}, "constraints: steering.curvature must be in [0, 1], got 2"),
 ])
 def test_bad_constraints_are_one_line(spec, message):
     assert _error(spec).startswith(message)
@@ -268,6 +269,24 @@ def test_planted_feet_and_targets_are_both_met_by_the_steerings_defaults(module)
     assert (joints[:, :, feet] - hold).norm(dim=-1)[hold[..., 0].isfinite()].max() < 0.001
     for row in constraint_errors(joints, control):
         assert max(row.values()) < 0.001, row
+
+
+def test_curvature_bends_the_frames_around_a_keyframe_instead_of_its_own_alone(module):
+    """``steering.curvature`` weighs the change's bend from frame to frame in the solve: the joints' jerk around
+    a keyframe falls (the frames next to it move part of the way with it), the keyframe met all the same."""
+    from omg.tools.bench.timeline import joint_jerk
+
+    spec = {"keyframes": _spec()["keyframes"]}  # at 1 s: frame 20
+    jerks = {}
+    for curvature in (0.0, 0.0003):
+        control, _ = read_constraints({**spec, "steering": {"curvature": curvature}}, CARD, FRAMES)
+        joints = module.representation.decode(module.sample(None, [FRAMES] * 2, SamplingSettings(
+            steps=4, use_ema=False, seed=3, control=control)))
+        for row in constraint_errors(joints, control):
+            assert row["keyframes[0]"] < 0.01, row
+        jerk = torch.stack([joint_jerk(j, CARD.fps) for j in joints])  # (2, T - 3), frame t + 1.5 at the middle
+        jerks[curvature] = float(jerk[:, 16:22].mean())  # the windows around frame 20
+    assert jerks[0.0003] < 0.8 * jerks[0.0], jerks
 
 
 def test_sampling_without_constraints_never_steers(module, monkeypatch):

@@ -30,7 +30,8 @@ from omg.skeleton import Skeleton, get_skeleton
 KINDS = ("keyframes", "targets", "waypoints", "path", "facing", "contacts")
 RESERVED = ("timeline", "parts")  # the prompt timeline's and the body-part composition's keys
 MET_MARGIN = 0.05  # metres beyond its tolerance at which a constraint counts as not met (a warning)
-STEERING = ("iterations", "final_iterations", "smooth", "inpaint")  # how hard to steer: the file's "steering"
+# how hard to steer, and how smoothly: the file's "steering"
+STEERING = ("iterations", "final_iterations", "smooth", "curvature", "inpaint")
 
 
 def contact_sources(representation: Representation) -> tuple[str, ...]:
@@ -92,6 +93,8 @@ def _steering(given: Any, what: str) -> dict[str, Any]:
             out[key] = value
         elif key == "smooth":
             out[key] = _number(value, f"{what}: steering.smooth", low=0.0, high=60.0)
+        elif key == "curvature":
+            out[key] = _number(value, f"{what}: steering.curvature", low=0.0, high=1.0)
         else:
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 1000:
                 raise UsageError(f"{what}: steering.{key} must be an integer in 0..1000, got {value!r}")

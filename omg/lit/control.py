@@ -64,7 +64,9 @@ class Control:
     unit XZ direction the body faces (zero where free). Steering: ``iterations`` conjugate-gradient iterations
     per estimate, ``final_iterations`` on the estimates of the last ``final_share`` of the noise levels, met
     without smoothing; ``smooth``: the Gaussian's sigma in frames on the others (0: each frame moves alone);
-    ``inpaint``: write in the features a target states outright."""
+    ``curvature``: the weight, in every solve, of the change's second difference over time (in the features'
+    own spread, against a target's miss in m²), so that a keyframe bends the frames around it instead of moving
+    its own frame alone (0: off); ``inpaint``: write in the features a target states outright."""
 
     targets: Tensor
     axes: Tensor
@@ -83,6 +85,7 @@ class Control:
     final_iterations: int = 64
     final_share: float = 0.1
     smooth: float = 2.0
+    curvature: float = 0.0
     inpaint: bool = True
 
     def __post_init__(self) -> None:
@@ -456,7 +459,12 @@ def solve(base: Tensor, control: Control, representation: Representation, scale:
             pull = target_pull(joints, control)
 
             def residual(z: Tensor) -> Tensor:
-                return residuals(representation.decode(features_of(z)), control, representation, hold, pull)
+                r = residuals(representation.decode(features_of(z)), control, representation, hold, pull)
+                if control.curvature > 0:  # the change's bend from frame to frame, each motion on its own frames
+                    moved = z * keep
+                    bend = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]  # (B, T-2, D)
+                    r = torch.cat([r, math.sqrt(control.curvature) * bend.flatten(1)], dim=1)
+                return r
 
             point = change.clone().requires_grad_(True)
             r0 = residual(point)  # (B, R), its graph kept for the transposed products

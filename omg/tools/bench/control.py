@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from omg.tools.args import FiniteFloat, NonNegativeInt, PositiveInt
+from omg.tools.args import ClosedUnitInterval, FiniteFloat, NonNegativeInt, PositiveInt
 
 
 def bench_control(
@@ -23,6 +23,7 @@ def bench_control(
     iterations: NonNegativeInt | None = None,
     final_iterations: NonNegativeInt | None = None,
     smooth: float | None = None,
+    curvature: ClosedUnitInterval | None = None,
     smoothing: FiniteFloat | None = None,
     contacts: bool = True,
     ground: bool = False,
@@ -48,7 +49,8 @@ def bench_control(
         keyframe_every: seconds between full-body keyframes (from 0)
         wrist: the joint whose positions are constrained at every frame
         batch_size: motions sampled at once
-        iterations, final_iterations, smooth: the steering's (``omg.lit.control.Control``; default its own)
+        iterations, final_iterations, smooth, curvature: the steering's (``omg.lit.control.Control``; default its
+            own)
         smoothing: frames of the Gaussian every denoised estimate is smoothed over time by (sampling's smoothing,
             ``omg.lit.control.smoothed``; 0: off; default: the checkpoint's), with and without the constraints
         contacts: keep still the feet the model's own contact channels plant (``"contacts": "model"``)
@@ -100,7 +102,7 @@ def bench_control(
     weights[:, :, 0], axes[:, :, 0, 0], axes[:, :, 0, 2], groups[:, :, 0] = 1.0, True, True, 2
     weights, groups = weights * mask[..., None], torch.where(mask[..., None], groups, -1)
     steering = {k: v for k, v in (("iterations", iterations), ("final_iterations", final_iterations),
-                                  ("smooth", smooth)) if v is not None}
+                                  ("smooth", smooth), ("curvature", curvature)) if v is not None}
     control = Control(targets=real, axes=axes, weights=weights, tolerance=torch.zeros(N, T, J), groups=groups,
                       names=("keyframes", wrist, "path"), own_contacts=contacts, ground_contacts=ground, fps=fps,
                       inpaint=inpaint, **steering)
