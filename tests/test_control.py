@@ -5,6 +5,7 @@ constraints untouched, and the routes: ``omg generate --constraints`` and ``omg 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -249,6 +250,24 @@ def test_a_planted_foot_stays_still_while_the_root_walks_a_path(module):
         steps=4, use_ema=False, seed=3, control=read_constraints({"path": spec["path"]}, CARD, FRAMES)[0])))
     slid = free[:, 10:21, list(feet.values())]
     assert (slid - slid.mean(1, keepdim=True)).norm(dim=-1).max() > 0.1  # the path alone slides it
+
+
+def test_a_held_foot_is_set_down_and_lifted_off_over_the_eased_frames():
+    """The frames just before a stretch of planted frames and just after it hold the foot on the ground at the
+    stretch's place with a weight falling 2/3, 1/3 (as the foot clean-up eases its pin); its height free; a
+    frame between two stretches takes the nearer one's place (as near to both: the next); the stretches as they
+    were."""
+    from omg.lit.control import eased
+
+    hold = torch.full((1, 12, 1, 3), math.nan)
+    hold[0, 3:6, 0] = torch.tensor([1.0, 0.0, 2.0])  # a stretch on frames 3..5
+    hold[0, 9:11, 0] = torch.tensor([4.0, 0.0, 5.0])  # another on frames 9..10
+    out, weight = eased(hold, 2)
+    assert weight[0, :, 0, 0].tolist() == pytest.approx([0, 1 / 3, 2 / 3, 1, 1, 1, 2 / 3, 1 / 3, 2 / 3, 1, 1, 2 / 3])
+    assert out[0, 3:6].equal(hold[0, 3:6]) and out[0, 9:11].equal(hold[0, 9:11])
+    assert out[0, [1, 2, 6], 0, 0].tolist() == [1.0, 1.0, 1.0] and out[0, [8, 11], 0, 2].tolist() == [5.0, 5.0]
+    assert out[0, 7, 0, 0] == 4.0  # as near to both: the place it lands at next
+    assert out[0, [1, 2, 6, 7, 8, 11], 0, 1].isnan().all() and out[0, 0].isnan().all()
 
 
 def test_planted_feet_and_targets_are_both_met_by_the_steerings_defaults(module):

@@ -20,6 +20,7 @@ from omg.skeleton import Skeleton, get_skeleton
 # m/s: retargeting's ground-contact rule (omg.kinematics.ground_contacts), but a low foot this slow counts as
 # planted (generated feet slide fast)
 CLEANUP_SPEED = 1.0
+EASE_FRAMES = 2  # frames before landing and after lift-off over which a planted foot's pin eases in and out
 
 
 def _segments(flags: torch.Tensor) -> list[tuple[int, int]]:
@@ -64,7 +65,7 @@ def clean_foot_contacts(
     skeleton: Skeleton | str,
     fps: float,
     max_speed: float = CLEANUP_SPEED,
-    blend: int = 2,
+    blend: int = EASE_FRAMES,
     rise: np.ndarray | None = None,  # (T, G) metres: per frame, how far each foot group must go up
 ) -> np.ndarray:
     """Positions with each planted foot pinned over its contact frames (see the module docstring); with

@@ -36,6 +36,7 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser
 from omg.errors import UsageError
+from omg.io.contacts import CLEANUP_SPEED, EASE_FRAMES
 from omg.motion.base import Representation
 from omg.skeleton import Skeleton
 
@@ -230,17 +231,43 @@ def residuals(joints: Tensor, control: Control, representation: Representation, 
     """(B, T, J, 3) positions -> (B, R) residuals whose squares sum to the constraint loss: each target's miss on
     its stated axes times ``pull`` (B, T, J: √weight and the share of the miss beyond the tolerance, fixed where
     the joints were linearised); each planted foot's distance from where its stretch of planted frames holds it
-    (``hold``: ``held_feet``'s (B, T, F, 3) places, NaN where the foot is free, or None); the facing's miss."""
+    (``hold``: ``held_feet``'s (B, T, F, 3) places, NaN where the foot is free, or None), eased in and out over
+    ``EASE_FRAMES`` (``eased``); the facing's miss."""
     parts = [((joints - control.targets) * control.axes * pull[..., None]).flatten(1)]
     feet = list(representation.skeleton.feet)
     if hold is not None and feet:
+        hold, weight = eased(hold, EASE_FRAMES)
         held = hold.isfinite()
-        parts.append((math.sqrt(FEET_STILL) * torch.where(held, joints[:, :, feet] - hold, 0.0)).flatten(1))
+        miss = torch.where(held, joints[:, :, feet] - hold, 0.0) * weight.sqrt()
+        parts.append((math.sqrt(FEET_STILL) * miss).flatten(1))
     if control.facing is not None and representation.skeleton.face_joints:
         given = (control.facing.norm(dim=-1, keepdim=True) > 0)  # (N, T, 1)
         miss = (facing_of(joints, representation.skeleton.face_joints) - control.facing) * given
         parts.append((math.sqrt(FACING_WEIGHT) * miss).flatten(1))
     return torch.cat([p.expand(joints.shape[0], -1) for p in parts], dim=1)
+
+
+def eased(hold: Tensor, frames: int) -> tuple[Tensor, Tensor]:
+    """``held_feet``'s places (B, T, K, 3) -> the same with the ``frames`` frames before each stretch and after it
+    held on the ground (x, z) at the stretch's place by a weight falling from the stretch's 1 (frame k outside:
+    1 - k / (frames + 1)), and (B, T, K, 1) the weights (1 in a stretch). As the foot clean-up eases its pin
+    (``omg.io.contacts``): a foot held still up to its last planted frame and free at the next one jumps there,
+    low and fast, which is foot skating (half the skating left on held-out takes with the feet held was on
+    such edges); eased, it is set down and lifted off over a few frames. The height stays free: the foot
+    rises as it lifts."""
+    held = hold[..., :1].isfinite()  # (B, T, K, 1)
+    weight = held.to(hold.dtype)
+    out = hold.clone()
+    T = hold.shape[1]
+    for k in range(1, min(frames, T - 1) + 1):
+        w = 1 - k / (frames + 1)
+        for near, source in ((slice(0, T - k), slice(k, T)), (slice(k, T), slice(0, T - k))):  # before, after
+            take = held[:, source] & (weight[:, near] < w)  # a stretch k frames away, nothing nearer
+            place = hold[:, source].clone()
+            place[..., 1] = math.nan  # the height free: the foot rises as it lifts
+            out[:, near] = torch.where(take, place, out[:, near])
+            weight[:, near] = torch.where(take, torch.full_like(weight[:, near], w), weight[:, near])
+    return out, weight
 
 
 def held_feet(joints: Tensor, planted: Tensor, control: Control, feet: list[int], stride: float) -> Tensor:
@@ -311,7 +338,6 @@ def ground_feet(joints: Tensor, mask: Tensor, skeleton: Skeleton, fps: float) ->
     """(B, T, J, 3) positions -> (B, T, F) bool: each foot joint low and slow on each motion's real frames (the
     house's ground contact, ``omg.kinematics.ground_contacts``, at the foot clean-up's speed: a generated foot
     that lingers on the ground slides, and the clean-up pins what this holds)."""
-    from omg.io.contacts import CLEANUP_SPEED
     from omg.kinematics import ground_contacts
 
     planted = torch.zeros(*joints.shape[:2], len(skeleton.feet), dtype=torch.bool, device=joints.device)
