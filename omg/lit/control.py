@@ -51,23 +51,22 @@ FACING_WEIGHT = 0.05  # weight of the facing's miss (unit vectors) against a tar
 
 @dataclass(frozen=True, eq=False)
 class Control:
-    """Resolved constraints of N motions (N = 1: the same for every motion sampled) over T frames and the
-    skeleton's J joints.
+    """Resolved constraints of N motions (N = 1: the same for every motion sampled) over T frames and the skeleton's J
+    joints.
 
-    ``targets`` (N, T, J, 3) metres; ``axes`` (N, T, J, 3) bool: the axes a target states (a hand's height: Y
-    only); ``weights`` (N, T, J) >= 0, 0 where no target is; ``tolerance`` (N, T, J) metres within which a
-    target counts as met and pulls no further; ``groups`` (N, T, J) long: the index in ``names`` of the
-    constraint that set the target (-1: none), for the errors reported per constraint. ``contacts`` (N, T, F)
-    bool: the skeleton's feet (``skeleton.feet`` order) planted at frame t; ``own_contacts``: keep still the
-    feet the model's own contact channels plant (``Representation.foot_contacts``); ``ground_contacts``: keep
-    still the feet each estimate puts on the ground, low and slow (``ground_feet``; needs ``fps``, the motion's
-    frames per second). ``facing`` (N, T, 2): the
-    unit XZ direction the body faces (zero where free). Steering: ``iterations`` conjugate-gradient iterations
-    per estimate, ``final_iterations`` on the estimates of the last ``final_share`` of the noise levels, met
-    without smoothing; ``smooth``: the Gaussian's sigma in frames on the others (0: each frame moves alone);
-    ``curvature``: the weight, in every solve, of the change's second difference over time (in the features'
-    own spread, against a target's miss in m²), so that a keyframe bends the frames around it instead of moving
-    its own frame alone (0: off); ``inpaint``: write in the features a target states outright."""
+    ``targets`` (N, T, J, 3) metres; ``axes`` (N, T, J, 3) bool: the axes a target states (a hand's height: Y only);
+    ``weights`` (N, T, J) >= 0, 0 where no target is; ``tolerance`` (N, T, J) metres within which a target counts as
+    met and pulls no further; ``groups`` (N, T, J) long: the index in ``names`` of the constraint that set the
+    target (-1: none), for the errors reported per constraint. ``contacts`` (N, T, F) bool: the skeleton's feet
+    (``skeleton.feet`` order) planted at frame t; ``own_contacts``: keep still the feet the model's own contact
+    channels plant (``Representation.foot_contacts``); ``ground_contacts``: keep still the feet each estimate puts
+    on the ground, low and slow (``ground_feet``; needs ``fps``, the motion's frames per second). ``facing`` (N, T,
+    2): the unit XZ direction the body faces (zero where free). Steering: ``iterations`` conjugate-gradient
+    iterations per estimate, ``final_iterations`` on the estimates of the last ``final_share`` of the noise levels,
+    met without smoothing; ``smooth``: the Gaussian's sigma in frames on the others (0: each frame moves alone);
+    ``curvature``: the weight, in every solve, of the change's second difference over time (in the features' own
+    spread, against a target's miss in m²), so that a keyframe bends the frames around it instead of moving its own
+    frame alone (0: off); ``inpaint``: write in the features a target states outright."""
 
     targets: Tensor
     axes: Tensor
@@ -81,8 +80,8 @@ class Control:
     fps: float | None = None
     facing: Tensor | None = None
     iterations: int = 4
-    # planted feet held along a path converge in about 64 (4 Gauss-Newton passes): with 16 the held-out takes' feet
-    # and targets were each left a compromise short of both (docs/results/control.md, "Planted feet held and met")
+    # feet held still while a path moves the body are met with the targets in about 64 (four Gauss-Newton passes):
+    # fewer leave both part of the way (docs/results/control.md, "Planted feet held and met")
     final_iterations: int = 64
     final_share: float = 0.1
     smooth: float = 2.0
@@ -226,19 +225,18 @@ def facing_of(joints: Tensor, face_joints: tuple[int, ...]) -> Tensor:
     return F.normalize(forward, dim=-1, eps=1e-8)
 
 
-def residuals(joints: Tensor, control: Control, representation: Representation, hold: Tensor | None,
-              pull: Tensor) -> Tensor:
+def residuals(joints: Tensor, control: Control, representation: Representation,
+              hold: tuple[Tensor, Tensor] | None, pull: Tensor) -> Tensor:
     """(B, T, J, 3) positions -> (B, R) residuals whose squares sum to the constraint loss: each target's miss on
     its stated axes times ``pull`` (B, T, J: √weight and the share of the miss beyond the tolerance, fixed where
     the joints were linearised); each planted foot's distance from where its stretch of planted frames holds it
-    (``hold``: ``held_feet``'s (B, T, F, 3) places, NaN where the foot is free, or None), eased in and out over
-    ``EASE_FRAMES`` (``eased``); the facing's miss."""
+    (``hold``: ``eased`` places (B, T, F, 3), NaN where the foot is free, and their weights (B, T, F, 1); or
+    None); the facing's miss."""
     parts = [((joints - control.targets) * control.axes * pull[..., None]).flatten(1)]
     feet = list(representation.skeleton.feet)
     if hold is not None and feet:
-        hold, weight = eased(hold, EASE_FRAMES)
-        held = hold.isfinite()
-        miss = torch.where(held, joints[:, :, feet] - hold, 0.0) * weight.sqrt()
+        places, weight = hold
+        miss = torch.where(places.isfinite(), joints[:, :, feet] - places, 0.0) * weight.sqrt()
         parts.append((math.sqrt(FEET_STILL) * miss).flatten(1))
     if control.facing is not None and representation.skeleton.face_joints:
         given = (control.facing.norm(dim=-1, keepdim=True) > 0)  # (N, T, 1)
@@ -481,7 +479,7 @@ def solve(base: Tensor, control: Control, representation: Representation, scale:
             now = features_of(change)
             joints = representation.decode(now)
             planted = planted_feet(now, joints, control, representation, mask)
-            hold = None if planted is None else held_feet(joints, planted, control, feet, stride)
+            hold = None if planted is None else eased(held_feet(joints, planted, control, feet, stride), EASE_FRAMES)
             pull = target_pull(joints, control)
 
             def residual(z: Tensor) -> Tensor:
