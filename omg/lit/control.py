@@ -255,16 +255,16 @@ def eased(hold: Tensor, frames: int) -> tuple[Tensor, Tensor]:
     rises as it lifts."""
     held = hold[..., :1].isfinite()  # (B, T, K, 1)
     weight = held.to(hold.dtype)
+    on_ground = hold.clone()
+    on_ground[..., 1] = math.nan  # the height free: the foot rises as it lifts
     out = hold.clone()
     T = hold.shape[1]
     for k in range(1, min(frames, T - 1) + 1):
         w = 1 - k / (frames + 1)
         for near, source in ((slice(0, T - k), slice(k, T)), (slice(k, T), slice(0, T - k))):  # before, after
             take = held[:, source] & (weight[:, near] < w)  # a stretch k frames away, nothing nearer
-            place = hold[:, source].clone()
-            place[..., 1] = math.nan  # the height free: the foot rises as it lifts
-            out[:, near] = torch.where(take, place, out[:, near])
-            weight[:, near] = torch.where(take, torch.full_like(weight[:, near], w), weight[:, near])
+            out[:, near] = torch.where(take, on_ground[:, source], out[:, near])
+            weight[:, near] = torch.where(take, w, weight[:, near])
     return out, weight
 
 

@@ -97,7 +97,6 @@ export function createControl({ scene, camera, canvas, $ }) {
   // with a path or keyframes the root moves at their pace, not the legs': held feet keep them from sliding
   const feet = element('input', { id: 'hold-feet', type: 'checkbox', checked: true });
   const feetLabel = element('label', { id: 'hold-feet-label' }, [feet, ' hold the feet still where they land']);
-  feet.onchange = () => redraw();
   const pathBox = element('fieldset', { id: 'path-box' }, [
     element('legend', { textContent: 'Root path' }),
     element('div', { className: 'note',
@@ -319,8 +318,8 @@ export function createControl({ scene, camera, canvas, $ }) {
     if (state.keyframes.length && kinds.includes('keyframes')) {
       out.keyframes = state.keyframes.map((k) => ({ time: k.time, positions: k.positions }));
     }
-    const held = state.model?.card.contacts || [];
-    if (Object.keys(out).length && feet.checked && !feet.disabled && held.length) out.contacts = [...held];
+    // enabled only for a card that lists the feet it holds (onModel)
+    if (Object.keys(out).length && feet.checked && !feet.disabled) out.contacts = [...state.model.card.contacts];
     return Object.keys(out).length ? out : null;
   }
 
