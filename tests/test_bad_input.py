@@ -339,6 +339,7 @@ ROWS = [
     ("fit-root-dir-in-proc", [*FIT_DATA, "--trainer.default_root_dir", "/proc/omg-runs"]),
     ("fit-max-bad-fraction-over-1", [*FIT_DATA, "--data.max_bad_fraction", "2"]),
     ("fit-max-bad-fraction-neg", [*FIT_DATA, "--data.max_bad_fraction", "-1"]),
+    ("fit-cache-mb-negative", [*FIT_DATA, "--data.cache_mb", "-1"]),
     ("fit-min-len-over-max-len", [*FIT_DATA, "--data.min_len", "200", "--data.max_len", "120"]),
     ("fit-val-other-representation", [*FIT_DATA, "--data.val", str(REPO / "shards/mini/animal_maa/val")]),
     # omg test: an evaluator of another representation than the data's
@@ -614,6 +615,7 @@ SAYS = {
     "fit-root-dir-in-proc": "trainer.default_root_dir /proc/omg-runs: cannot write in /proc",
     "fit-max-bad-fraction-over-1": "data.max_bad_fraction must be in [0, 1], got 2.0",
     "fit-max-bad-fraction-neg": "data.max_bad_fraction must be in [0, 1], got -1.0",
+    "fit-cache-mb-negative": "data.cache_mb must be >= 0 MiB (0: decode every shard at each read), got -1.0",
     "fit-min-len-over-max-len": "data.min_len and data.max_len must satisfy 1 <= min_len <= max_len, got min_len=200, "
                                 "max_len=120",
     "fit-val-other-representation": f"data.train ({MINI_SHARDS}) and data.val ({ANIMAL_VAL}) {SPECS_DIFFER}",

@@ -92,6 +92,53 @@ def test_resumed_loader_continues_at_the_saved_position(toy_shards):
     assert [b["id"] for b in _epoch(after)] == [b["id"] for b in _epoch(loader)]
 
 
+def _counting_reads(monkeypatch) -> list[str]:
+    """The shard urls the stream reads from their bytes, in order (a data process of its own, num_workers 0)."""
+    import omg.data.loaders as loaders
+
+    reads, read_shard = [], loaders.read_shard
+
+    def counted(url, expected):
+        reads.append(url)
+        return read_shard(url, expected)
+
+    monkeypatch.setattr(loaders, "read_shard", counted)
+    return reads
+
+
+def test_a_small_set_is_decoded_once_and_gives_the_same_batches(toy_shards, monkeypatch):
+    """data.cache_mb: the 8 toy shards fit, so each is read and decoded once, and two epochs are the
+    batches of a stream that reads every draw from the bytes (cache_mb 0) or whose set is over the cap."""
+    reads = _counting_reads(monkeypatch)
+    epochs = {}
+    for name, cache_mb in (("kept", 512.0), ("read", 0.0), ("over", 0.001)):  # the set's motion: 0.02 MiB
+        reads.clear()
+        loader = _datamodule(toy_shards, batches_per_epoch=20, cache_mb=cache_mb).train_dataloader()
+        epochs[name] = _epoch(loader) + _epoch(loader)
+        epochs[name + " reads"] = list(reads)
+    shards = len(Manifest.load(toy_shards).shard_paths)
+    assert sorted(epochs["kept reads"]) == sorted(set(epochs["read reads"])) and len(epochs["kept reads"]) == shards
+    assert len(epochs["read reads"]) > 3 * shards and epochs["over reads"] == epochs["read reads"]
+    for name in ("read", "over"):
+        for mine, theirs in zip(epochs["kept"], epochs[name], strict=True):
+            assert mine["id"] == theirs["id"] and mine["text"] == theirs["text"]
+            assert torch.equal(mine["motion"], theirs["motion"]) and torch.equal(mine["mask"], theirs["mask"])
+
+
+def test_a_shard_with_a_bad_sample_is_read_again_and_its_skips_counted(tmp_path, monkeypatch, caplog):
+    shards = write_toy_shards(tmp_path / "s", num_clips=20, max_clips=5)
+    bad_shard = Manifest.load(shards).shard_paths[0]
+    rewrite_member(bad_shard, "clip_0002.motion.npy", b"garbage")
+    reads = _counting_reads(monkeypatch)
+    with caplog.at_level(logging.WARNING):
+        _epoch(_datamodule(shards, batches_per_epoch=30, shuffle_buffer=2, max_bad_fraction=0.5,
+                           verify_shards=False).train_dataloader())
+    bad_reads = reads.count(str(bad_shard))
+    assert bad_reads > 1 and all(reads.count(url) == 1 for url in set(reads) - {str(bad_shard)})
+    skips = [r.getMessage() for r in caplog.records if "clip_0002" in r.getMessage()]
+    assert len(skips) == bad_reads and f"({bad_reads} bad of " in skips[-1], skips  # each read counts it again
+
+
 def test_corrupt_samples_are_skipped_with_a_warning(tmp_path, caplog):
     shards = write_toy_shards(tmp_path / "s", num_clips=200, max_clips=100)
     for shard, key in zip(Manifest.load(shards).shard_paths, ("clip_0007", "clip_0107")):

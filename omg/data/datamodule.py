@@ -74,6 +74,10 @@ class MotionDataModule(L.LightningDataModule):
             with data workers or without (``omg.data.deadline``).
         verify_shards: check each shard against its manifest (size, sample count, sha256) before
             any of its samples is used; a shard that fails is skipped whole and counted as bad.
+        cache_mb: a set this small is decoded once: each data worker keeps the decoded samples of the shards it
+            has read while the rank's share of the motion (the manifests' frames x features, float32) fits
+            in ``cache_mb`` MiB, instead of reading, checking and decoding a shard's bytes at every draw (0:
+            never). The batches are the same; a larger set is read as before.
         mirror_prob: mirror augmentation: the probability that a training sample is replaced by
             its mirror image, left and right swapped in the motion (exactly, by the representation's
             ``mirror``: humanml3d263, maa) and in its caption (``omg.text.sides``). Default 0 (off)
@@ -97,6 +101,7 @@ class MotionDataModule(L.LightningDataModule):
         max_bad_fraction: float = 0.01,
         timeout: float = DEFAULT_TIMEOUT_S,
         verify_shards: bool = True,
+        cache_mb: float = 512.0,
         mirror_prob: float = 0.0,
     ):
         # this call's arguments, explicitly: Lightning's frame inspection would also collect those of
@@ -114,6 +119,8 @@ class MotionDataModule(L.LightningDataModule):
             raise UsageError(f"data.timeout must be >= 0 seconds (0: no limit), got {timeout}")
         if not 0 <= max_bad_fraction <= 1:  # also NaN
             raise UsageError(f"data.max_bad_fraction must be in [0, 1], got {max_bad_fraction}")
+        if not cache_mb >= 0:  # also NaN
+            raise UsageError(f"data.cache_mb must be >= 0 MiB (0: decode every shard at each read), got {cache_mb}")
         # else the first batch would fail, after the run folder was written (None: the mode's default)
         if not 1 <= (1 if min_len is None else min_len) <= max_len:
             raise UsageError(f"data.min_len and data.max_len must satisfy 1 <= min_len <= max_len, "
@@ -204,7 +211,8 @@ class MotionDataModule(L.LightningDataModule):
         return stream_loader(self.mixture, rank, world, windows, h.batches_per_epoch, h.batch_size, self.collate,
                              num_workers=h.num_workers, seed=h.seed, shuffle_buffer=h.shuffle_buffer,
                              max_bad_fraction=h.max_bad_fraction, checks=self.shard_checks, mirror=self.mirror,
-                             mirror_prob=h.mirror_prob, timeout=h.timeout, epoch_fn=epoch_fn)
+                             mirror_prob=h.mirror_prob, timeout=h.timeout, epoch_fn=epoch_fn,
+                             cache_mb=h.cache_mb)
 
     def val_clips(self) -> ClipDataset:
         """The validation set, decoded and verified (bad samples skipped and counted)."""

@@ -129,6 +129,12 @@ class MotionStream(IterableDataset):
     ``mirror`` (a representation) with ``mirror_prob`` > 0: each item is replaced by its mirror
     image (``windows.mirror_item``) with that probability, drawn from the same seeded generator
     (no draw at all when it is 0, so the stream without mirroring is unchanged).
+
+    ``keep_decoded``: each worker keeps the decoded samples of every shard it has read whole and
+    sound, and a later draw of that shard yields them again instead of reading, checking and
+    decoding its bytes once more (a small set is drawn many times an epoch; ``stream_loader``
+    turns it on when the rank's decoded motion fits ``data.cache_mb``). The stream is the same
+    sample for sample: a kept shard was checked against its manifest when it was read.
     """
 
     def __init__(
@@ -147,8 +153,10 @@ class MotionStream(IterableDataset):
         sets: list[StreamSet] | None = None,
         mirror: Representation | None = None,
         mirror_prob: float = 0.0,
+        keep_decoded: bool = False,
     ):
         self.mirror, self.mirror_prob = mirror, mirror_prob if mirror is not None else 0.0
+        self.keep_decoded, self._decoded = keep_decoded, {}  # url -> its decoded samples, in order
         self.sets = sets or [StreamSet(urls, 1.0, mean_frames)]
         if sets:
             urls = [url for s in sets for url in s.urls]
@@ -169,23 +177,37 @@ class MotionStream(IterableDataset):
         seen = bad = 0
         while True:
             url = urls[int(rng.integers(len(urls)))]
+            if (kept := self._decoded.get(url)) is not None:
+                for sample in kept:
+                    seen += 1
+                    yield sample
+                continue
             expected = self.checks.get(url)
+            decoded: list[dict] | None = [] if self.keep_decoded else None  # None once a sample is bad
             try:
                 for raw in read_shard(url, expected):
                     seen += 1
                     try:
-                        yield decode_sample(raw, self.feature_dim)
-                        continue
+                        sample = decode_sample(raw, self.feature_dim)
                     except (ValueError, KeyError) as e:
-                        where, reason = f"{url} key {raw.get('__key__')}", e
-                    bad += 1
-                    self._bad(where, reason, bad, seen)
+                        bad, decoded = bad + 1, None
+                        self._bad(f"{url} key {raw.get('__key__')}", e, bad, seen)
+                        continue
+                    if decoded is not None:
+                        decoded.append(sample)
+                    yield sample
             except TooManyBadSamples:
                 raise
             except Exception as e:  # noqa: BLE001 - a bad shard counts as its samples, or one when unknown
                 lost = (expected or {}).get("samples", 1)
                 seen, bad = seen + lost, bad + lost
                 self._bad(url, shard_problem(e), bad, seen)
+            else:
+                if decoded is not None:  # read to its end, every sample sound
+                    self._decoded[url] = decoded
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_decoded": {}}  # a worker keeps what it decodes itself
 
     def _bad(self, where: str, reason, bad: int, seen: int) -> None:
         log.warning("skipping bad sample %s: %s (%d bad of %d read by this worker)", where, reason, bad, seen)
@@ -341,16 +363,20 @@ def stream_loader(mixture: Mixture, rank: int, world: int, windows: WindowSample
                   collate: Collate, num_workers: int = 0, seed: int = 0, shuffle_buffer: int = 1000,
                   max_bad_fraction: float = 0.01, checks: dict[str, dict] | None = None,
                   mirror: Representation | None = None, mirror_prob: float = 0.0, timeout: float = 0.0,
-                  epoch_fn: Callable[[], int] | None = None) -> StreamLoader:
+                  epoch_fn: Callable[[], int] | None = None, cache_mb: float = 0.0) -> StreamLoader:
     """Rank ``rank`` of ``world``'s training stream of a shard mixture (each set's shards split across the
     ranks), cut by ``windows``: ``batches`` batches of ``batch_size`` an epoch, read by ``num_workers``
     workers, each batch fetched within ``timeout`` seconds (0: no limit); ``epoch_fn`` gives the epoch
-    (each ``iter()`` is the next without it). The other arguments are ``MotionStream``'s."""
+    (each ``iter()`` is the next without it). Each worker keeps its decoded samples (``keep_decoded``) when
+    the rank's share of the sets' motion, as its manifests count it, fits ``cache_mb`` MiB. The other
+    arguments are ``MotionStream``'s."""
     sets = None
     if len(mixture.sets) > 1:
         sets = [StreamSet(rank_shards(s.urls, rank, world, s.location), share, s.mean_frames, s.location)
                 for s, share in zip(mixture.sets, mixture.shares)]
     manifest = mixture.manifest
+    frames = [s.frames for s in mixture.sets]  # 0 where a manifest does not count them
+    decoded_mib = sum(frames) * manifest["feature_dim"] * 4 / world / 2**20  # float32 features
     stream = MotionStream(
         rank_shards(mixture.urls, rank, world),
         rank=rank,
@@ -366,6 +392,7 @@ def stream_loader(mixture: Mixture, rank: int, world: int, windows: WindowSample
         sets=sets,
         mirror=mirror,
         mirror_prob=mirror_prob,
+        keep_decoded=all(frames) and decoded_mib <= cache_mb,
     )
     return StreamLoader(stream, epoch_fn=epoch_fn, num_workers=num_workers, collate_fn=collate,
                         persistent_workers=False, fetch_timeout=timeout, worker_init_fn=exit_on_sigterm)
