@@ -1012,6 +1012,8 @@ def test_the_page_generates_plays_and_downloads(server, browser, shared_motion, 
     # animation frame (a software renderer's core, a laptop's battery); below, a result plays at the full rate
     page.wait_for_timeout(1200)  # the loading's own second of full-rate drawing
     assert _drawing(page)[0] <= 6
+    # chromium here draws WebGL in software (--disable-gpu): no multisampling, which would shade each pixel 4 times
+    assert page.evaluate("window.omgViewer.antialias") is False
     page.select_option("#model", "human")
     assert page.locator("#upload-box").is_hidden() and page.locator("#text-box").is_visible()
     # an empty box asks for nothing: the page says so instead of sampling unconditional motion

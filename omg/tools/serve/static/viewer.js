@@ -146,12 +146,29 @@ async function loadFile(url) {
   return { scene: gltf.scene, bones, clip: gltf.animations[gltf.animations.length - 1] };
 }
 
+// Whether WebGL here runs on a GPU: not where the browser draws it in software (no GPU, or one it does not trust),
+// which it says by refusing a context that must not have a major performance caveat, or by the renderer it names
+// (chromium's SwiftShader, Mesa's llvmpipe, Windows' basic renderer)
+const SOFTWARE_RENDERER = /swiftshader|llvmpipe|softpipe|software|basic render/i;
+function onGpu() {
+  const canvas = document.createElement('canvas');
+  if (!canvas.getContext('webgl2', { failIfMajorPerformanceCaveat: true })) return false;
+  const gl = canvas.getContext('webgl2');
+  const info = gl.getExtension('WEBGL_debug_renderer_info');
+  const renderer = info ? String(gl.getParameter(info.UNMASKED_RENDERER_WEBGL)) : '';
+  gl.getExtension('WEBGL_lose_context')?.loseContext();
+  return !SOFTWARE_RENDERER.test(renderer);
+}
+
 export class Viewer {
   // state: the page's shared state (window.omgViewer); the viewer writes follow, center and target to it
   constructor(container, state) {
     this.container = container;
     this.state = state;
-    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+    // multisampling smooths the bones' edges on a GPU; a software renderer would shade each pixel four times over,
+    // most of what the page costs while a motion plays there
+    state.antialias = onGpu();
+    this.renderer = new THREE.WebGLRenderer({ antialias: state.antialias, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(window.devicePixelRatio);
     this.renderer.setClearColor(0xffffff);
     container.append(this.renderer.domElement);
