@@ -6,7 +6,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from omg.errors import UsageError
-from omg.lit.base import checkpoint_each
+from omg.models.checkpointing import checkpoint_each
 from omg.models.controlnet import MoCBlock, MoCConfig, MotionControlNet
 from omg.models.dit import DiTConfig, MotionDiT
 from omg.text import HashTextEncoder

@@ -151,7 +151,7 @@ def saved_for_backward(fn) -> int:
 
 
 def test_activation_checkpointing_from_outside_gives_same_gradients_with_less_kept():
-    from omg.lit.base import checkpoint_each
+    from omg.models.checkpointing import checkpoint_each
 
     x, t = torch.randn(2, 8, 263), torch.tensor([5, 50])
     grads, kept = [], []

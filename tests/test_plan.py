@@ -25,13 +25,13 @@ from omg.tools.plan import measure_activations, measure_controlnet_activations, 
 PEAK_STEP = """
 import sys, torch
 from omg.models.controlnet import MoCConfig, MotionControlNet
+from omg.models.checkpointing import checkpoint_each
 from omg.models.dit import DiTConfig, MotionDiT
 torch.set_num_threads(1)
 B, T, ckpt, L = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1", int(sys.argv[4])
 torch.manual_seed(0)
 model = MotionDiT(DiTConfig.from_name("mini"))
-if ckpt:  # omg.lit imports Lightning, most of this process's start: only where the step needs it
-    from omg.lit.base import checkpoint_each
+if ckpt:  # as the LightningModules apply it (their configure_model), without importing Lightning
     checkpoint_each(model.blocks)
 x, t = torch.randn(B, T, 263), torch.randint(0, 1000, (B,))
 mask = torch.ones(B, T, dtype=torch.bool)

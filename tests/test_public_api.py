@@ -52,7 +52,7 @@ ALLOWED: dict[tuple[str, str], str] = {
         "its own hyper-parameters: LightningCLI hands its config to save_hyperparameters() through this context "
         "variable, and Lightning has no public way to step out of it",
     # torch
-    ("omg/lit/base.py", "_composable"):
+    ("omg/models/checkpointing.py", "_composable"):
         "activation checkpointing by forward hooks (torch.distributed._composable.checkpoint, torch 2.14 has it "
         "nowhere public), so that parameter names and checkpoints stay as they are; the public "
         "torch.utils.checkpoint.checkpoint wraps a forward call, which would need a wrapper module (renamed "

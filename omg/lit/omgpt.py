@@ -399,7 +399,8 @@ class OmniMotionModule(OmgModule):
         optim = self.optim
         if optim.schedule == "cosine":  # omg's variant: AdamW, warm-up and cosine decay
             return super().make_optimizer(groups)
-        return torch.optim.Adam(groups, lr=optim.lr, betas=tuple(optim.betas), weight_decay=optim.weight_decay)
+        return torch.optim.Adam(groups, lr=optim.lr, betas=tuple(optim.betas), weight_decay=optim.weight_decay,
+                                foreach=True)  # as OmgModule.make_optimizer's
 
     def lr_factor(self, total_steps: int):
         return super().lr_factor(total_steps) if self.optim.schedule == "cosine" else None  # the paper: constant

@@ -19,11 +19,12 @@ from torch import Tensor
 
 from omg.diffusion import Denoiser, Diffusion, StepProgress
 from omg.errors import UsageError
-from omg.lit.base import OmgModule, OptimSettings, check_weights, checkpoint_each, modes_restored
+from omg.lit.base import OmgModule, OptimSettings, check_weights, modes_restored
 from omg.lit.control import Control, smoothed, steered
 from omg.lit.sampling import SamplingDefaults, SamplingSettings, check_smoothing, check_stance_root
 from omg.lit.timeline import chains_denoiser, check_timeline, compose_chains, timeline_denoiser
 from omg.losses import GeometricLoss
+from omg.models.checkpointing import checkpoint_each
 from omg.models.dit import DiTConfig, DiTOverrides, MotionDiT
 from omg.motion import DataSpec, get_representation, length_mask
 from omg.registry import SAMPLERS

@@ -16,7 +16,7 @@ For the Motion ControlNet, ``embed`` returns what the blocks and the final layer
 ``forward_embedded`` runs the block loop and the final layer from there, asking an optional
 ``residual_fn(i, h_i)`` after every block for a residual to add to that block's output.
 Activation checkpointing is not the model's business: the training module applies it to the
-blocks from outside (``omg.lit.base.checkpoint_each``).
+blocks from outside (``omg.models.checkpointing.checkpoint_each``).
 """
 
 from __future__ import annotations
