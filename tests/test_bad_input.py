@@ -380,6 +380,7 @@ ROWS = [
     ("bench-data-workers-neg", [*BENCH_DATA, "--workers", "-1"]),
     ("bench-data-sample-interval-zero", [*BENCH_DATA, "--sample_interval", "0"]),
     ("bench-data-max-len-zero", [*BENCH_DATA, "--max_len", "0"]),
+    ("bench-data-cache-mb-negative", [*BENCH_DATA, "--cache_mb", "-1"]),
     ("bench-data-max-len-below-window", [*BENCH_DATA, "--max_len", "40"]),
     ("bench-data-shards-missing", [*BENCH_DATA, "--shards", "{in}/nope"]),
     ("bench-data-shards-not-shards", [*BENCH_DATA, "--shards", "{in}/empty"]),
@@ -655,6 +656,7 @@ SAYS = {
     "bench-data-sample-interval-zero": "sample_interval: expected a finite number > 0, got '0'",
     "bench-data-max-len-zero": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark cuts), "
                                "got '0'",
+    "bench-data-cache-mb-negative": "--cache_mb must be >= 0 MiB (0: decode every shard at each read), got -1.0",
     "bench-data-max-len-below-window": "max_len: expected an integer >= 60 (frames: the shortest window the benchmark "
                                        "cuts), got '40'",
     "bench-data-shards-missing": "--shards: shards '{in}/nope': no such directory or file",

@@ -30,6 +30,7 @@ from torch.utils.data import DataLoader
 
 from omg.data.deadline import deadline
 from omg.data.loaders import (
+    DEFAULT_CACHE_MB,
     DEFAULT_TIMEOUT_S,
     ClipDataset,
     StreamLoader,
@@ -101,7 +102,7 @@ class MotionDataModule(L.LightningDataModule):
         max_bad_fraction: float = 0.01,
         timeout: float = DEFAULT_TIMEOUT_S,
         verify_shards: bool = True,
-        cache_mb: float = 512.0,
+        cache_mb: float = DEFAULT_CACHE_MB,
         mirror_prob: float = 0.0,
     ):
         # this call's arguments, explicitly: Lightning's frame inspection would also collect those of

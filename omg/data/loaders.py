@@ -51,6 +51,7 @@ from omg.motion import Representation
 log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT_S = 600.0  # data.timeout: how long one training batch, or a validation shard's read, may take
+DEFAULT_CACHE_MB = 512.0  # data.cache_mb: a rank's decoded motion up to this is decoded once per data worker
 
 
 class TooManyBadSamples(RuntimeError):

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omg.data.loaders import DEFAULT_CACHE_MB
 from omg.errors import UsageError
 from omg.tools.args import NonNegativeInt, PositiveFiniteFloat, PositiveInt, number_type
 from omg.tools.bench.measure import USAGE_ERROR, run_measured, tree_pss
@@ -53,10 +54,11 @@ def write_random_shards(out: Path, num_clips: int, feature_dim: int, seed: int =
 def loader_worker(argv: list[str]) -> None:
     """Iterate one loader and print {"windows_per_s": ...} (runs in its own process).
 
-    ``argv``: KIND (streaming or in-memory) SHARDS BATCH_SIZE WORKERS BATCHES MAX_LEN."""
+    ``argv``: KIND (streaming or in-memory) SHARDS BATCH_SIZE WORKERS BATCHES MAX_LEN [CACHE_MB]."""
     import os
 
     kind, shards, batch_size, workers, batches, max_len = argv[0], argv[1], *map(int, argv[2:6])
+    cache_mb = float(argv[6]) if len(argv) > 6 else DEFAULT_CACHE_MB
     # the loaders without Lightning's data module: a data-only process imports no Lightning
     from omg.data.loaders import DEFAULT_TIMEOUT_S, in_memory_loader, stream_loader
     from omg.data.mixture import load_mixture
@@ -70,7 +72,7 @@ def loader_worker(argv: list[str]) -> None:
     windows = WindowSampler(max_len, MIN_WINDOW, "windows")
     if kind == "streaming":  # the training stream as `omg fit` reads it (data.verify_shards, data.timeout)
         loader = stream_loader(mixture, 0, 1, windows, batches + 10, batch_size, collate, num_workers=workers,
-                               shuffle_buffer=500, checks=mixture.checks, timeout=DEFAULT_TIMEOUT_S)
+                               shuffle_buffer=500, checks=mixture.checks, timeout=DEFAULT_TIMEOUT_S, cache_mb=cache_mb)
     else:
         loader = in_memory_loader(mixture.urls, mixture.manifest["feature_dim"], windows, batch_size, workers,
                                   collate)
@@ -103,6 +105,7 @@ def bench_data(
     max_len: WindowFrames = 196,
     shards: str | None = None,
     sample_interval: PositiveFiniteFloat = 0.05,
+    cache_mb: float = DEFAULT_CACHE_MB,
     command: str = "omg bench data",
 ) -> dict[str, tuple[float, float, float]]:
     """Streaming vs in-memory loader: windows/s and peak memory.
@@ -118,12 +121,14 @@ def bench_data(
         sample_interval: seconds between two samples of the process tree's memory (each sample costs
             about 40 ms of CPU, beside the loader's own: a longer interval leaves the loader more of a small
             machine and may miss a short peak)
+        cache_mb: the streaming loader's data.cache_mb: a set whose decoded motion fits is decoded once per worker
+            (0: every draw reads and decodes its shard)
         command: the command line, printed with the results
 
     Returns:
         Per loader: windows per second, peak memory of the process tree and of the loader (MiB).
     """
-    _check_data_args(clips, batch_size, shards)
+    _check_data_args(clips, batch_size, shards, cache_mb)
     with tempfile.TemporaryDirectory(prefix="omg-bench-") as tmp:
         if shards is None:
             shards = str(Path(tmp) / "shards")
@@ -133,7 +138,7 @@ def bench_data(
         rows = {}
         for kind in ("streaming", "in-memory"):
             cmd = [sys.executable, "-m", "omg.tools.bench", kind, shards, str(batch_size), str(workers), str(batches),
-                   str(max_len)]
+                   str(max_len), str(cache_mb)]
             result, peak = run_measured(cmd, f"the {kind} loader", sample_interval)
             rows[kind] = (result["windows_per_s"], peak / 2**20, (peak - result["baseline"]) / 2**20)
     print("| loader | windows/s | peak PSS, whole process tree (MiB) | of which the loader (MiB) | command |")
@@ -146,8 +151,10 @@ def bench_data(
     return rows
 
 
-def _check_data_args(clips: int, batch_size: int, shards: str | None) -> None:
+def _check_data_args(clips: int, batch_size: int, shards: str | None, cache_mb: float) -> None:
     """Everything the loader workers would refuse, refused before any clip is written."""
+    if not cache_mb >= 0:  # also NaN
+        raise UsageError(f"--cache_mb must be >= 0 MiB (0: decode every shard at each read), got {cache_mb}")
     if shards is None:
         where = "--clips"
     else:
