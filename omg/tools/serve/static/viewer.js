@@ -161,7 +161,7 @@ function onGpu() {
 }
 
 export class Viewer {
-  // state: the page's shared state (window.omgViewer); the viewer writes follow, center and target to it
+  // state: the page's shared state (window.omgViewer); the viewer writes antialias, follow, center and target to it
   constructor(container, state) {
     this.container = container;
     this.state = state;
