@@ -15,7 +15,7 @@ import os
 import sys
 import warnings
 
-from omg.errors import UsageError
+from omg.errors import PeerLost, UsageError
 
 LIGHTNING = {
     "fit": "train a model (a LightningModule and data from a YAML config)",
@@ -167,7 +167,7 @@ def _run(argv: list[str]) -> None:
     except UnicodeDecodeError as e:  # a text file in another encoding, read where no check names it
         _usage_exit(f"a file is not UTF-8 text ({e.reason} at offset {e.start}); save it as UTF-8")
     except UsageError as e:
-        _usage_exit(str(e))
+        _usage_exit(str(e), at_once=isinstance(e, PeerLost))
 
 
 def _stdout_closed() -> None:
@@ -178,11 +178,15 @@ def _stdout_closed() -> None:
     raise SystemExit(SIGPIPE_EXIT) from None
 
 
-def _usage_exit(message: str) -> None:
-    """One line on stderr, exit code 2: messages that quote a file or an error can hold newlines."""
+def _usage_exit(message: str, at_once: bool = False) -> None:
+    """One line on stderr, exit code 2: messages that quote a file or an error can hold newlines. ``at_once``
+    (``PeerLost``): the process ends without the interpreter's teardown."""
     message = " ".join(line.strip() for line in message.strip().splitlines() if line.strip())
     sys.stdout.flush()
     print(f"omg: error: {message}", file=sys.stderr)
+    if at_once:
+        sys.stderr.flush()
+        os._exit(2)
     raise SystemExit(2) from None
 
 

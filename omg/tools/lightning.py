@@ -36,7 +36,7 @@ import omg.lit  # noqa: F401  (imports the modules so short class names resolve)
 from omg.callbacks.progress import PlainProgress
 from omg.callbacks.run import InterruptCheckpoint, run_dir
 from omg.data.paired import CompanionData, PairedDataModule
-from omg.errors import UsageError
+from omg.errors import PeerLost, UsageError
 from omg.files import check_output_dir
 from omg.settings import closest, regroup, set_fields, unknown_key_line
 from omg.tools.args import ExactOptions, Settings, unknown_option_line
@@ -613,8 +613,8 @@ class OmgLightningCLI(LightningCLI):
                 raise
             trainer = self.trainer
             again = " with --ckpt_path last to resume from the newest checkpoint" if self.command == "fit" else ""
-            raise UsageError(f"rank {trainer.global_rank} of {trainer.world_size}, step {trainer.global_step}: "
-                             f"{what}; start the job again on every node{again}") from None
+            raise PeerLost(f"rank {trainer.global_rank} of {trainer.world_size}, step {trainer.global_step}: "
+                           f"{what}; start the job again on every node{again}") from None
 
     def preflight(self) -> None:
         """Callbacks that can judge the model and the data before the run (a ``preflight(model,
