@@ -31,7 +31,7 @@ def test_the_data_benchmark_runs_its_workers_by_module_path(capsys):
         assert rate > 0 and total >= loader and total > 0, line  # the tree's peak holds the loader
     assert "streaming / in-memory:" in out
     # bad input the parent cannot see (a batch no pass fills) ends in the worker, and comes back as one line
-    worker = [sys.executable, "-m", "omg.tools.bench", "in-memory", TRAIN, "100000", "0", "2", "60"]
+    worker = [sys.executable, "-m", "omg.tools.bench", "in-memory", TRAIN, "100000", "0", "2", "60", "0"]
     with pytest.raises(UsageError, match=r"^the in-memory loader: a whole pass yields no batch of 100000"):
         run_measured(worker, "the in-memory loader", float(SAMPLE_S))
 

@@ -54,11 +54,11 @@ def write_random_shards(out: Path, num_clips: int, feature_dim: int, seed: int =
 def loader_worker(argv: list[str]) -> None:
     """Iterate one loader and print {"windows_per_s": ...} (runs in its own process).
 
-    ``argv``: KIND (streaming or in-memory) SHARDS BATCH_SIZE WORKERS BATCHES MAX_LEN [CACHE_MB]."""
+    ``argv``: KIND (streaming or in-memory) SHARDS BATCH_SIZE WORKERS BATCHES MAX_LEN CACHE_MB."""
     import os
 
     kind, shards, batch_size, workers, batches, max_len = argv[0], argv[1], *map(int, argv[2:6])
-    cache_mb = float(argv[6]) if len(argv) > 6 else DEFAULT_CACHE_MB
+    cache_mb = float(argv[6])
     # the loaders without Lightning's data module: a data-only process imports no Lightning
     from omg.data.loaders import DEFAULT_TIMEOUT_S, in_memory_loader, stream_loader
     from omg.data.mixture import load_mixture
