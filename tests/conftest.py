@@ -7,22 +7,30 @@ import signal
 from pathlib import Path
 
 import pytest
-import torch
-
-from helpers import SHARED_MOTION, walking_clip, write_toy_shards
-from helpers.schedule import longest_first
-from omg.data.shards import ShardWriter
-from omg.skeleton import SMPL22
 
 
 def pytest_collection_modifyitems(config, items):
     """The longest tests and xdist groups first (helpers.schedule): with two xdist workers the long ones start
     at once and the short tests fill the time around them, instead of one long test starting last."""
+    from helpers.schedule import longest_first
+
     longest_first(items)
+
+
+def pytest_collection_finish(session):
+    """Tiny models: thread hand-offs cost more than they gain on a small shared CPU, and one thread keeps
+    trained test models bit-reproducible; set before any fixture, for those shared by a whole session.
+    Here, not at import: under xdist the controller imports this file too but collects and runs no test,
+    so torch (and the helpers, which import omg) load only in the processes that test."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 @pytest.fixture
 def shared_motion() -> Path:
+    from helpers import SHARED_MOTION
+
     if not (SHARED_MOTION / "manifest.json").exists():
         pytest.skip(f"real motion data not found at {SHARED_MOTION} (the shared/ folder beside the checkout)")
     return SHARED_MOTION
@@ -30,17 +38,16 @@ def shared_motion() -> Path:
 
 @pytest.fixture
 def toy_shards(tmp_path) -> Path:
+    from helpers import write_toy_shards
+
     return write_toy_shards(tmp_path / "toy")
-
-
-# Tiny models: thread hand-offs cost more than they gain on a small shared CPU, and one thread
-# keeps trained test models bit-reproducible. Set at import too, for fixtures shared by a whole session.
-torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)
 def _quiet_threads():
-    torch.set_num_threads(1)
+    import torch
+
+    torch.set_num_threads(1)  # again for each test: a test before may have set another number
 
 
 @pytest.fixture(autouse=True)
@@ -57,7 +64,10 @@ def _ctrl_c_as_python_sets_it():
 @pytest.fixture(scope="session")
 def h263_shards(tmp_path_factory) -> Path:
     """Small humanml3d263 train/val shard sets."""
+    from helpers import walking_clip
+    from omg.data.shards import ShardWriter
     from omg.motion import get_representation
+    from omg.skeleton import SMPL22
 
     out = tmp_path_factory.mktemp("h263")
     rep = get_representation("humanml3d263", SMPL22)
@@ -70,6 +80,8 @@ def h263_shards(tmp_path_factory) -> Path:
 def omgpt_ckpt(tmp_path_factory) -> Path:
     """`omg fit --config configs/mini/omgpt.yaml`, a few steps of a tiny model; its last checkpoint
     (tests/test_omgpt*.py)."""
+    import torch
+
     from helpers.omgpt import fit_mini
 
     torch.manual_seed(0)

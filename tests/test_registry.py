@@ -242,7 +242,8 @@ def test_module_plugin_is_imported_and_registers(plugins, tmp_path, monkeypatch)
             '''A text encoder from a plugin.'''
     """))
     monkeypatch.syspath_prepend(str(tmp_path))
-    # undone after the test
+    # undone after the test; omg's own encoders registered first, into the real entries, not the copy
+    registry.TEXT_ENCODERS.names()
     monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))
     monkeypatch.delitem(sys.modules, module, raising=False)
     plugins(FakeEntryPoint("widgets", module, lambda: importlib.import_module(module)))
@@ -288,6 +289,7 @@ def test_a_plugin_text_encoder_takes_its_own_arguments_through_options(monkeypat
     from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
     from omg.text.hashed import HashTextEncoder
 
+    registry.TEXT_ENCODERS.names()  # omg's own encoders registered first, into the real entries, not the copy
     monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))  # undone after
 
     @registry.TEXT_ENCODERS.register("test-wide-hash")
