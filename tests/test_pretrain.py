@@ -233,3 +233,42 @@ def test_a_single_frame_window_trains(h263_shards, tmp_path):
     state = _final_state(root / "checkpoints/last.ckpt")
     assert state["global_step"] == 2
     assert all(torch.isfinite(v).all() for v in state["state_dict"].values() if v.is_floating_point())
+
+
+def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_writes(h263_shards, tmp_path):
+    """``train/loss`` at every step (the progress bar's); the terms beside it, the LR and the throughput at the
+    steps the logger writes (``trainer.log_every_n_steps``): every term in each row the logger keeps, the
+    throughput over the steps since the last row, and no term logged in between."""
+    import csv
+
+    import lightning as L
+    from lightning.pytorch.loggers import CSVLogger
+
+    seen = []  # (global step before the step, loss, simple term) as the step left them
+
+    class Watch(L.Callback):
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+            metrics = trainer.callback_metrics
+            seen.append((trainer.global_step - 1, float(metrics["train/loss"]),
+                         float(metrics["train/simple"]) if "train/simple" in metrics else None))
+
+    torch.manual_seed(0)
+    dm = MotionDataModule(str(h263_shards / "train"), batch_size=4, max_len=30, min_len=30, num_workers=0,
+                          shuffle_buffer=4)
+    module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=dm.spec, ema_decay=0)
+    trainer = L.Trainer(max_steps=9, log_every_n_steps=4, accelerator="cpu", enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+                        logger=CSVLogger(tmp_path), callbacks=[Watch()])
+    trainer.fit(module, dm)
+    assert len({loss for _, loss, _ in seen}) == 9  # a new loss at every step
+    simple = [s for _, _, s in seen]
+    assert simple[:3] == [None] * 3 and simple[3] is not None  # first logged at step 3 (the 4th)
+    assert simple[3:7] == [simple[3]] * 4 and simple[7] != simple[3] and simple[8] == simple[7]  # then at step 7 only
+    with open(next(tmp_path.rglob("metrics.csv"))) as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["step"]) for r in rows] == [3, 7]
+    for row in rows:
+        for term in ("loss", "simple", "vel", "foot", "lr", "samples_per_s", "frames_per_s"):
+            assert row[f"train/{term}"] != "", (term, row)
+    # samples per second over a window of 4 steps of 4 samples (3 at the first row: the run's first step opens it)
+    assert all(float(r["train/frames_per_s"]) == pytest.approx(30 * float(r["train/samples_per_s"])) for r in rows)

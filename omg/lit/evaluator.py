@@ -102,9 +102,11 @@ class EvaluatorModule(OmgModule):
 
     def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
         n = self._pairs
-        self.log_dict({"train/loss": losses["loss"], "train/acc": losses["acc"]}, prog_bar=True, batch_size=n)
-        self.log("train/temperature", 1.0 / self.evaluator.logit_scale.exp().clamp(
-            max=self.evaluator.config.max_logit_scale), batch_size=n)
+        self.log("train/loss", losses["loss"], prog_bar=True, batch_size=n)
+        if self.logs_terms():
+            self.log("train/acc", losses["acc"], prog_bar=True, batch_size=n)
+            self.log("train/temperature", 1.0 / self.evaluator.logit_scale.exp().clamp(
+                max=self.evaluator.config.max_logit_scale), batch_size=n)
 
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         out = self.embed(batch)

@@ -381,7 +381,8 @@ class OmniMotionModule(OmgModule):
 
     def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
         size = len(batch["animal"]["text"])
-        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=size)
+        if self.logs_terms():
+            self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=size)
         self.log("train/loss_total", losses["loss"], prog_bar=True, batch_size=size)
 
     def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:

@@ -87,7 +87,9 @@ class MotionDiffusionModule(OmgModule):
         self._noise_gen: torch.Generator | None = None
         self._noise_state: Tensor | None = None  # restored from a checkpoint
         self._noise_seed: int | None = None  # a rank the checkpoint has no state for (elastic resume)
-        self._last_batch_time: float | None = None
+        self._window_start: float | None = None  # when the throughput's window opened
+        self._window: tuple[int, Tensor] | None = None  # (samples, real frames) trained on in it
+        self._window_logged: tuple[int, float] | None = None  # (global step, time) it was last logged
 
     def configure_model(self) -> None:
         """Activation checkpointing, applied to the blocks from outside the model code (once:
@@ -151,16 +153,34 @@ class MotionDiffusionModule(OmgModule):
 
     def log_training(self, losses: dict[str, Tensor], batch: dict) -> None:
         super().log_training(losses, batch)
-        self.log("train/lr", self.optimizers().param_groups[0]["lr"])
-        self._log_throughput(batch)
+        self._count_throughput(batch)
+        if self.logs_terms():
+            self.log("train/lr", self.optimizers().param_groups[0]["lr"])
+            self._log_throughput()
 
-    def _log_throughput(self, batch: dict) -> None:
+    def _count_throughput(self, batch: dict) -> None:
+        """Add the batch to the throughput's window: its samples and real frames (a tensor on the batch's
+        device, read only when logged: no device sync at every step)."""
         now = time.perf_counter()
-        if self._last_batch_time is not None:
-            dt, world = now - self._last_batch_time, self.trainer.world_size
-            self.log("train/samples_per_s", world * batch["motion"].shape[0] / dt)
-            self.log("train/frames_per_s", world * batch["mask"].sum().item() / dt)
-        self._last_batch_time = now
+        if self._window_logged is not None and self._window_logged[0] != self.global_step:
+            # the step after a logged one: the window reopens where the logged step's last micro-batch closed it
+            self._window_start, self._window, self._window_logged = self._window_logged[1], None, None
+        if self._window_start is None:  # the run's first step: the window opens as it ends
+            self._window_start = now
+            return
+        samples, frames = self._window or (0, 0)
+        self._window = (samples + batch["motion"].shape[0], frames + batch["mask"].sum())
+
+    def _log_throughput(self) -> None:
+        """``train/samples_per_s`` and ``train/frames_per_s``, all ranks', over the window: the steps since the
+        last logged ones (each micro-batch of an accumulated step logs the window so far; the logger keeps
+        the last, which spans the whole step)."""
+        now = time.perf_counter()
+        if self._window is not None:
+            (samples, frames), dt, world = self._window, now - self._window_start, self.trainer.world_size
+            self.log("train/samples_per_s", world * samples / dt)
+            self.log("train/frames_per_s", world * frames.item() / dt)
+        self._window_logged = (self.global_step, now)
 
     def validation_step(self, batch: dict, batch_idx: int, stage: str = "val") -> None:
         gen = torch.Generator(device=self.device).manual_seed(batch_idx)  # the same noise every validation
