@@ -272,3 +272,8 @@ def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_wri
             assert row[f"train/{term}"] != "", (term, row)
     # samples per second over a window of 4 steps of 4 samples (3 at the first row: the run's first step opens it)
     assert all(float(r["train/frames_per_s"]) == pytest.approx(30 * float(r["train/samples_per_s"])) for r in rows)
+    seen.clear()  # a trainer that never logs (`log_every_n_steps` 0) trains with the loss alone in its metrics
+    L.Trainer(max_steps=2, log_every_n_steps=0, accelerator="cpu", enable_checkpointing=False, logger=False,
+              enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0, callbacks=[Watch()]).fit(
+        PretrainModule(flavor="mini", dit=TINY_DIT, spec=dm.spec, ema_decay=0), dm)
+    assert [s for _, _, s in seen] == [None, None]
