@@ -270,7 +270,7 @@ def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_wri
     for row in rows:
         for term in ("loss", "simple", "vel", "foot", "lr", "samples_per_s", "frames_per_s"):
             assert row[f"train/{term}"] != "", (term, row)
-    # samples per second over a window of 4 steps of 4 samples (3 at the first row: the run's first step opens it)
+    # the throughput's frames and samples counted over one window: every sample here has 30 real frames
     assert all(float(r["train/frames_per_s"]) == pytest.approx(30 * float(r["train/samples_per_s"])) for r in rows)
     seen.clear()  # a trainer that never logs (`log_every_n_steps` 0) trains with the loss alone in its metrics
     L.Trainer(max_steps=2, log_every_n_steps=0, accelerator="cpu", enable_checkpointing=False, logger=False,
