@@ -11,7 +11,7 @@ from pathlib import Path
 import lightning  # noqa: F401  (imported outside capture: its log handler keeps the stderr it first sees)
 import pytest
 
-from helpers import REPO
+from helpers import REPO, scratch_registries
 from helpers.checkpoints import save_module
 from omg.cli import COMMANDS, LIGHTNING, main
 
@@ -111,10 +111,7 @@ def installed_plugin(plugin_path, monkeypatch):
     and each registry is given back after the test as it was, so the plugin's do not outlive the test."""
     from omg import registry
 
-    for reg in registry.ALL.values():
-        reg.names()  # imports the modules registering omg's own components (into the other registries too)
-    for reg in registry.ALL.values():
-        monkeypatch.setattr(reg, "_entries", dict(reg._entries))
+    scratch_registries(monkeypatch, *registry.ALL.values())
     monkeypatch.setattr(registry, "_plugins_loaded", None)  # entry points read afresh, as at a start
     monkeypatch.syspath_prepend(str(plugin_path))
     yield

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers import scratch_registries
 from omg.io.read import read_motion
 from omg.kinematics import (
     FOOT_CONTACT_SPEED,
@@ -146,8 +147,7 @@ def _renamed_bvh(src, dst, rename: dict) -> None:
 @pytest.fixture
 def plugin_registry(monkeypatch):
     """JOINT_MAPS with its built-ins loaded; what a test registers is gone afterwards."""
-    JOINT_MAPS.names()
-    monkeypatch.setattr(JOINT_MAPS, "_entries", dict(JOINT_MAPS._entries))
+    scratch_registries(monkeypatch, JOINT_MAPS)
     return JOINT_MAPS
 
 

@@ -244,12 +244,12 @@ def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_wri
     import lightning as L
     from lightning.pytorch.loggers import CSVLogger
 
-    seen = []  # (global step before the step, loss, simple term) as the step left them
+    seen = []  # (loss, simple term) in the metrics as each step left them
 
     class Watch(L.Callback):
         def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
             metrics = trainer.callback_metrics
-            seen.append((trainer.global_step - 1, float(metrics["train/loss"]),
+            seen.append((float(metrics["train/loss"]),
                          float(metrics["train/simple"]) if "train/simple" in metrics else None))
 
     torch.manual_seed(0)
@@ -260,8 +260,8 @@ def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_wri
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                         logger=CSVLogger(tmp_path), callbacks=[Watch()])
     trainer.fit(module, dm)
-    assert len({loss for _, loss, _ in seen}) == 9  # a new loss at every step
-    simple = [s for _, _, s in seen]
+    assert len({loss for loss, _ in seen}) == 9  # a new loss at every step
+    simple = [s for _, s in seen]
     assert simple[:3] == [None] * 3 and simple[3] is not None  # first logged at step 3 (the 4th)
     assert simple[3:7] == [simple[3]] * 4 and simple[7] != simple[3] and simple[8] == simple[7]  # then at step 7 only
     with open(next(tmp_path.rglob("metrics.csv"))) as f:
@@ -276,4 +276,4 @@ def test_the_loss_is_logged_every_step_and_its_terms_at_the_steps_the_logger_wri
     L.Trainer(max_steps=2, log_every_n_steps=0, accelerator="cpu", enable_checkpointing=False, logger=False,
               enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0, callbacks=[Watch()]).fit(
         PretrainModule(flavor="mini", dit=TINY_DIT, spec=dm.spec, ema_decay=0), dm)
-    assert [s for _, _, s in seen] == [None, None]
+    assert [s for _, s in seen] == [None, None]

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import pytest
 
 import omg.registry as registry
+from helpers import scratch_registries
 from omg.errors import UsageError
 from omg.registry import ALL, Registry, RegistryError, load_plugins, resolve
 
@@ -242,9 +243,7 @@ def test_module_plugin_is_imported_and_registers(plugins, tmp_path, monkeypatch)
             '''A text encoder from a plugin.'''
     """))
     monkeypatch.syspath_prepend(str(tmp_path))
-    # undone after the test; omg's own encoders registered first, into the real entries, not the copy
-    registry.TEXT_ENCODERS.names()
-    monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))
+    scratch_registries(monkeypatch, registry.TEXT_ENCODERS)
     monkeypatch.delitem(sys.modules, module, raising=False)
     plugins(FakeEntryPoint("widgets", module, lambda: importlib.import_module(module)))
 
@@ -289,8 +288,7 @@ def test_a_plugin_text_encoder_takes_its_own_arguments_through_options(monkeypat
     from omg.text import TextEncoderArgs, build_text_encoder, text_encoder_kwargs
     from omg.text.hashed import HashTextEncoder
 
-    registry.TEXT_ENCODERS.names()  # omg's own encoders registered first, into the real entries, not the copy
-    monkeypatch.setattr(registry.TEXT_ENCODERS, "_entries", dict(registry.TEXT_ENCODERS._entries))  # undone after
+    scratch_registries(monkeypatch, registry.TEXT_ENCODERS)
 
     @registry.TEXT_ENCODERS.register("test-wide-hash")
     class WideHash(HashTextEncoder):

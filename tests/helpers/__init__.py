@@ -175,3 +175,13 @@ def rewrite_member(shard: Path, key_ext: str, data: bytes) -> None:
             payload = data if m.name == key_ext else payload
             m.size = len(payload)
             tar.addfile(m, io.BytesIO(payload))
+
+
+def scratch_registries(monkeypatch, *registries) -> None:
+    """Let a test register into ``registries`` (omg.registry's) for its own length: omg's own entries are
+    registered first, into the real entries (their modules' import may register into another registry, so
+    all are loaded before any is copied), then each registry's entries are a copy that monkeypatch undoes."""
+    for reg in registries:
+        reg.names()
+    for reg in registries:
+        monkeypatch.setattr(reg, "_entries", dict(reg._entries))
