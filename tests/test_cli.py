@@ -63,6 +63,28 @@ def test_tool_command_errors_are_one_line(capsys, tmp_path):
     _assert_usage_error(capsys, ["shards", "inspect", str(tmp_path)], "no manifest.json")
 
 
+def test_a_tool_subcommand_builds_its_own_parser_only(capsys, monkeypatch, tmp_path):
+    """`omg bench NAME` and `omg shards NAME` read NAME's signature alone (each parser reads a function's signature
+    and docstring; `omg bench` has eleven); the command list, `--help` and an unknown name build every one."""
+    from omg.tools import args
+    from omg.tools.bench import BENCHMARKS
+
+    built = []
+    real = args.function_parser
+    monkeypatch.setattr(args, "function_parser", lambda function, prog, **kw: built.append(prog) or real(
+        function, prog, **kw))
+    _assert_usage_error(capsys, ["bench", "plan", "--nope", "1"], "--nope", "omg bench plan --help")
+    assert built == ["omg bench plan"]
+    _assert_usage_error(capsys, ["shards", "inspect", str(tmp_path)], "no manifest.json")
+    assert built[1:] == ["omg shards inspect"]
+    built.clear()
+    main(["bench"])
+    assert built == [f"omg bench {name}" for name in BENCHMARKS] and "timeline" in capsys.readouterr().out
+    built.clear()
+    _assert_usage_error(capsys, ["bench", "plann"], "invalid choice: 'plann'", "'plan'")
+    assert len(built) == len(BENCHMARKS)
+
+
 PLUGIN = '''
 """A third-party plugin: a 3-joint skeleton and a data source that swings it."""
 import numpy as np

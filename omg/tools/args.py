@@ -519,17 +519,21 @@ def run(function: Callable, argv: list[str], prog: str, **kwargs):
 
 def run_subcommands(prog: str, description: str, commands: dict[str, tuple[Callable, dict]], argv: list[str]):
     """``prog NAME ARGV``: one typed function per subcommand (``commands``: name -> (function,
-    ``function_parser`` keyword arguments)), as jsonargparse subcommands."""
+    ``function_parser`` keyword arguments)), as jsonargparse subcommands. Only NAME's parser is built when
+    ARGV starts with a known NAME (each parser reads its function's signature and docstring); every one of
+    them for the command list, ``--help`` or an unknown name."""
     parser = OmgArgumentParser(prog=prog, description=description, exit_on_error=False)
     subcommands = parser.add_subcommands(dest="subcommand")
+    named = argv[0] if argv and argv[0] in commands else None
     subparsers = {}
     for name, (function, kwargs) in commands.items():
-        subparsers[name] = function_parser(function, f"{prog} {name}", **kwargs)
-        subcommands.add_subcommand(name, subparsers[name], help=_docs(function)[0].split("\n")[0])
+        if named in (None, name):
+            subparsers[name] = function_parser(function, f"{prog} {name}", **kwargs)
+            subcommands.add_subcommand(name, subparsers[name], help=_docs(function)[0].split("\n")[0])
     if not argv:
         parser.print_help()
         return None
-    # the options of every subcommand are spelled with underscores (as jsonargparse nests them)
+    # the options of the subcommands built are spelled with underscores (as jsonargparse nests them)
     # and the keys of the one given are checked alone, without its name
     options = set().union(*(p.settings.options for p in subparsers.values()))
     chosen = subparsers.get(argv[0])

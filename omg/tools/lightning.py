@@ -55,7 +55,8 @@ class SaveRunConfig(SaveConfigCallback):
         directory = run_dir(trainer)
         if trainer.is_global_zero:
             directory.mkdir(parents=True, exist_ok=True)
-            self.parser.save(self.config, str(directory / self.config_filename), skip_none=False,
+            # the config was checked when it was parsed: a second check would be most of the save's time
+            self.parser.save(self.config, str(directory / self.config_filename), skip_none=False, skip_validation=True,
                              overwrite=self.overwrite, multifile=self.multifile)
         self.already_saved = trainer.strategy.broadcast(True)
 
