@@ -426,6 +426,8 @@ ROWS = [
     ("bench-timeline-val-without-actions", ["bench", "timeline", "--ckpt", "{cn}", "--val", MINI_VAL]),
     ("bench-rig-data-is-file", ["bench", "rig", "--data", "{in}/afile"]),
     ("bench-rig-data-without-clips", ["bench", "rig", "--data", "{in}/empty"]),
+    ("bench-character-not-fbx", ["bench", "character", "--fbx", "{in}/afile"]),
+    ("bench-character-fbx-missing", ["bench", "character", "--fbx", "{in}/nope.fbx"]),
     # omg serve (checked before a checkpoint loads or a port is bound)
     ("serve-out-is-file", ["serve", "--ckpt", "{cn}", "--out", "{in}/afile"]),
     ("serve-out-in-proc", ["serve", "--ckpt", "{cn}", "--out", "/proc/omg-out"]),
@@ -712,6 +714,8 @@ SAYS = {
                                           "captions ('content' labels)",
     "bench-rig-data-is-file": "--data {in}/afile: not a folder (the motion data folder",
     "bench-rig-data-without-clips": "--data {in}/empty: none of the benchmark's clips is there",
+    "bench-character-not-fbx": "--fbx {in}/afile: give an .fbx character",
+    "bench-character-fbx-missing": "--fbx {in}/nope.fbx: no such file",
     "serve-out-is-file": "--out {in}/afile: not a folder",
     "serve-out-in-proc": "--out /proc/omg-out: cannot write in /proc",
     "serve-allowed-hosts-port": "--allowed_hosts 'localhost:8000': give host names or addresses without a port",
@@ -762,8 +766,8 @@ def test_the_table_covers_every_command():
     commands = {argv[0] if argv[0] not in ("shards", "bench") else " ".join(argv[:2]) for _, argv in ROWS}
     assert commands == {"generate", "export", "shards build", "shards synth", "shards merge", "shards inspect",
                         "transfer", "fit", "test", "bench data", "bench train", "bench sample", "bench following",
-                        "bench sides", "bench plan", "bench gpu", "bench rig", "bench timeline", "serve", "plot",
-                        "joint-map"}
+                        "bench sides", "bench plan", "bench gpu", "bench rig", "bench character", "bench timeline",
+                        "serve", "plot", "joint-map"}
     assert len({name for name, _ in ROWS}) == len(ROWS)
     assert list(SAYS) == [name for name, _ in ROWS], "every row, in the table's order, has the words its line holds"
 

@@ -56,10 +56,17 @@ def written(tmp_path_factory) -> dict:
     torch.manual_seed(0)
     spec = MotionDataModule(str(REPO / "shards/mini/human263/train"), batch_size=2, num_workers=0).spec
     module = PretrainModule(flavor="mini", dit=TINY_DIT, spec=spec, ema_decay=0)
+    with torch.no_grad():  # DiT's zero-initialised output would give every sample the mean motion
+        torch.nn.init.normal_(module.model.final_layer.linear.weight, std=0.05)
     save_module(module, root / "pre.ckpt")
-    main(["generate", "--unconditional", "--ckpt", str(root / "pre.ckpt"), "--steps", "2", "--length", "1",
-          "--num_samples", "1", "--no_preview", "--device", "cpu", "--to_rig", str(root / "t_pose_m.fbx"),
-          "--out", str(root / "generated")])
+    import omg.io.fbx
+
+    runs, run = [], omg.io.fbx._run
+    with pytest.MonkeyPatch.context() as patch:  # the Blender runs of the generation
+        patch.setattr(omg.io.fbx, "_run", lambda request, *a: runs.append(request) or run(request, *a))
+        main(["generate", "--unconditional", "--ckpt", str(root / "pre.ckpt"), "--steps", "2", "--length", "1",
+              "--num_samples", "2", "--no_preview", "--device", "cpu", "--to_rig", str(root / "t_pose_m.fbx"),
+              "--out", str(root / "generated")])
     clip = retarget(read_bvh(found[0]), "smpl22", fps=20)
     walk = clip.positions[:60]
     np.save(root / "walk.joints.npy", walk)
@@ -67,8 +74,8 @@ def written(tmp_path_factory) -> dict:
           str(root / "a_pose_cm_z_up.fbx"), "--out", str(root / "a")])
     main(["export", str(root / "walk.joints.npy"), "--fps", "20", "--no_preview", "--to_rig",
           str(root / "t_pose_m.fbx"), "--format", "glb", "--out", str(root / "t")])
-    files = {"generated": root / "generated/sample_000.fbx", "walk_a": root / "a/walk.fbx",
-             "walk_t": root / "t/walk.glb"}
+    files = {"generated": root / "generated/sample_000.fbx", "generated_1": root / "generated/sample_001.fbx",
+             "walk_a": root / "a/walk.fbx", "walk_t": root / "t/walk.glb"}
     blender("probe", [{"path": str(path), "out": str(root / f"{key}.npz"), "fps": 20} for key, path in files.items()],
             root)
     probes = {}
@@ -76,7 +83,8 @@ def written(tmp_path_factory) -> dict:
         with np.load(root / f"{key}.npz") as arrays:
             probes[key] = {**json.loads((root / f"{key}.json").read_text()), **arrays}
     frames = np.load(root / "generated/sample_000.joints.npy").shape[0]
-    return {"root": root, "files": files, "probes": probes, "walk": walk, "generated_frames": frames}
+    return {"root": root, "files": files, "probes": probes, "walk": walk, "generated_frames": frames,
+            "generate_runs": [(r["op"], len(r.get("writes", ()))) for r in runs]}
 
 
 def _figure(probe: dict, pose: str) -> tuple[list[int], np.ndarray]:
@@ -116,6 +124,14 @@ def test_generate_onto_an_fbx_character_writes_it_with_one_action_on_the_mesh(wr
     heads = probe["heads"]
     assert np.linalg.norm(heads[-1] - heads[0], axis=-1).max() > 0.05  # the motion moves the bones
     _follows(probe, "T")
+    # the generation's two motions: one Blender run reads the character, one writes both, each its own motion
+    assert written["generate_runs"] == [("read", 0), ("write", 2)]
+    other = written["probes"]["generated_1"]
+    assert [probe["action"], other["action"]] == ["Armature|sample_000", "Armature|sample_001"]
+    assert len(other["actions"]) == 1 and other["heads"].shape == heads.shape
+    joints = [np.load(written["root"] / f"generated/sample_00{k}.joints.npy") for k in (0, 1)]
+    assert np.abs(joints[1] - joints[0]).max() > 0.05 and np.abs(other["heads"] - heads).max() > 0.05
+    _follows(other, "T")
 
 
 def test_a_walk_on_the_centimetre_z_up_character_keeps_bones_and_feet_on_the_ground(written, tmp_path):
@@ -193,3 +209,14 @@ def test_without_blender_an_fbx_is_one_line_saying_how_to_install_it(tmp_path, c
     assert "an ASCII FBX, which Blender does not read" in _refused(["joint-map", str(tmp_path / "ascii.fbx")], capsys)
     assert "--format fbx writes an FBX character" in _refused([*export, "--format", "fbx"], capsys)
     assert not (tmp_path / "out").exists() and not (tmp_path / "still.fbx").exists()
+
+
+def test_omg_bench_character_writes_a_generation_in_one_blender_run(written, capsys):
+    """``omg bench character``: the motions written onto an FBX character a Blender run each and all in one run,
+    one Markdown row with both times."""
+    main(["bench", "character", "--fbx", str(written["root"] / "t_pose_m.fbx"), "--motions", "2", "--frames", "10"])
+    printed = capsys.readouterr().out
+    line = next(line for line in printed.splitlines() if line.startswith("| t_pose_m.fbx |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1:3] == ["2", "10"] and float(cells[3]) > 0 and float(cells[4]) > 0 and cells[5].endswith("x")
+    assert "`omg bench character --fbx" in printed

@@ -40,6 +40,7 @@ def write_generation(out: Path, motions: list[GeneratedMotion], card: Generation
     motion's record under ``samples``. A failure leaves no new file: a folder it created is removed, one
     that existed keeps exactly the files it had."""
     from omg.export import export_motion
+    from omg.io.fbx import one_blender_run
     from omg.skeleton import get_skeleton
 
     skeleton, fps = get_skeleton(card.skeleton), card.fps
@@ -48,20 +49,22 @@ def write_generation(out: Path, motions: list[GeneratedMotion], card: Generation
         with removing_created(out):
             out.mkdir(parents=True, exist_ok=True)
             records, shown = [], []
-            for i, motion in enumerate(motions):
-                name = names[i] if names else f"sample_{i:03d}"
-                atomic_write(out / f"{name}.features.npy", npy_bytes(np.asarray(motion.features, np.float32)))
-                atomic_write(out / f"{name}.joints.npy", npy_bytes(np.asarray(motion.joints, np.float32)))
-                for stem, joints, _, title in motion.companions:
-                    companion = np.asarray(joints, np.float32)
-                    atomic_write(out / f"{stem.format(stem=name)}.joints.npy", npy_bytes(companion))
-                    if title is not None and i < preview_count:
-                        shown.append((joints, title))
-                export_motion(out / name, motion.joints, skeleton, fps, preview=False, clean_contacts=clean_contacts,
-                              rig=rig, joint_map=joint_map, format=format, rotations=motion.rotations)
-                records.append({"file": name, **motion.record})
-                if i < preview_count:
-                    shown.append((motion.joints, motion.title))
+            with one_blender_run():  # onto an FBX character: the motions in one Blender run
+                for i, motion in enumerate(motions):
+                    name = names[i] if names else f"sample_{i:03d}"
+                    atomic_write(out / f"{name}.features.npy", npy_bytes(np.asarray(motion.features, np.float32)))
+                    atomic_write(out / f"{name}.joints.npy", npy_bytes(np.asarray(motion.joints, np.float32)))
+                    for stem, joints, _, title in motion.companions:
+                        companion = np.asarray(joints, np.float32)
+                        atomic_write(out / f"{stem.format(stem=name)}.joints.npy", npy_bytes(companion))
+                        if title is not None and i < preview_count:
+                            shown.append((joints, title))
+                    export_motion(out / name, motion.joints, skeleton, fps, preview=False, rig=rig,
+                                  clean_contacts=clean_contacts, joint_map=joint_map, format=format,
+                                  rotations=motion.rotations)
+                    records.append({"file": name, **motion.record})
+                    if i < preview_count:
+                        shown.append((motion.joints, motion.title))
             settings["samples"] = records
             write_json(out / settings_file, settings)
             if preview:  # the first motions side by side with their captions

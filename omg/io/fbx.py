@@ -6,10 +6,11 @@ added (``write_character``: keyframes on the armature's pose bones, the mesh ski
 mesh, skin and materials, as it reads them; the glTF writer of ``omg.io.gltf`` only adds an animation to
 a glTF document, which an FBX file is not).
 
-Blender runs in a child Python (``python -m omg.io.fbx``), one per read or write: the calling process
-never loads it (its hundreds of megabytes, its threads, its global scene, its printing on stdout), a file
-that crashes it is one line, and a server's threads never share its scene. The child's side is the end
-of this module, under ``_child``; it imports only bpy and numpy.
+Blender runs in a child Python (``python -m omg.io.fbx``), one per read and one per write, or per character
+for all the writes made inside ``one_blender_run`` (a generation's motions): the calling process never loads
+it (its hundreds of megabytes, its threads, its global scene, its printing on stdout), a file that crashes
+it is one line, and a server's threads never share its scene. The child's side is the end of this module,
+under ``_child``; it imports only bpy and numpy.
 
 Conventions are ``omg.io.gltf``'s: the rig in the world, metres, Y up (Blender's Z-up world turned as its
 glTF exporter turns it: x, z, -y), whatever the file's axes and unit scale, which Blender's importer applies.
@@ -23,7 +24,9 @@ import os
 import subprocess
 import sys
 import tempfile
-from contextlib import nullcontext
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -96,19 +99,21 @@ def check_file(path: str | Path, what: str = "--to_rig") -> str:
     return where
 
 
-def _run(request: dict, arrays: dict[str, np.ndarray], where: str) -> dict:
-    """The child's answer to ``request`` (``arrays`` beside it as .npz); its error as one UsageError."""
+def _run(request: dict, arrays: dict[str, np.ndarray], where: str, each: list[str] | None = None) -> dict:
+    """The child's answer to ``request`` (``arrays`` beside it as .npz); its error as one UsageError, named
+    ``where`` (or, for an error of one of a request's ``writes``, that write's in ``each``)."""
     with tempfile.TemporaryDirectory(prefix="omg-fbx-") as folder:
         folder = Path(folder)
         (folder / "request.json").write_text(json.dumps(request))
         np.savez(folder / "arrays.npz", **arrays)
         root = str(Path(__file__).resolve().parents[2])  # the omg this module is, first on the child's path
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
+        timeout = CHILD_TIMEOUT * max(1, len(request.get("writes", ())))
         try:
             run = subprocess.run([blender_python(), "-m", "omg.io.fbx", str(folder)], capture_output=True, text=True,
-                                 errors="replace", env=env, timeout=CHILD_TIMEOUT)
+                                 errors="replace", env=env, timeout=timeout)
         except subprocess.TimeoutExpired:
-            raise UsageError(f"{where}: Blender took more than {CHILD_TIMEOUT:g} s") from None
+            raise UsageError(f"{where}: Blender took more than {timeout:g} s") from None
         answer = folder / "answer.json"
         if not answer.is_file():
             said = [line for line in (run.stderr + run.stdout).splitlines() if line.strip()]
@@ -116,7 +121,7 @@ def _run(request: dict, arrays: dict[str, np.ndarray], where: str) -> dict:
                              + (f": {said[-1].strip()[:300]}" if said else ""))
         out = json.loads(answer.read_text())
     if "error" in out:
-        raise UsageError(f"{where}: {out['error']}")
+        raise UsageError(f"{each[out['index']] if each and 'index' in out else where}: {out['error']}")
     return out
 
 
@@ -144,28 +149,76 @@ def read_character(path: str | Path, what: str = "--to_rig") -> RigMotion:
                      source=str(path), character=character)  # fmt: skip
 
 
+@dataclass
+class _Write:
+    """A motion to write onto an FBX character: its files and what the child keys."""
+
+    files: list[Path]  # the file, and the one beside it from the same keys
+    character: FbxCharacter
+    keys: dict  # the child's request for it: the bones' names, the rate, the take's name
+    turns: np.ndarray  # (T, J, 4) world rotations from rest, Y up
+    places: np.ndarray  # (T, J, 3) joints in the world, metres, Y up
+
+
+_PENDING: ContextVar[list[_Write] | None] = ContextVar("omg_fbx_pending", default=None)
+
+
+@contextmanager
+def one_blender_run() -> Iterator[None]:
+    """The writes onto FBX characters made inside it (``write_character``) are made when it ends, in one
+    Blender run per character rather than one per motion: Blender's start-up, about a second, is most of a
+    short motion's write. Their files exist once it has ended; an error inside it writes none of them.
+    Nested, the outermost one writes."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[_Write] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    finally:
+        _PENDING.reset(token)
+    _write(pending)
+
+
 def write_character(path: str | Path, motion: RigMotion, also: str | Path | None = None) -> Path:
     """The FBX character of ``motion`` (``read_character``'s) with the motion added, written atomically as
     ``path``'s suffix says: ``.fbx`` (Blender's FBX exporter: one take, a key on every frame) or ``.glb``
     (Blender's glTF exporter: one animation, sampled on every frame); ``also``, a second file the same way from
-    the same keys (the ``.glb`` beside an ``.fbx`` that a page plays), in the same Blender run.
+    the same keys (the ``.glb`` beside an ``.fbx`` that a page plays), in the same Blender run. Inside
+    ``one_blender_run`` the files are written when it ends.
 
     Each bone is posed so that its head is where the motion puts its joint and its orientation is its rest
     orientation turned by the joint's world rotation: the bones keep their lengths and the mesh, skinned to
     them, follows."""
     import torch
 
-    ch: FbxCharacter = motion.character
-    path = Path(path)
-    where = f"{path} (onto {ch.path})"
     rotations = torch.from_numpy(np.asarray(motion.rotations, dtype=np.float64))
-    turns = motion.skeleton().global_rotations(rotations).numpy()  # (T, J, 4) world rotations from rest, Y up
-    with atomic_path(path) as tmp, (atomic_path(Path(also)) if also is not None else nullcontext()) as second:
-        outs = [str(tmp.resolve())] + ([str(second.resolve())] if second is not None else [])
-        _run({"op": "write", "path": ch.path, "armature": ch.armature, "names": list(motion.names),
-              "fps": float(motion.fps), "name": motion.name, "out": outs},
-             {"turns": turns, "places": motion.positions()}, where)
-    return path
+    write = _Write(files=[Path(p) for p in (path, also) if p is not None], character=motion.character,
+                   keys={"names": list(motion.names), "fps": float(motion.fps), "name": motion.name},
+                   turns=motion.skeleton().global_rotations(rotations).numpy(), places=motion.positions())
+    pending = _PENDING.get()
+    if pending is None:
+        _write([write])
+    else:
+        pending.append(write)
+    return Path(path)
+
+
+def _write(writes: list[_Write]) -> None:
+    """``writes`` made, one Blender run per character; each file atomically."""
+    by_character: dict[tuple[str, str], list[_Write]] = {}
+    for write in writes:
+        by_character.setdefault((write.character.path, write.character.armature), []).append(write)
+    for (character, armature), group in by_character.items():
+        each = [f"{write.files[0]} (onto {character})" for write in group]
+        where = each[0] if len(group) == 1 else f"{group[0].files[0]} and {len(group) - 1} more (onto {character})"
+        with ExitStack() as stack:
+            outs = [[str(stack.enter_context(atomic_path(f)).resolve()) for f in write.files] for write in group]
+            arrays = {f"{name}_{k}": getattr(write, name) for k, write in enumerate(group)
+                      for name in ("turns", "places")}
+            _run({"op": "write", "path": character, "armature": armature,
+                  "writes": [{**write.keys, "out": out} for write, out in zip(group, outs)]}, arrays, where, each)
 
 
 # -- the child: Blender's side (bpy and numpy only) ---------------------------------------------------------
@@ -177,8 +230,15 @@ def _child(folder: Path) -> None:
         if request["op"] == "read":
             answer = _child_read(request["path"])
         else:
+            answer = {"writes": []}
             with np.load(folder / "arrays.npz") as arrays:
-                answer = _child_write(request, arrays["turns"], arrays["places"])
+                for k, write in enumerate(request["writes"]):
+                    try:
+                        answer["writes"].append(_child_write({**request, **write}, arrays[f"turns_{k}"],
+                                                             arrays[f"places_{k}"]))
+                    except _Refused as e:
+                        answer = {"error": str(e), "index": k}
+                        break
     except _Refused as e:
         answer = {"error": str(e)}
     (folder / "answer.json").write_text(json.dumps(answer))

@@ -723,6 +723,7 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
     [the file, the .glb to view where it is another]. ``joint_map``: a registered map's name, or an uploaded
     YAML map as (its file name, its bytes). Runs on an upload thread."""
     from omg.export import export_motion, output_format
+    from omg.io.fbx import one_blender_run
     from omg.retarget import load_joint_map, read_rig
     from omg.skeleton import get_skeleton
 
@@ -749,11 +750,13 @@ def _onto_character(folder: Path, settings: dict, data: bytes, suffix: str, join
                 raise UsageError(f"could not read the upload {name!r} as a character: {_one_line(e)}") from None
             format, written = output_format(None, rig.source), {}
             view = format == "fbx"  # the page's viewer plays glTF: an FBX character's motions come as .glb too
-            for record in settings["samples"]:
-                joints = np.load(folder / f"{record['file']}.joints.npy")
-                export_motion(Path(staged) / record["file"], joints, get_skeleton(settings["skeleton"]),
-                              settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format, view=view)
-                written[record["file"]] = [f"{record['file']}.{tag}.{kind}" for kind in (format, "glb")[: 1 + view]]
+            with one_blender_run():  # onto an FBX character: the result's motions in one Blender run
+                for record in settings["samples"]:
+                    joints = np.load(folder / f"{record['file']}.joints.npy")
+                    export_motion(Path(staged) / record["file"], joints, get_skeleton(settings["skeleton"]),
+                                  settings["fps"], preview=False, rig=rig, joint_map=joint_map, format=format,
+                                  view=view)
+                    written[record["file"]] = [f"{record['file']}.{tag}.{kind}" for kind in (format, "glb")[: 1 + view]]
             for file, finals in written.items():  # named as --to_rig names it while written: the same bytes
                 for final in finals:
                     os.replace(Path(staged) / f"{file}.{final.rsplit('.', 1)[1]}", folder / final)
