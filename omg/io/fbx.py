@@ -166,8 +166,8 @@ _PENDING: ContextVar[list[_Write] | None] = ContextVar("omg_fbx_pending", defaul
 @contextmanager
 def one_blender_run() -> Iterator[None]:
     """The writes onto FBX characters made inside it (``write_character``) are made when it ends, in one
-    Blender run per character rather than one per motion: Blender's start-up, about a second, is most of a
-    short motion's write. Their files exist once it has ended; an error inside it writes none of them.
+    Blender run per character rather than one per motion: Blender's start-up is most of a short motion's
+    write. Their files exist once it has ended; an error inside it writes none of them.
     Nested, the outermost one writes."""
     if _PENDING.get() is not None:
         yield
