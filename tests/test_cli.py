@@ -64,8 +64,8 @@ def test_tool_command_errors_are_one_line(capsys, tmp_path):
 
 
 def test_a_tool_subcommand_builds_its_own_parser_only(capsys, monkeypatch, tmp_path):
-    """`omg bench NAME` and `omg shards NAME` read NAME's signature alone (each parser reads a function's signature
-    and docstring; `omg bench` has eleven); the command list, `--help` and an unknown name build every one."""
+    """`omg bench NAME` and `omg shards NAME` build NAME's parser alone (each parser reads a function's signature
+    and docstring); the command list, `--help` and an unknown name build every one."""
     from omg.tools import args
     from omg.tools.bench import BENCHMARKS
 

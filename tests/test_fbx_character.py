@@ -20,6 +20,7 @@ import pytest
 import torch
 import yaml
 
+import omg.io.fbx as fbx_io
 from helpers import REPO, SHARED_MOTION, TINY_DIT
 from helpers.blender_scenes import blender
 from helpers.characters import boxes, figure_rest, write_character
@@ -59,11 +60,9 @@ def written(tmp_path_factory) -> dict:
     with torch.no_grad():  # DiT's zero-initialised output would give every sample the mean motion
         torch.nn.init.normal_(module.model.final_layer.linear.weight, std=0.05)
     save_module(module, root / "pre.ckpt")
-    import omg.io.fbx
-
-    runs, run = [], omg.io.fbx._run
+    runs, run = [], fbx_io._run
     with pytest.MonkeyPatch.context() as patch:  # the Blender runs of the generation
-        patch.setattr(omg.io.fbx, "_run", lambda request, *a: runs.append(request) or run(request, *a))
+        patch.setattr(fbx_io, "_run", lambda request, *a: runs.append(request) or run(request, *a))
         main(["generate", "--unconditional", "--ckpt", str(root / "pre.ckpt"), "--steps", "2", "--length", "1",
               "--num_samples", "2", "--no_preview", "--device", "cpu", "--to_rig", str(root / "t_pose_m.fbx"),
               "--out", str(root / "generated")])
