@@ -231,9 +231,9 @@ class OmgModule(L.LightningModule):
     def logs_terms(self) -> bool:
         """Whether this training step logs its terms beside the loss: at the steps whose values the logger
         writes, every ``trainer.log_every_n_steps`` optimizer steps (a step-level value logged between them
-        reaches no logger), as litgpt and torchtitan log at an interval. Lightning's ``self.log`` costs about a
-        millisecond a call on the CPU, a tenth of a small model's step at seven terms; the progress bar shows
-        the terms as of the last such step and the loss of every step. ``log_every_n_steps`` 0: none."""
+        reaches no logger), as litgpt and torchtitan log at an interval: each Lightning ``self.log`` call costs
+        a small model's step a noticeable share (docs/results/performance.md). The progress bar shows the terms
+        as of the last such step and the loss of every step. ``log_every_n_steps`` 0: none."""
         every = self.trainer.log_every_n_steps
         return every > 0 and ((self.global_step + 1) % every == 0 or self.trainer.should_stop)
 
