@@ -50,11 +50,12 @@ def quat_mul(a: Tensor, b: Tensor) -> Tensor:
 
 def quat_apply(q: Tensor, v: Tensor) -> Tensor:
     """Rotate vectors v (..., 3) by unit quaternions q (..., 4); shapes broadcast."""
-    batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
-    q, v = q.expand(batch + (4,)), v.expand(batch + (3,))
+    if q.dim() != v.dim():  # linalg.cross broadcasts sizes, not numbers of dimensions
+        rank = max(q.dim(), v.dim())
+        q, v = q[(None,) * (rank - q.dim())], v[(None,) * (rank - v.dim())]
     w, xyz = q[..., :1], q[..., 1:]
-    t = 2.0 * torch.cross(xyz, v, dim=-1)
-    return v + w * t + torch.cross(xyz, t, dim=-1)
+    t = 2.0 * torch.linalg.cross(xyz, v)
+    return v + w * t + torch.linalg.cross(xyz, t)
 
 
 def quat_between(u: Tensor, v: Tensor, eps: float = 1e-8) -> Tensor:

@@ -142,6 +142,8 @@ def test_quat_apply_broadcasts():
     out = R.quat_apply(q, v)
     assert out.shape == (5, 7, 3)
     torch.testing.assert_close(out[3, 4], R.quat_apply(q[3, 0], v[4]))
+    one = R.quat_apply(q[2, 0], v)  # one rotation (4,) for every vector (7, 3)
+    assert one.shape == (7, 3) and torch.equal(one, out[2])
 
 
 def test_quat_conjugate_is_inverse():
