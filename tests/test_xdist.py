@@ -51,7 +51,7 @@ def test_the_longest_units_start_first(request):
 
 
 def test_the_schedule_names_tests_and_groups_that_exist():
-    """A renamed test or group would drop out of LONGEST silently, and start late."""
+    """A renamed test, parameter case or group would drop out of LONGEST silently, and start late."""
     tests = Path(__file__).parent
     groups = {g for path in tests.glob("test_*.py") for g in re.findall(r'xdist_group\("(\w+)"\)', path.read_text())}
     for key in LONGEST:
@@ -59,6 +59,23 @@ def test_the_schedule_names_tests_and_groups_that_exist():
             assert key in groups, f"{key}: no xdist_group of that name"
             continue
         file, test = key.split("::")
-        defined = {node.name for node in ast.parse((tests / file).read_text()).body
+        name, _, case = test.partition("[")
+        defined = {node.name: node for node in ast.parse((tests / file).read_text()).body
                    if isinstance(node, ast.FunctionDef)}
-        assert test.split("[")[0] in defined, f"{key}: no such test"
+        assert name in defined, f"{key}: no such test"
+        if case:
+            cases = parameter_ids(defined[name])
+            assert cases is None or case.removesuffix("]") in cases, f"{key}: no such case of {name} ({cases})"
+
+
+def parameter_ids(test: ast.FunctionDef) -> set[str] | None:
+    """The ids pytest gives the cases of ``test``'s one ``parametrize`` of literal values (ints, strings,
+    booleans; a tuple's joined by "-"), or None where they cannot be read from the source."""
+    marks = [d for d in test.decorator_list if isinstance(d, ast.Call) and ast.unparse(d.func).endswith("parametrize")]
+    if len(marks) != 1 or len(marks[0].args) != 2 or marks[0].keywords:
+        return None
+    try:
+        values = ast.literal_eval(marks[0].args[1])
+    except ValueError:
+        return None
+    return {"-".join(map(str, v)) if isinstance(v, tuple) else str(v) for v in values}
