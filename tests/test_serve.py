@@ -789,8 +789,8 @@ def test_a_slow_upload_parse_holds_no_generation(strict, shared_motion):
     habit = strict.models["habit"].generator
     real, parsed = habit.read_source, threading.Event()
 
-    def slow_read(path, joint_map=None):  # a parse of 6 s: a large clip on a slow machine
-        time.sleep(6)
+    def slow_read(path, joint_map=None):  # a parse of 4 s (the limit is 3 s): a large clip on a slow machine
+        time.sleep(4)
         try:
             return real(path, joint_map)
         finally:
