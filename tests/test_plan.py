@@ -20,10 +20,9 @@ from omg.tools.plan import measure_activations, measure_controlnet_activations, 
 # process of its own: /proc/self/clear_refs "5" resets the peak (VmHWM), so the peak minus the
 # resident memory before the step is what the step added. A fixed mmap threshold makes glibc
 # return every large block at once, so freed activations do not linger in the heap; one thread
-# keeps torch's allocations in one arena. Gradients exist from the warm-up step before (one: after
-# a second, measured/planned was 0.05-0.5% lower, 1.181 / 1.068 / 1.091 against 1.182 / 1.073 / 1.095),
-# taken on the batch's first sample: the gradients' size does not depend on the batch, and a full-size
-# warm-up gave 1.185 / 1.077 / 1.096 against 1.185 / 1.077 / 1.085 for this one, in more of the test's time.
+# keeps torch's allocations in one arena. Gradients exist from the warm-up step before, taken on the
+# batch's first sample: their size does not depend on the batch (measured/planned 1.185 / 1.077 / 1.085;
+# after a full-size warm-up 1.185 / 1.077 / 1.096; after a second full-size step, 0.05-0.5% lower still).
 PEAK_STEP = """
 import sys, torch
 from omg.models.controlnet import MoCConfig, MotionControlNet

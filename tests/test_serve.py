@@ -26,8 +26,7 @@ from helpers.habit import CATEGORIES
 
 pytest.importorskip("fastapi", reason="omg serve needs fastapi (pip install -e '.[dev]')")
 httpx = pytest.importorskip("httpx", reason="the server tests talk to it with httpx")
-# the tests share the servers, their checkpoints, the browser and the FBX figure; on one worker many of them wait
-# (slow clients, a parse's timeout, a result's lifetime) while the other worker's tests compute
+# the tests share the servers, their checkpoints, the browser and the FBX figure: one worker builds them once
 pytestmark = pytest.mark.xdist_group("serve")
 
 
