@@ -15,7 +15,7 @@ from helpers import REPO, TINY_DIT, TINY_DIT_ARG
 from helpers.forked import OmgProcess
 from omg.cli import main
 from omg.data.datamodule import MotionDataModule
-from omg.lit.base import warmup_cosine
+from omg.lit.base import modes_restored, warmup_cosine
 from omg.lit.pretrain import PretrainModule
 from omg.lit.sampling import SamplingSettings
 
@@ -95,6 +95,24 @@ def _fit_args(shards, root, steps):
             f"--trainer.default_root_dir={root}", f"--trainer.callbacks.dirpath={root}/checkpoints",
             "--trainer.callbacks.every_n_train_steps=4", "--trainer.enable_progress_bar=false",
             TINY_DIT_ARG, "--model.init_args.optim.warmup_steps=5"]
+
+
+def test_a_block_leaves_every_modules_mode_as_it_found_it():
+    """``modes_restored`` (around sampling in a training run): whatever the block sets, each submodule's mode is
+    what it was, a frozen part in eval mode (a ControlNet's base, a text encoder) included."""
+    from omg.models.controlnet import MoCConfig, MotionControlNet
+    from omg.models.dit import DiTConfig, MotionDiT
+    from omg.text import build_text_encoder
+
+    net = MotionControlNet(MotionDiT(DiTConfig.from_name("mini", **TINY_DIT)), MoCConfig(d_c=16, text_dim=32))
+    module = torch.nn.ModuleDict({"net": net, "text": build_text_encoder("hash", dim=32)}).train()
+    module["net"].copy_blocks["0"].eval()  # a mode of its own inside a module in train mode
+    before = {name: m.training for name, m in module.named_modules()}
+    assert not before["net.base"] and not before["text"] and before["net"] and not before["net.copy_blocks.0"]
+    for change in (lambda: module.eval(), lambda: module.train(), lambda: net.base.blocks[0].train()):
+        with modes_restored(module):
+            change()
+        assert {name: m.training for name, m in module.named_modules()} == before
 
 
 def test_bad_configs_exit_2_with_one_line(h263_shards, tmp_path, capsys):

@@ -74,7 +74,7 @@ def modes_restored(module: nn.Module) -> Iterator[None]:
         yield
     finally:
         for m, training in modes.items():
-            m.train(training)
+            m.training = training  # its own flag: Module.train() would set its whole subtree again
 
 
 class NonFiniteLoss(FloatingPointError):
