@@ -2,11 +2,13 @@
 configs/mini/pretrain.yaml trained a few steps and checkpointed.
 
 ``launch/torchrun.sh`` runs twice, as node 0 and node 1, meeting through torchrun's c10d rendezvous
-on 127.0.0.1. ``launch/slurm.sbatch`` runs under a stand-in ``srun`` that starts the job's tasks
-as srun does, each with the SLURM_* variables srun would set (Lightning's SLURMEnvironment reads
-them); only the scheduler is simulated, the script and the training are real. A node lost mid-run
-(its training process SIGKILLed) ends the other with one ``omg: error:`` line, and ``--ckpt_path last``
-on both nodes then finishes the run."""
+on 127.0.0.1. A node lost mid-run (its training process SIGKILLed) ends the other with one
+``omg: error:`` line. The job is then resubmitted as a SLURM job: ``launch/slurm.sbatch`` under a
+stand-in ``srun`` that starts the job's tasks as srun does, each with the SLURM_* variables srun would
+set (Lightning's SLURMEnvironment reads them); only the scheduler is simulated, the script and the
+training are real. The script passes ``--ckpt_path last`` itself, so the resubmitted job resumes from
+the newest checkpoint and finishes the run: one job rehearses both launchers and both halves of a node
+loss, each training process paying its own start-up (about 11 s of imports) once."""
 
 from __future__ import annotations
 
@@ -60,7 +62,8 @@ def environment(tmp_path, **extra) -> dict:
     omg = tmp_path / "bin" / "omg"  # `omg` as installed: this checkout's CLI under this interpreter
     omg.write_text(f'#!/usr/bin/env bash\nexec {sys.executable} -m omg.cli "$@"\n')
     omg.chmod(0o755)
-    (tmp_path / "bin" / "python").symlink_to(sys.executable)
+    if not (tmp_path / "bin" / "python").exists():
+        (tmp_path / "bin" / "python").symlink_to(sys.executable)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "LOCAL_RANK", "WORLD_SIZE"))}
     return {**env, "PATH": f"{tmp_path / 'bin'}:{env['PATH']}", "PYTHONPATH": str(REPO), "GLOBAL_BATCH": "32",
             **extra}
@@ -68,28 +71,6 @@ def environment(tmp_path, **extra) -> dict:
 
 def checkpoints(folder) -> list[str]:
     return sorted(p.name for p in folder.glob("*.ckpt"))
-
-
-@pytest.mark.slow
-def test_slurm_sbatch_two_nodes_train_and_checkpoint(tmp_path):
-    (tmp_path / "bin").mkdir()
-    srun = tmp_path / "bin" / "srun"
-    srun.write_text(SRUN)
-    srun.chmod(0o755)
-    logs = tmp_path / "logs"
-    logs.mkdir()
-    # what SLURM sets for `sbatch --nodes=2 --ntasks-per-node=1` (one "node" name for both: one machine)
-    env = environment(tmp_path, SLURM_JOB_NUM_NODES="2", SLURM_NNODES="2", SLURM_NTASKS="2",
-                      SLURM_NTASKS_PER_NODE="1", SLURM_NODELIST="127.0.0.1", SLURM_JOB_NAME="omg-pretrain",
-                      SLURM_JOB_ID="4242", MASTER_PORT=str(free_port()), LOGS=str(logs))
-    ckpt = tmp_path / "ckpt"
-    out = subprocess.run(["bash", str(REPO / "launch/slurm.sbatch"), "configs/mini/pretrain.yaml", *FAST,
-                          f"--trainer.callbacks.init_args.dirpath={ckpt}", "--trainer.default_root_dir",
-                          str(tmp_path / "run")], env=env, cwd=REPO, capture_output=True, text=True, timeout=240)
-    tasks = [(logs / f"task{i}.log").read_text() for i in (0, 1)]
-    assert out.returncode == 0, out.stderr[-2000:] + "\n".join(t[-2000:] for t in tasks)
-    assert "GLOBAL_RANK: 0, MEMBER: 1/2" in tasks[0] and "GLOBAL_RANK: 1, MEMBER: 2/2" in tasks[1]
-    assert checkpoints(ckpt) == ["epoch=0-step=4.ckpt"]
 
 
 # -- a node lost mid-run ---------------------------------------------------------------------------------
@@ -186,25 +167,37 @@ def test_torchrun_node_lost_mid_run_ends_the_other_in_one_line_and_resumes(tmp_p
     assert "lost a peer process" in errors[0] and "--ckpt_path last" in errors[0], errors[0]
     assert "exitcode: 2" in console(tmp_path, "killed", 0)  # torchrun's summary names the training process's exit
 
-    # the same command on both nodes with --ckpt_path last: from the newest checkpoint to max_steps
+    # the job resubmitted through launch/slurm.sbatch (it adds --ckpt_path last): from the newest checkpoint to
+    # max_steps, the same overrides as the torchrun job's
     before = {name: (ckpt / name).stat().st_mtime_ns for name in (p.name for p in ckpt.glob("epoch=*.ckpt"))}
     newest = max(before, key=step_of)
-    nodes = start_two_nodes(tmp_path, env, "resumed", [*args, "--ckpt_path", "last"])
-    try:
-        for node in nodes:
-            node.wait(timeout=240)
-    finally:
-        end(nodes)
-    consoles = console(tmp_path, "resumed", 0) + console(tmp_path, "resumed", 1)
-    assert [node.returncode for node in nodes] == [0, 0], consoles[-4000:]
-    assert f"Restoring states from the checkpoint path at {ckpt / newest}" in consoles
-    # two torchrun nodes train together: one rank each, both members of one group
-    assert "GLOBAL_RANK: 0, MEMBER: 1/2" in consoles and "GLOBAL_RANK: 1, MEMBER: 2/2" in consoles
-    assert "`max_steps=6` reached" in consoles
+    out, tasks = run_slurm_job(tmp_path, args)
+    assert out.returncode == 0, out.stderr[-2000:] + "\n".join(t[-2000:] for t in tasks)
+    assert f"Restoring states from the checkpoint path at {ckpt / newest}" in tasks[0]
+    # two tasks train together, each the rank srun's SLURM_PROCID gave it: both members of one group
+    assert "GLOBAL_RANK: 0, MEMBER: 1/2" in tasks[0] and "GLOBAL_RANK: 1, MEMBER: 2/2" in tasks[1]
+    assert "`max_steps=6` reached" in tasks[0]
     # resumed at the newest checkpoint's step, not from 0: the earlier checkpoints are untouched and the
     # resumed run wrote exactly the later ones
     assert {name: (ckpt / name).stat().st_mtime_ns for name in before} == before
     assert checkpoints(ckpt) == sorted([*before, *(f"epoch=0-step={s}.ckpt" for s in range(step_of(newest) + 2, 7, 2))])
+
+
+def run_slurm_job(tmp_path: Path, args: list[str]) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """``launch/slurm.sbatch configs/mini/pretrain.yaml ARGS`` as SLURM runs the batch script of
+    ``sbatch --nodes=2 --ntasks-per-node=1`` (one "node" name for both: one machine), under the stand-in
+    ``srun``; its result and each task's output."""
+    srun = tmp_path / "bin" / "srun"
+    srun.write_text(SRUN)
+    srun.chmod(0o755)
+    logs = tmp_path / "slurm"
+    logs.mkdir()
+    env = environment(tmp_path, SLURM_JOB_NUM_NODES="2", SLURM_NNODES="2", SLURM_NTASKS="2",
+                      SLURM_NTASKS_PER_NODE="1", SLURM_NODELIST="127.0.0.1", SLURM_JOB_NAME="omg-pretrain",
+                      SLURM_JOB_ID="4242", MASTER_PORT=str(free_port()), LOGS=str(logs))
+    out = subprocess.run(["bash", str(REPO / "launch/slurm.sbatch"), "configs/mini/pretrain.yaml", *args], env=env,
+                         cwd=REPO, capture_output=True, text=True, timeout=240)
+    return out, [(logs / f"task{i}.log").read_text() for i in (0, 1)]
 
 
 # -- what is tested without a cluster: the NCCL setting and the one-line wording ---------------------------------

@@ -23,7 +23,6 @@ LONGEST: dict[str, float] = {
     "ddp_resume": 45,
     "test_callbacks.py::test_controlnet_samples_follow_lengths_and_guidance": 45,
     "test_launch.py::test_devices_2_on_one_machine_starts_both_ranks_from_any_folder": 45,
-    "test_multinode.py::test_slurm_sbatch_two_nodes_train_and_checkpoint": 45,
     "outside": 45,
     "controlnet_module": 40,
     "public_api": 40,
