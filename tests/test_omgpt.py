@@ -687,10 +687,12 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
              ("arm", "right"): "RFoot"}  # an animal's hind feet are its legs, its front feet its arms
     ends = {limb: SMAL35.names.index(name) for limb, name in names.items()}
 
-    def translate(texts, human, human_offsets, lengths, animals, use_ema=True):
-        kind, side = one_sided_limb(texts[0])
-        moving = ends[kind, OTHER_SIDE[side] if mirror else side]
-        return _swinging(SMAL35, moving, human.shape[1])[None].expand(len(animals), -1, -1)
+    def translate(texts, human, human_offsets, lengths, animals, use_ema=True):  # each row swings its caption's limb
+        swinging = []
+        for text in texts:
+            kind, side = one_sided_limb(text)
+            swinging.append(_swinging(SMAL35, ends[kind, OTHER_SIDE[side] if mirror else side], human.shape[1]))
+        return torch.stack(swinging)
 
     module.translate = translate
     sides = callback.measure(module)

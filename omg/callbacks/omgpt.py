@@ -160,10 +160,15 @@ OTHER_SIDE = {"left": "right", "right": "left"}
 def limb_travel(representation, features: torch.Tensor, offsets: torch.Tensor) -> dict[tuple[str, str], float]:
     """The path length (metres) of each limb end over a motion: maa features (T, D), offsets (J, 3).
     An animal's front feet are its arms, its hind feet its legs (the primal-joint pairing)."""
-    joints = representation.decode(features[None].float(), offsets[None].float())[0]  # (T, J, 3)
+    return limb_travels(representation, features[None], offsets[None])[0]
+
+
+def limb_travels(representation, features: torch.Tensor, offsets: torch.Tensor) -> list[dict[tuple[str, str], float]]:
+    """``limb_travel`` of each of B motions of one length at once: features (B, T, D), offsets (B, J, 3)."""
+    joints = representation.decode(features.float(), offsets.float())  # (B, T, J, 3)
     ends = primal_joints(representation.skeleton)
-    path = (joints[1:] - joints[:-1]).norm(dim=-1).sum(0)  # (J,)
-    return {limb: float(path[ends[i]]) for limb, i in LIMB_ENDS.items()}
+    paths = (joints[:, 1:] - joints[:, :-1]).norm(dim=-1).sum(1)  # (B, J)
+    return [{limb: float(path[ends[i]]) for limb, i in LIMB_ENDS.items()} for path in paths]
 
 
 class SideTransferCallback(L.Callback):
@@ -177,14 +182,18 @@ class SideTransferCallback(L.Callback):
         prompts: the human shard set (a directory or URL pattern) whose captioned clips are used.
         animals: the animals (default: every animal the model knows).
         max_frames: clips are cut to this many frames (the model's longest: 196).
+        rows_per_call: the most motions one ``translate`` call makes (clips x animals; lengths padded).
     """
 
     report_name = "eval_sides"
 
-    def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196):
+    def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196, rows_per_call: int = 64):
         if not prompts:
             raise UsageError("SideTransferCallback.prompts: a human shard directory with captioned clips")
+        if rows_per_call < 1:
+            raise UsageError(f"SideTransferCallback.rows_per_call: at least 1, got {rows_per_call}")
         self.prompt_shards, self.animals, self.max_frames = prompts, animals, max_frames
+        self.rows_per_call = rows_per_call
 
     def clips(self) -> list[tuple[str, tuple[str, str], dict]]:
         """(caption, (limb, side), sample) of every one-sided caption of the human set."""
@@ -197,21 +206,33 @@ class SideTransferCallback(L.Callback):
     def measure(self, module: L.LightningModule) -> dict[str, dict[str, Any]]:
         animals = self.animals or module.animal_names
         counts = {(a, kind): [0, 0] for a in animals for kind in ("leg", "arm")}  # (clips, kept)
+        kept = []  # (caption, (limb, side), human maa (T, D), offsets (J, 3)) of the clips whose named side moves
         for caption, (kind, side), sample in self.clips():
             human = torch.from_numpy(np.ascontiguousarray(sample["motion"][: self.max_frames])).float()
             human_offsets = torch.tensor(sample["meta"]["offsets"], dtype=torch.float32)
             if len(human) < 2:
                 continue
             travel = limb_travel(module.human_rep, human, human_offsets)
-            if travel[kind, side] <= travel[kind, OTHER_SIDE[side]]:
-                continue  # the caption's side is not the one that moves: nothing to keep
-            out = module.translate([caption] * len(animals), human[None].expand(len(animals), -1, -1),
-                                   human_offsets[None].expand(len(animals), -1, -1), [len(human)] * len(animals),
-                                   animals)
-            for b, animal in enumerate(animals):
-                moved = limb_travel(module.representation, out[b].cpu(), module.animal_offsets(animal).cpu())
-                counts[animal, kind][0] += 1
-                counts[animal, kind][1] += int(moved[kind, side] > moved[kind, OTHER_SIDE[side]])
+            if travel[kind, side] > travel[kind, OTHER_SIDE[side]]:  # else nothing to keep
+                kept.append((caption, (kind, side), human, human_offsets))
+        animal_offsets = torch.stack([module.animal_offsets(a).cpu() for a in animals])  # (A, J_a, 3)
+        per_call = max(1, self.rows_per_call // len(animals))
+        kept.sort(key=lambda clip: len(clip[2]))  # clips of like lengths together: little padding to compute
+        for start in range(0, len(kept), per_call):  # each clip made into every animal, several clips a call
+            group = kept[start:start + per_call]
+            lengths = [len(human) for _, _, human, _ in group]
+            humans = torch.zeros(len(group), max(lengths), group[0][2].shape[-1])  # zero-padded (B, T, D)
+            for b, (_, _, human, _) in enumerate(group):
+                humans[b, : len(human)] = human
+            rows = len(animals)
+            out = module.translate([c for c, _, _, _ in group for _ in animals], humans.repeat_interleave(rows, 0),
+                                   torch.stack([o for _, _, _, o in group]).repeat_interleave(rows, 0),
+                                   [n for n in lengths for _ in animals], animals * len(group)).cpu()
+            for b, (_, (kind, side), _, _) in enumerate(group):
+                moved = limb_travels(module.representation, out[b * rows:(b + 1) * rows, : lengths[b]], animal_offsets)
+                for animal, travel in zip(animals, moved):
+                    counts[animal, kind][0] += 1
+                    counts[animal, kind][1] += int(travel[kind, side] > travel[kind, OTHER_SIDE[side]])
         return {f"{animal}/{kind}": {"clips": n, "kept": k, "fraction": k / n if n else float("nan")}
                 for (animal, kind), (n, k) in counts.items()}
 

@@ -11,6 +11,7 @@ CLIP's 428M.
 from __future__ import annotations
 
 import os
+from contextlib import nullcontext
 
 import torch
 from torch import Tensor
@@ -56,10 +57,15 @@ class ClipTextEncoder(TextEncoder):
         # find the file first: a missing one fails at once, not after building the tower
         path = None if pretrained is None or building_on_meta() else _weights_file(pretrained, tag)
         cfg = open_clip.get_model_config(ARCH)
-        # with its text projection: token features come before it, the sentence embedding after it
-        self.tower = _build_text_tower(cfg["embed_dim"], cfg["text_cfg"], quick_gelu)
+        # with its text projection: token features come before it, the sentence embedding after it. The file's
+        # tensors replace every weight, so the tower is built on the meta device and takes them, instead of
+        # drawing 124M random values first (1.6 s of a CPU core)
+        with torch.device("meta") if path is not None else nullcontext():
+            self.tower = _build_text_tower(cfg["embed_dim"], cfg["text_cfg"], quick_gelu)
         if path is not None:
             _load_tower(self.tower, path)
+            if self.tower.attn_mask is not None:  # not saved (a non-persistent buffer): made as open_clip makes it
+                self.tower.register_buffer("attn_mask", self.tower.build_causal_mask(), persistent=False)
         self.tokenizer = open_clip.get_tokenizer(ARCH)
         self._freeze()
 
@@ -121,12 +127,12 @@ def _load_tower(tower: torch.nn.Module, path: str) -> None:
         raise UsageError(f"clip-vit-l-14: cannot read {CONFIG_KEY}={path!r}: {e}".splitlines()[0]) from e
     # CustomTextCLIP checkpoints nest the tower under "text."; CLIP ones keep it at the top level
     state = {k.removeprefix("text."): v for k, v in state.items()}
-    wanted = tower.state_dict().keys()
+    wanted = tower.state_dict()
     if missing := [k for k in wanted if k not in state]:
         raise UsageError(f"clip-vit-l-14: {path} is not an open_clip {ARCH} checkpoint: it lacks "
                          f"{len(missing)} text-tower weights, e.g. {missing[:3]}")
-    try:
-        tower.load_state_dict({k: state[k] for k in wanted})
+    try:  # the file's tensors, in the tower's dtype (OpenAI's file is fp16), become its weights (``assign``)
+        tower.load_state_dict({k: state[k].to(wanted[k].dtype) for k in wanted}, assign=True)
     except RuntimeError as e:
         raise UsageError(f"clip-vit-l-14: {path} does not fit {ARCH}'s text tower: "
                          f"{' '.join(str(e).split())[:300]}") from e
