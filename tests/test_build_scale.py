@@ -24,6 +24,8 @@ from omg.data.shards import BUILD_STATE, BuildProgress, Manifest, decode_sample,
 from omg.errors import UsageError
 from omg.tools.shards import build
 
+pytestmark = pytest.mark.xdist_group("build_scale")  # the tests share the `one_worker` fixture's build
+
 
 def _set(shard_dir: Path) -> dict:
     """What a set holds: manifest (less its command), shard bytes by name."""

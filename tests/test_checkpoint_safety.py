@@ -30,6 +30,8 @@ from omg.errors import UsageError
 from omg.lit.checkpoint import LIGHTNING_SAFE_GLOBALS, convert, inspect_checkpoint, load_checkpoint, load_module
 from omg.lit.pretrain import PretrainModule
 
+pytestmark = pytest.mark.xdist_group("checkpoint_safety")  # the tests share the `runs` fixture's checkpoints
+
 MINI = REPO / "shards/mini/human263"
 
 

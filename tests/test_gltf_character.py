@@ -29,6 +29,8 @@ from omg.metrics.following import label_targets, passes
 from omg.retarget import get_joint_map, onto_rig, read_rig, retarget
 from omg.skeleton import get_skeleton
 
+pytestmark = pytest.mark.xdist_group("gltf_character")  # the tests share the `written` fixture's characters and outputs
+
 CLIPS = {  # Bandai-Namco takes, each passing its own label's targets on the model skeleton
     "wave-left-hand": "human/bandai2/dataset-2_wave-left-hand_normal_{}.bvh",
     "raise-up-right-hand": "human/bandai2/dataset-2_raise-up-right-hand_normal_{}.bvh",
@@ -44,7 +46,7 @@ def _clip_file(shared_motion: Path, label: str) -> Path:
     return found[0]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def written(tmp_path_factory) -> dict:
     """Per character: its file, its rig, and per clip the model's clip, onto_rig's motion and the output .glb."""
     if not (SHARED_MOTION / "manifest.json").exists():

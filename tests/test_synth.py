@@ -8,6 +8,8 @@ import torch
 
 from omg.data.synth import ANIMAL_ACTIONS, ANIMALS, HUMAN_ACTIONS, synth_clip, synth_clips
 
+pytestmark = pytest.mark.xdist_group("synth")  # the tests share the `clips` fixture's generated clips
+
 FPS = 30.0
 NUM = {"human": 2 * len(HUMAN_ACTIONS), "animal": len(ANIMAL_ACTIONS) * len(ANIMALS)}  # every (category, action)
 

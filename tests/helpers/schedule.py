@@ -27,6 +27,7 @@ LONGEST: dict[str, float] = {
     "controlnet_module": 40,
     "public_api": 40,
     "pretrain_whole_run": 35,
+    "build_scale": 30,
     "test_datamodule.py::test_two_ranks_read_disjoint_shards_and_equal_batch_counts": 28,
     "fbx": 25,
     "docs": 20,
@@ -34,10 +35,11 @@ LONGEST: dict[str, float] = {
     "test_plan.py::test_controlnet_activation_estimate_matches_the_measured_peak": 16,
     "test_plan.py::test_activation_estimate_matches_the_measured_peak[8-256-True]": 15,
     "test_bench.py::test_the_data_benchmark_runs_its_workers_by_module_path": 15,
-    "test_build_scale.py::test_real_clips_build_alike_with_two_workers": 15,
     "test_bvh_dir.py::test_real_manifest_builds": 13,
     "test_gpu_check.py::test_dry_run_resolves_every_command_and_trains_nothing": 12,
     "test_mini_data.py::test_committed_mini_data_matches_the_generator": 12,
+    "checkpoint_safety": 12,
+    "gltf_character": 10,
     "test_run_faults.py::test_ctrl_c_saves_a_checkpoint_exits_130_and_resumes": 10,
 }
 SLOW_SECONDS = 30.0  # the `slow` marker's "half a minute or more"
