@@ -695,7 +695,7 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
         return torch.stack(swinging)
 
     module.translate = translate
-    sides = callback.measure(module)
+    sides = callback.measure(module)  # 32 clips a call (64 rows of 2 animals), each trimmed back to its length
     consistent = 0  # captions whose human limb on the named side travels farther
     for _, (kind, side), s in clips:
         t = limb_travel(module.human_rep, torch.from_numpy(s["motion"]), torch.tensor(s["meta"]["offsets"]))
@@ -703,6 +703,8 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
     assert sides["dog/leg"]["clips"] + sides["dog/arm"]["clips"] == consistent > 20
     for key, v in sides.items():
         assert v["kept"] == (0 if mirror else v["clips"]), key
+    with pytest.raises(UsageError, match="SideTransferCallback.batch_size: at least 1, got 0"):
+        SideTransferCallback(str(MINI / "human_maa/train"), batch_size=0)
 
 
 def old_layout(ckpt: dict, **hparams) -> dict:

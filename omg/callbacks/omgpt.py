@@ -182,18 +182,18 @@ class SideTransferCallback(L.Callback):
         prompts: the human shard set (a directory or URL pattern) whose captioned clips are used.
         animals: the animals (default: every animal the model knows).
         max_frames: clips are cut to this many frames (the model's longest: 196).
-        rows_per_call: the most motions one ``translate`` call makes (clips x animals; lengths padded).
+        batch_size: the most motions one ``translate`` call makes (clips x animals; lengths padded).
     """
 
     report_name = "eval_sides"
 
-    def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196, rows_per_call: int = 64):
+    def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196, batch_size: int = 64):
         if not prompts:
             raise UsageError("SideTransferCallback.prompts: a human shard directory with captioned clips")
-        if rows_per_call < 1:
-            raise UsageError(f"SideTransferCallback.rows_per_call: at least 1, got {rows_per_call}")
+        if batch_size < 1:
+            raise UsageError(f"SideTransferCallback.batch_size: at least 1, got {batch_size}")
         self.prompt_shards, self.animals, self.max_frames = prompts, animals, max_frames
-        self.rows_per_call = rows_per_call
+        self.batch_size = batch_size
 
     def clips(self) -> list[tuple[str, tuple[str, str], dict]]:
         """(caption, (limb, side), sample) of every one-sided caption of the human set."""
@@ -216,7 +216,7 @@ class SideTransferCallback(L.Callback):
             if travel[kind, side] > travel[kind, OTHER_SIDE[side]]:  # else nothing to keep
                 kept.append((caption, (kind, side), human, human_offsets))
         animal_offsets = torch.stack([module.animal_offsets(a).cpu() for a in animals])  # (A, J_a, 3)
-        per_call = max(1, self.rows_per_call // len(animals))
+        per_call = max(1, self.batch_size // len(animals))
         kept.sort(key=lambda clip: len(clip[2]))  # clips of like lengths together: little padding to compute
         for start in range(0, len(kept), per_call):  # each clip made into every animal, several clips a call
             group = kept[start:start + per_call]
