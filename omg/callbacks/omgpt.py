@@ -22,6 +22,7 @@ import lightning as L
 import numpy as np
 import torch
 from lightning.pytorch.utilities import rank_zero_only
+from torch.nn.utils.rnn import pad_sequence
 
 from omg.callbacks.eval import EvalCallback
 from omg.callbacks.run import run_dir
@@ -216,19 +217,17 @@ class SideTransferCallback(L.Callback):
             if travel[kind, side] > travel[kind, OTHER_SIDE[side]]:  # else nothing to keep
                 kept.append((caption, (kind, side), human, human_offsets))
         animal_offsets = torch.stack([module.animal_offsets(a).cpu() for a in animals])  # (A, J_a, 3)
-        per_call = max(1, self.batch_size // len(animals))
+        rows = len(animals)  # each clip made into every animal, several clips a call
+        per_call = max(1, self.batch_size // rows)
         kept.sort(key=lambda clip: len(clip[2]))  # clips of like lengths together: little padding to compute
-        for start in range(0, len(kept), per_call):  # each clip made into every animal, several clips a call
-            group = kept[start:start + per_call]
-            lengths = [len(human) for _, _, human, _ in group]
-            humans = torch.zeros(len(group), max(lengths), group[0][2].shape[-1])  # zero-padded (B, T, D)
-            for b, (_, _, human, _) in enumerate(group):
-                humans[b, : len(human)] = human
-            rows = len(animals)
-            out = module.translate([c for c, _, _, _ in group for _ in animals], humans.repeat_interleave(rows, 0),
-                                   torch.stack([o for _, _, _, o in group]).repeat_interleave(rows, 0),
-                                   [n for n in lengths for _ in animals], animals * len(group)).cpu()
-            for b, (_, (kind, side), _, _) in enumerate(group):
+        for start in range(0, len(kept), per_call):
+            captions, limbs, humans, offsets = zip(*kept[start:start + per_call])
+            lengths = [len(human) for human in humans]
+            out = module.translate([c for c in captions for _ in animals],
+                                   pad_sequence(humans, batch_first=True).repeat_interleave(rows, 0),  # zero-padded
+                                   torch.stack(offsets).repeat_interleave(rows, 0),
+                                   [n for n in lengths for _ in animals], animals * len(captions)).cpu()
+            for b, (kind, side) in enumerate(limbs):
                 moved = limb_travels(module.representation, out[b * rows:(b + 1) * rows, : lengths[b]], animal_offsets)
                 for animal, travel in zip(animals, moved):
                     counts[animal, kind][0] += 1
