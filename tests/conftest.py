@@ -10,7 +10,7 @@ import pytest
 
 
 def pytest_collection_modifyitems(config, items):
-    """The longest tests and xdist groups first (helpers.schedule): with two xdist workers the long ones start
+    """The longest tests and xdist groups first (helpers.schedule): with the xdist workers the long ones start
     at once and the short tests fill the time around them, instead of one long test starting last."""
     from helpers.schedule import longest_first
 

@@ -1,15 +1,15 @@
-"""The order the suite hands its tests to the two xdist workers (``conftest.pytest_collection_modifyitems``).
+"""The order the suite hands its tests to the xdist workers (``conftest.pytest_collection_modifyitems``).
 
 `--dist loadgroup` sends work in collection order, one unit at a time: a test, or a whole ``xdist_group``
 (its tests run on one worker, which builds their shared fixtures once). A long unit that starts last ends
 the run late by its whole length, so the units are sorted longest first: the long ones start at once, on
-both workers, and the short tests fill the time around them."""
+separate workers, and the short tests fill the time around them."""
 
 from __future__ import annotations
 
 import pytest
 
-# Seconds a test or a whole xdist group takes on the CI machine (2 cores, the other worker busy beside
+# Seconds a test or a whole xdist group takes on the CI machine (2 cores, the other workers busy beside
 # it), its fixtures included: from the durations of `.ci/run`'s pytest. Only the order comes from these,
 # so a rough figure does; a test marked `slow` that is not here counts SLOW_SECONDS. A key is an xdist
 # group's name, "file::test" (each of its parameter cases) or "file::test[case]".
