@@ -703,7 +703,7 @@ def test_side_transfer_counts_the_animal_limb_that_moves(omgpt_ckpt, mirror):
     assert sides["dog/leg"]["clips"] + sides["dog/arm"]["clips"] == consistent > 20
     for key, v in sides.items():
         assert v["kept"] == (0 if mirror else v["clips"]), key
-    with pytest.raises(UsageError, match="SideTransferCallback.batch_size: at least 1, got 0"):
+    with pytest.raises(UsageError, match=r"SideTransferCallback.batch_size must be an integer >= 1, got 0$"):
         SideTransferCallback(str(MINI / "human_maa/train"), batch_size=0)
 
 

@@ -191,8 +191,8 @@ class SideTransferCallback(L.Callback):
     def __init__(self, prompts: str, animals: list[str] | None = None, max_frames: int = 196, batch_size: int = 64):
         if not prompts:
             raise UsageError("SideTransferCallback.prompts: a human shard directory with captioned clips")
-        if batch_size < 1:
-            raise UsageError(f"SideTransferCallback.batch_size: at least 1, got {batch_size}")
+        if not isinstance(batch_size, int) or batch_size < 1:  # EvalCallback's check and wording
+            raise UsageError(f"SideTransferCallback.batch_size must be an integer >= 1, got {batch_size!r}")
         self.prompt_shards, self.animals, self.max_frames = prompts, animals, max_frames
         self.batch_size = batch_size
 
